@@ -1,0 +1,123 @@
+"""The Project object and the runner: records, skipping, staleness, forcing, failures that lose nothing."""
+
+import json
+from pathlib import Path
+
+import pytest
+
+from workbench.errors import InputError, StageError
+from workbench.project import Project
+from workbench.runner import Runner, StageResult, StageSpec
+
+
+def make_project(tmp_path: Path) -> Project:
+    p = Project.create(tmp_path / "inc", lat=40.878, lon=-73.92)
+    (p.root / "data.txt").write_text("one")
+    return p
+
+
+def stages(calls: list, fail: dict):
+    def first(project, progress):
+        calls.append("first")
+        text = (project.root / "data.txt").read_text()
+        if fail.get("first"):
+            raise InputError("data.txt: bad data")
+        path = project.write_json(project.stage_dir("first") / "upper.json", {"text": text.upper()})
+        return StageResult(outputs={"upper": path}, stats={"chars": len(text)})
+
+    def second(project, progress):
+        calls.append("second")
+        data = project.read_json(project.stage_dir("first") / "upper.json")
+        if fail.get("second"):
+            raise ZeroDivisionError("boom")
+        path = project.write_json(project.stage_dir("second") / "twice.json", {"text": data["text"] * 2})
+        return StageResult(outputs={"twice": path})
+
+    return [
+        StageSpec("first", "upper-case", first, inputs=lambda p: {"data": p.root / "data.txt"},
+                  settings_sections=("solver",)),
+        StageSpec("second", "twice", second, depends_on=("first",)),
+    ]
+
+
+def test_run_skip_stale_force(tmp_path):
+    p = make_project(tmp_path)
+    calls, fail = [], {}
+    r = Runner(p, stages(calls, fail))
+    assert [s.status for s in r.status()] == ["not run", "not run"]
+    r.run()
+    assert calls == ["first", "second"]
+    st = p.read_state()
+    assert st["first"]["status"] == "done" and "duration_s" in st["first"]
+    assert json.loads((p.stage_dir("first") / "stats.json").read_text())["chars"] == 3
+    assert [s.status for s in r.status()] == ["done", "done"]
+    r.run()
+    assert calls == ["first", "second"]  # nothing re-ran
+    # input changed -> first is stale, and second runs again because first's outputs changed
+    (p.root / "data.txt").write_text("two!")
+    assert r.status()[0].status == "stale" and "inputs changed: data" in r.status()[0].reason
+    r.run()
+    assert calls == ["first", "second", "first", "second"]
+    # settings section changed -> stale
+    text = p.settings_path.read_text().replace("slack_held_m = 0.05", "slack_held_m = 0.04")
+    p.settings_path.write_text(text)
+    p.reload()
+    assert r.status()[0].status == "stale" and "settings changed" in r.status()[0].reason
+    r.run()
+    assert calls[-2:] == ["second", "first"]  # first re-ran; its outputs did not change, so second did not
+    n = len(calls)
+    r.run(force=True, only=["second"])
+    assert calls[n:] == ["second"]
+    # an output modified by hand -> stale
+    (p.stage_dir("second") / "twice.json").write_text("{}")
+    assert r.status()[1].status == "stale"
+
+
+def test_failure_is_recorded_and_keeps_outputs(tmp_path):
+    p = make_project(tmp_path)
+    calls, fail = [], {}
+    r = Runner(p, stages(calls, fail))
+    r.run()
+    before = (p.stage_dir("first") / "upper.json").read_text()
+    (p.root / "data.txt").write_text("changed")
+    fail["first"] = True
+    with pytest.raises(InputError, match="bad data"):
+        r.run()
+    st = r.status()
+    assert st[0].status == "failed" and "bad data" in st[0].reason
+    assert (p.stage_dir("first") / "upper.json").read_text() == before  # nothing lost
+    assert p.read_state()["first"]["previous"]["outputs"]["upper"]["path"] == "out/first/upper.json"
+    with pytest.raises(StageError, match="needs stage 'first', which is failed"):
+        r.run(only=["second"])
+    fail["first"] = False
+    fail["second"] = True
+    with pytest.raises(StageError, match="stage 'second' failed: ZeroDivisionError: boom"):
+        r.run()
+    assert "traceback" in p.read_state()["second"]
+
+
+def test_unknown_stage_and_bad_order(tmp_path):
+    p = make_project(tmp_path)
+    r = Runner(p, stages([], {}))
+    with pytest.raises(StageError, match="unknown stage"):
+        r.run(only=["nope"])
+    s = stages([], {})
+    with pytest.raises(ValueError, match="does not run before it"):
+        Runner(p, [s[1], s[0]])
+
+
+def test_project_paths_and_atomic_json(tmp_path):
+    p = make_project(tmp_path)
+    assert p.path("photos/panorama") == p.root / "photos/panorama"
+    assert p.relative(p.root / "out" / "x.json") == "out/x.json"
+    with pytest.raises(InputError, match="no photos"):
+        p.photo_paths()
+    with pytest.raises(InputError, match="not a folder"):
+        p.photo_paths("photos/nothing")
+    path = p.write_json(p.out_dir / "a.json", {"v": 1})
+    with pytest.raises(ValueError):
+        p.write_json(path, {"v": float("nan")})  # NaN is refused...
+    assert json.loads(path.read_text()) == {"v": 1}  # ...and the earlier file is intact
+    assert not [f for f in path.parent.iterdir() if f.name.startswith(".")]  # no temp files left
+    with pytest.raises(InputError, match="no such incident folder"):
+        Project(tmp_path / "missing")

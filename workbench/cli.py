@@ -1,0 +1,175 @@
+"""The ``workbench`` command: it only parses arguments and calls the library."""
+
+from __future__ import annotations
+
+import datetime as _dt
+import logging
+import sys
+from pathlib import Path
+from typing import Optional
+
+import typer
+from rich.console import Console
+from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from .errors import WorkbenchError
+
+app = typer.Typer(add_completion=False, no_args_is_help=True,
+                  help="Reconstruction workbench for train-accident scenes: one incident folder per incident.")
+console = Console(stderr=True)
+out = Console()
+
+
+def _progress() -> Progress:
+    return Progress(TextColumn("[bold]{task.description:<10}"), BarColumn(), TextColumn("{task.fields[msg]}"),
+                    TimeElapsedColumn(), console=console, disable=not console.is_terminal, transient=False)
+
+
+@app.callback()
+def _main(verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="-v info, -vv debug logging")) -> None:
+    level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+
+
+@app.command()
+def init(path: Path = typer.Argument(..., help="new incident folder, e.g. projects/my-incident"),
+         name: Optional[str] = typer.Option(None, help="incident name"),
+         lat: float = typer.Option(0.0, help="reference point latitude (WGS84 degrees)"),
+         lon: float = typer.Option(0.0, help="reference point longitude (WGS84 degrees)"),
+         crs: str = typer.Option("EPSG:32618", help="projected CRS of the project (metres)"),
+         date: Optional[str] = typer.Option(None, help="incident date YYYY-MM-DD (default today)")) -> None:
+    """Create an incident folder with a documented project.toml."""
+    from .project import Project
+
+    d = None
+    if date:
+        try:
+            d = _dt.date.fromisoformat(date)
+        except ValueError:
+            raise WorkbenchError(f"--date {date!r}: give the date as YYYY-MM-DD") from None
+    p = Project.create(path, name=name, lat=lat, lon=lon, crs=crs, date=d)
+    out.print(f"created {p.settings_path}; edit it (see docs/formats.md), put photos in {p.root / 'photos/panorama'}")
+
+
+@app.command()
+def synth(path: Path = typer.Argument(..., help="incident folder to generate (created if missing)"),
+          scenario: str = typer.Option("spuyten-duyvil", help="spuyten-duyvil | frankford-junction"),
+          seed: int = typer.Option(1, help="random seed (the incident is deterministic for a seed)"),
+          cars: Optional[int] = typer.Option(None, help="number of carriages (default: the scenario's consist)"),
+          width: int = typer.Option(1600, help="photo width, px"),
+          height: int = typer.Option(1200, help="photo height, px"),
+          panorama: Optional[int] = typer.Option(None, help="photos in the panorama set (default 5-8, automatic)"),
+          multiview: int = typer.Option(12, help="photos in the multi-position set (0: none)"),
+          layers_dir: str = typer.Option("layers", help="where the DEM and buildings go, relative to the folder"),
+          force: bool = typer.Option(False, "--force", help="regenerate even if already generated")) -> None:
+    """Generate a synthetic incident with ground truth (DEM, buildings, derailed consist, photos)."""
+    from .synth.generate import SynthOptions, generate_incident
+
+    opts = SynthOptions(scenario=scenario, seed=seed, n_cars=cars, photo_width=width, photo_height=height,
+                        n_panorama=panorama, n_multiview=multiview, layers_dir=layers_dir)
+    path.mkdir(parents=True, exist_ok=True)
+    with _progress() as prog:
+        task = prog.add_task("synth", total=1.0, msg="")
+        res = generate_incident(path, opts, force=force,
+                                progress=lambda f, m="": prog.update(task, completed=f, msg=m))
+    if res.get("skipped"):
+        out.print(f"{path}: already generated with these options (use --force to regenerate)")
+    else:
+        out.print(f"{path}: {res['carriages']} carriages, {res['photos']} photos; truth in {res['truth']}")
+
+
+def _runner(path: Path):
+    from .pipeline import STAGES
+    from .project import Project
+    from .runner import Runner
+
+    project = Project(path)
+    project.settings  # validate first: a typo fails before anything runs
+    return project, Runner(project, STAGES)
+
+
+@app.command()
+def run(path: Path = typer.Argument(..., help="incident folder"),
+        only: Optional[list[str]] = typer.Option(None, "--only", help="run only this stage (repeatable)"),
+        force: bool = typer.Option(False, "--force", help="run stages even if their inputs did not change")) -> None:
+    """Run every stage in order, skipping those whose inputs did not change."""
+    project, runner = _runner(path)
+    with _progress() as prog:
+        tasks = {}
+
+        def factory(spec):
+            tasks[spec.name] = prog.add_task(spec.name, total=1.0, msg="")
+            return lambda f, m="": prog.update(tasks[spec.name], completed=f, msg=m)
+
+        def event(kind, spec, rec):
+            if kind == "done" and spec.name in tasks:
+                prog.update(tasks[spec.name], completed=1.0, msg=f"done in {rec['duration_s']:.1f} s")
+            if kind == "skipped":
+                prog.console.print(f"{spec.name}: up to date, skipped")
+            if not console.is_terminal and kind in ("done", "failed"):
+                console.print(f"{spec.name}: {kind}")
+
+        statuses = runner.run(only=only, force=force, progress_factory=factory, on_event=event)
+    _print_outputs(project, statuses)
+
+
+def _print_outputs(project, statuses) -> None:
+    out.print(f"incident {project.root}")
+    for st in statuses:
+        if st.status == "done" and st.record:
+            files = ", ".join(o["path"] for k, o in st.record["outputs"].items() if k != "stats")
+            out.print(f"  {st.name:<10} done     {files}")
+        else:
+            out.print(f"  {st.name:<10} {st.status:<8} {st.reason}")
+
+
+@app.command()
+def status(path: Path = typer.Argument(..., help="incident folder")) -> None:
+    """Show which stages are done, stale, failed or not run."""
+    project, runner = _runner(path)
+    table = Table(title=f"{project.settings.incident.name} ({project.root})")
+    for col in ("stage", "status", "last run (UTC)", "time (s)", "note"):
+        table.add_column(col)
+    for st in runner.status():
+        rec = st.record or {}
+        table.add_row(st.name, st.status, rec.get("started_utc", ""), str(rec.get("duration_s", "")), st.reason)
+    out.print(table)
+
+
+@app.command()
+def types(project: Optional[Path] = typer.Option(None, help="also list an incident's own types")) -> None:
+    """List the rolling-stock types (carriage models) the workbench knows."""
+    from .rolling_stock import load_library
+
+    extra = [project / "rolling_stock"] if project and (project / "rolling_stock").is_dir() else []
+    table = Table(title="rolling stock")
+    for col in ("id", "name", "length over couplers (m)", "marked points", "file"):
+        table.add_column(col)
+    for tid, t in sorted(load_library(extra_dirs=extra).items()):
+        table.add_row(tid, t.name, f"{t.length_m:.2f}", str(len(t.marked_points)), str(t.source_path))
+    out.print(table)
+
+
+def main() -> None:
+    try:
+        app(standalone_mode=False)
+    except WorkbenchError as exc:
+        console.print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
+        sys.exit(2)
+    except (typer.Abort, KeyboardInterrupt):
+        console.print("aborted")
+        sys.exit(130)
+    except Exception as exc:  # click usage errors
+        import click
+
+        if isinstance(exc, click.exceptions.ClickException):
+            exc.show()
+            sys.exit(exc.exit_code)
+        if isinstance(exc, click.exceptions.Exit):
+            sys.exit(exc.exit_code)
+        raise
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,231 @@
+"""Incident settings (``project.toml``): validated pydantic models that reject unknown keys.
+
+The file format is documented in ``docs/formats.md``; ``TEMPLATE`` below is what ``workbench init``
+writes. Every error names the file, the key (dotted path) and the bad value.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import tomllib
+from enum import Enum
+from pathlib import Path
+from typing import Annotated, Any
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+
+from ..errors import SettingsError
+from .frames import parse_projected_crs
+
+SETTINGS_FILE = "project.toml"
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+
+
+class Incident(_Strict):
+    name: Annotated[str, Field(min_length=1)]
+    date: _dt.date
+    description: str = ""
+    synthetic: bool = False  # true for incidents made by `workbench synth` (their photos are renders)
+
+
+class Location(_Strict):
+    lat: Annotated[float, Field(ge=-90.0, le=90.0)]
+    lon: Annotated[float, Field(ge=-180.0, le=180.0)]
+    height_m: float = 0.0
+    crs: str
+
+    @field_validator("crs")
+    @classmethod
+    def _projected(cls, v: str) -> str:
+        try:
+            parse_projected_crs(v)
+        except SettingsError as exc:
+            raise ValueError(str(exc).split(" = ", 1)[-1]) from None
+        return v
+
+
+class Terrain(_Strict):
+    dem: str | None = None  # GeoTIFF, path relative to the project folder
+    buildings: str | None = None  # GeoJSON footprints with heights, relative path
+    dem_vertical_accuracy_m: Annotated[float, Field(gt=0.0)] = 0.5
+    aoi_radius_m: Annotated[float, Field(gt=0.0, le=20_000.0)] = 250.0
+
+
+class Coupling(str, Enum):
+    held = "held"
+    broken = "broken"
+
+
+class Car(_Strict):
+    number: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9._-]+$")]
+    type: Annotated[str, Field(min_length=1)]
+    coupling_to_next: Coupling | None = None  # required for every car but the last; absent on the last
+
+
+class CameraSource(str, Enum):
+    calibrated = "calibrated"  # a camera profile from `workbench calibrate` (or a known synthetic camera)
+    exif = "exif"  # focal prior from the photos' EXIF
+    sfm = "sfm"  # multi-view structure from motion (pycolmap)
+    unknown = "unknown"  # simplified pinhole, focal estimated in the solver
+
+
+class Camera(_Strict):
+    source: CameraSource = CameraSource.exif
+    photos: str = "photos/panorama"  # folder of the photos to use, relative to the project folder
+    profile: str | None = None  # camera profile JSON (required when source = "calibrated")
+    position_enu: tuple[float, float, float] | None = None  # known camera centre until georegistration exists
+
+    @model_validator(mode="after")
+    def _profile_needed(self) -> "Camera":
+        if self.source == CameraSource.calibrated and not self.profile:
+            raise ValueError("source = 'calibrated' needs profile = '<camera profile JSON>'")
+        return self
+
+
+class RobustLoss(str, Enum):
+    linear = "linear"
+    huber = "huber"
+    soft_l1 = "soft_l1"
+    cauchy = "cauchy"
+
+
+class Solver(_Strict):
+    pixel_sigma_px: Annotated[float, Field(gt=0.0)] = 1.0
+    robust_loss: RobustLoss = RobustLoss.linear
+    loss_scale_px: Annotated[float, Field(gt=0.0)] = 3.0
+    slack_held_m: Annotated[float, Field(gt=0.0, le=1.0)] = 0.05
+    slack_broken_m: Annotated[float, Field(gt=0.0)] | None = None  # None: a broken coupling gives no link
+    estimate_focal: bool = False
+    max_iterations: Annotated[int, Field(ge=1, le=10_000)] = 200
+
+
+class ProjectSettings(_Strict):
+    incident: Incident
+    location: Location
+    terrain: Terrain = Terrain()
+    consist: Annotated[list[Car], Field(min_length=1)]
+    camera: Camera = Camera()
+    solver: Solver = Solver()
+
+    @model_validator(mode="after")
+    def _consist_rules(self) -> "ProjectSettings":
+        seen: set[str] = set()
+        for i, car in enumerate(self.consist):
+            if car.number in seen:
+                raise ValueError(f"consist[{i}].number = {car.number!r} appears twice; car numbers must be unique")
+            seen.add(car.number)
+            last = i == len(self.consist) - 1
+            if last and car.coupling_to_next is not None:
+                raise ValueError(f"consist[{i}].coupling_to_next = {car.coupling_to_next.value!r}: the last car "
+                                 f"({car.number}) has no next car; remove the key")
+            if not last and car.coupling_to_next is None:
+                raise ValueError(f"consist[{i}].coupling_to_next is missing for car {car.number}: say 'held' or "
+                                 f"'broken'")
+        return self
+
+
+def _format_loc(loc: tuple[Any, ...]) -> str:
+    out = ""
+    for part in loc:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out
+
+
+def _describe(exc: ValidationError, source: str, data: dict) -> str:
+    msgs = []
+    for err in exc.errors():
+        key = _format_loc(err["loc"])
+        typ = err["type"]
+        if typ == "extra_forbidden":
+            msgs.append(f"unknown key '{key}' (check the spelling; see docs/formats.md)")
+        elif typ == "missing":
+            msgs.append(f"missing key '{key}'")
+        else:
+            msg = err["msg"].removeprefix("Value error, ")
+            if key:
+                msgs.append(f"'{key}' = {err.get('input')!r}: {msg}")
+            else:
+                msgs.append(msg)
+    return f"{source}: " + "; ".join(msgs)
+
+
+def parse_settings(data: dict, source: str = SETTINGS_FILE) -> ProjectSettings:
+    if "consist" in data and data["consist"] == []:
+        raise SettingsError(f"{source}: the consist is empty; add one [[consist]] table per carriage")
+    try:
+        return ProjectSettings.model_validate(data)
+    except ValidationError as exc:
+        raise SettingsError(_describe(exc, source, data)) from None
+
+
+def load_settings(path: Path) -> ProjectSettings:
+    """Read and validate ``project.toml``; every problem is a :class:`SettingsError` naming the file."""
+    path = Path(path)
+    if not path.is_file():
+        raise SettingsError(f"{path}: settings file not found; create one with `workbench init {path.parent}`")
+    try:
+        data = tomllib.loads(path.read_text(encoding="utf-8"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise SettingsError(f"{path}: not valid TOML ({exc}); fix the syntax at that line") from None
+    return parse_settings(data, str(path))
+
+
+def settings_to_toml_dict(settings: ProjectSettings) -> dict:
+    """A plain dict (for tomli_w) with None values dropped."""
+
+    def clean(v: Any) -> Any:
+        if isinstance(v, dict):
+            return {k: clean(x) for k, x in v.items() if x is not None}
+        if isinstance(v, (list, tuple)):
+            return [clean(x) for x in v]
+        if isinstance(v, Enum):
+            return v.value
+        return v
+
+    return clean(settings.model_dump(mode="python"))
+
+
+TEMPLATE = """\
+# Incident settings. Every key is documented in docs/formats.md.
+# Paths are relative to this folder. Unknown keys are an error.
+
+[incident]
+name = "{name}"
+date = {date}                 # TOML date: YYYY-MM-DD
+description = ""
+
+[location]
+lat = {lat}                   # reference point (scene origin), WGS84 degrees
+lon = {lon}
+height_m = 0.0                # origin height in the DEM's vertical datum, metres
+crs = "{crs}"                 # projected CRS of the project (metres), e.g. the UTM zone
+
+[terrain]
+# dem = "../../terrain/<region>/dem.tif"            # GeoTIFF with a CRS
+# buildings = "../../terrain/<region>/buildings.geojson"
+dem_vertical_accuracy_m = 0.5
+aoi_radius_m = 250.0
+
+# The consist, front to rear. coupling_to_next: "held" or "broken" (absent on the last car).
+[[consist]]
+number = "1"
+type = "shoreliner"           # a rolling-stock type id (`workbench types` lists them)
+
+[camera]
+source = "exif"               # calibrated | exif | sfm | unknown
+photos = "photos/panorama"
+# profile = "camera_profile.json"   # needed when source = "calibrated"
+# position_enu = [0.0, 0.0, 0.0]    # known camera centre (scene frame), until georegistration
+
+[solver]
+pixel_sigma_px = 1.0
+robust_loss = "linear"        # linear | huber | soft_l1 | cauchy
+loss_scale_px = 3.0
+slack_held_m = 0.05           # coupler slack of a coupling that held, metres
+# slack_broken_m = 2.0        # absent: a broken coupling gives no link
+estimate_focal = false
+max_iterations = 200
+"""

@@ -1,0 +1,215 @@
+"""The stage runner: stage order, input hashing, skipping, forcing, and a record of every run.
+
+A stage is a :class:`StageSpec`: a name, the stages it depends on, a function listing its input files,
+the settings sections it reads, and ``run(project, progress) -> StageResult``. The runner records in
+``out/state.json``, per stage: status, the SHA-256 of every input file, a hash of its settings sections,
+the hashes of its dependencies' outputs, its outputs with their hashes, the run time, and the error if
+it failed. A stage is *done* when that record matches the current inputs, *stale* when it does not,
+*failed* when its last run raised, and *not run* otherwise. Running skips done stages unless forced.
+
+Stages that later issues build register themselves in ``workbench/pipeline.py``.
+"""
+
+from __future__ import annotations
+
+import datetime as _dt
+import hashlib
+import json
+import logging
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Protocol
+
+from .core.io import hash_file
+from .errors import StageError, WorkbenchError
+from .project import Project
+
+log = logging.getLogger(__name__)
+
+
+class Progress(Protocol):
+    def __call__(self, fraction: float, message: str = "") -> None: ...
+
+
+def _no_progress(fraction: float, message: str = "") -> None:  # pragma: no cover - trivial
+    pass
+
+
+@dataclass
+class StageResult:
+    outputs: dict[str, Path]  # name -> file written (atomically) by the stage
+    stats: dict = field(default_factory=dict)  # statistics, written to out/<stage>/stats.json by the runner
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    name: str
+    description: str
+    run: Callable[[Project, Progress], StageResult]
+    inputs: Callable[[Project], dict[str, Path]] = lambda project: {}
+    settings_sections: tuple[str, ...] = ()
+    depends_on: tuple[str, ...] = ()
+    applies: Callable[[Project], bool] = lambda project: True  # False: the stage has nothing to do here
+
+
+@dataclass
+class StageStatus:
+    name: str
+    status: str  # done | stale | failed | not run | skipped (not applicable)
+    reason: str = ""
+    record: dict | None = None
+
+
+def _settings_hash(project: Project, sections: tuple[str, ...]) -> str:
+    blob = json.dumps(project.settings_section(*sections), sort_keys=True, default=str).encode()
+    return hashlib.sha256(blob).hexdigest()
+
+
+def _outputs_digest(record: dict) -> str:
+    """Digest of a stage's outputs (not its stats, whose run time changes every run)."""
+    outs = {k: v for k, v in record.get("outputs", {}).items() if k != "stats"}
+    blob = json.dumps(outs, sort_keys=True).encode()
+    return hashlib.sha256(blob).hexdigest()
+
+
+class Runner:
+    def __init__(self, project: Project, stages: list[StageSpec]) -> None:
+        names = [s.name for s in stages]
+        if len(set(names)) != len(names):
+            raise ValueError(f"duplicate stage names in {names}")
+        self.project = project
+        self.stages = stages
+        self.by_name = {s.name: s for s in stages}
+        for s in stages:
+            for d in s.depends_on:
+                if d not in self.by_name or names.index(d) >= names.index(s.name):
+                    raise ValueError(f"stage {s.name!r} depends on {d!r}, which does not run before it")
+
+    # -- fingerprints -------------------------------------------------------------------------------------
+    def _fingerprint(self, spec: StageSpec, state: dict) -> dict:
+        inputs = spec.inputs(self.project)
+        missing = [f"{k} ({p})" for k, p in inputs.items() if not Path(p).is_file()]
+        if missing:
+            raise StageError(f"stage {spec.name!r}: input file(s) missing: {', '.join(missing)}")
+        return {
+            "inputs": {k: hash_file(Path(p)) for k, p in sorted(inputs.items())},
+            "settings": _settings_hash(self.project, spec.settings_sections),
+            "upstream": {d: _outputs_digest(state.get(d, {})) for d in spec.depends_on},
+        }
+
+    def status(self) -> list[StageStatus]:
+        state = self.project.read_state()
+        out: list[StageStatus] = []
+        for spec in self.stages:
+            out.append(self._status_of(spec, state))
+        return out
+
+    def _status_of(self, spec: StageSpec, state: dict) -> StageStatus:
+        rec = state.get(spec.name)
+        if not spec.applies(self.project):
+            return StageStatus(spec.name, "skipped", "not applicable to this incident", rec)
+        if rec is None:
+            return StageStatus(spec.name, "not run")
+        if rec.get("status") == "failed":
+            return StageStatus(spec.name, "failed", rec.get("error", ""), rec)
+        for d in spec.depends_on:
+            if state.get(d, {}).get("status") != "done":
+                return StageStatus(spec.name, "stale", f"depends on {d!r}, which is not done", rec)
+        try:
+            fp = self._fingerprint(spec, state)
+        except WorkbenchError as exc:
+            return StageStatus(spec.name, "stale", str(exc), rec)
+        if fp["inputs"] != rec.get("inputs"):
+            changed = sorted(set(fp["inputs"]) ^ set(rec.get("inputs", {}))
+                             | {k for k in fp["inputs"] if rec.get("inputs", {}).get(k) != fp["inputs"][k]})
+            return StageStatus(spec.name, "stale", f"inputs changed: {', '.join(changed)}", rec)
+        if fp["settings"] != rec.get("settings"):
+            return StageStatus(spec.name, "stale", f"settings changed ({', '.join(spec.settings_sections)})", rec)
+        if fp["upstream"] != rec.get("upstream"):
+            return StageStatus(spec.name, "stale", "an upstream stage produced new outputs", rec)
+        for name, o in rec.get("outputs", {}).items():
+            p = self.project.root / o["path"]
+            if not p.is_file() or hash_file(p) != o["sha256"]:
+                return StageStatus(spec.name, "stale", f"output {o['path']} missing or modified", rec)
+        return StageStatus(spec.name, "done", "", rec)
+
+    # -- running -------------------------------------------------------------------------------------------
+    def run(self, *, only: list[str] | None = None, force: bool = False,
+            progress_factory: Callable[[StageSpec], Progress] | None = None,
+            on_event: Callable[[str, StageSpec, dict], None] | None = None) -> list[StageStatus]:
+        """Run the stages in order (or only those named), skipping done ones unless ``force``.
+
+        Stops at the first failure (raises the stage's :class:`WorkbenchError` after recording it).
+        """
+        if only:
+            unknown = [n for n in only if n not in self.by_name]
+            if unknown:
+                raise StageError(f"unknown stage(s) {unknown}; the stages are {list(self.by_name)}")
+        selected = [s for s in self.stages if not only or s.name in only]
+        for spec in selected:
+            state = self.project.read_state()
+            st = self._status_of(spec, state)
+            if st.status == "skipped":
+                on_event and on_event("not-applicable", spec, {})
+                continue
+            if st.status == "done" and not force:
+                log.info("stage %s: up to date, skipped", spec.name)
+                on_event and on_event("skipped", spec, st.record or {})
+                continue
+            for d in spec.depends_on:
+                dst = self._status_of(self.by_name[d], state)
+                if dst.status not in ("done", "skipped"):
+                    raise StageError(f"stage {spec.name!r} needs stage {d!r}, which is {dst.status}"
+                                     f"{': ' + dst.reason if dst.reason else ''}; run `workbench run "
+                                     f"{self.project.root}` (or with --only {d})")
+            self._run_one(spec, state, progress_factory, on_event)
+        return self.status()
+
+    def _run_one(self, spec: StageSpec, state: dict, progress_factory, on_event) -> None:
+        fp = self._fingerprint(spec, state)
+        progress = progress_factory(spec) if progress_factory else _no_progress
+        on_event and on_event("start", spec, {})
+        started = _dt.datetime.now(_dt.timezone.utc)
+        t0 = time.perf_counter()
+        log.info("stage %s: running", spec.name)
+        try:
+            result = spec.run(self.project, progress)
+        except Exception as exc:
+            duration = time.perf_counter() - t0
+            msg = str(exc) if isinstance(exc, WorkbenchError) else f"{type(exc).__name__}: {exc}"
+            rec = {"status": "failed", "error": msg, "started_utc": started.isoformat(timespec="seconds"),
+                   "duration_s": round(duration, 3)}
+            if not isinstance(exc, WorkbenchError):
+                rec["traceback"] = traceback.format_exc()
+            # keep the previous successful outputs recorded, so nothing is lost
+            prev = state.get(spec.name, {})
+            if prev.get("status") == "done":
+                rec["previous"] = {k: prev[k] for k in ("outputs", "started_utc", "duration_s") if k in prev}
+            state = self.project.read_state()
+            state[spec.name] = rec
+            self.project.write_state(state)
+            on_event and on_event("failed", spec, rec)
+            if isinstance(exc, WorkbenchError):
+                raise
+            raise StageError(f"stage {spec.name!r} failed: {msg} (details in {self.project.state_path})") from exc
+        duration = time.perf_counter() - t0
+        stats = dict(result.stats)
+        stats.setdefault("stage", spec.name)
+        stats["duration_s"] = round(duration, 3)
+        stats_path = self.project.stage_dir(spec.name) / "stats.json"
+        self.project.write_json(stats_path, stats)
+        outputs = {"stats": stats_path, **result.outputs}
+        rec = {
+            "status": "done",
+            **fp,
+            "outputs": {k: {"path": self.project.relative(p), "sha256": hash_file(Path(p))} for k, p in outputs.items()},
+            "started_utc": started.isoformat(timespec="seconds"),
+            "duration_s": round(duration, 3),
+        }
+        state = self.project.read_state()
+        state[spec.name] = rec
+        self.project.write_state(state)
+        log.info("stage %s: done in %.2f s", spec.name, duration)
+        on_event and on_event("done", spec, rec)

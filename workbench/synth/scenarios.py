@@ -1,0 +1,97 @@
+"""Synthetic incident scenarios, modelled on two real derailments (consist, layout, terrain type).
+
+The photos and the exact layout are synthetic; car numbers are illustrative, not the historical ones.
+
+* ``spuyten-duyvil``: Metro-North train 8808, Spuyten Duyvil, Bronx (NY), 1 December 2013. A push-pull
+  train (a Shoreliner cab car leading, coaches, a P32AC-DM locomotive at the rear) derailed on a curve
+  of an embankment beside the Harlem River; cars came to rest jackknifed, some on their side, the
+  leading car near the water.
+* ``frankford-junction``: Amtrak train 188, Frankford Junction, Philadelphia (PA), 12 May 2015. An
+  ACS-64 locomotive and Amfleet I coaches derailed on a tight curve beside an industrial area; the
+  locomotive and the first coaches overturned and separated.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Scenario:
+    id: str
+    title: str
+    date: str
+    lat: float
+    lon: float
+    crs: str
+    terrain: str  # workbench.synth.terrain scenario
+    consist: tuple[tuple[str, str], ...]  # (car number, type id), front to rear
+    p_broken: float  # probability that a coupling broke
+    p_on_side: float
+    p_tilted: float
+    jackknife_deg: tuple[float, float]  # range of |heading change| between neighbours
+    front_s_m: float  # where the front car came to rest, arc length along the synthetic track
+    lateral_m: tuple[float, float]  # sideways displacement of the front car from the track
+    region: str  # folder under terrain/ for the sample's layers
+
+
+SCENARIOS: dict[str, Scenario] = {
+    "spuyten-duyvil": Scenario(
+        id="spuyten-duyvil",
+        title="Spuyten Duyvil derailment, Bronx NY (synthetic reconstruction)",
+        date="2013-12-01",
+        lat=40.87800, lon=-73.92150, crs="EPSG:32618",
+        terrain="embankment_river",
+        consist=(("6100", "shoreliner"), ("6223", "shoreliner"), ("6227", "shoreliner"), ("6231", "shoreliner"),
+                 ("6234", "shoreliner"), ("6240", "shoreliner"), ("4126", "p32ac-dm")),
+        p_broken=0.35, p_on_side=0.35, p_tilted=0.25, jackknife_deg=(8.0, 40.0),
+        front_s_m=260.0, lateral_m=(4.0, 9.0), region="bronx",
+    ),
+    "frankford-junction": Scenario(
+        id="frankford-junction",
+        title="Frankford Junction derailment, Philadelphia PA (synthetic reconstruction)",
+        date="2015-05-12",
+        lat=39.99950, lon=-75.09700, crs="EPSG:32618",
+        terrain="cutting_curve",
+        consist=(("601", "acs-64"), ("82615", "amfleet-i"), ("82639", "amfleet-i"), ("82730", "amfleet-i"),
+                 ("82757", "amfleet-i"), ("82991", "amfleet-i"), ("82602", "amfleet-i")),
+        p_broken=0.4, p_on_side=0.35, p_tilted=0.2, jackknife_deg=(10.0, 55.0),
+        front_s_m=250.0, lateral_m=(6.0, 14.0), region="philadelphia",
+    ),
+}
+
+
+def plan_consist(scn: Scenario, types: dict, rng: np.random.Generator, n_cars: int | None = None):
+    """Draw the derailment for a seed: state, roll and jackknife per car, which couplings held.
+
+    At least one coupling holds and one breaks (when there are two or more couplings), and at least one
+    carriage lies on its side, so every sample exercises chains, broken links and large rolls.
+    """
+    from .layout import CarPlan
+
+    consist = list(scn.consist[: n_cars or len(scn.consist)])
+    if n_cars and n_cars > len(scn.consist):  # extend with copies of the last coach type
+        last_type = scn.consist[-2][1] if len(scn.consist) > 1 else scn.consist[0][1]
+        consist += [(f"{9000 + i}", last_type) for i in range(n_cars - len(scn.consist))]
+    n = len(consist)
+    for _ in range(100):
+        couplings = ["broken" if rng.random() < scn.p_broken else "held" for _ in range(n - 1)]
+        states = rng.choice(["on_side", "tilted", "upright"], size=n,
+                            p=[scn.p_on_side, scn.p_tilted, 1 - scn.p_on_side - scn.p_tilted])
+        ok = (n < 3 or ("held" in couplings and "broken" in couplings)) and (n < 2 or "on_side" in states)
+        if ok:
+            break
+    plans = []
+    sign = rng.choice([-1.0, 1.0])
+    for i, (number, type_id) in enumerate(consist):
+        state = str(states[i])
+        roll = {"on_side": 90.0 * rng.choice([-1.0, 1.0]), "tilted": rng.uniform(10, 35) * rng.choice([-1.0, 1.0]),
+                "upright": rng.uniform(-3, 3)}[state]
+        jk = rng.uniform(*scn.jackknife_deg) * sign if i > 0 else rng.uniform(-25, 25)
+        sign = -sign if rng.random() < 0.7 else sign  # zig-zag mostly
+        plans.append(CarPlan(number=number, ctype=types[type_id], state=state, roll_deg=float(roll),
+                             jackknife_deg=float(jk), coupling_to_next=couplings[i] if i < n - 1 else None,
+                             broken_gap_m=float(rng.uniform(1.5, 8.0))))
+    return plans
