@@ -1,5 +1,5 @@
 """Off-screen rendering: scenes of ENU meshes (``offscreen``), photos through real lenses (``lens``), EXIF JPEGs (``exif``)."""
 
-from .offscreen import MAX_INSTANCE_ID, OffscreenScene, RenderResult, SceneMesh
+from .offscreen import OffscreenScene, RenderResult, SceneMesh
 
-__all__ = ["MAX_INSTANCE_ID", "OffscreenScene", "RenderResult", "SceneMesh"]
+__all__ = ["OffscreenScene", "RenderResult", "SceneMesh"]

@@ -152,6 +152,7 @@ class Livery(_Model):
     fluting: bool = False  # corrugated stainless lower side (thin horizontal lines)
     fluting_z_m: tuple[NonNeg, NonNeg] = (1.1, 1.9)
     operator_text: str = ""
+    operator_text_x_m: float = 0.0  # centre of the operator lettering on the sides
     operator_text_z_m: Pos = 3.3  # centre height of the operator lettering on the sides
     operator_text_height_m: Pos = 0.35
     logo_text: str = ""
@@ -252,7 +253,7 @@ def check_consistency(spec: CarriageSpec, path: Path) -> None:
     if not d.body_bottom_m < d.floor_height_m < d.height_m:
         raise _bad(path, "dimensions.floor_height_m", d.floor_height_m,
                    f"must lie between body_bottom_m = {d.body_bottom_m} and height_m = {d.height_m}")
-    if d.wheel_diameter_m + 0.05 > d.body_bottom_m:
+    if d.wheel_diameter_m + 0.02 > d.body_bottom_m:
         raise _bad(path, "dimensions.wheel_diameter_m", d.wheel_diameter_m,
                    f"wheels must fit under the body (body_bottom_m = {d.body_bottom_m})")
     if not 0.3 < d.coupler_height_m < d.body_bottom_m + 0.5:

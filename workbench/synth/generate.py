@@ -171,12 +171,19 @@ def plan_multiview(placed, site: _Site, opts: SynthOptions, rng) -> list:
     b = 2.0 * np.sqrt(evals[0]) + 30.0
     views = []
     tries = 0
-    while len(views) < opts.n_multiview and tries < 2000:
+    while len(views) < opts.n_multiview and tries < 400:
         tries += 1
-        th = 2 * np.pi * (len(views) + rng.uniform(-0.3, 0.3)) / opts.n_multiview
-        scale = rng.uniform(1.0, 1.5) + 0.1 * (tries // opts.n_multiview)
-        xy = centre[:2] + evecs @ np.array([a * np.cos(th), b * np.sin(th)]) * scale
-        if not site.ok(xy, margin=15.0):
+        th = 2 * np.pi * (len(views) + rng.uniform(-0.3, 0.3)) / opts.n_multiview + 0.37 * (tries // opts.n_multiview)
+        direction = evecs @ np.array([a * np.cos(th), b * np.sin(th)])
+        xy = None
+        for scale in rng.uniform(1.0, 1.4) * np.array([1.0, 0.9, 0.8, 0.7, 0.6, 0.5, 0.4]):
+            cand = centre[:2] + direction * scale
+            if np.min(np.linalg.norm(centres[:, :2] - cand, axis=1)) < 18.0:
+                break  # too close to the wreck to see it: give up this direction
+            if site.ok(cand, margin=12.0):
+                xy = cand
+                break
+        if xy is None:
             continue
         drone = len(views) % 4 == 3
         z = site.ground(xy) + (rng.uniform(15.0, 30.0) if drone else 1.7)
@@ -196,11 +203,17 @@ def plan_multiview(placed, site: _Site, opts: SynthOptions, rng) -> list:
 
 
 # ---------------------------------------------------------------------------------------------------
+def visibility_tolerance_m(depth_m: float, focal_px: float) -> float:
+    """How much nearer than a point a surface may be and the point still count as visible (metres)."""
+    return 0.05 + 2.0 * depth_m / focal_px
+
+
 def observe(placed, intr: CameraIntrinsics, cam_from_world: np.ndarray, depth: np.ndarray) -> dict:
     """True pixel and visibility of every marked point in one photo.
 
-    Visible: inside the image, in front of the camera, and nothing nearer in the rendered depth buffer
-    (the largest depth in the 3x3 neighbourhood is not in front of the point by more than a tolerance).
+    Visible: inside the image, in front of the camera, and nothing nearer in the rendered depth buffer at
+    the point's pixel than the point itself, less a tolerance of 5 cm plus two pixel footprints (a surface
+    seen obliquely spans that much depth within one pixel).
     """
     out = {}
     h, w = depth.shape
@@ -214,10 +227,8 @@ def observe(placed, intr: CameraIntrinsics, cam_from_world: np.ndarray, depth: n
             in_img = bool(in_front and intr.in_image(np.array([[u, v]]))[0])
             visible = False
             if in_img:
-                iu, iv = int(round(u)), int(round(v))
-                win = depth[max(iv - 1, 0): iv + 2, max(iu - 1, 0): iu + 2]
-                tol = 0.05 + 0.003 * zz
-                visible = bool(np.max(win) >= zz - tol)
+                iu, iv = min(max(int(round(u)), 0), w - 1), min(max(int(round(v)), 0), h - 1)
+                visible = bool(depth[iv, iu] >= zz - visibility_tolerance_m(zz, intr.fx))
             rec[name] = {"uv": [float(u), float(v)] if in_front else None, "depth_m": float(zz),
                          "in_image": in_img, "visible": visible}
         out[p.number] = rec

@@ -84,11 +84,15 @@ def cars_overlap(a: PlacedCar, b: PlacedCar, margin: float = 0.02) -> bool:
 class _Contact:
     """Clearance between a carriage (dense surface samples) and the terrain surface."""
 
-    def __init__(self, terrain, car_type, terrain_nodes: np.ndarray, n_samples: int = 3000) -> None:
+    def __init__(self, terrain, car_type, node_tree, terrain_nodes: np.ndarray, n_samples: int = 3000) -> None:
         self.terrain = terrain
         self.samples = car_type.sample_surface(n_samples, seed=0)
         self.boxes = car_type.collision_boxes()
         self.terrain_nodes = terrain_nodes  # (m, 3) ENU vertices of the terrain mesh
+        self.node_tree = node_tree  # KD-tree of their east/north
+        bb = np.asarray(car_type.bounding_box())
+        self.radius = float(np.linalg.norm(bb[1] - bb[0])) / 2.0 + 1.0
+        self.centre = bb.mean(axis=0)
 
     def clearance(self, R: np.ndarray, t: np.ndarray) -> float:
         """Smallest height of the carriage surface above the terrain (negative: penetration), metres."""
@@ -98,14 +102,14 @@ class _Contact:
             return -np.inf  # off the DEM: treat as invalid
         c = float(np.min(P[:, 2] - h))
         # terrain nodes inside a carriage box also count as penetration
-        local = (self.terrain_nodes - t) @ R  # carriage frame
+        near = self.node_tree.query_ball_point((R @ self.centre + t)[:2], self.radius)
+        local = (self.terrain_nodes[near] - t) @ R  # carriage frame
         for centre, half in self.boxes:
+            # signed distance of each terrain node to the box: > 0 outside, < 0 inside (continuous in the pose)
             q = np.abs(local - centre) - np.asarray(half)
-            inside = np.all(q < 0, axis=1)
-            if np.any(inside):
-                # depth of the deepest terrain node inside the box (distance to the nearest box face)
-                depth = float(np.max(-np.max(q[inside], axis=1)))
-                c = min(c, -depth)
+            sdf = np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(np.max(q, axis=1), 0.0)
+            if len(sdf):
+                c = min(c, float(np.min(sdf)))
         return c
 
 
@@ -121,7 +125,7 @@ def _settle_free(contact: _Contact, heading: float, roll: float, xy: np.ndarray,
     slope_roll = np.rad2deg(np.arcsin(np.clip(nrm @ left, -1, 1)))
     R = rotation_from_hpr(heading, pitch, roll + slope_roll)
     t = np.array([xy[0], xy[1], float(terrain.height_at(xy[None])[0]) + 20.0])
-    for _ in range(4):  # lowering is exact for the surface samples; the box-node test may need a repeat
+    for _ in range(12):  # lowering is exact for the surface samples; a box-node contact may need repeats
         c = contact.clearance(R, t)
         if not np.isfinite(c):
             raise ValueError("carriage off the DEM")
@@ -141,6 +145,7 @@ def _settle_pinned(contact: _Contact, heading: float, roll: float, pin: np.ndarr
     lo, hi = -25.0, 25.0  # nose down .. nose up; clearance falls as pitch rises (the rear drops)
     c_lo = contact.clearance(*pose(lo))
     c_hi = contact.clearance(*pose(hi))
+    log.debug("pinned: roll=%.1f c_lo=%.3f c_hi=%.3f pin=%s", roll, c_lo, c_hi, pin)
     if not (np.isfinite(c_lo) and np.isfinite(c_hi)) or c_lo < 0 or c_hi > 0:
         return None
     for _ in range(60):
@@ -170,18 +175,31 @@ def lay_consist(plans: list[CarPlan], terrain, track_enu: np.ndarray, *, front_s
     left = np.array([-tangent[1], tangent[0]])
     track_heading = np.rad2deg(np.arctan2(tangent[0], tangent[1]))
 
+    from scipy.spatial import cKDTree
+
     nodes = np.asarray(terrain.mesh().vertices)
+    tree = cKDTree(nodes[:, :2])
     placed: list[PlacedCar] = []
     for k, plan in enumerate(plans):
         ct = plan.ctype
-        contact = _Contact(terrain, ct, nodes)
-        roll = plan.roll_deg
+        contact = _Contact(terrain, ct, tree, nodes)
         result = None
+        coupling_changed = False
         notes: list[str] = []
         prev = placed[-1] if placed else None
         held = prev is not None and prev.coupling_to_next == "held"
-        for attempt in range(12):
-            jk = plan.jackknife_deg * (1.0 if attempt < 6 else -1.0) * (1.0 - 0.12 * (attempt % 6))
+        # try the planned jackknife and roll first, then smaller/mirrored jackknifes, then less roll
+        # (a carriage on its side cannot hang from an upright neighbour's coupler), then let the coupling break
+        variants = [(jk_scale * sgn, roll_scale) for roll_scale in (1.0, 0.5, 0.15)
+                    for sgn in (1.0, -1.0) for jk_scale in (1.0, 0.75, 0.5)]
+        variants += [(1.0, 1.0, "break")]
+        for attempt, variant in enumerate(variants):
+            jk = plan.jackknife_deg * variant[0]
+            roll = plan.roll_deg * variant[1]
+            if len(variant) == 3 and held:
+                held = False
+                coupling_changed = True
+                notes.append("the coupling could not hold in any pose tried; it broke")
             if prev is None:
                 heading = track_heading + jk
                 fwd = np.array([np.sin(np.deg2rad(heading)), np.cos(np.deg2rad(heading))])
@@ -197,7 +215,8 @@ def lay_consist(plans: list[CarPlan], terrain, track_enu: np.ndarray, *, front_s
                     offset = off / np.linalg.norm(off) * rng.uniform(0.0, held_offset_max_m)
                     pose = _settle_pinned(contact, heading, roll, prev_rear + offset, np.asarray(ct.coupler_front))
                     if pose is None:
-                        notes.append(f"attempt {attempt}: could not hang from the coupler at jackknife {jk:.0f} deg")
+                        notes.append(f"attempt {attempt}: could not hang from the coupler at jackknife {jk:.0f} deg, "
+                                     f"roll {roll:.0f} deg")
                         continue
                     R, t = pose
                 else:
@@ -210,7 +229,8 @@ def lay_consist(plans: list[CarPlan], terrain, track_enu: np.ndarray, *, front_s
                     centre_xy = front_xy - fwd * ct.coupler_front[0]
                     R, t = _settle_free(contact, heading, roll, centre_xy, terrain)
             pose = Rigid(R, t, "world", f"carriage:{plan.number}")
-            cand = PlacedCar(plan.number, ct, pose, plan.state, plan.coupling_to_next,
+            state = plan.state if abs(roll) > 60 or plan.state != "on_side" else "tilted"
+            cand = PlacedCar(plan.number, ct, pose, state, plan.coupling_to_next,
                              coupler_offset_m=offset, min_clearance_m=contact.clearance(R, t), notes=notes)
             clash = [p.number for p in placed[:-1] if cars_overlap(cand, p)]
             if prev is not None and not held and cars_overlap(cand, prev):
@@ -220,6 +240,8 @@ def lay_consist(plans: list[CarPlan], terrain, track_enu: np.ndarray, *, front_s
                 continue
             result = cand
             break
+        if coupling_changed and result is not None:
+            prev.coupling_to_next = "broken"
         if result is None:
             raise RuntimeError(f"could not lay carriage {plan.number} without overlap or hanging in the air: {notes}")
         placed.append(result)

@@ -134,10 +134,10 @@ class TerrainModel:
         # Normalise orientation: row 0 = north, column 0 = west (the triangle winding relies on it).
         if T.e > 0:
             z = z[::-1]
-            T = T * Affine.translation(0, z.shape[0]) * Affine.scale(1, -1)
+            T = T @ Affine.translation(0, z.shape[0]) @ Affine.scale(1, -1)
         if T.a < 0:
             z = z[:, ::-1]
-            T = T * Affine.translation(z.shape[1], 0) * Affine.scale(-1, 1)
+            T = T @ Affine.translation(z.shape[1], 0) @ Affine.scale(-1, 1)
         self.frame = frame
         self.crs = frame.crs
         self.heights = np.ascontiguousarray(z)
@@ -210,7 +210,7 @@ class TerrainModel:
         ox, oy = ox[0], oy[0]
         # The DEM's node extent (cell centres) must contain the origin.
         inv = ~T
-        oc, orow = inv * (ox, oy)
+        oc, orow = inv @ (ox, oy)
         if not (0.5 <= oc <= src.width - 0.5 and 0.5 <= orow <= src.height - 0.5):
             b = src.bounds
             raise InputError(
@@ -231,7 +231,7 @@ class TerrainModel:
         if same:
             if aoi is not None:
                 # Nodes whose centre lies within the AOI, plus one node of margin so the square is fully covered.
-                cs, rs = inv * (np.array([aoi[0], aoi[2], aoi[0], aoi[2]]), np.array([aoi[1], aoi[1], aoi[3], aoi[3]]))
+                cs, rs = inv @ (np.array([aoi[0], aoi[2], aoi[0], aoi[2]]), np.array([aoi[1], aoi[1], aoi[3], aoi[3]]))
                 c0 = max(int(math.floor(cs.min() - 0.5)), 0)
                 c1 = min(int(math.ceil(cs.max() + 0.5)), src.width)
                 r0 = max(int(math.floor(rs.min() - 0.5)), 0)
@@ -250,7 +250,7 @@ class TerrainModel:
                 with warnings.catch_warnings():
                     warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN blocks stay NaN (filled below)
                     z = np.nanmean(z[:R * k, :C * k].reshape(R, k, C, k), axis=(1, 3))
-                Tw = Tw * Affine.scale(k, k)
+                Tw = Tw @ Affine.scale(k, k)
             info["decimation"] = k
             texture_bounds = tuple(src.bounds)
         else:
@@ -259,7 +259,7 @@ class TerrainModel:
                 dst_b = (max(aoi[0], full[0]), max(aoi[1], full[1]), min(aoi[2], full[2]), min(aoi[3], full[3]))
                 # Read only the part of the source that the AOI needs (with a margin of 2 source cells).
                 sb = transform_bounds(frame.crs.to_wkt(), src.crs, *dst_b, densify_pts=21)
-                cs, rs = inv * (np.array([sb[0], sb[2], sb[0], sb[2]]), np.array([sb[1], sb[1], sb[3], sb[3]]))
+                cs, rs = inv @ (np.array([sb[0], sb[2], sb[0], sb[2]]), np.array([sb[1], sb[1], sb[3], sb[3]]))
                 c0 = max(int(math.floor(cs.min())) - 2, 0)
                 c1 = min(int(math.ceil(cs.max())) + 2, src.width)
                 r0 = max(int(math.floor(rs.min())) - 2, 0)
@@ -295,7 +295,7 @@ class TerrainModel:
                 raise InputError(f"DEM {where}: reprojecting into {frame.crs.to_string()} left no data around the "
                                  f"scene origin")
             z = z[rows[0]:rows[-1] + 1, cols[0]:cols[-1] + 1]
-            Tw = Tw * Affine.translation(cols[0], rows[0])
+            Tw = Tw @ Affine.translation(cols[0], rows[0])
             info["resolution_m"] = res
             texture_bounds = full
         if z.shape[0] < 2 or z.shape[1] < 2:
@@ -389,9 +389,9 @@ class TerrainModel:
         G = self.grid_enu
         u, v = self._fractional_index(xy)
         finite = np.isfinite(u) & np.isfinite(v) & np.all(np.isfinite(xy), axis=1)
-        j0 = np.floor(np.where(finite, u - 0.0, -10)).astype(np.int64)
-        i0 = np.floor(np.where(finite, v - 0.0, -10)).astype(np.int64)
-        # The polynomial works in node indices (node k sits at index k); cells span [k, k+1].
+        # Node k sits at fractional index k, so cell k spans [k, k + 1].
+        j0 = np.floor(np.where(finite, u, -10.0)).astype(np.int64)
+        i0 = np.floor(np.where(finite, v, -10.0)).astype(np.int64)
         rem = np.nonzero(finite & (j0 > -2) & (j0 < C) & (i0 > -2) & (i0 < R))[0]
         for di, dj in _NEIGHBOURS:
             if rem.size == 0:

@@ -1,0 +1,224 @@
+#!/usr/bin/env python
+"""Monte Carlo benchmark of the chained pose solver (workbench.solve) on simulated consists.
+
+    OMP_NUM_THREADS=1 .venv/bin/python scripts/bench_solver.py [--quick] [--out bench_out/solver.json]
+
+For consists of 3, 6, 12 carriages, pixel noise 0.5 / 1 / 2 px, known and unknown focal, couplings held
+(slack 3 cm, true offsets uniform inside it): RMS carriage body-centre error (m) and rotation error (deg) of
+
+* this solver (``solve_consist``, no terrain: the accuracy runs use the pixels and couplers only, the model the
+  bound is computed for);
+* per-carriage OpenCV PnP (SQPnP then ``cv2.solvePnPRefineLM``, raw pixels with K and distortion; with an
+  unknown focal it is given the TRUE focal, an optimistic baseline);
+* the Cramér-Rao bound of the chained problem at the truth, ``sqrt(mean over trials and carriages of
+  trace(body-centre covariance))``, with held couplings modelled as the solver models them (offset prior
+  N(0, (slack/sqrt 5)^2) per axis, see workbench/solve/uncertainty.py) and, for an unknown focal, the focal as
+  a parameter;
+
+plus the per-axis coverage of the solver's 95 % intervals (body centre). Timing: all four steps (with a
+plane terrain, so step 2 and the contact term run) for 10 carriages, and how time grows up to 100 carriages.
+Set OMP_NUM_THREADS=1 for one core (the script sets it when unset).
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", os.environ["OMP_NUM_THREADS"])
+os.environ.setdefault("MKL_NUM_THREADS", os.environ["OMP_NUM_THREADS"])
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+import warnings  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+import cv2  # noqa: E402
+
+from workbench.solve import SolveOptions, SolveWarning, crb, solve_consist  # noqa: E402
+from workbench.solve.simulate import simulate_consist  # noqa: E402
+
+cv2.setNumThreads(1)
+
+
+def rot_err_deg(Ra, Rb):
+    return float(np.rad2deg(np.arccos(np.clip((np.trace(Ra @ Rb.T) - 1) / 2, -1, 1))))
+
+
+def body_centre(ct, R, t):
+    return R @ np.array([0.0, 0.0, ct.height_m / 2]) + t
+
+
+def pnp_baseline(sim):
+    view = sim.views[0]
+    K, dist = view.intrinsics.K, view.intrinsics.dist_coeffs
+    M = view.cam_from_world
+    Rw, tw = M[:3, :3].T, -M[:3, :3].T @ M[:3, 3]
+    out = []
+    for car in sim.carriages:
+        obs = car.observations["photo"]
+        P = np.array([car.carriage_type.marked_points[n] for n in obs], dtype=np.float64)
+        uv = np.array(list(obs.values()), dtype=np.float64).reshape(-1, 1, 2)
+        ok, rvec, tvec = cv2.solvePnP(P, uv, K, dist, flags=cv2.SOLVEPNP_SQPNP)
+        rvec, tvec = cv2.solvePnPRefineLM(P, uv, K, dist, rvec, tvec)
+        Rc = cv2.Rodrigues(rvec)[0]
+        out.append((Rw @ Rc, Rw @ tvec.reshape(3) + tw))
+    return out
+
+
+def run_config(n, sigma, est_focal, trials, seed0):
+    e_s, e_p, r_s, r_p, b2, cover, times, bad = [], [], [], [], [], [], [], 0
+    ef2, fb2 = [], []
+    for k in range(trials):
+        sim = simulate_consist(n, seed=seed0 + k, pixel_sigma_px=sigma)
+        t0 = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", SolveWarning)
+            res = solve_consist(sim.carriages, sim.links, sim.views,
+                                SolveOptions(pixel_sigma_px=sigma, estimate_focal=est_focal))
+        times.append(time.perf_counter() - t0)
+        bad += res.status != "converged"
+        bound = crb(sim.carriages, sim.links, sim.views, sim.truth, sigma, est_focal)
+        pnp = pnp_baseline(sim)
+        for i, (c, M) in enumerate(zip(res.carriages, sim.truth)):
+            ct = sim.carriages[i].carriage_type
+            bt = body_centre(ct, M[:3, :3], M[:3, 3])
+            e = c.body_centre_m - bt
+            e_s.append(e @ e)
+            r_s.append(rot_err_deg(c.world_from_carriage[:3, :3], M[:3, :3]) ** 2)
+            ep = body_centre(ct, *pnp[i]) - bt
+            e_p.append(ep @ ep)
+            r_p.append(rot_err_deg(pnp[i][0], M[:3, :3]) ** 2)
+            b2.append(np.trace(bound["body_centre_cov"][i]))
+            cover.append(np.abs(e) <= c.ci95_body_centre_m)
+        if est_focal:
+            ef2.append((res.focal_px["photo"] - sim.views[0].intrinsics.fx) ** 2)
+            fb2.append(bound["focal_sigma"][0] ** 2)
+    rms = float(np.sqrt(np.mean(e_s)))
+    crb_rms = float(np.sqrt(np.mean(b2)))
+    # bootstrap over trials (the carriages of one trial are correlated): 95 % interval of the ratio and of
+    # PnP / solver
+    es_t, b2_t, ep_t = (np.asarray(a).reshape(trials, n).sum(1) for a in (e_s, b2, e_p))
+    rng = np.random.default_rng(1)
+    bi = rng.integers(0, trials, (2000, trials))
+    ratio_bs = np.sqrt(es_t[bi].sum(1) / b2_t[bi].sum(1))
+    pnp_bs = np.sqrt(ep_t[bi].sum(1) / es_t[bi].sum(1))
+    cov_n = np.sum(cover, axis=0)
+    cov_ci = [wilson(int(k), len(cover)) for k in cov_n]
+    row = {"n_cars": n, "sigma_px": sigma, "focal": "unknown" if est_focal else "known", "trials": trials,
+           "solver_rms_m": rms, "solver_rot_rms_deg": float(np.sqrt(np.mean(r_s))),
+           "pnp_rms_m": float(np.sqrt(np.mean(e_p))), "pnp_rot_rms_deg": float(np.sqrt(np.mean(r_p))),
+           "crb_rms_m": crb_rms, "ratio_to_crb": rms / crb_rms, "pnp_over_solver": float(np.sqrt(np.mean(e_p))) / rms,
+           "ratio_ci95": np.percentile(ratio_bs, [2.5, 97.5]).tolist(),
+           "pnp_over_solver_ci95": np.percentile(pnp_bs, [2.5, 97.5]).tolist(),
+           "coverage95_enu": np.mean(cover, axis=0).tolist(), "coverage95_enu_ci95": cov_ci,
+           "not_converged": int(bad),
+           "mean_time_s": float(np.mean(times))}
+    if est_focal:
+        row["focal_rms_px"] = float(np.sqrt(np.mean(ef2)))
+        row["focal_crb_px"] = float(np.sqrt(np.mean(fb2)))
+        row["focal_max_abs_err_px"] = float(np.sqrt(np.max(ef2)))
+    return row
+
+
+def wilson(k, n, z=1.959963984540054):
+    """Wilson 95 % interval of a binomial proportion k / n."""
+    p = k / n
+    den = 1 + z * z / n
+    c = (p + z * z / (2 * n)) / den
+    h = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / den
+    return [float(c - h), float(c + h)]
+
+
+def timing(ns, repeats):
+    out = []
+    for n in ns:
+        sim = simulate_consist(n, seed=7, pixel_sigma_px=1.0)
+        opts = SolveOptions(pixel_sigma_px=1.0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", SolveWarning)
+            solve_consist(sim.carriages, sim.links, sim.views, opts, terrain=sim.terrain)  # warm caches
+            ts, steps = [], None
+            for _ in range(repeats):
+                t0 = time.perf_counter()
+                res = solve_consist(sim.carriages, sim.links, sim.views, opts, terrain=sim.terrain)
+                ts.append(time.perf_counter() - t0)
+                steps = {s.name: round(s.time_s, 4) for s in res.steps}
+        out.append({"n_cars": n, "median_s": float(np.median(ts)), "min_s": float(np.min(ts)), "status": res.status,
+                    "steps_s": steps, "iterations": res.iterations})
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--quick", action="store_true", help="a ~30 s run (fewer trials)")
+    ap.add_argument("--trials", type=int, default=None,
+                    help="trials per configuration (default: 150 for 3 and 6 carriages, 40 for 12)")
+    ap.add_argument("--out", default="bench_out/solver.json")
+    args = ap.parse_args(argv)
+    def n_trials(n):
+        if args.trials:
+            return args.trials
+        return 6 if args.quick else (150 if n <= 6 else 40)
+
+    t_all = time.perf_counter()
+    rows = []
+    print(f"{'cars':>4} {'px':>4} {'focal':>7} {'N':>4} | {'solver m':>9} {'PnP m':>9} {'CRB m':>9} {'ratio [95% CI]':>19} "
+          f"{'PnP/sol [95% CI]':>19} | {'sol deg':>7} {'PnP deg':>7} | {'coverage95 E/N/U':>18} | {'t/solve':>7}")
+    for est in (False, True):
+        for n in (3, 6, 12):
+            for sigma in (0.5, 1.0, 2.0):
+                if args.quick and sigma != 1.0 and n != 6:
+                    continue
+                r = run_config(n, sigma, est, n_trials(n), seed0=10_000 * n + int(100 * sigma) + (5000 if est else 0))
+                rows.append(r)
+                cv = "/".join(f"{c * 100:.0f}" for c in r["coverage95_enu"])
+                lo, hi = r["ratio_ci95"]
+                plo, phi = r["pnp_over_solver_ci95"]
+                print(f"{n:>4} {sigma:>4} {r['focal']:>7} {r['trials']:>4} | {r['solver_rms_m']:9.4f} {r['pnp_rms_m']:9.4f} "
+                      f"{r['crb_rms_m']:9.4f} {r['ratio_to_crb']:6.3f} [{lo:.2f},{hi:.2f}] "
+                      f"{r['pnp_over_solver']:6.2f} [{plo:.2f},{phi:.2f}] | "
+                      f"{r['solver_rot_rms_deg']:7.3f} {r['pnp_rot_rms_deg']:7.3f} | {cv:>18} | "
+                      f"{r['mean_time_s']:7.3f}" + (f"  focal rms {r['focal_rms_px']:.1f} px (CRB "
+                                                    f"{r['focal_crb_px']:.1f}, max |err| "
+                                                    f"{r['focal_max_abs_err_px']:.0f})" if est else ""), flush=True)
+                print("      coverage 95% CI (Wilson, per axis E/N/U): " + "  ".join(
+                    f"[{a * 100:.1f},{b * 100:.1f}]" for a, b in r["coverage95_enu_ci95"]), flush=True)
+    allcov = np.concatenate([[c for c in r["coverage95_enu"]] for r in rows])
+    ns = (3, 10, 30) if args.quick else (3, 5, 10, 20, 50, 100)
+    tim = timing(ns, 2 if args.quick else 5)
+    print("\ntime (all four steps, plane terrain + contact term, covariance included; median of repeats):")
+    for i, t in enumerate(tim):
+        grow = ""
+        if i > 0:
+            p = np.log(t["median_s"] / tim[i - 1]["median_s"]) / np.log(t["n_cars"] / tim[i - 1]["n_cars"])
+            grow = f"  (x{t['median_s'] / tim[i - 1]['median_s']:.2f} vs {tim[i - 1]['n_cars']} cars: ~N^{p:.2f})"
+        print(f"  {t['n_cars']:>4} cars: {t['median_s']:.3f} s{grow}  ({t['status']}, {t['iterations']} evaluations; "
+              f"steps {t['steps_s']})")
+    summary = {
+        "worst_ratio_known_focal": max(r["ratio_to_crb"] for r in rows if r["focal"] == "known"),
+        "worst_ratio_unknown_focal": max(r["ratio_to_crb"] for r in rows if r["focal"] == "unknown"),
+        "pnp_over_solver_6cars_1px_known": next((r["pnp_over_solver"] for r in rows if r["n_cars"] == 6
+                                                 and r["sigma_px"] == 1.0 and r["focal"] == "known"), None),
+        "coverage_min": float(allcov.min()), "coverage_max": float(allcov.max()),
+        "time_10_cars_s": next((t["median_s"] for t in tim if t["n_cars"] == 10), None),
+        "time_100_cars_s": next((t["median_s"] for t in tim if t["n_cars"] == 100), None),
+        "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+        "total_time_s": time.perf_counter() - t_all,
+    }
+    print("\nsummary:", json.dumps(summary, indent=1))
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps({"configs": rows, "timing": tim, "summary": summary}, indent=1))
+    print(f"wrote {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,1529 @@
+"""Simultaneous pose of all carriages of a consist from a few 2D-3D marked points each, chained at the couplers.
+
+Conventions: ``docs/conventions.md`` (scene ENU frame, camera x right / y down / z forward, carriage frame x
+forward / y left / z up, origin midway between the coupler faces at top-of-rail height).
+
+Unknowns
+    every carriage's ``world_from_carriage`` (rotation, translation) and, optionally, one focal length per
+    view (fx = fy moved together; principal point and distortion held at the given intrinsics).
+Observations
+    per view (known ``cam_from_world`` and intrinsics), per carriage, per marked point: a pixel (u, v); the
+    point's presence (or ``Observation.visible``) is the visibility indicator I_ij.
+Residuals
+    reprojection errors (px) of the visible points; carriage i's rows carry the weight
+    ``w_i = sqrt(n_mean / n_i)`` (``n_i`` its visible points, ``n_mean`` the mean over the solved
+    carriages): the seed's per-carriage normalisation 1/sqrt(n_i), rescaled by a constant so that with
+    equal counts the weights are 1 and the cost is the plain sum of squares. The covariance accounts for
+    the weighting with the sandwich form (see :mod:`.uncertainty`). An optional robust loss (scipy's
+    ``huber``, ``soft_l1``, ``cauchy``) with a scale in px.
+Chain
+    carriage i+1's front coupler sits at carriage i's rear coupler plus an offset T, |T| <= slack. A link with
+    ``slack_m=None`` is no link: the consist falls into independent chains.
+
+Why this parametrisation
+    The ball constraint |T| <= s is honoured **exactly** at every iterate: the translation of every carriage
+    after the first one of its chain is *eliminated* through the chain,
+    ``t_{i+1} = t_i + R_i c_rear_i + T_i - R_{i+1} c_front_{i+1}``, so the parameters ``x`` of a chain are the
+    first carriage's translation, every carriage's rotation increment (``R = Exp(delta) R_ref``, scene-frame
+    rotation vector) and every link's offset: the offset T itself while it is inside the ball ("free"), or,
+    when it reaches the sphere, 2 parameters of the exponential chart of the sphere |T| = s (an active set,
+    :func:`_solve_chained`: a free link whose offset leaves the ball is moved onto the sphere and the step
+    re-solved; a link on the sphere is released when its multiplier changes sign). Held couplings also carry
+    the offset prior N(0, (s/sqrt 5)^2) per axis (the spread of an offset uniform in the ball), which keeps
+    the problem well conditioned and is the same model the covariance and the Cramér-Rao bound use.
+
+Method (one for every step and every size)
+    Levenberg-Marquardt with Marquardt scaling (the exact diagonal of the Gauss-Newton matrix in ``x``) and
+    Nielsen's damping update, :func:`_lm_struct` — a trust-region method in the sense of Moré (1978): each
+    step minimises the Gauss-Newton model in the scaled ellipsoid whose radius the damping is the multiplier
+    of, and the radius follows the ratio of actual to predicted reduction. The step is taken in ``x`` (so the
+    constraint stays exact) but *computed* in expanded variables ``z`` (every carriage's own rotation and
+    translation increments, the link parameters, the focal) subject to the linearised coupling equations
+    ``C z = 0``: there the Gauss-Newton matrix is block diagonal (plus the focal's rows) and ``C`` couples only
+    neighbours, so the KKT system is sparse and is factored by SuperLU (``scipy.sparse.linalg.splu``) in
+    O(N) per iteration for a chain of N carriages (the elimination in ``x`` would make the normal equations
+    dense, O(N^3)). The step is identical to the dense one in ``x``. Exact analytic Jacobians (projection
+    derivatives from :mod:`.projection`, the SO(3) left Jacobian, the chain rule of the couplings). Robust
+    losses (scipy's ``huber``, ``soft_l1``, ``cauchy``) enter as in scipy's ``least_squares`` (rows rescaled
+    by the loss' derivatives). ``SolveOptions.dense_max_params`` is kept for compatibility: it only matters
+    with the previous scipy path (``_SOLVER = "scipy"``, TRF exact / dense LM), kept for comparison.
+
+The four steps (as the seed, plus an optional contact term)
+    1. each carriage alone, constraints off (PnP start: SQPnP on undistorted normalised points, then one joint
+       refinement of all the independent poses (a block-diagonal problem) and, when estimated, the focal; with an unknown focal first a
+       sweep over the horizontal field of view picks the focal of least total PnP reprojection error);
+    2. each carriage lowered (or raised) along gravity (scene -z) until its surface samples rest on the
+       terrain without penetrating it (skipped, and recorded so, without a terrain);
+    3. constraints on, rotations held from step 1, translations (and focal) optimised;
+    4. everything optimised together; with a terrain and ``use_terrain_contact`` a soft contact residual
+       per carriage, ``min clearance / terrain_sigma_m`` (in units of the pixel sigma), joins the cost.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+from dataclasses import asdict, dataclass, field, replace
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.optimize import least_squares
+
+from ..core.camera import CameraIntrinsics
+from ..core.frames import hpr_from_rotation
+from ..errors import InputError, SettingsError, WorkbenchWarning
+from .projection import exp_so3, left_jacobian_so3, log_so3, project_world_points_with_jacobians, skew
+
+
+SQRT5 = math.sqrt(5.0)  # slack / sigma_T: an offset uniform in the ball |T| <= s has per-axis sd s / sqrt(5)
+
+
+class SolveWarning(WorkbenchWarning):
+    """A carriage could not be solved as asked (too few / degenerate points, left out or carried by its chain),
+    or the solve did not converge. Also recorded, structured, in ``SolveResult.warnings``."""
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Public data
+# ----------------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Observation:
+    """One marked point seen in one view: name, pixel (u, v), visibility indicator."""
+
+    point: str
+    u: float
+    v: float
+    visible: bool = True
+
+
+@dataclass(frozen=True, kw_only=True)
+class View:
+    """One photo: name, intrinsics, ``cam_from_world`` (4, 4)."""
+
+    name: str
+    intrinsics: CameraIntrinsics
+    cam_from_world: np.ndarray
+
+    @property
+    def camera_centre(self) -> np.ndarray:
+        M = np.asarray(self.cam_from_world, dtype=float)
+        return -M[:3, :3].T @ M[:3, 3]
+
+
+@dataclass(kw_only=True)
+class CarriageInput:
+    """One carriage of the consist (in consist order, front first).
+
+    ``observations``: view name -> either a mapping point name -> (u, v) (present = visible; ``None`` = not
+    visible) or a sequence of :class:`Observation`.
+    """
+
+    number: str
+    carriage_type: Any  # workbench.rolling_stock.CarriageType
+    observations: Mapping[str, Any] = field(default_factory=dict)
+
+
+@dataclass(frozen=True)
+class ChainLink:
+    """Coupling between consist indices ``front`` and ``rear`` (= front + 1); ``slack_m=None``: no link."""
+
+    front: int
+    rear: int
+    slack_m: float | None = 0.05
+
+
+_LOSSES = ("linear", "huber", "soft_l1", "cauchy")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SolveOptions:
+    pixel_sigma_px: float = 1.0
+    robust_loss: str = "linear"
+    loss_scale_px: float = 3.0
+    estimate_focal: bool = False
+    max_iterations: int = 200
+    use_terrain_contact: bool = True
+    terrain_sigma_m: float = 0.10
+    terrain_samples: int = 400
+    hfov_range_deg: tuple[float, float] = (20.0, 100.0)
+    hfov_steps: int = 41
+    tolerance: float = 1e-10
+    check_image_bounds: bool = True
+    compute_covariance: bool = True
+    prior_dof: float = 5.0
+    dense_max_params: int = 400
+
+    def __post_init__(self) -> None:
+        def bad(name: str, why: str) -> None:
+            raise SettingsError(f"solve options: {name} = {getattr(self, name)!r}: {why}")
+
+        if not (np.isfinite(self.pixel_sigma_px) and self.pixel_sigma_px > 0):
+            bad("pixel_sigma_px", "must be a positive number of pixels")
+        if self.robust_loss not in _LOSSES:
+            bad("robust_loss", f"must be one of {', '.join(_LOSSES)}")
+        if not (np.isfinite(self.loss_scale_px) and self.loss_scale_px > 0):
+            bad("loss_scale_px", "must be positive (pixels)")
+        if int(self.max_iterations) < 1:
+            bad("max_iterations", "must be at least 1")
+        if not (np.isfinite(self.terrain_sigma_m) and self.terrain_sigma_m > 0):
+            bad("terrain_sigma_m", "must be positive (metres)")
+        lo, hi = self.hfov_range_deg
+        if not (0 < lo < hi < 180):
+            bad("hfov_range_deg", "must be (low, high) with 0 < low < high < 180 degrees")
+        if self.hfov_steps < 3:
+            bad("hfov_steps", "must be at least 3")
+        if self.terrain_samples < 8:
+            bad("terrain_samples", "must be at least 8")
+        if not (self.tolerance > 0):
+            bad("tolerance", "must be positive")
+
+
+@dataclass
+class CarriageResult:
+    index: int
+    number: str
+    type_id: str
+    status: str  # "solved" | "carried" | "left_out"
+    n_points: int
+    world_from_carriage: np.ndarray | None = None
+    hpr_deg: tuple[float, float, float] | None = None
+    body_centre_m: np.ndarray | None = None
+    covariance_pose: np.ndarray | None = None  # (6, 6): scene rotation vector (rad), origin (m)
+    sigma_position_m: np.ndarray | None = None  # origin, ENU 1-sigma
+    ci95_position_m: np.ndarray | None = None  # origin, ENU 95 % half width
+    sigma_body_centre_m: np.ndarray | None = None
+    ci95_body_centre_m: np.ndarray | None = None
+    sigma_hpr_deg: np.ndarray | None = None
+    ci95_hpr_deg: np.ndarray | None = None
+    residuals_px: dict[str, dict[str, tuple[float, float]]] = field(default_factory=dict)
+    rms_px: float | None = None
+    clearance_m: float | None = None
+
+
+@dataclass
+class StepStats:
+    name: str
+    ran: bool
+    note: str = ""
+    cost_before: float | None = None
+    cost_after: float | None = None
+    iterations: int = 0
+    status: str = ""
+    time_s: float = 0.0
+    per_carriage: list[dict] = field(default_factory=list)
+
+
+@dataclass
+class SolveResult:
+    carriages: list[CarriageResult]
+    status: str  # "converged" | "not_converged" | "failed"
+    message: str
+    warnings: list[dict]
+    steps: list[StepStats]
+    iterations: int
+    time_s: float
+    final_cost: float
+    focal_px: dict[str, float]
+    sigma_focal_px: dict[str, float]
+    sigma_px: float = float("nan")  # pixel sigma used for the covariance
+    sigma_px_estimated: float = float("nan")
+    dof: float = 0.0
+    ci95_factor: float = 1.96
+    neighbour_correlation: list[dict] = field(default_factory=list)
+    links: list[dict] = field(default_factory=list)
+    covariance: np.ndarray | None = None  # full (6 n_solved [+ n_focal]) in the order of `covariance_order`
+    covariance_order: list[str] = field(default_factory=list)
+
+    @property
+    def converged(self) -> bool:
+        return self.status == "converged"
+
+    def carriage(self, number: str) -> CarriageResult:
+        for c in self.carriages:
+            if c.number == number:
+                return c
+        raise KeyError(number)
+
+    def to_dict(self) -> dict:
+        def conv(o: Any) -> Any:
+            if isinstance(o, np.ndarray):
+                return conv(o.tolist())
+            if isinstance(o, (np.floating, float)):
+                f = float(o)
+                return f if math.isfinite(f) else None
+            if isinstance(o, (np.integer,)):
+                return int(o)
+            if isinstance(o, dict):
+                return {str(k): conv(v) for k, v in o.items()}
+            if isinstance(o, (list, tuple)):
+                return [conv(v) for v in o]
+            return o
+
+        d = {k: v for k, v in self.__dict__.items() if k not in ("carriages", "steps", "covariance")}
+        d["carriages"] = [asdict(c) for c in self.carriages]
+        d["steps"] = [asdict(s) for s in self.steps]
+        return conv(d)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Input checking and flattening
+# ----------------------------------------------------------------------------------------------------------
+def _iter_observations(car: CarriageInput, view_name: str, obs: Any):
+    if isinstance(obs, Mapping):
+        for name, uv in obs.items():
+            if uv is None:
+                continue
+            if isinstance(uv, Observation):
+                if uv.visible:
+                    yield str(name), (uv.u, uv.v)
+                continue
+            yield str(name), uv
+    else:
+        for o in obs:
+            if isinstance(o, Observation):
+                if o.visible:
+                    yield o.point, (o.u, o.v)
+            else:
+                name, uv = o
+                yield str(name), uv
+
+
+@dataclass
+class _Car:
+    index: int
+    number: str
+    ctype: Any
+    names: list[str]  # per observation row
+    views: np.ndarray  # (n,) int
+    P: np.ndarray  # (n, 3)
+    uv: np.ndarray  # (n, 2)
+    distinct: list[str]
+    c_front: np.ndarray
+    c_rear: np.ndarray
+    c_body: np.ndarray
+
+
+def _prepare(carriages: Sequence[CarriageInput], views: Sequence[View], options: SolveOptions) -> list[_Car]:
+    if not views:
+        raise InputError("solve: no views (photos) given")
+    vnames = [v.name for v in views]
+    if len(set(vnames)) != len(vnames):
+        raise InputError(f"solve: view names repeat: {vnames}")
+    vindex = {n: i for i, n in enumerate(vnames)}
+    for v in views:
+        M = np.asarray(v.cam_from_world, dtype=float)
+        if M.shape != (4, 4) or not np.all(np.isfinite(M)):
+            raise InputError(f"view {v.name!r}: cam_from_world must be a finite (4, 4) matrix")
+    numbers = [str(c.number) for c in carriages]
+    if len(set(numbers)) != len(numbers):
+        dup = sorted({n for n in numbers if numbers.count(n) > 1})
+        raise InputError(f"consist: car number(s) {dup} appear more than once")
+    out = []
+    for i, c in enumerate(carriages):
+        ct = c.carriage_type
+        names, vi, P, uv = [], [], [], []
+        for vname, obs in (c.observations or {}).items():
+            if vname not in vindex:
+                raise InputError(f"car {c.number}: observations for view {vname!r}, which is not among the views "
+                                 f"{vnames}")
+            intr = views[vindex[vname]].intrinsics
+            seen: set[str] = set()
+            for name, pix in _iter_observations(c, vname, obs):
+                if name not in ct.marked_points:
+                    raise InputError(f"car {c.number}, view {vname!r}: point {name!r} is not a marked point of type "
+                                     f"{ct.id!r} (it has: {', '.join(ct.marked_points)})")
+                if name in seen:
+                    raise InputError(f"car {c.number}, view {vname!r}: point {name!r} is given twice")
+                seen.add(name)
+                a = np.asarray(pix, dtype=float).reshape(-1)
+                if a.size != 2 or not np.all(np.isfinite(a)):
+                    raise InputError(f"car {c.number}, view {vname!r}, point {name!r}: pixel {pix!r} is not a "
+                                     f"finite (u, v)")
+                if options.check_image_bounds and not intr.in_image(a[None])[0]:
+                    raise InputError(f"car {c.number}, view {vname!r}, point {name!r}: pixel ({a[0]:.1f}, "
+                                     f"{a[1]:.1f}) is outside the {intr.width}x{intr.height} image")
+                names.append(name)
+                vi.append(vindex[vname])
+                P.append(ct.marked_points[name])
+                uv.append(a)
+        distinct = sorted(set(names))
+        body = np.array([0.0, 0.0, 0.5 * float(ct.height_m)])
+        out.append(_Car(i, str(c.number), ct, names, np.asarray(vi, dtype=int),
+                        np.asarray(P, dtype=float).reshape(-1, 3), np.asarray(uv, dtype=float).reshape(-1, 2),
+                        distinct, np.asarray(ct.coupler_front, float), np.asarray(ct.coupler_rear, float), body))
+    return out
+
+
+def _degeneracy(ct: Any, names: list[str]) -> str:
+    """'' or 'collinear' / 'coplanar' for the distinct marked points ``names``."""
+    if len(names) < 3:
+        return "collinear"
+    X = np.array([ct.marked_points[n] for n in names], dtype=float)
+    s = np.linalg.svd(X - X.mean(0), compute_uv=False)
+    if s[0] <= 0 or s[1] / s[0] < 1e-3:
+        return "collinear"
+    if len(names) < 4 or s[2] / s[0] < 1e-3:
+        return "coplanar"
+    return ""
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Parametrisation of one optimisation step
+# ----------------------------------------------------------------------------------------------------------
+def _sphere_basis(d: np.ndarray) -> np.ndarray:
+    """(3, 2) orthonormal basis of the plane orthogonal to the unit vector d."""
+    a = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    b1 = np.cross(d, a)
+    b1 /= np.linalg.norm(b1)
+    return np.column_stack([b1, np.cross(d, b1)])
+
+
+class _Layout:
+    """Maps the parameter vector of a step to poses (and focal) with d t / d params per carriage.
+
+    Per chain: the first carriage's translation (3), the rotation increments (3 per carriage, when free),
+    and per link either ``"free"`` (the offset T itself, 3 parameters; the active-set driver keeps it inside
+    the ball) or ``"sphere"`` (the constraint active: ``T = s (d0 + B a) / |d0 + B a|``, 2 parameters, exactly
+    on the sphere |T| = s).
+    """
+
+    def __init__(self, chains: list[list[int]], slacks: list[list[float]], rot_free: bool, focal_views: list[int],
+                 cars: list[_Car], R_ref: np.ndarray, t_ref: np.ndarray, f_ref: np.ndarray,
+                 modes: list[list[str]] | None = None, prior_px: float = 1.0):
+        self.chains, self.slacks, self.rot_free = chains, slacks, rot_free
+        self.prior_px = float(prior_px)  # the configured pixel sigma: coupler prior rows are T * prior_px / sigma_T
+        self.focal_views = list(focal_views)
+        self.cars = cars
+        self.R_ref, self.f_ref = R_ref.copy(), f_ref.copy()
+        self.modes = modes if modes is not None else [["free"] * (len(ch) - 1) for ch in chains]
+        self.off, self.size, self.link_off, self.sphere = [], [], [], []
+        n = 0
+        x0 = []
+        for c, (ch, sl) in enumerate(zip(chains, slacks)):
+            self.off.append(n)
+            m = 3 + (3 * len(ch) if rot_free else 0)
+            x0.append(t_ref[ch[0]])
+            if rot_free:
+                x0.append(np.zeros(3 * len(ch)))
+            lo, sph = [], []
+            for j in range(len(ch) - 1):
+                a, b = cars[ch[j]], cars[ch[j + 1]]
+                T = (t_ref[ch[j + 1]] + R_ref[ch[j + 1]] @ b.c_front) - (t_ref[ch[j]] + R_ref[ch[j]] @ a.c_rear)
+                lo.append(m)
+                if self.modes[c][j] == "sphere":
+                    nT = float(np.linalg.norm(T))
+                    d0 = T / nT if nT > 0 else np.array([1.0, 0.0, 0.0])
+                    sph.append((d0, _sphere_basis(d0)))
+                    x0.append(np.zeros(2))
+                    m += 2
+                else:
+                    sph.append(None)
+                    x0.append(T)
+                    m += 3
+            self.link_off.append(lo)
+            self.sphere.append(sph)
+            self.size.append(m)
+            n += m
+        self.f_off = n
+        n += len(self.focal_views)
+        x0.append(np.zeros(len(self.focal_views)))
+        self.n = n
+        self.x0 = np.concatenate([np.asarray(v, float).reshape(-1) for v in x0]) if x0 else np.zeros(0)
+        self.chain_of = {}
+        for c, ch in enumerate(chains):
+            for j, k in enumerate(ch):
+                self.chain_of[k] = (c, j)
+        self.rot_cars = [k for ch in chains for k in ch] if rot_free else []
+        self.rot_idx = np.array([self.off[c] + 3 + 3 * j + i for c, ch in enumerate(chains) for j in range(len(ch))
+                                 for i in range(3)], dtype=int) if rot_free else np.zeros(0, int)
+
+    def unpack(self, x: np.ndarray, with_derivs: bool | str = True):
+        """Poses, focal, offsets at ``x``. ``with_derivs``: True also the dense chain derivatives ``D`` (d t / d
+        chain params, O(N^2) for a long chain) and the left Jacobians; ``"local"`` only the left Jacobians
+        (what the structured solver needs); False neither."""
+        dense_D = with_derivs is True
+        R = self.R_ref.copy()
+        t = np.zeros((len(self.cars), 3))
+        D: dict[int, np.ndarray] = {}  # car -> (3, size_c): d t / d chain params
+        Jl: dict[int, np.ndarray] = {}
+        T_links: list[list[np.ndarray]] = []
+        self.GT = []
+        if self.rot_free and self.rot_cars:  # all rotations at once
+            dl = x[self.rot_idx].reshape(-1, 3)
+            R[self.rot_cars] = exp_so3(dl) @ self.R_ref[self.rot_cars]
+            if with_derivs:
+                Jl = dict(zip(self.rot_cars, left_jacobian_so3(dl)))
+        for c, (ch, sl) in enumerate(zip(self.chains, self.slacks)):
+            o, m = self.off[c], self.size[c]
+            GTc = []
+            t[ch[0]] = x[o:o + 3]
+            Tl = []
+            if dense_D:
+                Dk = np.zeros((3, m))
+                Dk[:, 0:3] = np.eye(3)
+                D[ch[0]] = Dk
+            for j in range(len(ch) - 1):
+                a, b = ch[j], ch[j + 1]
+                ca, cb = self.cars[a], self.cars[b]
+                lo = self.link_off[c][j]
+                sph = self.sphere[c][j]
+                if sph is None:
+                    T = x[o + lo:o + lo + 3].copy()
+                    GT = np.eye(3)
+                    w_ = 3
+                else:
+                    d0, B = sph  # exponential chart of the sphere at d0: covers every direction
+                    v = B @ x[o + lo:o + lo + 2]
+                    th = float(np.linalg.norm(v))
+                    if th < 1e-6:
+                        c1, c2 = 1.0 - th * th / 6.0, -1.0 / 3.0 + th * th / 30.0
+                    else:
+                        c1, c2 = math.sin(th) / th, (th * math.cos(th) - math.sin(th)) / th**3
+                    T = sl[j] * (math.cos(th) * d0 + c1 * v)
+                    GT = sl[j] * (-c1 * np.outer(d0, v) + c1 * np.eye(3) + c2 * np.outer(v, v)) @ B
+                    w_ = 2
+                Tl.append(T)
+                GTc.append((o + lo, GT))
+                ra, rb = R[a] @ ca.c_rear, R[b] @ cb.c_front
+                t[b] = t[a] + ra + T - rb
+                if dense_D:
+                    Dk = Dk.copy()
+                    Dk[:, lo:lo + w_] += GT
+                    if self.rot_free:
+                        ja = 3 + 3 * j
+                        Dk[:, ja:ja + 3] += -skew(ra) @ Jl[a]
+                        Dk[:, ja + 3:ja + 6] += skew(rb) @ Jl[b]
+                    D[b] = Dk
+            T_links.append(Tl)
+            self.GT.append(GTc)
+        f = self.f_ref.copy()
+        for i, v in enumerate(self.focal_views):
+            f[v] = self.f_ref[v] * math.exp(x[self.f_off + i])
+        return R, t, f, D, Jl, T_links
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Residuals
+# ----------------------------------------------------------------------------------------------------------
+class _Problem:
+    def __init__(self, cars: list[_Car], active: list[int], views: Sequence[View], weights: dict[int, float]):
+        self.cars, self.views = cars, views
+        self.active = active
+        rows_car, rows_view, P, uv, w = [], [], [], [], []
+        for k in active:
+            c = cars[k]
+            rows_car.append(np.full(len(c.P), k))
+            rows_view.append(c.views)
+            P.append(c.P)
+            uv.append(c.uv)
+            w.append(np.full(len(c.P), weights[k]))
+        self.car = np.concatenate(rows_car) if rows_car else np.zeros(0, int)
+        self.view = np.concatenate(rows_view) if rows_view else np.zeros(0, int)
+        self.P = np.vstack(P) if P else np.zeros((0, 3))
+        self.uv = np.vstack(uv) if uv else np.zeros((0, 2))
+        self.w = np.concatenate(w) if w else np.zeros(0)
+        self.by_view = [np.nonzero(self.view == v)[0] for v in range(len(views))]
+        self.by_car = {k: np.nonzero(self.car == k)[0] for k in active}
+
+    def intrinsics(self, v: int, f: float) -> CameraIntrinsics:
+        intr = self.views[v].intrinsics
+        ratio = intr.fy / intr.fx
+        return replace(intr, fx=f, fy=f * ratio)
+
+    def project(self, R: np.ndarray, t: np.ndarray, f: np.ndarray, jac: bool = False):
+        M = len(self.P)
+        uv = np.empty((M, 2))
+        JX = np.empty((M, 2, 3)) if jac else None
+        Jf = np.empty((M, 2)) if jac else None
+        Xw = np.einsum("nij,nj->ni", R[self.car], self.P) + t[self.car]
+        for v, idx in enumerate(self.by_view):
+            if len(idx) == 0:
+                continue
+            intr = self.intrinsics(v, f[v])
+            u_, jx, jf = project_world_points_with_jacobians(Xw[idx], self.views[v].cam_from_world, intr, ("f",))
+            uv[idx] = u_
+            if jac:
+                JX[idx] = jx
+                ratio = intr.fy / intr.fx
+                Jf[idx] = jf[:, :, 0] * np.array([1.0, ratio])
+        return uv, Xw, JX, Jf
+
+
+class _Contact:
+    """Soft terrain contact per carriage: residual ``scale * min_s (z_s - h(xy_s))`` (scale = px_sigma / sigma_z)."""
+
+    def __init__(self, terrain: Any, samples: dict[int, np.ndarray], scale: float, step: float = 0.05):
+        self.terrain, self.samples, self.scale, self.step = terrain, samples, scale, step
+
+    def clearance(self, R: np.ndarray, t: np.ndarray, k: int):
+        S = self.samples[k]
+        X = S @ R[k].T + t[k]
+        h = np.asarray(self.terrain.height_at(X[:, :2]), dtype=float)
+        d = X[:, 2] - h
+        if not np.any(np.isfinite(d)):
+            return None
+        i = int(np.nanargmin(d))
+        return float(d[i]), X[i], S[i] @ R[k].T
+
+    def gradient(self, xy: np.ndarray) -> np.ndarray:
+        e = self.step
+        q = np.array([[xy[0] + e, xy[1]], [xy[0] - e, xy[1]], [xy[0], xy[1] + e], [xy[0], xy[1] - e]])
+        h = np.asarray(self.terrain.height_at(q), dtype=float)
+        g = np.array([(h[0] - h[1]) / (2 * e), (h[2] - h[3]) / (2 * e)])
+        return np.where(np.isfinite(g), g, 0.0)
+
+
+def _residuals_and_jac(prob: _Problem, lay: _Layout, x: np.ndarray, contact: _Contact | None, jac: bool):
+    R, t, f, D, Jl, T_links = lay.unpack(x, with_derivs=True)
+    uv, Xw, JX, Jf = prob.project(R, t, f, jac=jac)
+    w = prob.w
+    r = ((uv - prob.uv) * w[:, None]).reshape(-1)
+    cars_c = list(contact.samples) if contact is not None else []
+    rc = np.zeros(len(cars_c))
+    cinfo = []
+    for i, k in enumerate(cars_c):
+        cl = contact.clearance(R, t, k)
+        cinfo.append(cl)
+        rc[i] = contact.scale * cl[0] if cl is not None else 0.0
+    T_all = [(c, j, T) for c, Tl in enumerate(T_links) for j, T in enumerate(Tl)]
+    rp = np.concatenate([T * (lay.prior_px * SQRT5 / lay.slacks[c][j]) for c, j, T in T_all]) if T_all else np.zeros(0)
+    res = np.concatenate([r, rc, rp])
+    if not jac:
+        return res, None
+    M = len(prob.P)
+    J = np.zeros((2 * M + len(cars_c) + len(rp), lay.n))
+    row0 = 2 * M + len(cars_c)
+    for i, (c, j, T) in enumerate(T_all):
+        col, GT = lay.GT[c][j]
+        J[row0 + 3 * i:row0 + 3 * i + 3, col:col + GT.shape[1]] = GT * (lay.prior_px * SQRT5 / lay.slacks[c][j])
+    JXw = JX * w[:, None, None]
+    for k in prob.active:
+        c, j = lay.chain_of[k]
+        o, m = lay.off[c], lay.size[c]
+        idx = prob.by_car[k]
+        rows = np.concatenate([2 * idx, 2 * idx + 1])
+        Jk = np.concatenate([JXw[idx, 0, :], JXw[idx, 1, :]], axis=0)  # (2n, 3)
+        J[rows, o:o + m] = Jk @ D[k]
+        if lay.rot_free:
+            q = prob.P[idx] @ R[k].T  # R p
+            Jr = -np.einsum("nab,nbc->nac", JXw[idx], skew(q)) @ Jl[k]  # (n, 2, 3)
+            ro = o + 3 + 3 * j
+            J[rows, ro:ro + 3] += np.concatenate([Jr[:, 0, :], Jr[:, 1, :]], axis=0)
+    for i, v in enumerate(lay.focal_views):
+        idx = prob.by_view[v]
+        col = lay.f_off + i
+        J[2 * idx, col] = Jf[idx, 0] * w[idx] * f[v]
+        J[2 * idx + 1, col] = Jf[idx, 1] * w[idx] * f[v]
+    for i, k in enumerate(cars_c):
+        cl = cinfo[i]
+        if cl is None:
+            continue
+        _, X, q = cl
+        gh = contact.gradient(X[:2])
+        a = np.array([-gh[0], -gh[1], 1.0]) * contact.scale  # d clearance / d X
+        c, j = lay.chain_of[k]
+        o, m = lay.off[c], lay.size[c]
+        row = 2 * M + i
+        J[row, o:o + m] = a @ D[k]
+        if lay.rot_free:
+            ro = o + 3 + 3 * j
+            J[row, ro:ro + 3] += -(a @ skew(q)) @ Jl[k]
+    return res, J
+
+
+_SOLVER = "struct"  # "struct": the sparse trust-region LM (:func:`_lm_struct`); "scipy": the previous path
+
+
+def _run_lsq(prob: _Problem, lay: _Layout, contact: _Contact | None, options: SolveOptions):
+    if _SOLVER == "struct":
+        return _lm_struct(prob, lay, contact, options)
+    cache: dict[str, Any] = {}
+    dense = lay.n <= options.dense_max_params
+
+    def fun(x):
+        r, J = _residuals_and_jac(prob, lay, x, contact, True)
+        cache["x"], cache["J"] = x.copy(), J
+        return r
+
+    def jac(x):
+        if "x" not in cache or not np.array_equal(cache["x"], x):
+            fun(x)
+        return cache["J"] if dense else sp.csr_matrix(cache["J"])
+
+    x0 = lay.x0
+    if lay.n == 0:
+        return x0, 0, "nothing to optimise", True
+    tol = options.tolerance
+    if not dense and options.robust_loss == "linear":
+        return _lm_dense(lambda x: _residuals_and_jac(prob, lay, x, contact, True), x0, int(options.max_iterations),
+                         tol)
+    kw = {"tr_solver": "exact"} if dense else {"tr_solver": "lsmr", "tr_options": {"atol": 1e-12, "btol": 1e-12}}
+    res = least_squares(fun, x0, jac=jac, method="trf", loss=options.robust_loss, f_scale=options.loss_scale_px,
+                        x_scale="jac", ftol=tol, xtol=tol, gtol=tol, max_nfev=int(options.max_iterations), **kw)
+    ok = res.status > 0
+    return res.x, int(res.nfev), res.message, ok
+
+
+def _lm_dense(fj, x0: np.ndarray, max_iter: int, tol: float):
+    """Levenberg-Marquardt (a trust-region method: the damping is the radius' multiplier) on the dense normal
+    equations with Marquardt scaling and a Cholesky solve — for the large linear-loss problems, where it is
+    far cheaper per iteration than scipy's TRF with LSMR (which also takes many more, inexact, steps)."""
+    x = x0.copy()
+    r, J = fj(x)
+    cost = 0.5 * float(r @ r)
+    lam, nu = 1e-4, 2.0
+    nfev = 1
+    for it in range(max_iter):
+        A = J.T @ J
+        g = J.T @ r
+        d = np.maximum(np.diag(A), 1e-12 * max(1.0, float(np.max(np.diag(A)))))
+        if float(np.max(np.abs(g) / np.sqrt(d))) < tol * max(1.0, math.sqrt(2 * cost)):
+            return x, nfev, "gradient small", True
+        while True:
+            try:
+                L = np.linalg.cholesky(A + lam * np.diag(d))
+                dx = -np.linalg.solve(L.T, np.linalg.solve(L, g))
+            except np.linalg.LinAlgError:
+                lam *= 10.0
+                continue
+            xn = x + dx
+            rn, Jn = fj(xn)
+            nfev += 1
+            cn = 0.5 * float(rn @ rn)
+            pred = -(g @ dx) - 0.5 * float(dx @ (A @ dx))
+            rho = (cost - cn) / pred if pred > 0 else -1.0
+            if rho > 0:
+                small = abs(cost - cn) < tol * cost or float(np.linalg.norm(dx)) < tol * (tol + float(np.linalg.norm(x)))
+                x, r, J, cost = xn, rn, Jn, cn
+                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                nu = 2.0
+                if small:
+                    return x, nfev, "converged (cost / step change below tolerance)", True
+                break
+            lam *= nu
+            nu *= 2.0
+            if lam > 1e16 or nfev >= max_iter:
+                return x, nfev, "trust region collapsed" if lam > 1e16 else "maximum evaluations", lam > 1e16
+        if nfev >= max_iter:
+            break
+    return x, nfev, "maximum evaluations reached", False
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Structured (sparse) trust-region solver
+# ----------------------------------------------------------------------------------------------------------
+class _ZLayout:
+    """Index map of the *expanded* variables ``z`` of a chained step: per carriage its rotation increment (3, when
+    free) and its translation increment (3), per link its offset parameters (3 free / 2 on the sphere), then the
+    log-focal of each estimated view. The chain parameters ``x`` of :class:`_Layout` are a subset of ``z`` (the
+    first carriage's translation, the rotations, the links, the focal); the other translations are tied to
+    them by the linearised coupling equations ``C z = 0`` (3 per link). In ``z`` the Gauss-Newton matrix is
+    block diagonal (a carriage's pixels see only its own pose) plus the focal's rows, and ``C`` couples only
+    neighbours: the LM/trust-region system is a sparse KKT system, O(N) to factor for a chain of N carriages."""
+
+    def __init__(self, lay: _Layout):
+        self.nr = 3 if lay.rot_free else 0
+        self.bs = self.nr + 3
+        self.zc: dict[int, int] = {}
+        n = 0
+        for ch in lay.chains:
+            for k in ch:
+                self.zc[k] = n
+                n += self.bs
+        self.zl: list[list[tuple[int, int]]] = []
+        for c, ch in enumerate(lay.chains):
+            row = []
+            for j in range(len(ch) - 1):
+                w = 2 if lay.sphere[c][j] is not None else 3
+                row.append((n, w))
+                n += w
+            self.zl.append(row)
+        self.zf = n
+        self.nf = len(lay.focal_views)
+        n += self.nf
+        self.nz = n
+        xz = np.empty(lay.n, dtype=int)
+        for c, ch in enumerate(lay.chains):
+            o = lay.off[c]
+            xz[o:o + 3] = self.zc[ch[0]] + self.nr + np.arange(3)
+            if lay.rot_free:
+                for j, k in enumerate(ch):
+                    xz[o + 3 + 3 * j:o + 6 + 3 * j] = self.zc[k] + np.arange(3)
+            for j in range(len(ch) - 1):
+                z0, w = self.zl[c][j]
+                lo = o + lay.link_off[c][j]
+                xz[lo:lo + w] = z0 + np.arange(w)
+        xz[lay.f_off:lay.f_off + self.nf] = self.zf + np.arange(self.nf)
+        self.xz = xz
+        self.n_links = sum(len(ch) - 1 for ch in lay.chains)
+        # fixed sparsity pattern of Hz and C (values are filled per iteration)
+        bs, nf = self.bs, self.nf
+        self.cars = [k for ch in lay.chains for k in ch]
+        self.chain_end = np.concatenate([np.full(len(ch), sum(len(h) for h in lay.chains[:c + 1]))
+                                         for c, ch in enumerate(lay.chains)]).astype(int)
+        starts = np.cumsum([0] + [len(ch) for ch in lay.chains])[:-1]
+        self.first_pos = starts.astype(int)
+        self.is_first = np.zeros(len(self.cars), bool)
+        self.is_first[self.first_pos] = True
+        self.tfirst_x = np.array([lay.off[c] + i for c in range(len(lay.chains)) for i in range(3)], dtype=int)
+        self.rot_x = lay.rot_idx
+        self.link_rear_pos = np.array([starts[c] + j + 1 for c, ch in enumerate(lay.chains)
+                                       for j in range(len(ch) - 1)], dtype=int)
+        z0 = np.array([self.zc[k] for k in self.cars], dtype=int)
+        ar = np.arange(bs)
+        self.h_rows = [np.repeat(z0[:, None] + ar, bs, axis=1).ravel(), ]
+        self.h_cols = [np.tile(z0[:, None] + ar, (1, bs)).ravel()]
+        if nf:
+            fr = self.zf + np.arange(nf)
+            a = np.repeat(z0[:, None] + ar, nf, axis=1).ravel()
+            b = np.tile(fr, len(z0) * bs)
+            self.h_rows += [a, b, np.repeat(fr, nf)]
+            self.h_cols += [b, a, np.tile(fr, nf)]
+        self.link_list = [(c, j) for c, ch in enumerate(lay.chains) for j in range(len(ch) - 1)]
+        for c, j in self.link_list:
+            l0, w = self.zl[c][j]
+            self.h_rows.append(np.repeat(l0 + np.arange(w), w))
+            self.h_cols.append(np.tile(l0 + np.arange(w), w))
+        self.h_rows = np.concatenate(self.h_rows)
+        self.h_cols = np.concatenate(self.h_cols)
+        crow, ccol = [], []
+        nr = self.nr
+        for li, (c, j) in enumerate(self.link_list):
+            ka, kb = lay.chains[c][j], lay.chains[c][j + 1]
+            l0, w = self.zl[c][j]
+            r3 = 3 * li + np.arange(3)
+            cols = [self.zc[kb] + nr + np.arange(3), self.zc[ka] + nr + np.arange(3), l0 + np.arange(w)]
+            if lay.rot_free:
+                cols += [self.zc[ka] + np.arange(3), self.zc[kb] + np.arange(3)]
+            for cc in cols:
+                crow.append(np.repeat(r3, len(cc)))
+                ccol.append(np.tile(cc, 3))
+        self.c_rows = np.concatenate(crow) if crow else np.zeros(0, int)
+        self.c_cols = np.concatenate(ccol) if ccol else np.zeros(0, int)
+
+
+def _struct_eval(prob: _Problem, lay: _Layout, zl: _ZLayout, x: np.ndarray, contact: _Contact | None, loss_fn):
+    """Residuals, cost and the Gauss-Newton blocks in ``z`` (see :class:`_ZLayout`) at ``x``; a robust loss
+    enters as scipy's ``least_squares`` does (rows rescaled by sqrt(rho' + 2 rho'' r^2), residuals by
+    rho' / that)."""
+    R, t, f, _, Jl, T_links = lay.unpack(x, with_derivs="local")
+    uv, Xw, JX, Jf = prob.project(R, t, f, jac=True)
+    w = prob.w
+    M = len(prob.P)
+    rpix = ((uv - prob.uv) * w[:, None]).reshape(-1)
+    JXw = JX * w[:, None, None]
+    if lay.rot_free:
+        q = Xw - t[prob.car]
+        JlA = np.array([Jl[k] for k in prob.car]) if M else np.zeros((0, 3, 3))
+        Jr = -np.einsum("nab,nbc,ncd->nad", JXw, skew(q), JlA)
+        Jpt = np.concatenate([Jr, JXw], axis=2)
+    else:
+        Jpt = JXw
+    nf = zl.nf
+    Jfp = np.zeros((M, 2, nf))
+    for i, v in enumerate(lay.focal_views):
+        idx = prob.by_view[v]
+        Jfp[idx, :, i] = Jf[idx] * (w[idx] * f[v])[:, None]
+    cars_c = list(contact.samples) if contact is not None else []
+    rc = np.zeros(len(cars_c))
+    Jc = np.zeros((len(cars_c), zl.bs))
+    for i, k in enumerate(cars_c):
+        cl = contact.clearance(R, t, k)
+        if cl is None:
+            continue
+        _, X, qk = cl
+        gh = contact.gradient(X[:2])
+        a = np.array([-gh[0], -gh[1], 1.0]) * contact.scale
+        rc[i] = contact.scale * cl[0]
+        Jc[i, zl.nr:] = a
+        if lay.rot_free:
+            Jc[i, :3] = -(a @ skew(qk)) @ Jl[k]
+    links = []  # (chain, j, T, GT, scale)
+    for c, Tl in enumerate(T_links):
+        for j, T in enumerate(Tl):
+            links.append((c, j, T, lay.GT[c][j][1], lay.prior_px * SQRT5 / lay.slacks[c][j]))
+    rp = np.concatenate([T * s for _, _, T, _, s in links]) if links else np.zeros(0)
+    r = np.concatenate([rpix, rc, rp])
+    if loss_fn is None:
+        cost = 0.5 * float(r @ r)
+        sc = None
+    else:
+        rho = loss_fn(r)
+        cost = 0.5 * float(np.sum(rho[0]))
+        js = rho[1] + 2 * rho[2] * r**2
+        js = np.sqrt(np.maximum(js, np.finfo(float).eps))
+        r = r * rho[1] / js
+        sc = js
+    rpm = r[:2 * M].reshape(M, 2)
+    rcm = r[2 * M:2 * M + len(cars_c)]
+    rpr = r[2 * M + len(cars_c):]
+    if sc is not None:
+        sp_ = sc[:2 * M].reshape(M, 2)
+        Jpt = Jpt * sp_[:, :, None]
+        Jfp = Jfp * sp_[:, :, None]
+        Jc = Jc * sc[2 * M:2 * M + len(cars_c), None]
+        scp = sc[2 * M + len(cars_c):]
+    ncar = len(zl.zc)
+    pos = {k: i for i, k in enumerate(zl.zc)}
+    cpos = np.array([pos[k] for k in prob.car], dtype=int)
+    Hcar = np.zeros((ncar, zl.bs, zl.bs))
+    gcar = np.zeros((ncar, zl.bs))
+    np.add.at(Hcar, cpos, np.einsum("nai,naj->nij", Jpt, Jpt))
+    np.add.at(gcar, cpos, np.einsum("nai,na->ni", Jpt, rpm))
+    Hcf = np.zeros((ncar, zl.bs, nf))
+    if nf:
+        np.add.at(Hcf, cpos, np.einsum("nai,naj->nij", Jpt, Jfp))
+    Hff = np.einsum("nai,naj->ij", Jfp, Jfp)
+    gf = np.einsum("nai,na->i", Jfp, rpm)
+    for i, k in enumerate(cars_c):
+        Hcar[pos[k]] += np.outer(Jc[i], Jc[i])
+        gcar[pos[k]] += Jc[i] * rcm[i]
+    Hl, gl = [], []
+    for i, (c, j, T, GT, s) in enumerate(links):
+        Jp = GT * s
+        if sc is not None:
+            Jp = Jp * scp[3 * i:3 * i + 3, None]
+        Hl.append(Jp.T @ Jp)
+        gl.append(Jp.T @ rpr[3 * i:3 * i + 3])
+    return {"x": x, "cost": cost, "R": R, "Jl": Jl, "pos": pos, "Hcar": Hcar, "gcar": gcar, "Hcf": Hcf,
+            "Hff": Hff, "gf": gf, "Hl": Hl, "gl": gl, "m": len(r)}
+
+
+def _struct_chain_grad_diag(lay: _Layout, zl: _ZLayout, E: dict, cars: list[_Car]):
+    """Gradient and the diagonal of the Gauss-Newton matrix in the chain parameters ``x`` (exact, by suffix
+    sums along each chain: a link or rotation moves every carriage behind it), and the coupling blocks
+    (A = d(R c_rear)/d rot, B = -d(R c_front)/d rot per carriage)."""
+    g = np.zeros(lay.n)
+    d = np.zeros(lay.n)
+    nr = zl.nr
+    order = [E["pos"][k] for k in zl.cars]
+    H, gc = E["Hcar"][order], E["gcar"][order]
+    n = len(zl.cars)
+    Htt, gt = H[:, nr:, nr:], gc[:, nr:]
+    # suffix sums within each chain: S[i] = sum over the carriages from i to the end of its chain
+    Sg = np.cumsum(Htt[::-1], axis=0)[::-1]
+    Gg = np.cumsum(gt[::-1], axis=0)[::-1]
+    Sg = np.concatenate([Sg, np.zeros((1, 3, 3))])
+    Gg = np.concatenate([Gg, np.zeros((1, 3))])
+    end = zl.chain_end  # per carriage: index (in zl.cars) one past its chain's last carriage
+    S = Sg[:n] - Sg[end]
+    G = Gg[:n] - Gg[end]
+    nxt = np.minimum(np.arange(n) + 1, n)
+    last = (np.arange(n) + 1) == end
+    Sn = np.where(last[:, None, None], 0.0, Sg[nxt] - Sg[end])
+    Gn = np.where(last[:, None], 0.0, Gg[nxt] - Gg[end])
+    fi = zl.first_pos
+    g[zl.tfirst_x] = G[fi].ravel()
+    d[zl.tfirst_x] = np.diagonal(S[fi], axis1=1, axis2=2).ravel()
+    AB = None
+    if lay.rot_free:
+        R, Jl = E["R"], E["Jl"]
+        Rk = R[zl.cars]
+        JL = np.array([Jl[k] for k in zl.cars])
+        cr = np.array([cars[k].c_rear for k in zl.cars])
+        cf = np.array([cars[k].c_front for k in zl.cars])
+        A = -skew(np.einsum("nij,nj->ni", Rk, cr)) @ JL
+        B = skew(np.einsum("nij,nj->ni", Rk, cf)) @ JL
+        F = np.where(zl.is_first[:, None, None], 0.0, B)
+        Ft = np.swapaxes(F, 1, 2)
+        Ho = H[:, :3, :3] + Ft @ H[:, 3:, :3] + H[:, :3, 3:] @ F + Ft @ Htt @ F
+        go = gc[:, :3] + np.einsum("nji,nj->ni", F, gt)
+        cc = F + A
+        cct = np.swapaxes(cc, 1, 2)
+        Ho = Ho + cct @ Sn @ cc
+        go = go + np.einsum("nji,nj->ni", cc, Gn)
+        g[zl.rot_x] = go.ravel()
+        d[zl.rot_x] = np.diagonal(Ho, axis1=1, axis2=2).ravel()
+        AB = {k: (A[i], B[i]) for i, k in enumerate(zl.cars)}
+    for li, (c, j) in enumerate(zl.link_list):
+        GT = lay.GT[c][j][1]
+        lo = lay.off[c] + lay.link_off[c][j]
+        w_ = GT.shape[1]
+        ib = zl.link_rear_pos[li]
+        g[lo:lo + w_] = GT.T @ G[ib] + E["gl"][li]
+        d[lo:lo + w_] = np.einsum("ji,jk,ki->i", GT, S[ib], GT) + np.diag(E["Hl"][li])
+    nf = zl.nf
+    if nf:
+        g[lay.f_off:lay.f_off + nf] = E["gf"]
+        d[lay.f_off:lay.f_off + nf] = np.diag(E["Hff"])
+    return g, d, AB
+
+
+def _struct_system(lay: _Layout, zl: _ZLayout, E: dict, AB):
+    """Gauss-Newton matrix Hz (sparse, in z), gradient gz, and the coupling constraint matrix C (sparse)."""
+    order = [E["pos"][k] for k in zl.cars]
+    vals = [E["Hcar"][order].ravel()]
+    gz = np.zeros(zl.nz)
+    z0 = np.array([zl.zc[k] for k in zl.cars], dtype=int)
+    gz[(z0[:, None] + np.arange(zl.bs)).ravel()] = E["gcar"][order].ravel()
+    if zl.nf:
+        Hcf = E["Hcf"][order].ravel()
+        vals += [Hcf, Hcf, E["Hff"].ravel()]
+        gz[zl.zf:] = E["gf"]
+    I3 = np.eye(3).ravel()
+    cvals = []
+    for li, (c, j) in enumerate(zl.link_list):
+        vals.append(E["Hl"][li].ravel())
+        l0, w = zl.zl[c][j]
+        gz[l0:l0 + w] = E["gl"][li]
+        cvals += [I3, -I3, -lay.GT[c][j][1].ravel()]
+        if lay.rot_free:
+            cvals += [-AB[lay.chains[c][j]][0].ravel(), -AB[lay.chains[c][j + 1]][1].ravel()]
+    Hz = sp.csr_matrix((np.concatenate(vals), (zl.h_rows, zl.h_cols)), shape=(zl.nz, zl.nz))
+    C = sp.csr_matrix((np.concatenate(cvals) if cvals else np.zeros(0), (zl.c_rows, zl.c_cols)),
+                      shape=(3 * zl.n_links, zl.nz))
+    return Hz, gz, C
+
+
+def _lm_struct(prob: _Problem, lay: _Layout, contact: _Contact | None, options: SolveOptions):
+    """Levenberg-Marquardt with Marquardt scaling and Nielsen's damping update — a trust-region method in the
+    sense of Moré (1978): each step minimises the Gauss-Newton model over the ellipsoid ||diag(d)^1/2 dx|| <=
+    Delta, the damping lambda being that radius' multiplier, and the radius grows or shrinks with the ratio of
+    actual to predicted reduction. The step is computed in the chain parameters ``x`` (so the coupling
+    constraint |T| <= s stays exact, see :class:`_Layout`) but solved through the sparse KKT system of the
+    expanded variables ``z`` (:class:`_ZLayout`) with a sparse LU (SuperLU), O(N) per iteration for a chain of
+    N carriages instead of the dense O(N^3) normal equations of ``x``. ``d`` is the exact diagonal of the
+    Gauss-Newton matrix in ``x``."""
+    from scipy.sparse.linalg import splu
+
+    if lay.n == 0:
+        return lay.x0, 0, "nothing to optimise", True
+    zl = _ZLayout(lay)
+    tol = options.tolerance
+    max_ev = int(options.max_iterations)
+    loss_fn = None
+    if options.robust_loss != "linear":
+        from scipy.optimize._lsq.least_squares import construct_loss_function
+
+        m = 2 * len(prob.P) + (len(contact.samples) if contact is not None else 0) + 3 * zl.n_links
+        loss_fn = construct_loss_function(m, options.robust_loss, options.loss_scale_px)
+    x = lay.x0.copy()
+    # the focal is kept inside the field-of-view range of the sweep (guards against runaway along the
+    # depth / focal ambiguity): log(f / f_ref) within [log f(hfov_hi), log f(hfov_lo)]
+    flo = np.zeros(zl.nf)
+    fhi = np.zeros(zl.nf)
+    for i, v in enumerate(lay.focal_views):
+        half_w = 0.5 * prob.views[v].intrinsics.width
+        lo_deg, hi_deg = options.hfov_range_deg
+        flo[i] = math.log(half_w / math.tan(math.radians(hi_deg) / 2) / lay.f_ref[v])
+        fhi[i] = math.log(half_w / math.tan(math.radians(lo_deg) / 2) / lay.f_ref[v])
+    if zl.nf:
+        x[lay.f_off:] = np.clip(x[lay.f_off:], flo, fhi)
+    E = _struct_eval(prob, lay, zl, x, contact, loss_fn)
+    nfev = 1
+    lam, nu = 1e-3, 2.0
+    nc = 3 * zl.n_links
+    while True:
+        g, d, AB = _struct_chain_grad_diag(lay, zl, E, prob.cars)
+        dmax = float(np.max(d)) if len(d) else 1.0
+        d = np.maximum(d, 1e-12 * max(1.0, dmax))
+        cost = E["cost"]
+        if float(np.max(np.abs(g) / np.sqrt(d))) < tol * max(1.0, math.sqrt(2 * cost)):
+            return x, nfev, "gradient small", True
+        Hz, gz, C = _struct_system(lay, zl, E, AB)
+        dz = np.zeros(zl.nz)
+        dz[zl.xz] = d
+        while True:
+            K = sp.bmat([[Hz + sp.diags(lam * dz), C.T], [C, None]], format="csc") if nc else \
+                (Hz + sp.diags(lam * dz)).tocsc()
+            rhs = np.concatenate([-gz, np.zeros(nc)])
+            try:
+                sol = splu(K, permc_spec="MMD_AT_PLUS_A").solve(rhs)
+            except RuntimeError:  # exactly singular
+                sol = None
+            if sol is None or not np.all(np.isfinite(sol)):
+                lam *= 10.0
+                if lam > 1e16:
+                    return x, nfev, "trust region collapsed", False
+                continue
+            z = sol[:zl.nz]
+            dx = z[zl.xz]
+            pred = -float(gz @ z) - 0.5 * float(z @ (Hz @ z))
+            xn = x + dx
+            if zl.nf and not np.all((xn[lay.f_off:] >= flo) & (xn[lay.f_off:] <= fhi)):
+                # the focal would leave the sweep's field-of-view range: a failed step (radius shrinks)
+                lam *= nu
+                nu *= 2.0
+                if lam > 1e16:
+                    return x, nfev, "trust region collapsed", False
+                continue
+            En = _struct_eval(prob, lay, zl, xn, contact, loss_fn)
+            nfev += 1
+            cn = En["cost"]
+            rho = (cost - cn) / pred if pred > 0 else -1.0
+            if rho > 0 and np.isfinite(cn):
+                small = abs(cost - cn) < tol * cost or float(np.linalg.norm(dx)) < tol * (
+                    tol + float(np.linalg.norm(x)))
+                x, E = xn, En
+                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
+                nu = 2.0
+                if small:
+                    return x, nfev, "converged (cost / step change below tolerance)", True
+                break
+            lam *= nu
+            nu *= 2.0
+            if lam > 1e16:
+                return x, nfev, "trust region collapsed", False
+            if nfev >= max_ev:
+                return x, nfev, "maximum evaluations reached", False
+        if nfev >= max_ev:
+            return x, nfev, "maximum evaluations reached", False
+
+
+def _solve_chained(prob: _Problem, cars: list[_Car], chains, slacks, rot_free: bool, focal_views, R, t, f,
+                   contact: _Contact | None, options: SolveOptions):
+    """Active-set trust-region solve of a chained step: links start free (T itself the parameter); a link whose
+    offset leaves the ball is moved onto the sphere |T| = s (2 parameters); a link on the sphere whose cost
+    gradient points inwards (multiplier of the wrong sign) is freed again. Every returned offset satisfies
+    |T| <= s (to rounding)."""
+    modes = [["free"] * (len(ch) - 1) for ch in chains]
+    nfev_tot, msgs, ok_all, rounds = 0, [], True, 0
+    finalize = False
+    for rounds in range(1, 40):
+        lay = _Layout(chains, slacks, rot_free, focal_views, cars, R, t, f, modes, options.pixel_sigma_px)
+        x, nfev, msg, ok = _run_lsq(prob, lay, contact, options)
+        nfev_tot += nfev
+        R, t, f, _, _, T_links = lay.unpack(x, with_derivs=False)
+        last_ok, last_msg = ok, msg
+        changed = False
+        for c, ch in enumerate(chains):
+            for j in range(len(ch) - 1):
+                if modes[c][j] == "free" and np.linalg.norm(T_links[c][j]) > slacks[c][j] * (1 + 1e-12):
+                    modes[c][j] = "sphere"
+                    changed = True
+        if changed:
+            continue
+        if finalize or rounds >= 12:
+            break
+        # release links whose constraint is not binding
+        lay_free = _Layout(chains, slacks, rot_free, focal_views, cars, R, t, f, None, options.pixel_sigma_px)
+        r, J = _residuals_and_jac(prob, lay_free, lay_free.x0, contact, True)
+        g = J.T @ r
+        for c, ch in enumerate(chains):
+            for j in range(len(ch) - 1):
+                if modes[c][j] != "sphere":
+                    continue
+                T = T_links[c][j]
+                o = lay_free.off[c] + lay_free.link_off[c][j]
+                if float(g[o:o + 3] @ (T / np.linalg.norm(T))) > 1e-9 * max(1.0, float(np.abs(g).max())):
+                    modes[c][j] = "free"
+                    changed = True
+        if not changed:
+            break
+    n_active = sum(m == "sphere" for ms in modes for m in ms)
+    return R, t, f, T_links, nfev_tot, last_msg, last_ok, rounds, n_active
+
+
+def _pixel_cost(prob: _Problem, R, t, f) -> float:
+    uv, *_ = prob.project(R, t, f)
+    e = (uv - prob.uv) * prob.w[:, None]
+    return float(0.5 * np.sum(e * e))
+
+
+def _rot_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    c = (np.trace(Ra @ Rb.T) - 1.0) / 2.0
+    return float(np.rad2deg(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def _changes(cars, active, R0, t0, R1, t1) -> list[dict]:
+    out = []
+    for k in active:
+        out.append({"number": cars[k].number, "moved_m": float(np.linalg.norm(t1[k] - t0[k])),
+                    "dz_m": float(t1[k][2] - t0[k][2]), "rotated_deg": _rot_angle_deg(R1[k], R0[k])})
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Start: PnP and the focal sweep
+# ----------------------------------------------------------------------------------------------------------
+def _pnp(P: np.ndarray, uv: np.ndarray, intr: CameraIntrinsics, cam_from_world: np.ndarray):
+    """world_from_carriage (R, t) from SQPnP on undistorted normalised points; None on failure. Also the
+    reprojection sum of squares (px^2)."""
+    import cv2
+
+    xy = intr.undistort(intr.normalized_from_pixels(uv))
+    try:
+        ok, rvec, tvec = cv2.solvePnP(P.astype(np.float64), xy.astype(np.float64).reshape(-1, 1, 2), np.eye(3),
+                                      None, flags=cv2.SOLVEPNP_SQPNP)
+    except cv2.error:
+        return None
+    if not ok:
+        return None
+    Rcc = cv2.Rodrigues(rvec)[0]
+    tcc = tvec.reshape(3)
+    Pc = P @ Rcc.T + tcc
+    if np.any(Pc[:, 2] <= 0):
+        return None
+    e = intr.project(Pc) - uv
+    sse = float(np.sum(e * e))
+    M = np.asarray(cam_from_world, float)
+    Rw, tw = M[:3, :3].T, -M[:3, :3].T @ M[:3, 3]
+    return Rw @ Rcc, Rw @ tcc + tw, sse
+
+
+def _focal_sweep(prob: _Problem, cars: list[_Car], solo: list[int], v: int, options: SolveOptions) -> float | None:
+    view = prob.views[v]
+    intr0 = view.intrinsics
+    lo, hi = options.hfov_range_deg
+    half_w = 0.5 * intr0.width
+    fs = half_w / np.tan(np.deg2rad(np.linspace(hi, lo, options.hfov_steps)) / 2.0)
+    members = [k for k in solo if np.sum(cars[k].views == v) >= 4]
+    if not members:
+        return None
+    best = (np.inf, None)
+    for fv in fs:
+        intr = prob.intrinsics(v, fv)
+        tot = 0.0
+        for k in members:
+            sel = cars[k].views == v
+            r = _pnp(cars[k].P[sel], cars[k].uv[sel], intr, view.cam_from_world)
+            tot += r[2] if r is not None else 1e12
+        if tot < best[0]:
+            best = (tot, fv)
+    return best[1]
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The solver
+# ----------------------------------------------------------------------------------------------------------
+def _warn(wlist: list, car: _Car | None, kind: str, message: str) -> None:
+    rec = {"car": car.number if car is not None else None, "index": car.index if car is not None else None,
+           "kind": kind, "message": message}
+    wlist.append(rec)
+    warnings.warn(message, SolveWarning, stacklevel=3)
+
+
+_SAMPLE_CACHE: dict[tuple[str, int], np.ndarray] = {}
+
+
+def _samples(ct: Any, n: int) -> np.ndarray:
+    key = (f"{ct.id}:{ct.source_path}", int(n))
+    s = _SAMPLE_CACHE.get(key)
+    if s is None:
+        s = np.asarray(ct.sample_surface(n), dtype=float)
+        _SAMPLE_CACHE[key] = s
+    return s
+
+
+def rest_on_terrain(world_from_carriage: np.ndarray, carriage_type: Any, terrain: Any,
+                    n_samples: int = 400) -> tuple[np.ndarray, float]:
+    """Step 2 for one carriage: move it along gravity (scene z only) until its lowest surface sample touches the
+    terrain without penetrating it. Returns (new world_from_carriage (4, 4), dz applied in metres). A carriage
+    outside the terrain (heights NaN) is returned unchanged with dz = NaN."""
+    M = np.array(world_from_carriage, dtype=float)
+    X = _samples(carriage_type, n_samples) @ M[:3, :3].T + M[:3, 3]
+    d = X[:, 2] - np.asarray(terrain.height_at(X[:, :2]), dtype=float)
+    if not np.any(np.isfinite(d)):
+        return M, float("nan")
+    dz = -float(np.nanmin(d))
+    M[2, 3] += dz
+    return M, dz
+
+
+def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink], views: Sequence[View],
+                  options: SolveOptions | None = None, terrain: Any = None) -> SolveResult:
+    """Solve the poses of all carriages (and optionally the focal) from marked-point pixels. See the module doc."""
+    t_start = time.perf_counter()
+    options = options or SolveOptions()
+    views = list(views)
+    cars = _prepare(carriages, views, options)
+    N = len(cars)
+    wl: list[dict] = []
+
+    # -- links ----------------------------------------------------------------------------------------
+    link_slack: dict[int, float] = {}  # front index -> slack (held/broken-with-slack link to front+1)
+    seen_pairs = set()
+    for L in links:
+        for idx in (L.front, L.rear):
+            if not (0 <= int(idx) < N):
+                raise InputError(f"chain link {L.front}->{L.rear}: carriage index {idx} is not in the consist "
+                                 f"(0..{N - 1})")
+        if int(L.rear) != int(L.front) + 1:
+            raise InputError(f"chain link {L.front}->{L.rear}: a link joins consecutive carriages (rear = front + 1)")
+        if L.front in seen_pairs:
+            raise InputError(f"chain link {L.front}->{L.rear} is given twice")
+        seen_pairs.add(L.front)
+        if L.slack_m is None:
+            continue
+        if not (np.isfinite(L.slack_m) and L.slack_m > 0):
+            raise InputError(f"chain link {L.front}->{L.rear}: slack_m = {L.slack_m!r} must be positive (or None for "
+                             f"no link)")
+        link_slack[int(L.front)] = float(L.slack_m)
+
+    # -- observability ----------------------------------------------------------------------------------
+    n_pts = [len(c.distinct) for c in cars]
+    degenerate = []
+    for c in cars:
+        d = _degeneracy(c.ctype, c.distinct) if len(c.distinct) >= 2 else "too few"
+        if d == "coplanar" and not options.estimate_focal and len(c.distinct) >= 4:
+            d = ""
+        degenerate.append(d)
+    alone_ok = [n_pts[k] >= 4 and degenerate[k] == "" for k in range(N)]
+    candidate = [n_pts[k] >= 2 for k in range(N)]
+    for k in range(N):
+        if not candidate[k]:
+            lk = (k in link_slack) or (k - 1 in link_slack)
+            _warn(wl, cars[k], "left_out",
+                  f"car {cars[k].number}: {n_pts[k]} visible marked point(s) — at least 2 are needed even when "
+                  f"carried by its chain{' (its links are dropped)' if lk else ''}; left out")
+    # chains over candidates
+    chains: list[list[int]] = []
+    k = 0
+    while k < N:
+        if not candidate[k]:
+            k += 1
+            continue
+        ch = [k]
+        while k in link_slack and k + 1 < N and candidate[k + 1]:
+            ch.append(k + 1)
+            k += 1
+        chains.append(ch)
+        k += 1
+    status_car = ["left_out"] * N
+    final_chains: list[list[int]] = []
+    for ch in chains:
+        if len(ch) == 1:
+            k = ch[0]
+            if alone_ok[k]:
+                status_car[k] = "solved"
+                final_chains.append(ch)
+            else:
+                why = (f"{n_pts[k]} visible point(s), 4 needed for an unlinked carriage" if n_pts[k] < 4
+                       else f"its points are {degenerate[k]}" + (" and the focal is unknown"
+                                                                 if degenerate[k] == "coplanar" else ""))
+                _warn(wl, cars[k], "left_out", f"car {cars[k].number}: not observable alone ({why}) and not linked "
+                                               f"to a neighbour; left out")
+            continue
+        if not any(alone_ok[k] for k in ch):
+            for k in ch:
+                _warn(wl, cars[k], "left_out", f"car {cars[k].number}: no carriage of its chain "
+                                               f"({', '.join(cars[i].number for i in ch)}) is observable alone; left out")
+            continue
+        for k in ch:
+            if alone_ok[k]:
+                status_car[k] = "solved"
+            else:
+                status_car[k] = "carried"
+                if n_pts[k] < 3 or degenerate[k] not in ("", "coplanar") or (
+                        degenerate[k] == "coplanar" and options.estimate_focal):
+                    why = (f"{n_pts[k]} visible point(s), 3 needed" if n_pts[k] < 3
+                           else f"its points are {degenerate[k]}")
+                    _warn(wl, cars[k], "carried", f"car {cars[k].number}: not observable alone ({why}); carried by "
+                                                  f"its chain")
+        final_chains.append(ch)
+    active = [k for ch in final_chains for k in ch]
+    chain_slacks = [[link_slack[ch[j]] for j in range(len(ch) - 1)] for ch in final_chains]
+
+    # -- weights -----------------------------------------------------------------------------------------
+    counts = {k: len(cars[k].P) for k in active}
+    nmean = float(np.mean(list(counts.values()))) if counts else 1.0
+    weights = {k: math.sqrt(nmean / max(counts[k], 1)) for k in active}
+    prob = _Problem(cars, active, views, weights)
+    V = len(views)
+    f = np.array([v.intrinsics.fx for v in views], dtype=float)
+    R = np.tile(np.eye(3), (N, 1, 1))
+    t = np.zeros((N, 3))
+    steps: list[StepStats] = []
+    focal_views = [v for v in range(V) if len(prob.by_view[v]) > 0] if options.estimate_focal else []
+    total_nfev = 0
+    all_ok = True
+    messages = []
+
+    # -- step 1: each carriage alone ----------------------------------------------------------------------
+    t1 = time.perf_counter()
+    solo = [k for k in active if alone_ok[k]]
+    note = ""
+    if options.estimate_focal:
+        for v in focal_views:
+            fb = _focal_sweep(prob, cars, solo, v, options)
+            if fb is not None:
+                f[v] = fb
+            else:
+                _warn(wl, None, "focal", f"view {views[v].name!r}: no carriage with 4 points in it; the focal "
+                                         f"sweep kept the given focal {f[v]:.1f} px")
+        note = "focal sweep: " + ", ".join(f"{views[v].name}={f[v]:.1f}px" for v in focal_views)
+    for k in solo:
+        c = cars[k]
+        best = None
+        for v in range(V):
+            sel = c.views == v
+            if sel.sum() < 4:
+                continue
+            r = _pnp(c.P[sel], c.uv[sel], prob.intrinsics(v, f[v]), views[v].cam_from_world)
+            if r is not None and (best is None or sel.sum() > best[3]):
+                best = (r[0], r[1], r[2], sel.sum())
+        if best is None:  # no single view with 4 points: start in front of the first camera
+            v = int(c.views[0])
+            cc = views[v].camera_centre
+            M = np.asarray(views[v].cam_from_world)
+            R[k] = np.eye(3)
+            t[k] = cc + M[2, :3] * 30.0
+        else:
+            R[k], t[k] = best[0], best[1]
+    # carried: from the neighbours, forwards then backwards
+    placed = set(solo)
+    for ch in final_chains:
+        for _ in range(2):
+            for j in range(1, len(ch)):
+                a, b = ch[j - 1], ch[j]
+                if a in placed and b not in placed:
+                    R[b] = R[a]
+                    t[b] = t[a] + R[a] @ cars[a].c_rear - R[b] @ cars[b].c_front
+                    placed.add(b)
+            for j in range(len(ch) - 2, -1, -1):
+                a, b = ch[j], ch[j + 1]
+                if b in placed and a not in placed:
+                    R[a] = R[b]
+                    t[a] = t[b] + R[b] @ cars[b].c_front - R[a] @ cars[a].c_rear
+                    placed.add(a)
+    R_init, t_init = R.copy(), t.copy()
+    cost0 = _pixel_cost(prob, R, t, f)
+    if focal_views or _SOLVER == "struct":
+        # one joint refinement: the focal ties the carriages together; without it the problem is block diagonal
+        # and the structured solver treats all the independent poses at once (same minimum, one loop)
+        solo_prob = _Problem(cars, solo, views, weights)
+        lay = _Layout([[k] for k in solo], [[] for _ in solo], True, focal_views, cars, R, t, f)
+        x, nfev, msg, ok = _run_lsq(solo_prob, lay, None, options)
+        total_nfev += nfev
+        R, t, f, *_ = lay.unpack(x, with_derivs=False)
+    else:  # independent problems: one small refinement per carriage
+        nfev, msgs1 = 0, set()
+        for k in solo:
+            lay = _Layout([[k]], [[]], True, [], cars, R, t, f)
+            x, n1, m1, _ = _run_lsq(_Problem(cars, [k], views, weights), lay, None, options)
+            Rk, tk, *_ = lay.unpack(x, with_derivs=False)
+            R[k], t[k] = Rk[k], tk[k]
+            nfev += n1
+            msgs1.add(m1)
+        total_nfev += nfev
+        msg = "; ".join(sorted(msgs1))
+    # carried ones follow their (refined) neighbours again
+    placed = set(solo)
+    for ch in final_chains:
+        for _ in range(2):
+            for j in range(1, len(ch)):
+                a, b = ch[j - 1], ch[j]
+                if a in placed and b not in placed:
+                    R[b] = R[a]
+                    t[b] = t[a] + R[a] @ cars[a].c_rear - R[b] @ cars[b].c_front
+                    placed.add(b)
+            for j in range(len(ch) - 2, -1, -1):
+                a, b = ch[j], ch[j + 1]
+                if b in placed and a not in placed:
+                    R[a] = R[b]
+                    t[a] = t[b] + R[b] @ cars[b].c_front - R[a] @ cars[a].c_rear
+                    placed.add(a)
+    steps.append(StepStats("1_alone", True, (note + "; " if note else "") + "PnP (SQPnP) then joint refinement, "
+                           "constraints off" + ("; carried cars placed from their neighbours"
+                                                if len(solo) < len(active) else ""),
+                           cost0, _pixel_cost(prob, R, t, f), nfev, msg, time.perf_counter() - t1,
+                           _changes(cars, active, R_init, t_init, R, t)))
+
+    # -- step 2: onto the terrain -------------------------------------------------------------------------
+    t2 = time.perf_counter()
+    samples = {k: _samples(cars[k].ctype, options.terrain_samples) for k in active} if terrain is not None else {}
+    if terrain is None:
+        steps.append(StepStats("2_terrain", False, "skipped: no terrain given"))
+    else:
+        R0, tt0 = R.copy(), t.copy()
+        c0 = _pixel_cost(prob, R, t, f)
+        for k in active:
+            M = np.eye(4)
+            M[:3, :3], M[:3, 3] = R[k], t[k]
+            M, dz = rest_on_terrain(M, cars[k].ctype, terrain, options.terrain_samples)
+            if not np.isfinite(dz):
+                _warn(wl, cars[k], "terrain", f"car {cars[k].number}: outside the terrain; not moved in step 2")
+                continue
+            t[k] = M[:3, 3]
+        steps.append(StepStats("2_terrain", True, "lowered/raised along gravity (-z) onto the terrain", c0,
+                               _pixel_cost(prob, R, t, f), 0, "done", time.perf_counter() - t2,
+                               _changes(cars, active, R0, tt0, R, t)))
+
+    # -- step 3: constraints on, rotations held --------------------------------------------------------------
+    t3 = time.perf_counter()
+    R0, tt0 = R.copy(), t.copy()
+    c0 = _pixel_cost(prob, R, t, f)
+    # step 3 only starts step 4: with rotations held (noisy), offsets often sit on the sphere with large
+    # multipliers where Gauss-Newton converges slowly, so its iterations are capped (not an overall failure)
+    opt3 = replace(options, max_iterations=min(int(options.max_iterations), 40))
+    R, t, f, T_links, nfev, msg, ok, rounds, n_act = _solve_chained(prob, cars, final_chains, chain_slacks, False,
+                                                                    focal_views, R, t, f, None, opt3)
+    total_nfev += nfev
+    steps.append(StepStats("3_chain_translations", True, "couplers on, rotations held, translations"
+                           + (" and focal" if focal_views else "") + f" optimised ({rounds} active-set round(s), "
+                           f"{n_act} coupler(s) at the slack)", c0, _pixel_cost(prob, R, t, f),
+                           nfev, msg, time.perf_counter() - t3, _changes(cars, active, R0, tt0, R, t)))
+
+    # -- step 4: everything ---------------------------------------------------------------------------------
+    t4 = time.perf_counter()
+    R0, tt0 = R.copy(), t.copy()
+    c0 = _pixel_cost(prob, R, t, f)
+    contact = None
+    if terrain is not None and options.use_terrain_contact:
+        contact = _Contact(terrain, samples, options.pixel_sigma_px / options.terrain_sigma_m)
+    R, t, f, T_links, nfev, msg, ok, rounds, n_act = _solve_chained(prob, cars, final_chains, chain_slacks, True,
+                                                                    focal_views, R, t, f, contact, options)
+    total_nfev += nfev
+    lay = _Layout(final_chains, chain_slacks, True, focal_views, cars, R, t, f, None, options.pixel_sigma_px)
+    x = lay.x0
+    steps.append(StepStats("4_all", True, f"everything optimised ({rounds} active-set round(s), {n_act} coupler(s) "
+                           f"at the slack)" + (
+        f"; soft terrain contact (sigma_z = {options.terrain_sigma_m} m)" if contact is not None else
+        ("; no terrain contact term (no terrain)" if terrain is None else "; terrain contact term off")),
+        c0, _pixel_cost(prob, R, t, f), nfev, msg, time.perf_counter() - t4,
+        _changes(cars, active, R0, tt0, R, t)))
+    if not ok:
+        all_ok = False
+        messages.append(f"step 4: {msg}")
+    final_res, _ = _residuals_and_jac(prob, lay, x, contact, False)
+    if options.robust_loss == "linear":
+        final_cost = float(0.5 * np.sum(final_res**2))
+    else:
+        final_cost = float(np.nan)
+        from scipy.optimize._lsq.least_squares import construct_loss_function
+        lf = construct_loss_function(len(final_res), options.robust_loss, options.loss_scale_px)
+        final_cost = float(0.5 * np.sum(lf(final_res, cost_only=True))) if lf is not None else final_cost
+
+    # -- results -------------------------------------------------------------------------------------------
+    uv_all, *_ = prob.project(R, t, f)
+    results = []
+    for k in range(N):
+        c = cars[k]
+        cr = CarriageResult(index=k, number=c.number, type_id=str(c.ctype.id), status=status_car[k],
+                            n_points=n_pts[k])
+        if status_car[k] != "left_out":
+            M = np.eye(4)
+            M[:3, :3], M[:3, 3] = R[k], t[k]
+            cr.world_from_carriage = M
+            cr.hpr_deg = hpr_from_rotation(R[k])
+            cr.body_centre_m = R[k] @ c.c_body + t[k]
+            idx = prob.by_car[k]
+            e = uv_all[idx] - prob.uv[idx]
+            for i, row in enumerate(idx):
+                vn = views[prob.view[row]].name
+                cr.residuals_px.setdefault(vn, {})[c.names[i]] = (float(e[i, 0]), float(e[i, 1]))
+            cr.rms_px = float(np.sqrt(np.mean(np.sum(e * e, axis=1)))) if len(idx) else None
+            if contact is not None:
+                cl = contact.clearance(R, t, k)
+                cr.clearance_m = cl[0] if cl is not None else None
+        results.append(cr)
+    link_info = []
+    for c_, ch in enumerate(final_chains):
+        for j in range(len(ch) - 1):
+            T = T_links[c_][j]
+            link_info.append({"front": ch[j], "rear": ch[j + 1], "slack_m": chain_slacks[c_][j],
+                              "offset_m": T.tolist(), "offset_norm_m": float(np.linalg.norm(T))})
+    status = "converged" if all_ok else "not_converged"
+    if not all_ok:
+        _warn(wl, None, "not_converged", "solve did not converge: " + "; ".join(messages))
+    res = SolveResult(carriages=results, status=status, message="; ".join(messages) or "converged", warnings=wl,
+                      steps=steps, iterations=total_nfev, time_s=0.0, final_cost=final_cost,
+                      focal_px={views[v].name: float(f[v]) for v in range(V)}, sigma_focal_px={}, links=link_info)
+    if options.compute_covariance and active:
+        from .uncertainty import attach_covariance
+
+        attach_covariance(res, prob, R, t, f, focal_views, final_chains, chain_slacks, contact, options)
+    res.time_s = time.perf_counter() - t_start
+    return res

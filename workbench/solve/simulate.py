@@ -1,0 +1,150 @@
+"""Fast synthetic consist problems (no rendering) for the solver's tests and benchmark.
+
+N carriages (types cycling through shoreliner, p32ac-dm, amfleet-i, acs-64) laid as a jackknifed chain on a
+flat or gently sloped plane, resting on it (wheels on the plane, to within the coupling slack). Held couplings
+have true offsets drawn uniformly in the ball |T| <= ``slack_m`` — the distribution the solver's offset prior
+N(0, (slack/sqrt 5)^2) per axis stands for (a disc in the plane would have per-axis sd slack/2 in the plane,
+wider than the prior, and bias the solver at low noise); broken ones are
+pulled apart by 1-3 m and carry no link. One camera about 1.1 train lengths from the consist's centre, ~10 m
+above the plane, looking at the consist, 4000x3000 px, f ~ 3000 px, small radial distortion. Each carriage
+shows the 7 marked points "as a photo shows them": those on the faces most turned towards the camera (the
+side facing it and the nearer end). Pixel noise is Gaussian with ``pixel_sigma_px`` per coordinate. All
+randomness comes from ``seed``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..core.camera import CameraIntrinsics, look_at, project_world
+from ..core.frames import rot_x, rot_y, rot_z
+from ..rolling_stock import get_type
+from .chain import CarriageInput, ChainLink, View
+
+TYPE_CYCLE = ("shoreliner", "p32ac-dm", "amfleet-i", "acs-64")
+
+
+class PlaneTerrain:
+    """Terrain z = z0 + a x + b y (scene ENU), with the ``height_at`` interface of the terrain model."""
+
+    def __init__(self, a: float = 0.0, b: float = 0.0, z0: float = 0.0) -> None:
+        self.a, self.b, self.z0 = float(a), float(b), float(z0)
+
+    def height_at(self, xy: np.ndarray) -> np.ndarray:
+        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+        return self.z0 + self.a * xy[:, 0] + self.b * xy[:, 1]
+
+    @property
+    def normal(self) -> np.ndarray:
+        n = np.array([-self.a, -self.b, 1.0])
+        return n / np.linalg.norm(n)
+
+
+@dataclass
+class SimProblem:
+    carriages: list[CarriageInput]
+    links: list[ChainLink]
+    views: list[View]
+    truth: list[np.ndarray]  # world_from_carriage (4, 4) per carriage
+    offsets: list[np.ndarray]  # true coupler offsets T per link (front -> rear)
+    terrain: PlaneTerrain
+    pixel_sigma_px: float
+    clean_pixels: list[dict] = field(default_factory=list)  # per carriage: point -> noiseless (u, v)
+
+
+def _plane_rotation(terrain: PlaneTerrain) -> np.ndarray:
+    """Rotation taking scene up to the plane normal (minimal rotation)."""
+    n = terrain.normal
+    z = np.array([0.0, 0.0, 1.0])
+    v = np.cross(z, n)
+    s, c = np.linalg.norm(v), float(z @ n)
+    if s < 1e-12:
+        return np.eye(3)
+    from .projection import exp_so3
+
+    return exp_so3(v / s * np.arctan2(s, c))
+
+
+def simulate_consist(n_cars: int = 6, *, seed: int = 0, pixel_sigma_px: float = 1.0, slack_m: float = 0.03,
+                     broken: tuple[int, ...] = (), slope_deg: float = 2.0, n_points: int = 7,
+                     width: int = 4000, height: int = 3000, focal_px: float = 3000.0,
+                     distortion: tuple[float, float] = (-0.02, 0.004), jackknife_deg: tuple[float, float] = (4.0, 25.0),
+                     distance_factor: float = 1.1, camera_height_m: float = 10.0) -> SimProblem:
+    """A synthetic consist problem. ``broken``: link indices i (between cars i and i+1) that are broken."""
+    rng = np.random.default_rng(seed)
+    types = [get_type(TYPE_CYCLE[i % len(TYPE_CYCLE)]) for i in range(n_cars)]
+    az = rng.uniform(0, 2 * np.pi)
+    sl = np.tan(np.deg2rad(slope_deg)) * rng.uniform(0.3, 1.0)
+    terrain = PlaneTerrain(sl * np.cos(az), sl * np.sin(az), 0.0)
+    Rp = _plane_rotation(terrain)
+    n = terrain.normal
+    yaw = rng.uniform(0, 2 * np.pi)
+    poses, offsets = [], []
+    R = Rp @ rot_z(yaw)
+    t = np.zeros(3)
+    poses.append((R, t))
+    for i in range(1, n_cars):
+        Ra, ta = poses[-1]
+        a_ct, b_ct = types[i - 1], types[i]
+        sign = rng.choice([-1.0, 1.0])
+        yaw = yaw + sign * np.deg2rad(rng.uniform(*jackknife_deg))
+        if (i - 1) in broken:
+            yaw += rng.normal(0, np.deg2rad(15))
+        Rb = Rp @ rot_z(yaw)
+        if (i - 1) in broken:
+            r, phi = rng.uniform(1.0, 3.0), rng.uniform(0, 2 * np.pi)
+            T = Rp @ np.array([r * np.cos(phi), r * np.sin(phi), 0.0])
+        else:  # uniform in the ball |T| <= slack: the model the solver's offset prior stands for
+            u = rng.normal(size=3)
+            T = slack_m * rng.uniform() ** (1.0 / 3.0) * u / np.linalg.norm(u)
+        tb = ta + Ra @ a_ct.coupler_rear + T - Rb @ b_ct.coupler_front
+        poses.append((Rb, tb))
+        offsets.append(T)
+    truth = []
+    for R, t in poses:
+        M = np.eye(4)
+        M[:3, :3], M[:3, 3] = R, t
+        truth.append(M)
+    origins = np.array([M[:3, 3] for M in truth])
+    centre = origins.mean(0)
+    total = float(sum(ct.length_m for ct in types))
+    xy = origins[:, :2] - centre[:2]
+    if len(origins) > 1:
+        _, _, Vt = np.linalg.svd(xy, full_matrices=False)
+        d = Vt[0]
+    else:
+        d = truth[0][:2, 0]
+    perp = np.array([-d[1], d[0]]) * rng.choice([-1.0, 1.0])
+    eye_xy = centre[:2] + perp * distance_factor * total
+    eye = np.array([*eye_xy, float(terrain.height_at(eye_xy[None])[0]) + camera_height_m])
+    target = centre + n * 1.5
+    cam_from_world = look_at(eye, target)
+    f = focal_px * (1.0 + rng.uniform(-0.02, 0.02))
+    intr = CameraIntrinsics(width=width, height=height, fx=f, fy=f, cx=(width - 1) / 2 + rng.uniform(-10, 10),
+                            cy=(height - 1) / 2 + rng.uniform(-10, 10), k1=distortion[0], k2=distortion[1])
+    view = View(name="photo", intrinsics=intr, cam_from_world=cam_from_world)
+    carriages, clean = [], []
+    for i, (ct, M) in enumerate(zip(types, truth)):
+        R, t = M[:3, :3], M[:3, 3]
+        vc = eye - (R @ np.array([0.0, 0.0, ct.height_m / 2]) + t)
+        vc /= np.linalg.norm(vc)
+        names = list(ct.marked_points)
+        score = []
+        for nm in names:
+            s = max(float((R @ ct.face_normal(fc)) @ vc) for fc in ct.marked_point_faces[nm])
+            score.append(s)
+        order = np.argsort(-np.array(score), kind="stable")[:n_points]
+        chosen = [names[j] for j in order]
+        P = np.array([ct.marked_points[nm] for nm in chosen])
+        uv, depth = project_world(intr, cam_from_world, P @ R.T + t)
+        noisy = uv + rng.normal(0.0, pixel_sigma_px, uv.shape)
+        if not (np.all(depth > 0) and np.all(intr.in_image(noisy, margin=1.0))):
+            raise RuntimeError(f"simulate_consist(seed={seed}): car {i} is not fully in the image")
+        clean.append({nm: tuple(map(float, uv[j])) for j, nm in enumerate(chosen)})
+        carriages.append(CarriageInput(number=f"{100 + i}", carriage_type=ct,
+                                       observations={"photo": {nm: tuple(map(float, noisy[j]))
+                                                               for j, nm in enumerate(chosen)}}))
+    links = [ChainLink(i, i + 1, None if i in broken else slack_m) for i in range(n_cars - 1)]
+    return SimProblem(carriages, links, [view], truth, offsets, terrain, pixel_sigma_px, clean)

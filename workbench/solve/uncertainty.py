@@ -1,0 +1,282 @@
+"""Covariance of the chained pose solution, and the Cramér-Rao bound of the same model.
+
+Parametrisation of the covariance
+    free per-carriage poses: a scene-frame rotation vector increment and the origin translation (6 per
+    carriage), plus the focal (px) of each view whose focal was estimated. The solver's chain parametrisation
+    (eliminated translations, offsets on the sphere |T| = s when the constraint is active) is **not** used
+    here: an active constraint would make the covariance collapse onto the sphere, a hard statement the
+    data rarely support. Instead each held coupling enters as a soft prior on its offset,
+    ``T ~ N(0, sigma_T^2 I)`` with ``sigma_T = slack / sqrt(5)`` — the per-axis standard deviation of an
+    offset spread uniformly over the ball ``|T| <= slack`` (the constraint's own statement of ignorance).
+    The Cramér-Rao bound used by the benchmark (:func:`crb`) models the held coupling in exactly this way
+    (a Bayesian / Van Trees bound with that prior), so the solver and its bound share one model.
+
+Weights (sandwich)
+    The solver weights carriage i's residuals by ``w_i`` (the seed's per-carriage normalisation). With pixel
+    noise sigma on every coordinate, weighted rows have variance ``w_i^2 sigma^2``; the estimator's
+    information ``H = sum J_w^T J_w / sigma^2 + priors`` and the gradient's covariance
+    ``G = sum w^2 J_w^T J_w / sigma^2 + priors`` give ``Cov = H^-1 G H^-1`` (equal to ``H^-1`` when all
+    weights are 1). A robust loss enters through its IRLS weights rho'(z) at the solution, held fixed.
+
+Pixel sigma
+    ``sigma_hat^2 = sum r_w^2 / (sum w^2 (m - p_eff) / m)`` with ``m`` pixel coordinates and ``p_eff`` the
+    effective number of parameters the pixels determine (``tr(H^-1 H_pixels)``; the priors take the rest).
+    With few redundancies sigma_hat is unreliable, so it is pooled with the configured pixel sigma as a prior
+    worth ``prior_dof`` degrees of freedom: ``sigma^2 = (dof sigma_hat^2 + nu0 sigma_cfg^2) / (dof + nu0)``
+    (dof = 0 gives the configured sigma), floored at 0.1 sigma_cfg; the 95 % half widths use Student's t with
+    ``dof + nu0`` degrees of freedom.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Sequence
+
+import numpy as np
+from scipy import stats
+
+from ..core.frames import hpr_from_rotation
+from .projection import exp_so3, skew
+
+
+def _rows(prob, R, t, f, focal_views):
+    """Weighted pixel Jacobian (2M, P) in free-pose parameters and the per-point weights."""
+    act = prob.active
+    col = {k: 6 * i for i, k in enumerate(act)}
+    P = 6 * len(act) + len(focal_views)
+    uv, Xw, JX, Jf = prob.project(R, t, f, jac=True)
+    M = len(prob.P)
+    J = np.zeros((2 * M, P))
+    w = prob.w
+    q = np.einsum("nij,nj->ni", R[prob.car], prob.P)
+    Jr = -np.einsum("nab,nbc->nac", JX, skew(q))
+    for k in act:
+        idx = prob.by_car[k]
+        c = col[k]
+        J[2 * idx, c:c + 3] = Jr[idx, 0] * w[idx, None]
+        J[2 * idx + 1, c:c + 3] = Jr[idx, 1] * w[idx, None]
+        J[2 * idx, c + 3:c + 6] = JX[idx, 0] * w[idx, None]
+        J[2 * idx + 1, c + 3:c + 6] = JX[idx, 1] * w[idx, None]
+    for i, v in enumerate(focal_views):
+        idx = prob.by_view[v]
+        J[2 * idx, 6 * len(act) + i] = Jf[idx, 0] * w[idx]
+        J[2 * idx + 1, 6 * len(act) + i] = Jf[idx, 1] * w[idx]
+    r = ((uv - prob.uv) * w[:, None]).reshape(-1)
+    return J, r, col, P
+
+
+def _prior_info(cars, R, t, chains, slacks, col, P):
+    H = np.zeros((P, P))
+    for ch, sl in zip(chains, slacks):
+        for j in range(len(ch) - 1):
+            a, b = ch[j], ch[j + 1]
+            sT = sl[j] / math.sqrt(5.0)
+            JT = np.zeros((3, P))
+            ra, rb = R[a] @ cars[a].c_rear, R[b] @ cars[b].c_front
+            ca, cb = col[a], col[b]
+            JT[:, ca:ca + 3] = skew(ra)  # d(-R_a c_r)/d omega_a = +[R_a c_r]x
+            JT[:, ca + 3:ca + 6] = -np.eye(3)
+            JT[:, cb:cb + 3] = -skew(rb)
+            JT[:, cb + 3:cb + 6] = np.eye(3)
+            H += JT.T @ JT / sT**2
+    return H
+
+
+def _contact_info(contact, R, t, col, P, sigma_cfg):
+    H = np.zeros((P, P))
+    if contact is None:
+        return H
+    for k in contact.samples:
+        cl = contact.clearance(R, t, k)
+        if cl is None:
+            continue
+        _, X, q = cl
+        gh = contact.gradient(X[:2])
+        a = np.array([-gh[0], -gh[1], 1.0]) * contact.scale
+        row = np.zeros(P)
+        c = col[k]
+        row[c:c + 3] = -(a @ skew(q))
+        row[c + 3:c + 6] = a
+        H += np.outer(row, row) / sigma_cfg**2
+    return H
+
+
+def _robust_weights(r2: np.ndarray, loss: str, scale: float) -> np.ndarray:
+    z = r2 / scale**2
+    if loss == "linear":
+        return np.ones_like(z)
+    if loss == "huber":
+        return np.where(z <= 1, 1.0, 1.0 / np.sqrt(np.maximum(z, 1e-300)))
+    if loss == "soft_l1":
+        return 1.0 / np.sqrt(1.0 + z)
+    if loss == "cauchy":
+        return 1.0 / (1.0 + z)
+    raise ValueError(loss)
+
+
+def _inv(H: np.ndarray) -> np.ndarray:
+    try:
+        L = np.linalg.cholesky(H)
+        Li = np.linalg.solve(L, np.eye(len(H)))
+        return Li.T @ Li
+    except np.linalg.LinAlgError:
+        return np.linalg.pinv(H)
+
+
+def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_cfg: float,
+                     loss: str = "linear", loss_scale: float = 1.0, prior_dof: float = 5.0,
+                     sigma_fixed: float | None = None) -> dict:
+    """Covariance in free-pose parameters (see the module doc). ``sigma_fixed``: use that pixel sigma (CRB)."""
+    J, r, col, P = _rows(prob, R, t, f, focal_views)
+    M = len(prob.P)
+    w2 = np.repeat(prob.w**2, 2)
+    r2pt = (r.reshape(-1, 2) ** 2).sum(1)
+    rho = np.repeat(_robust_weights(r2pt, loss, loss_scale), 2)
+    Hp_unit = (J * rho[:, None]).T @ J
+    Gp_unit = (J * (rho**2 * w2)[:, None]).T @ J
+    Hprior = _prior_info(prob.cars, R, t, chains, slacks, col, P) + _contact_info(contact, R, t, col, P, sigma_cfg)
+
+    def assemble(sig):
+        H = Hp_unit / sig**2 + Hprior
+        Hi = _inv(H)
+        return H, Hi
+
+    if sigma_fixed is not None:
+        sigma, sigma_hat, dof, q = float(sigma_fixed), float("nan"), 0.0, 1.959963984540054
+    else:
+        sig = sigma_cfg
+        for _ in range(2):
+            H, Hi = assemble(sig)
+            p_eff = float(np.trace(Hi @ (Hp_unit / sig**2)))
+            dof = max(2.0 * M - p_eff, 0.0)
+            if dof > 1e-6:
+                sigma_hat = math.sqrt(float(np.sum(r**2)) / (float(np.sum(w2)) * dof / (2.0 * M)))
+            else:
+                sigma_hat = float("nan")
+            nu0 = prior_dof
+            s2 = (dof * (sigma_hat**2 if dof > 1e-6 else 0.0) + nu0 * sigma_cfg**2) / (dof + nu0) if dof + nu0 > 0 \
+                else sigma_cfg**2
+            sig = max(math.sqrt(s2), 0.1 * sigma_cfg)
+        sigma = sig
+        q = float(stats.t.ppf(0.975, dof + prior_dof)) if dof + prior_dof > 0 else 1.959963984540054
+    H, Hi = assemble(sigma)
+    G = Gp_unit / sigma**2 + Hprior
+    cov = Hi @ G @ Hi
+    cov = 0.5 * (cov + cov.T)
+    return {"cov": cov, "col": col, "sigma": sigma, "sigma_hat": sigma_hat, "dof": dof, "q": q, "P": P}
+
+
+def _hpr_jac(Rk: np.ndarray, eps: float = 1e-6) -> np.ndarray:
+    h0 = np.array(hpr_from_rotation(Rk))
+    J = np.zeros((3, 3))
+    for i in range(3):
+        d = np.zeros(3)
+        d[i] = eps
+        hp = np.array(hpr_from_rotation(exp_so3(d) @ Rk))
+        hm = np.array(hpr_from_rotation(exp_so3(-d) @ Rk))
+        diff = hp - hm
+        diff[0] = (diff[0] + 180.0) % 360.0 - 180.0
+        diff[2] = (diff[2] + 180.0) % 360.0 - 180.0
+        J[:, i] = diff / (2 * eps)
+    return J  # degrees per radian
+
+
+def body_centre_cov(model: dict, cars, R, k: int) -> np.ndarray:
+    c = model["col"][k]
+    Jb = np.hstack([-skew(R[k] @ cars[k].c_body), np.eye(3)])
+    C = model["cov"][c:c + 6, c:c + 6]
+    return Jb @ C @ Jb.T
+
+
+def attach_covariance(res, prob, R, t, f, focal_views, chains, slacks, contact, options) -> None:
+    """Fill the covariance fields of a :class:`SolveResult` in place."""
+    model = covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, options.pixel_sigma_px,
+                             options.robust_loss, options.loss_scale_px, options.prior_dof)
+    cov, col, q = model["cov"], model["col"], model["q"]
+    res.sigma_px = model["sigma"]
+    res.sigma_px_estimated = model["sigma_hat"]
+    res.dof = model["dof"]
+    res.ci95_factor = q
+    res.covariance = cov
+    order = []
+    for k in prob.active:
+        n = prob.cars[k].number
+        order += [f"{n}.omega_x", f"{n}.omega_y", f"{n}.omega_z", f"{n}.x", f"{n}.y", f"{n}.z"]
+    order += [f"focal.{prob.views[v].name}" for v in focal_views]
+    res.covariance_order = order
+    Jbs = {}
+    for k in prob.active:
+        cr = res.carriages[k]
+        c = col[k]
+        C = cov[c:c + 6, c:c + 6]
+        cr.covariance_pose = C
+        sp = np.sqrt(np.maximum(np.diag(C[3:, 3:]), 0))
+        cr.sigma_position_m, cr.ci95_position_m = sp, q * sp
+        Jb = np.hstack([-skew(R[k] @ prob.cars[k].c_body), np.eye(3)])
+        Jbs[k] = Jb
+        sb = np.sqrt(np.maximum(np.diag(Jb @ C @ Jb.T), 0))
+        cr.sigma_body_centre_m, cr.ci95_body_centre_m = sb, q * sb
+        Jh = _hpr_jac(R[k])
+        sh = np.sqrt(np.maximum(np.diag(Jh @ C[:3, :3] @ Jh.T), 0))
+        cr.sigma_hpr_deg, cr.ci95_hpr_deg = sh, q * sh
+    for i, v in enumerate(focal_views):
+        j = 6 * len(prob.active) + i
+        res.sigma_focal_px[prob.views[v].name] = float(math.sqrt(max(cov[j, j], 0.0)))
+    for ch in chains:
+        for j in range(len(ch) - 1):
+            a, b = ch[j], ch[j + 1]
+            ca, cb = col[a], col[b]
+            Caa = Jbs[a] @ cov[ca:ca + 6, ca:ca + 6] @ Jbs[a].T
+            Cbb = Jbs[b] @ cov[cb:cb + 6, cb:cb + 6] @ Jbs[b].T
+            Cab = Jbs[a] @ cov[ca:ca + 6, cb:cb + 6] @ Jbs[b].T
+            sa, sb = np.sqrt(np.diag(Caa)), np.sqrt(np.diag(Cbb))
+            corr = Cab / np.outer(sa, sb)
+            res.neighbour_correlation.append({"front": prob.cars[a].number, "rear": prob.cars[b].number,
+                                              "body_centre_corr_enu": corr,
+                                              "axis_corr_enu": np.diag(corr)})
+
+
+def crb(carriages: Sequence[Any], links: Sequence[Any], views: Sequence[Any], world_from_carriage: Sequence[np.ndarray],
+        sigma_px: float, estimate_focal: bool = False) -> dict:
+    """Cramér-Rao bound of the chained problem at the truth (noise-free pixels are not needed: only the
+    Jacobian is used). Held couplings (links with a slack) are modelled as in the covariance (soft prior,
+    sigma_T = slack/sqrt(5)); ``estimate_focal`` adds one focal per view as a parameter.
+
+    Returns ``{"body_centre_cov": [(3, 3)] per carriage, "rotation_cov": [(3, 3)], "focal_sigma": [...]}``.
+    """
+    from .chain import SolveOptions, _Problem, _prepare
+
+    opts = SolveOptions(check_image_bounds=False)
+    cars = _prepare(carriages, views, opts)
+    N = len(cars)
+    active = list(range(N))
+    counts = {k: len(cars[k].P) for k in active}
+    nmean = float(np.mean(list(counts.values())))
+    weights = {k: math.sqrt(nmean / max(counts[k], 1)) for k in active}
+    prob = _Problem(cars, active, views, weights)
+    R = np.array([np.asarray(M, float)[:3, :3] for M in world_from_carriage])
+    t = np.array([np.asarray(M, float)[:3, 3] for M in world_from_carriage])
+    f = np.array([v.intrinsics.fx for v in views], dtype=float)
+    slack = {int(L.front): float(L.slack_m) for L in links if L.slack_m is not None}
+    chains, k = [], 0
+    while k < N:
+        ch = [k]
+        while k in slack and k + 1 < N:
+            ch.append(k + 1)
+            k += 1
+        chains.append(ch)
+        k += 1
+    slacks = [[slack[ch[j]] for j in range(len(ch) - 1)] for ch in chains]
+    fv = list(range(len(views))) if estimate_focal else []
+    prob.uv = prob.project(R, t, f)[0]  # residuals zero at the truth
+    model = covariance_model(prob, R, t, f, fv, chains, slacks, None, sigma_px, sigma_fixed=sigma_px)
+    out = {"body_centre_cov": [], "rotation_cov": [], "origin_cov": [], "focal_sigma": []}
+    for k in active:
+        c = model["col"][k]
+        out["body_centre_cov"].append(body_centre_cov(model, cars, R, k))
+        out["rotation_cov"].append(model["cov"][c:c + 3, c:c + 3])
+        out["origin_cov"].append(model["cov"][c + 3:c + 6, c + 3:c + 6])
+    for i in range(len(fv)):
+        j = 6 * N + i
+        out["focal_sigma"].append(float(math.sqrt(model["cov"][j, j])))
+    return out
