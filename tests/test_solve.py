@@ -201,3 +201,20 @@ def test_coverage_of_95_intervals():
             inside += 0 * eo
     cov = inside / n
     assert np.all((cov >= 0.88) & (cov <= 0.99)), cov
+
+
+def test_30_car_chain_converges_quickly():
+    import time
+
+    sim = simulate_consist(30, seed=7, pixel_sigma_px=1.0)
+    opts = SolveOptions(pixel_sigma_px=1.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SolveWarning)
+        t0 = time.perf_counter()
+        res = solve_consist(sim.carriages, sim.links, sim.views, opts, terrain=sim.terrain)
+        dt = time.perf_counter() - t0
+    assert res.status == "converged", res.message
+    assert {s.name: s for s in res.steps}["4_all"].status.startswith("converged")
+    for L in res.links:
+        assert L["offset_norm_m"] <= L["slack_m"] + 1e-9
+    assert dt < 5.0, dt  # ~0.5 s on one core; generous for loaded CI machines

@@ -86,6 +86,17 @@ def render_photo(scene: OffscreenScene, intrinsics: CameraIntrinsics, cam_from_w
         return scene.render(intrinsics.K, M, size=(w, h), supersample=supersample)
 
     xy, ok = _undistorted_grid(intrinsics)
+    if scene.engine == "raytrace":
+        # rays straight through the lens model at supersampled positions inside each pixel: no resampling
+        def xy_of_uv(uv):
+            return intrinsics.undistort(intrinsics.normalized_from_pixels(uv))
+
+        color = scene.raytrace_color(M, xy_of_uv, w, h, supersample)
+        xy_trace = np.where(ok[..., None], xy, 0.0)
+        depth, instance = scene.trace(M, xy_trace)
+        depth[~ok] = np.inf
+        instance[~ok] = -1
+        return RenderResult(color=color, depth=depth, instance=instance)
     Kp, wp, hp = pinhole_for(intrinsics)
     pin = scene.render_color(Kp, M, wp, hp, supersample)
     map_x = (Kp[0, 0] * xy[..., 0] + Kp[0, 2]).astype(np.float32)

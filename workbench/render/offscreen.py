@@ -268,7 +268,8 @@ def _to_open3d(item: SceneMesh):
 class OffscreenScene:
     """A set of meshes in world (ENU) coordinates, a sun and a sky, rendered to ``width`` x ``height``."""
 
-    def __init__(self, width: int, height: int, *, background_rgb=(0.62, 0.74, 0.88), supersample: int = 2) -> None:
+    def __init__(self, width: int, height: int, *, background_rgb=(0.62, 0.74, 0.88), supersample: int = 2,
+                 engine: str = "raytrace") -> None:
         if int(width) <= 0 or int(height) <= 0:
             raise ValueError(f"image size {width}x{height} must be positive")
         if int(supersample) < 1:
@@ -280,6 +281,10 @@ class OffscreenScene:
         self._sun = _Sun()
         self._version = 0
         self._rays = None  # (version, RaycastingScene, instance id per geometry id)
+        if engine not in ("raytrace", "filament"):
+            raise ValueError(f"engine={engine!r}: choose 'raytrace' or 'filament'")
+        self.engine = engine
+        self._shading: dict[str, _ShadingData] = {}
 
     # -- content ---------------------------------------------------------------------------------------
     def add(self, item: SceneMesh) -> None:
@@ -289,12 +294,14 @@ class OffscreenScene:
             raise ValueError(f"a mesh named {item.name!r} is already in the scene")
         if int(item.instance_id) < -1:
             raise ValueError(f"{item.name!r}: instance_id={item.instance_id} must be >= 0, or -1 for none")
-        m, mat = _to_open3d(item)
+        m, mat = _to_open3d(item) if self.engine == "filament" else (None, None)
         self._items[item.name] = (item, m, mat)
+        self._shading[item.name] = _ShadingData.of(item)
         self._version += 1
 
     def remove(self, name: str) -> None:
         del self._items[name]
+        del self._shading[name]
         self._version += 1
 
     @property
@@ -319,11 +326,13 @@ class OffscreenScene:
 
         rs = o3d.t.geometry.RaycastingScene()
         inst = []
+        self._gid_names = {}
         for item, _m, _mat in self._items.values():
             V = np.ascontiguousarray(item.mesh.vertices, dtype=np.float32)
             F = np.ascontiguousarray(item.mesh.faces, dtype=np.uint32)
             gid = rs.add_triangles(o3d.core.Tensor(V), o3d.core.Tensor(F))
             inst.append((gid, int(item.instance_id)))
+            self._gid_names[gid] = item.name
         lut = np.full(max([g for g, _ in inst], default=-1) + 2, -1, dtype=np.int32)  # last entry: miss
         for g, i in inst:
             lut[g] = i
@@ -379,6 +388,9 @@ class OffscreenScene:
         if max(W, H) > _MAX_CANVAS:
             raise ValueError(f"render of {width}x{height} at supersample {s} exceeds the {_MAX_CANVAS} px canvas limit")
         fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+        if self.engine == "raytrace":
+            return self.raytrace_color(M, lambda uv: np.column_stack([(uv[:, 0] - cx) / fx, (uv[:, 1] - cy) / fy]),
+                                       width, height, s)
         with _Canvas.lock:
             r = _get_renderer(W, H)
             self._load(r)
@@ -429,3 +441,165 @@ class OffscreenScene:
         xy = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]], axis=-1)
         depth, instance = self.trace(M, xy)
         return RenderResult(color=color, depth=depth, instance=instance)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Ray-traced colour (the default engine): Open3D's Embree ray caster, shaded on the CPU
+# ----------------------------------------------------------------------------------------------------------
+@dataclass
+class _ShadingData:
+    """What the ray tracer needs of one mesh: per-corner normals, and per-corner UVs + texture or colours."""
+
+    corner_normals: np.ndarray  # (F, 3, 3)
+    corner_uv: np.ndarray | None  # (F, 3, 2), trimesh convention: v = 0 at the image's bottom row
+    texture: np.ndarray | None  # (H, W, 3) float32, linear
+    corner_colors: np.ndarray | None  # (F, 3, 3) float32, linear
+
+    @classmethod
+    def of(cls, item: SceneMesh) -> "_ShadingData":
+        mesh = item.mesh
+        V = np.asarray(mesh.vertices, dtype=float)
+        Fa = np.asarray(mesh.faces, dtype=np.int64)
+        if len(Fa) == 0:
+            raise ValueError(f"SceneMesh {item.name!r} has no faces")
+        normals = _corner_normals(V, Fa).astype(np.float32)
+        visual = mesh.visual
+        kind = getattr(visual, "kind", None)
+        tex = _texture_image(visual) if kind == "texture" else None
+        uv = getattr(visual, "uv", None) if kind == "texture" else None
+        if tex is not None and uv is not None and len(uv) == len(V):
+            base = _material_base_color(visual, True)
+            lin = (_linear_from_srgb(tex.astype(np.float32) / 255.0) * base).astype(np.float32)
+            return cls(normals, np.asarray(uv, dtype=np.float32)[Fa], lin, None)
+        colors = None
+        if kind == "vertex":
+            colors = np.asarray(visual.vertex_colors, dtype=float)[:, :3][Fa] / 255.0
+        elif kind == "face":
+            colors = np.repeat(np.asarray(visual.face_colors, dtype=float)[:, None, :3] / 255.0, 3, axis=1)
+        elif kind == "texture":
+            colors = np.broadcast_to(_material_base_color(visual, False), (len(Fa), 3, 3))
+        if colors is None:
+            colors = np.full((len(Fa), 3, 3), 0.7)
+        return cls(normals, None, None, _linear_from_srgb(colors).astype(np.float32))
+
+
+def _sample_bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Bilinear texture lookup; ``uv`` (n, 2) in [0, 1] with v = 0 at the bottom row (trimesh/glTF-flipped)."""
+    h, w = img.shape[:2]
+    x = np.clip(uv[:, 0] * w - 0.5, 0.0, w - 1.0)
+    y = np.clip((1.0 - uv[:, 1]) * h - 0.5, 0.0, h - 1.0)
+    x0 = np.floor(x).astype(np.int64)
+    y0 = np.floor(y).astype(np.int64)
+    x1 = np.minimum(x0 + 1, w - 1)
+    y1 = np.minimum(y0 + 1, h - 1)
+    fx = (x - x0)[:, None].astype(np.float32)
+    fy = (y - y0)[:, None].astype(np.float32)
+    top = img[y0, x0] * (1 - fx) + img[y0, x1] * fx
+    bot = img[y1, x0] * (1 - fx) + img[y1, x1] * fx
+    return top * (1 - fy) + bot * fy
+
+
+def _srgb_from_linear(c: np.ndarray) -> np.ndarray:
+    c = np.clip(c, 0.0, 1.0)
+    return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
+
+
+def _raytrace_shade(self: "OffscreenScene", cam_from_world: np.ndarray, xy: np.ndarray) -> np.ndarray:
+    """Linear-light colour (n, 3) seen along the rays through undistorted normalised coordinates ``xy`` (n, 2)."""
+    import open3d as o3d
+
+    M = np.asarray(cam_from_world, dtype=float)
+    R, t = M[:3, :3], M[:3, 3]
+    centre = -R.T @ t
+    d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1) @ R  # world directions, camera z = 1
+    dn = d / np.linalg.norm(d, axis=1, keepdims=True)
+    # sky: the background colour (sRGB, linearised; the tone curve below maps it back to itself)
+    horizon = _linear_from_srgb(np.asarray(self.background_rgb, dtype=float))
+    out = np.broadcast_to(horizon.astype(np.float32), (len(xy), 3)).copy()
+    self._last_hit = np.zeros(len(xy), bool)
+    if not self._items:
+        return out
+    rs, _lut = self._raycaster()
+    rays = np.empty((len(d), 6), dtype=np.float32)
+    rays[:, :3] = centre
+    rays[:, 3:] = dn
+    ans = rs.cast_rays(o3d.core.Tensor(rays))
+    thit = ans["t_hit"].numpy()
+    gid = ans["geometry_ids"].numpy().astype(np.int64)
+    prim = ans["primitive_ids"].numpy().astype(np.int64)
+    bary = ans["primitive_uvs"].numpy().astype(np.float32)  # hit = (1-u-v) v0 + u v1 + v v2
+    hit = np.isfinite(thit) & np.isin(gid, list(self._gid_names))
+    idx = np.nonzero(hit)[0]
+    self._last_hit = hit
+    if len(idx) == 0:
+        return out
+    w = np.column_stack([1.0 - bary[idx, 0] - bary[idx, 1], bary[idx, 0], bary[idx, 1]]).astype(np.float32)
+    albedo = np.zeros((len(idx), 3), np.float32)
+    normal = np.zeros((len(idx), 3), np.float32)
+    for g, name in self._gid_names.items():
+        sel = gid[idx] == g
+        if not np.any(sel):
+            continue
+        sd = self._shading[name]
+        p = prim[idx[sel]]
+        ws = w[sel][:, :, None]
+        normal[sel] = np.sum(sd.corner_normals[p] * ws, axis=1)
+        if sd.texture is not None:
+            uv = np.sum(sd.corner_uv[p] * ws, axis=1)
+            albedo[sel] = _sample_bilinear(sd.texture, uv)
+        else:
+            albedo[sel] = np.sum(sd.corner_colors[p] * ws, axis=1)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    view = dn[idx].astype(np.float32)
+    flip = np.sum(normal * view, axis=1) > 0  # seen from behind: shade the side facing the camera
+    normal[flip] *= -1
+    sun = self._sun
+    to_sun = -np.asarray(sun.direction, dtype=np.float32)
+    lam = np.clip(normal @ to_sun, 0.0, None)
+    lit = np.nonzero(lam > 0)[0]
+    vis = np.zeros(len(idx), np.float32)
+    if sun.shadows and len(lit):
+        pts = centre + dn[idx[lit]] * thit[idx[lit], None]
+        srays = np.empty((len(lit), 6), dtype=np.float32)
+        srays[:, :3] = pts + normal[lit] * 0.03
+        srays[:, 3:] = to_sun
+        occ = rs.test_occlusions(o3d.core.Tensor(srays)).numpy().astype(bool)
+        vis[lit] = (~occ).astype(np.float32)
+    else:
+        vis[lit] = 1.0
+    sun_rgb = np.asarray(sun.color, np.float32) * (sun.intensity / 90_000.0)
+    sky = np.float32(0.5 * sun.ambient_intensity / 40_000.0) * (0.6 + 0.4 * normal[:, 2:3])
+    radiance = albedo * (sun_rgb * (lam * vis)[:, None] + sky)
+    # a little aerial perspective
+    haze = (1.0 - np.exp(-thit[idx] / 4000.0))[:, None].astype(np.float32)
+    radiance = radiance * (1 - haze) + horizon.astype(np.float32) * haze
+    out[idx] = radiance
+    return out
+
+
+def _raytrace_color(self: "OffscreenScene", cam_from_world: np.ndarray, xy_of_uv, width: int, height: int,
+                    supersample: int) -> np.ndarray:
+    """Supersampled ray-traced colour (height, width, 3) uint8. ``xy_of_uv`` maps pixel coordinates (n, 2) of the
+    output image (pixel (0, 0) = centre of the top-left pixel) to undistorted normalised coordinates."""
+    s = int(supersample)
+    offs = (np.arange(s) + 0.5) / s - 0.5
+    acc = np.zeros((height * width, 3), np.float32)
+    u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
+    base = np.column_stack([u.ravel(), v.ravel()])
+    for oy in offs:
+        for ox in offs:
+            xy = xy_of_uv(base + [ox, oy])
+            ok = np.all(np.isfinite(xy), axis=1)
+            col = np.broadcast_to(_linear_from_srgb(np.asarray(self.background_rgb, float)).astype(np.float32),
+                                  (len(xy), 3)).copy()
+            shaded = _raytrace_shade(self, cam_from_world, xy[ok])
+            hit = self._last_hit
+            # exposure and a soft shoulder on lit surfaces; the sky keeps its colour
+            shaded[hit] = shaded[hit] * 1.15 / (1.0 + 0.22 * shaded[hit])
+            col[ok] = shaded
+            acc += col
+    acc /= s * s
+    return (np.round(_srgb_from_linear(acc) * 255.0)).astype(np.uint8).reshape(height, width, 3)
+
+
+OffscreenScene.raytrace_color = _raytrace_color

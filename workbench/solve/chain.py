@@ -633,6 +633,11 @@ def _residuals_and_jac(prob: _Problem, lay: _Layout, x: np.ndarray, contact: _Co
     return res, J
 
 
+ZMETRIC = False  # trust-region metric: each carriage's own motion (diag of Hz) instead of the diag in x
+ACCEL = False  # geodesic acceleration in :func:`_lm_struct` (linear loss)
+ACC_H = 0.1  # finite-difference step (fraction of the LM step) for the second directional derivative
+ACC_MAX = 0.75  # largest accepted 2|a| / |v| (scaled), GSL's avmax
+_TRACE: list | None = None  # debugging: per evaluation of :func:`_lm_struct` (nfev, cost, new cost, predicted, lambda, |dx|, scaled grad)
 _SOLVER = "struct"  # "struct": the sparse trust-region LM (:func:`_lm_struct`); "scipy": the previous path
 
 
@@ -887,8 +892,62 @@ def _struct_eval(prob: _Problem, lay: _Layout, zl: _ZLayout, x: np.ndarray, cont
             Jp = Jp * scp[3 * i:3 * i + 3, None]
         Hl.append(Jp.T @ Jp)
         gl.append(Jp.T @ rpr[3 * i:3 * i + 3])
+    Jlk = []
+    for i, (c, j, T, GT, s) in enumerate(links):
+        Jp = GT * s
+        if sc is not None:
+            Jp = Jp * scp[3 * i:3 * i + 3, None]
+        Jlk.append(Jp)
+    zcar = np.array([zl.zc[k] for k in prob.car], dtype=int)
+    zcon = np.array([zl.zc[k] for k in cars_c], dtype=int)
     return {"x": x, "cost": cost, "R": R, "Jl": Jl, "pos": pos, "Hcar": Hcar, "gcar": gcar, "Hcf": Hcf,
-            "Hff": Hff, "gf": gf, "Hl": Hl, "gl": gl, "m": len(r)}
+            "Hff": Hff, "gf": gf, "Hl": Hl, "gl": gl, "m": len(r), "r": r,
+            "J": (Jpt, Jfp, zcar, Jc, zcon, Jlk)}
+
+
+def _struct_jz(E: dict, zl: _ZLayout, z: np.ndarray) -> np.ndarray:
+    """J z: the (linearised) change of the residual vector for a step ``z`` of the expanded variables."""
+    Jpt, Jfp, zcar, Jc, zcon, Jlk = E["J"]
+    blk = z[zcar[:, None] + np.arange(zl.bs)]  # (M, bs)
+    rp = np.einsum("nai,ni->na", Jpt, blk)
+    if zl.nf:
+        rp = rp + Jfp @ z[zl.zf:zl.zf + zl.nf]
+    rc = np.einsum("ni,ni->n", Jc, z[zcon[:, None] + np.arange(zl.bs)]) if len(zcon) else np.zeros(0)
+    rl = [Jp @ z[l0:l0 + w] for Jp, (l0, w) in zip(Jlk, (zl.zl[c][j] for c, j in zl.link_list))]
+    return np.concatenate([rp.reshape(-1), rc] + rl)
+
+
+def _struct_jtr(E: dict, zl: _ZLayout, v: np.ndarray) -> np.ndarray:
+    """J^T v in the expanded variables for a residual-space vector ``v``."""
+    Jpt, Jfp, zcar, Jc, zcon, Jlk = E["J"]
+    M = len(zcar)
+    out = np.zeros(zl.nz)
+    vp = v[:2 * M].reshape(M, 2)
+    np.add.at(out, zcar[:, None] + np.arange(zl.bs), np.einsum("nai,na->ni", Jpt, vp))
+    if zl.nf:
+        out[zl.zf:zl.zf + zl.nf] += np.einsum("nai,na->i", Jfp, vp)
+    nc = len(zcon)
+    if nc:
+        np.add.at(out, zcon[:, None] + np.arange(zl.bs), Jc * v[2 * M:2 * M + nc, None])
+    o = 2 * M + nc
+    for i, (c, j) in enumerate(zl.link_list):
+        l0, w = zl.zl[c][j]
+        out[l0:l0 + w] += Jlk[i].T @ v[o + 3 * i:o + 3 * i + 3]
+    return out
+
+
+def _struct_resid(prob: _Problem, lay: _Layout, x: np.ndarray, contact: _Contact | None) -> np.ndarray:
+    """The residual vector at ``x`` (linear loss), without derivatives (order as :func:`_struct_eval`)."""
+    R, t, f, _, _, T_links = lay.unpack(x, with_derivs=False)
+    uv, *_ = prob.project(R, t, f, jac=False)
+    rpix = ((uv - prob.uv) * prob.w[:, None]).reshape(-1)
+    cars_c = list(contact.samples) if contact is not None else []
+    rc = np.zeros(len(cars_c))
+    for i, k in enumerate(cars_c):
+        cl = contact.clearance(R, t, k)
+        rc[i] = contact.scale * cl[0] if cl is not None else 0.0
+    rp = [T * (lay.prior_px * SQRT5 / lay.slacks[c][j]) for c, Tl in enumerate(T_links) for j, T in enumerate(Tl)]
+    return np.concatenate([rpix, rc] + rp)
 
 
 def _struct_chain_grad_diag(lay: _Layout, zl: _ZLayout, E: dict, cars: list[_Car]):
@@ -999,6 +1058,7 @@ def _lm_struct(prob: _Problem, lay: _Layout, contact: _Contact | None, options: 
 
         m = 2 * len(prob.P) + (len(contact.samples) if contact is not None else 0) + 3 * zl.n_links
         loss_fn = construct_loss_function(m, options.robust_loss, options.loss_scale_px)
+    accel = ACCEL and loss_fn is None
     x = lay.x0.copy()
     # the focal is kept inside the field-of-view range of the sweep (guards against runaway along the
     # depth / focal ambiguity): log(f / f_ref) within [log f(hfov_hi), log f(hfov_lo)]
@@ -1024,13 +1084,18 @@ def _lm_struct(prob: _Problem, lay: _Layout, contact: _Contact | None, options: 
             return x, nfev, "gradient small", True
         Hz, gz, C = _struct_system(lay, zl, E, AB)
         dz = np.zeros(zl.nz)
-        dz[zl.xz] = d
+        if ZMETRIC:
+            hd = Hz.diagonal()
+            dz[:] = np.maximum(hd, 1e-12 * max(1.0, float(np.max(hd))))
+        else:
+            dz[zl.xz] = d
         while True:
             K = sp.bmat([[Hz + sp.diags(lam * dz), C.T], [C, None]], format="csc") if nc else \
                 (Hz + sp.diags(lam * dz)).tocsc()
             rhs = np.concatenate([-gz, np.zeros(nc)])
             try:
-                sol = splu(K, permc_spec="MMD_AT_PLUS_A").solve(rhs)
+                lu = splu(K, permc_spec="MMD_AT_PLUS_A")
+                sol = lu.solve(rhs)
             except RuntimeError:  # exactly singular
                 sol = None
             if sol is None or not np.all(np.isfinite(sol)):
@@ -1041,6 +1106,29 @@ def _lm_struct(prob: _Problem, lay: _Layout, contact: _Contact | None, options: 
             z = sol[:zl.nz]
             dx = z[zl.xz]
             pred = -float(gz @ z) - 0.5 * float(z @ (Hz @ z))
+            if accel:
+                # geodesic acceleration (Transtrum & Sethna 2012; GSL's lmaccel): the second directional
+                # derivative of the residuals along the step, by a finite difference, gives a second-order
+                # correction a from the same factorisation; the step v + a/2 follows a curved valley
+                # instead of crawling along it. Used only while |a| <= ACC_MAX |v| (scaled norms).
+                r_h = _struct_resid(prob, lay, x + ACC_H * dx, contact)
+                nfev += 1
+                rvv = (2.0 / ACC_H) * ((r_h - E["r"]) / ACC_H - _struct_jz(E, zl, z))
+                sa = lu.solve(np.concatenate([-_struct_jtr(E, zl, rvv), np.zeros(nc)]))
+                ax = sa[:zl.nz][zl.xz]
+                sd = np.sqrt(d)
+                if np.all(np.isfinite(ax)) and 2.0 * float(np.linalg.norm(sd * ax)) > ACC_MAX * float(
+                        np.linalg.norm(sd * dx)):
+                    # the second-order term is not small against the step: the model is not trusted
+                    lam *= nu
+                    nu *= 2.0
+                    if lam > 1e16:
+                        return x, nfev, "trust region collapsed", False
+                    if nfev >= max_ev:
+                        return x, nfev, "maximum evaluations reached", False
+                    continue
+                if np.all(np.isfinite(ax)):
+                    dx = dx + 0.5 * ax
             xn = x + dx
             if zl.nf and not np.all((xn[lay.f_off:] >= flo) & (xn[lay.f_off:] <= fhi)):
                 # the focal would leave the sweep's field-of-view range: a failed step (radius shrinks)
@@ -1053,6 +1141,8 @@ def _lm_struct(prob: _Problem, lay: _Layout, contact: _Contact | None, options: 
             nfev += 1
             cn = En["cost"]
             rho = (cost - cn) / pred if pred > 0 else -1.0
+            if _TRACE is not None:
+                _TRACE.append((nfev, cost, cn, pred, lam, float(np.linalg.norm(dx)), float(np.max(np.abs(g) / np.sqrt(d)))))
             if rho > 0 and np.isfinite(cn):
                 small = abs(cost - cn) < tol * cost or float(np.linalg.norm(dx)) < tol * (
                     tol + float(np.linalg.norm(x)))

@@ -30,7 +30,7 @@ from .scenarios import SCENARIOS, plan_consist
 
 log = logging.getLogger(__name__)
 
-GENERATOR_VERSION = 1
+GENERATOR_VERSION = 2
 SENSOR_WIDTH_MM = 23.5  # APS-C, for the EXIF focal length
 
 
@@ -111,6 +111,24 @@ class _Site:
         return float(self.tm.height_at(np.asarray(xy, float)[None])[0])
 
 
+def _marked_points_world(placed) -> np.ndarray:
+    return np.vstack([p.world_from_carriage.apply(np.array(list(p.ctype.marked_points.values()))) for p in placed])
+
+
+def visible_fraction(scene, centre: np.ndarray, points: np.ndarray) -> float:
+    """Share of ``points`` (n, 3) that a camera at ``centre`` sees unoccluded (ray casts against the scene)."""
+    import open3d as o3d
+
+    rs, _ = scene._raycaster()
+    d = points - centre
+    dist = np.linalg.norm(d, axis=1)
+    rays = np.empty((len(points), 6), np.float32)
+    rays[:, :3] = centre
+    rays[:, 3:] = d / dist[:, None]
+    t = rs.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    return float(np.mean(t >= dist - (0.05 + 0.01 * dist)))
+
+
 def _car_corners(placed) -> np.ndarray:
     pts = []
     for p in placed:
@@ -120,27 +138,29 @@ def _car_corners(placed) -> np.ndarray:
     return np.vstack(pts)
 
 
-def plan_panorama(placed, site: _Site, intr: CameraIntrinsics, opts: SynthOptions, rng) -> tuple[np.ndarray, list]:
+def plan_panorama(placed, site: _Site, scene, opts: SynthOptions, rng) -> tuple[np.ndarray, list]:
     """One camera position about 1.1 consist extents away, on high ground; 5-8 photos turning about it."""
     corners = _car_corners(placed)
     centre = corners.mean(axis=0)
     extent = float(np.max(np.linalg.norm(corners[:, None, :2] - corners[None, :, :2], axis=2)))
     dist = float(np.clip(1.1 * extent, 50.0, site.half - 40.0))
+    targets = _marked_points_world(placed)
     best = None
-    for a in np.arange(0.0, 360.0, 5.0):
+    for a in np.arange(0.0, 360.0, 10.0):
         d = np.array([np.sin(np.deg2rad(a)), np.cos(np.deg2rad(a))])
-        xy = centre[:2] + d * dist
-        if not site.ok(xy):
-            continue
-        # prefer a view across the consist (perpendicular to its long axis) and high ground
-        score = site.ground(xy)
-        if best is None or score > best[0]:
-            best = (score, xy)
+        for f in (1.0, 0.8):
+            xy = centre[:2] + d * dist * f
+            if not site.ok(xy):
+                continue
+            g = site.ground(xy)
+            # standing on the ground, or raised (embankment, bridge, aerial ladder)
+            for z in (g + 1.7, max(g + 1.7, centre[2] + 10.0)):
+                score = visible_fraction(scene, np.array([xy[0], xy[1], z]), targets) - 0.002 * (z - g)
+                if best is None or score > best[0]:
+                    best = (score, xy, z)
     if best is None:
         raise WorkbenchError("synth: found no place for the panorama camera on this terrain; try another seed")
-    xy = best[1]
-    z = site.ground(xy) + 1.7
-    z = max(z, centre[2] + 8.0)  # raised position (embankment, bridge, aerial ladder) so the consist is seen
+    _, xy, z = best
     cam = np.array([xy[0], xy[1], z])
     rel = corners - cam
     bearings = np.rad2deg(np.arctan2(rel[:, 0], rel[:, 1]))
@@ -160,15 +180,15 @@ def plan_panorama(placed, site: _Site, intr: CameraIntrinsics, opts: SynthOption
     return cam, views
 
 
-def plan_multiview(placed, site: _Site, opts: SynthOptions, rng) -> list:
+def plan_multiview(placed, site: _Site, scene, opts: SynthOptions, rng) -> list:
     """Photos from places around the site: walking distance on the ground, a few from a drone."""
     corners = _car_corners(placed)
     centre = corners.mean(axis=0)
     centres = np.array([p.world_from_carriage.translation for p in placed])
     cov = np.cov((corners[:, :2] - centre[:2]).T)
     evals, evecs = np.linalg.eigh(cov)
-    a = 2.0 * np.sqrt(evals[1]) + 30.0
-    b = 2.0 * np.sqrt(evals[0]) + 30.0
+    a = 1.3 * np.sqrt(evals[1]) + 20.0
+    b = 1.3 * np.sqrt(evals[0]) + 20.0
     views = []
     tries = 0
     while len(views) < opts.n_multiview and tries < 400:
@@ -188,7 +208,10 @@ def plan_multiview(placed, site: _Site, opts: SynthOptions, rng) -> list:
         drone = len(views) % 4 == 3
         z = site.ground(xy) + (rng.uniform(15.0, 30.0) if drone else 1.7)
         cam = np.array([xy[0], xy[1], z])
-        near = centres[np.argsort(np.linalg.norm(centres[:, :2] - xy, axis=1))[:3]].mean(axis=0)
+        nearest = np.argsort(np.linalg.norm(centres[:, :2] - xy, axis=1))[:3]
+        if visible_fraction(scene, cam, _marked_points_world([placed[i] for i in nearest])) < 0.4:
+            continue  # the wreck is hidden from here (terrain, buildings)
+        near = centres[nearest].mean(axis=0)
         target = 0.6 * near + 0.4 * centre + rng.normal(0, 2.0, 3)
         target[2] = max(target[2], centre[2]) + 1.0
         d = target - cam
@@ -310,12 +333,6 @@ def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
     k1, k2, p1, p2, k3 = opts.distortion
     intr = CameraIntrinsics(width=w, height=h, fx=fx, fy=fx, cx=(w - 1) / 2.0 + 0.013 * w, cy=(h - 1) / 2.0 - 0.011 * h,
                             k1=k1, k2=k2, k3=k3, p1=p1, p2=p2)
-    bpolys = [frame.enu_from_crs(np.column_stack([np.asarray(b["footprint_crs"]),
-                                                  np.zeros(len(b["footprint_crs"]))]))[:, :2] for b in buildings]
-    site = _Site(tm, st.water_polygon_enu, bpolys, opts.terrain_size_m / 2.0)
-    pano_centre, pano_views = plan_panorama(placed, site, intr, opts, rng)
-    multi_views = plan_multiview(placed, site, opts, rng) if opts.n_multiview else []
-
     progress(0.25, "scene")
     scene = OffscreenScene(w, h)
     scene.add(SceneMesh("terrain", tm.mesh(texture=st.texture)))
@@ -328,6 +345,12 @@ def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
     # low winter/spring sun from the south-east
     az, el = np.deg2rad(150.0), np.deg2rad(35.0)
     scene.set_sun(-np.array([np.sin(az) * np.cos(el), np.cos(az) * np.cos(el), np.sin(el)]))
+
+    bpolys = [frame.enu_from_crs(np.column_stack([np.asarray(b["footprint_crs"]),
+                                                  np.zeros(len(b["footprint_crs"]))]))[:, :2] for b in buildings]
+    site = _Site(tm, st.water_polygon_enu, bpolys, opts.terrain_size_m / 2.0)
+    pano_centre, pano_views = plan_panorama(placed, site, scene, opts, rng)
+    multi_views = plan_multiview(placed, site, scene, opts, rng) if opts.n_multiview else []
 
     photos = []
     all_views = [("panorama", v) for v in pano_views] + [("multiview", v) for v in multi_views]
