@@ -107,7 +107,7 @@ def run(path: Path = typer.Argument(..., help="incident folder"),
                 prog.update(tasks[spec.name], completed=1.0, msg=f"done in {rec['duration_s']:.1f} s")
             if kind == "skipped":
                 prog.console.print(f"{spec.name}: up to date, skipped")
-            if not console.is_terminal and kind in ("done", "failed"):
+            if not console.is_terminal and kind == "done":
                 console.print(f"{spec.name}: {kind}")
 
         statuses = runner.run(only=only, force=force, progress_factory=factory, on_event=event)

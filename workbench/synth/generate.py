@@ -30,7 +30,7 @@ from .scenarios import SCENARIOS, plan_consist
 
 log = logging.getLogger(__name__)
 
-GENERATOR_VERSION = 2
+GENERATOR_VERSION = 3
 SENSOR_WIDTH_MM = 23.5  # APS-C, for the EXIF focal length
 
 
@@ -143,7 +143,7 @@ def plan_panorama(placed, site: _Site, scene, opts: SynthOptions, rng) -> tuple[
     corners = _car_corners(placed)
     centre = corners.mean(axis=0)
     extent = float(np.max(np.linalg.norm(corners[:, None, :2] - corners[None, :, :2], axis=2)))
-    dist = float(np.clip(1.1 * extent, 50.0, site.half - 40.0))
+    dist = float(np.clip(0.8 * extent, 50.0, site.half - 40.0))
     targets = _marked_points_world(placed)
     best = None
     for a in np.arange(0.0, 360.0, 10.0):
@@ -154,8 +154,9 @@ def plan_panorama(placed, site: _Site, scene, opts: SynthOptions, rng) -> tuple[
                 continue
             g = site.ground(xy)
             # standing on the ground, or raised (embankment, bridge, aerial ladder)
-            for z in (g + 1.7, max(g + 1.7, centre[2] + 10.0)):
-                score = visible_fraction(scene, np.array([xy[0], xy[1], z]), targets) - 0.002 * (z - g)
+            for z in (g + 1.7, max(g + 1.7, centre[2] + 15.0)):
+                # a raised view sees the jackknifed cars from above; a ground view must be clearly better
+                score = visible_fraction(scene, np.array([xy[0], xy[1], z]), targets) - (0.15 if z - g < 2 else 0.0)
                 if best is None or score > best[0]:
                     best = (score, xy, z)
     if best is None:
@@ -169,7 +170,7 @@ def plan_panorama(placed, site: _Site, scene, opts: SynthOptions, rng) -> tuple[
     lo, hi = rel_b.min() - 4.0, rel_b.max() + 4.0
     step = opts.hfov_deg * 0.6  # 40 % overlap
     n = opts.n_panorama or int(np.clip(np.ceil(max(hi - lo - opts.hfov_deg, 0) / step) + 1, 5, 8))
-    span = max(hi - lo - opts.hfov_deg, (n - 1) * 0.3 * opts.hfov_deg)
+    span = max(hi - lo - opts.hfov_deg, (n - 1) * 0.2 * opts.hfov_deg)
     span = min(span, (n - 1) * step)
     yaws = mid + (lo + hi) / 2 + np.linspace(-span / 2, span / 2, n)
     elev = np.rad2deg(np.arctan2(centre[2] - cam[2], np.linalg.norm((centre - cam)[:2])))

@@ -174,7 +174,7 @@ class TerrainModel:
         try:
             src = rasterio.open(path)
         except rasterio.errors.RasterioIOError as exc:
-            raise InputError(f"DEM {path} cannot be read by rasterio ({exc})") from None
+            raise InputError(f"DEM {path} cannot be read by rasterio ({exc}); replace it with a valid GeoTIFF (check it with gdalinfo)") from None
         with src:
             return cls._from_dataset(src, frame, str(path), aoi_radius_m=aoi_radius_m, max_cells=max_cells,
                                      vertical_accuracy_m=vertical_accuracy_m)
