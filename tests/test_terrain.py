@@ -22,7 +22,7 @@ from workbench.synth.terrain import (RAIL_HALF_GAUGE_M, TOP_OF_RAIL_ABOVE_BED_M,
                                      write_dem_geotiff)
 from workbench.terrain import DemHolesFilled, TerrainModel
 
-SHARED_DEM = Path("/work/shared/data/dem")
+SHARED_DEM = Path(__file__).resolve().parents[2] / "shared" / "data" / "dem"  # ../shared beside the repository
 SCENARIOS = ["embankment_river", "cutting_curve"]
 
 
