@@ -134,13 +134,14 @@ def _format_loc(loc: tuple[Any, ...]) -> str:
     return out
 
 
-def _describe(exc: ValidationError, source: str, data: dict) -> str:
+def describe_validation_error(exc: ValidationError, source: str, hint: str = "see docs/formats.md") -> str:
+    """One line naming ``source`` (a file), then each bad key with its value and what is wrong."""
     msgs = []
     for err in exc.errors():
         key = _format_loc(err["loc"])
         typ = err["type"]
         if typ == "extra_forbidden":
-            msgs.append(f"unknown key '{key}' (check the spelling; see docs/formats.md)")
+            msgs.append(f"unknown key '{key}' (check the spelling; {hint})")
         elif typ == "missing":
             msgs.append(f"missing key '{key}'")
         else:
@@ -158,7 +159,7 @@ def parse_settings(data: dict, source: str = SETTINGS_FILE) -> ProjectSettings:
     try:
         return ProjectSettings.model_validate(data)
     except ValidationError as exc:
-        raise SettingsError(_describe(exc, source, data)) from None
+        raise SettingsError(describe_validation_error(exc, source)) from None
 
 
 def load_settings(path: Path) -> ProjectSettings:

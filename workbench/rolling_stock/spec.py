@@ -45,6 +45,7 @@ from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
+from ..core.settings import describe_validation_error
 from ..errors import SettingsError
 
 FACES = ("left", "right", "front", "rear", "roof")
@@ -203,29 +204,8 @@ class CarriageSpec(_Model):
 
 
 # --------------------------------------------------------------------------------------------------------
-def _format_loc(loc) -> str:
-    out = ""
-    for part in loc:
-        if isinstance(part, int):
-            out += f"[{part}]"
-        else:
-            out += ("." if out else "") + str(part)
-    return out
-
-
 def _describe(exc: ValidationError, path: Path) -> str:
-    msgs = []
-    for err in exc.errors():
-        key = _format_loc(err["loc"])
-        typ = err["type"]
-        if typ == "extra_forbidden":
-            msgs.append(f"unknown key '{key}' = {err.get('input')!r} (check the spelling)")
-        elif typ == "missing":
-            msgs.append(f"missing key '{key}'")
-        else:
-            msg = err["msg"].removeprefix("Value error, ")
-            msgs.append(f"'{key}' = {err.get('input')!r}: {msg}" if key else msg)
-    return f"{path}: " + "; ".join(msgs)
+    return describe_validation_error(exc, str(path), hint="see workbench/rolling_stock/spec.py")
 
 
 def _bad(path: Path, key: str, value, why: str) -> SettingsError:
