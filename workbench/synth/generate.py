@@ -30,7 +30,7 @@ from .scenarios import SCENARIOS, plan_consist
 
 log = logging.getLogger(__name__)
 
-GENERATOR_VERSION = 3
+GENERATOR_VERSION = 4
 SENSOR_WIDTH_MM = 23.5  # APS-C, for the EXIF focal length
 
 

@@ -142,7 +142,7 @@ def _settle_pinned(contact: _Contact, heading: float, roll: float, pin: np.ndarr
         R = rotation_from_hpr(heading, pitch, roll)
         return R, pin - R @ coupler_local
 
-    lo, hi = -25.0, 25.0  # nose down .. nose up; clearance falls as pitch rises (the rear drops)
+    lo, hi = -12.0, 12.0  # nose down .. nose up; clearance falls as pitch rises (the rear drops)
     c_lo = contact.clearance(*pose(lo))
     c_hi = contact.clearance(*pose(hi))
     log.debug("pinned: roll=%.1f c_lo=%.3f c_hi=%.3f pin=%s", roll, c_lo, c_hi, pin)
