@@ -15,3 +15,8 @@ if [ ${#SCEN[@]} -gt 0 ]; then
 fi
 .venv/bin/workbench run "$INCIDENT"
 .venv/bin/workbench status "$INCIDENT"
+echo
+echo "Outputs of $INCIDENT:"
+echo "  stage outputs:  $INCIDENT/out/  (inputs/inputs.json, terrain/terrain.ply, terrain/buildings.ply, state.json)"
+echo "  photos & truth: $INCIDENT/photos/  $INCIDENT/truth/ground_truth.json"
+echo "  (the report and GIS exports come with the render/report/export stages, which are not built yet)"

@@ -108,3 +108,8 @@ def test_types_lists_the_library():
     assert r.returncode == 0
     for t in ("shoreliner", "p32ac-dm", "amfleet-i", "acs-64"):
         assert t in r.stdout
+
+
+def test_synth_bad_options(tmp_path):
+    one_line_error(wb("synth", tmp_path / "x", "--scenario", "nowhere"), "unknown scenario 'nowhere'", "spuyten-duyvil")
+    one_line_error(wb("synth", tmp_path / "x", "--cars", "0"), "--cars 0")

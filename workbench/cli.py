@@ -71,8 +71,13 @@ def synth(path: Path = typer.Argument(..., help="incident folder to generate (cr
     path.mkdir(parents=True, exist_ok=True)
     with _progress() as prog:
         task = prog.add_task("synth", total=1.0, msg="")
-        res = generate_incident(path, opts, force=force,
-                                progress=lambda f, m="": prog.update(task, completed=f, msg=m))
+
+        def progress(f: float, m: str = "") -> None:
+            prog.update(task, completed=f, msg=m)
+            if not console.is_terminal:
+                console.print(f"synth: {m}", highlight=False)
+
+        res = generate_incident(path, opts, force=force, progress=progress)
     if res.get("skipped"):
         out.print(f"{path}: already generated with these options (use --force to regenerate)")
     else:
