@@ -169,3 +169,21 @@ def test_cli_synth_then_run(incident, tmp_path):
     assert st["inputs"]["status"] == "done" and st["terrain"]["status"] == "done"
     stats = json.loads((root / "out/terrain/stats.json").read_text())
     assert stats["n_buildings"] >= 1 and abs(stats["height_at_origin_m"]) < 0.5
+
+
+def test_synth_regenerates_a_committed_sample_but_never_a_real_incident(incident, tmp_path):
+    root, _ = incident
+    import shutil
+
+    clone = tmp_path / "clone"
+    clone.mkdir()
+    shutil.copy(root / "project.toml", clone / "project.toml")  # as in a fresh clone: settings, no truth
+    opts = SynthOptions(**{**OPTS.__dict__, "n_cars": 2, "photo_width": 96, "photo_height": 72, "n_panorama": 2,
+                           "n_multiview": 0})
+    assert not generate_incident(clone, opts)["skipped"]
+    real = tmp_path / "real"
+    Project.create(real, lat=40.878, lon=-73.92)
+    from workbench.errors import WorkbenchError
+
+    with pytest.raises(WorkbenchError, match="not a synthetic incident"):
+        generate_incident(real, opts)

@@ -267,6 +267,16 @@ def _ids_png(instance: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------------
+def _is_synthetic(settings_path: Path) -> bool:
+    """Was this project.toml written by `workbench synth` (a sample whose photos are not committed)?"""
+    import tomllib
+
+    try:
+        return bool(tomllib.loads(settings_path.read_text(encoding="utf-8")).get("incident", {}).get("synthetic"))
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError, OSError):
+        return False
+
+
 def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
                       progress: Callable[[float, str], None] = lambda f, m="": None) -> dict:
     """Generate (or, when already generated with the same options, keep) a synthetic incident in ``root``."""
@@ -291,7 +301,7 @@ def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
                 return {"skipped": True, "truth": str(truth_path)}
         except (json.JSONDecodeError, KeyError, TypeError):
             pass
-    if settings_path.is_file() and not truth_path.is_file() and not force:
+    if settings_path.is_file() and not truth_path.is_file() and not force and not _is_synthetic(settings_path):
         raise WorkbenchError(f"{settings_path}: exists and is not a synthetic incident; `workbench synth` will not "
                              f"overwrite it (use an empty folder, or --force)")
 
