@@ -1312,6 +1312,26 @@ def rest_on_terrain(world_from_carriage: np.ndarray, carriage_type: Any, terrain
     return M, dz
 
 
+def _place_carried(R: np.ndarray, t: np.ndarray, cars, chains, solved) -> None:
+    """Pose every carriage not in ``solved`` from its chain neighbours (in place): same rotation, front coupler
+    on the neighbour's rear coupler; forwards then backwards along each chain."""
+    placed = set(solved)
+    for ch in chains:
+        for _ in range(2):
+            for j in range(1, len(ch)):
+                a, b = ch[j - 1], ch[j]
+                if a in placed and b not in placed:
+                    R[b] = R[a]
+                    t[b] = t[a] + R[a] @ cars[a].c_rear - R[b] @ cars[b].c_front
+                    placed.add(b)
+            for j in range(len(ch) - 2, -1, -1):
+                a, b = ch[j], ch[j + 1]
+                if b in placed and a not in placed:
+                    R[a] = R[b]
+                    t[a] = t[b] + R[b] @ cars[b].c_front - R[a] @ cars[a].c_rear
+                    placed.add(a)
+
+
 def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink], views: Sequence[View],
                   options: SolveOptions | None = None, terrain: Any = None) -> SolveResult:
     """Solve the poses of all carriages (and optionally the focal) from marked-point pixels. See the module doc."""
@@ -1453,21 +1473,7 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
         else:
             R[k], t[k] = best[0], best[1]
     # carried: from the neighbours, forwards then backwards
-    placed = set(solo)
-    for ch in final_chains:
-        for _ in range(2):
-            for j in range(1, len(ch)):
-                a, b = ch[j - 1], ch[j]
-                if a in placed and b not in placed:
-                    R[b] = R[a]
-                    t[b] = t[a] + R[a] @ cars[a].c_rear - R[b] @ cars[b].c_front
-                    placed.add(b)
-            for j in range(len(ch) - 2, -1, -1):
-                a, b = ch[j], ch[j + 1]
-                if b in placed and a not in placed:
-                    R[a] = R[b]
-                    t[a] = t[b] + R[b] @ cars[b].c_front - R[a] @ cars[a].c_rear
-                    placed.add(a)
+    _place_carried(R, t, cars, final_chains, solo)
     R_init, t_init = R.copy(), t.copy()
     cost0 = _pixel_cost(prob, R, t, f)
     if focal_views or _SOLVER == "struct":
@@ -1490,21 +1496,7 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
         total_nfev += nfev
         msg = "; ".join(sorted(msgs1))
     # carried ones follow their (refined) neighbours again
-    placed = set(solo)
-    for ch in final_chains:
-        for _ in range(2):
-            for j in range(1, len(ch)):
-                a, b = ch[j - 1], ch[j]
-                if a in placed and b not in placed:
-                    R[b] = R[a]
-                    t[b] = t[a] + R[a] @ cars[a].c_rear - R[b] @ cars[b].c_front
-                    placed.add(b)
-            for j in range(len(ch) - 2, -1, -1):
-                a, b = ch[j], ch[j + 1]
-                if b in placed and a not in placed:
-                    R[a] = R[b]
-                    t[a] = t[b] + R[b] @ cars[b].c_front - R[a] @ cars[a].c_rear
-                    placed.add(a)
+    _place_carried(R, t, cars, final_chains, solo)
     steps.append(StepStats("1_alone", True, (note + "; " if note else "") + "PnP (SQPnP) then joint refinement, "
                            "constraints off" + ("; carried cars placed from their neighbours"
                                                 if len(solo) < len(active) else ""),

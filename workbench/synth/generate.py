@@ -300,7 +300,7 @@ def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
                 log.info("synth: %s is already generated with these options; nothing to do", root)
                 return {"skipped": True, "truth": str(truth_path)}
         except (json.JSONDecodeError, KeyError, TypeError):
-            pass
+            pass  # an unreadable old truth file: generate afresh
     if settings_path.is_file() and not truth_path.is_file() and not force and not _is_synthetic(settings_path):
         raise WorkbenchError(f"{settings_path}: exists and is not a synthetic incident; `workbench synth` will not "
                              f"overwrite it (use an empty folder, or --force)")
