@@ -131,10 +131,16 @@ def run_terrain(project: Project, progress: Progress) -> StageResult:
     return StageResult(outputs=outputs, stats=stats)
 
 
+def _stages() -> list[StageSpec]:
+    from .solve.stage import STAGE as SOLVE
+
+    return [SOLVE]
+
+
 STAGES: list[StageSpec] = [
     StageSpec("inputs", "check photos, camera profile and consist", run_inputs, inputs=_inputs_files,
               settings_sections=("consist", "camera")),
     StageSpec("terrain", "DEM and buildings to meshes in the scene frame", run_terrain, inputs=_terrain_files,
               settings_sections=("location", "terrain"), depends_on=(),
               applies=lambda project: project.settings.terrain.dem is not None),
-]
+] + _stages()

@@ -1,0 +1,337 @@
+"""The ``solve`` stage: every carriage's pose from the marked points seen in the photos (docs/pipeline.md).
+
+Reads the views (``cameras.json`` written by hand in the incident folder, else ``out/georef/cameras.json``),
+the correspondences (``out/correspond/correspondences.json`` when the ``correspond`` stage wrote it, else the
+incident's hand-written ``correspondences.json``), the consist and its couplings, and the terrain; runs
+:func:`workbench.solve.chain.solve_consist`; writes ``out/solve/solution.json``. A solve that does not converge
+raises (the runner keeps the previous solution) after writing the attempt to ``out/solve/attempt.json``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..core.camera import CameraIntrinsics
+from ..errors import InputError, StageError
+from ..project import Project
+from ..runner import Progress, StageResult, StageSpec
+
+log = logging.getLogger(__name__)
+
+CAMERAS_FILE = "cameras.json"
+CORRESPONDENCES_FILE = "correspondences.json"
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Where the inputs are
+# ---------------------------------------------------------------------------------------------------------
+def cameras_path(project: Project) -> Path | None:
+    """The views file the solve reads: the incident's own ``cameras.json``, else the georef stage's."""
+    own = project.root / CAMERAS_FILE
+    if own.is_file():
+        return own
+    out = project.stage_dir("georef") / CAMERAS_FILE
+    return out if out.is_file() else None
+
+
+def correspondences_path(project: Project) -> Path | None:
+    out = project.stage_dir("correspond") / CORRESPONDENCES_FILE
+    if out.is_file():
+        return out
+    own = project.root / CORRESPONDENCES_FILE
+    return own if own.is_file() else None
+
+
+def _inputs(project: Project) -> dict[str, Path]:
+    files: dict[str, Path] = {}
+    cp = cameras_path(project)
+    if cp is not None:
+        files["cameras"] = cp
+    cr = correspondences_path(project)
+    if cr is not None:
+        files["correspondences"] = cr
+    pano = _panorama_model_path(project, cp)
+    if pano is not None:
+        files["panorama_model"] = pano
+    t = project.settings.terrain
+    if t.dem:
+        files["dem"] = project.path(t.dem)
+    return files
+
+
+def _applies(project: Project) -> bool:
+    return correspondences_path(project) is not None or cameras_path(project) is not None
+
+
+def _panorama_model_path(project: Project, cameras: Path | None) -> Path | None:
+    if cameras is None:
+        return None
+    try:
+        doc = project.read_json(cameras)
+    except InputError:
+        return None
+    pano = doc.get("panorama") if isinstance(doc, dict) else None
+    if isinstance(pano, dict) and pano.get("model"):
+        return project.path(pano["model"])
+    return None
+
+
+# ---------------------------------------------------------------------------------------------------------
+# Reading and checking
+# ---------------------------------------------------------------------------------------------------------
+def _matrix(value: Any, shape: tuple[int, int], where: str) -> np.ndarray:
+    try:
+        M = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: not a {shape[0]}x{shape[1]} matrix of numbers") from None
+    if M.shape != shape or not np.all(np.isfinite(M)):
+        raise InputError(f"{where}: must be a finite {shape[0]}x{shape[1]} matrix (got shape {M.shape})")
+    return M
+
+
+def read_views(project: Project, path: Path) -> tuple[list, dict]:
+    """``(views, document)`` from a ``cameras.json`` (docs/pipeline.md); errors name the file and the entry."""
+    from .chain import View
+
+    doc = project.read_json(path)
+    if not isinstance(doc, dict) or not isinstance(doc.get("views"), list) or not doc["views"]:
+        raise InputError(f"{path}: needs a non-empty 'views' list; see docs/pipeline.md (cameras.json)")
+    views, names = [], set()
+    for i, v in enumerate(doc["views"]):
+        where = f"{path}: views[{i}]"
+        if not isinstance(v, dict) or not isinstance(v.get("name"), str) or not v["name"]:
+            raise InputError(f"{where}: needs a 'name' (the photo's file name)")
+        where = f"{path}: views[{i}] ({v['name']!r})"
+        if v["name"] in names:
+            raise InputError(f"{where}: the name is used twice")
+        names.add(v["name"])
+        if not isinstance(v.get("intrinsics"), dict):
+            raise InputError(f"{where}: needs 'intrinsics' (the camera_profile.json model)")
+        try:
+            intr = CameraIntrinsics.from_dict(v["intrinsics"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"{where}.intrinsics: {exc}") from None
+        M = _matrix(v.get("cam_from_world"), (4, 4), f"{where}.cam_from_world")
+        R = M[:3, :3]
+        if not (np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0) or not np.allclose(
+                M[3], [0, 0, 0, 1]):
+            raise InputError(f"{where}.cam_from_world: not a rigid transform (rotation block must be orthonormal "
+                             f"with determinant +1, last row 0 0 0 1)")
+        views.append(View(name=v["name"], intrinsics=intr, cam_from_world=M))
+    return views, doc
+
+
+def read_correspondences(project: Project, path: Path, views: list, panorama: Any = None) -> tuple[dict, dict]:
+    """``({car number: {view name: {point: (u, v)}}}, stats)``; every bad item is an :class:`InputError`
+    naming it. ``view == "panorama"`` pixels are mapped into their source photo with the panorama model."""
+    doc = project.read_json(path)
+    if not isinstance(doc, dict) or not isinstance(doc.get("observations"), list):
+        raise InputError(f"{path}: needs an 'observations' list; see docs/pipeline.md (correspondences.json)")
+    types = project.carriage_types()
+    vby = {v.name: v for v in views}
+    out: dict[str, dict[str, dict[str, tuple[float, float]]]] = {}
+    src: dict[tuple, str] = {}
+    n_pano = 0
+    sources: dict[str, int] = {}
+    for i, o in enumerate(doc["observations"]):
+        where = f"{path}: observations[{i}]"
+        if not isinstance(o, dict):
+            raise InputError(f"{where}: must be an object with carriage, point, view, uv")
+        car, point, view = o.get("carriage"), o.get("point"), o.get("view")
+        if car not in types:
+            raise InputError(f"{where}: carriage {car!r} is not in the consist ({', '.join(types)}); fix the car "
+                             f"number or the consist in project.toml")
+        if point not in types[car].marked_points:
+            raise InputError(f"{where}: point {point!r} is not a marked point of car {car} (type "
+                             f"{types[car].id}: {', '.join(types[car].marked_points)})")
+        uv = o.get("uv")
+        try:
+            a = np.asarray(uv, dtype=float).reshape(-1)
+        except (TypeError, ValueError):
+            a = np.full(1, np.nan)
+        if a.size != 2 or not np.all(np.isfinite(a)):
+            raise InputError(f"{where} (car {car}, point {point}): uv = {uv!r} is not a finite [u, v] pair")
+        if view == "panorama":
+            if panorama is None:
+                raise InputError(f"{where}: view 'panorama' but no stitched panorama model is known (run the "
+                                 f"stitch and georef stages, or give source-photo pixels)")
+            if not (-0.5 <= a[0] <= panorama.width - 0.5 and -0.5 <= a[1] <= panorama.height - 0.5):
+                raise InputError(f"{where} (car {car}, point {point}): ({a[0]:.1f}, {a[1]:.1f}) is outside the "
+                                 f"{panorama.width}x{panorama.height} panorama")
+            idx, uv_src = panorama.to_source(a[None])
+            view = panorama.sources[int(idx[0])].name
+            a = np.asarray(uv_src[0], dtype=float)
+            n_pano += 1
+        if view not in vby:
+            raise InputError(f"{where}: view {view!r} is not a photo of the cameras file ({', '.join(vby)})")
+        intr = vby[view].intrinsics
+        if not intr.in_image(a[None])[0]:
+            raise InputError(f"{where} (car {car}, point {point}, view {view}): ({a[0]:.1f}, {a[1]:.1f}) is outside "
+                             f"the {intr.width}x{intr.height} image")
+        key = (car, view, point)
+        if key in src:
+            raise InputError(f"{where}: car {car}, point {point} in view {view} is given twice (also "
+                             f"{src[key]}); keep one")
+        src[key] = f"observations[{i}]"
+        out.setdefault(car, {}).setdefault(view, {})[point] = (float(a[0]), float(a[1]))
+        s = str(o.get("source", "manual"))
+        sources[s] = sources.get(s, 0) + 1
+    stats = {"file": project.relative(path), "n_observations": len(src), "by_source": sources,
+             "from_panorama_pixels": n_pano, "needs_manual": doc.get("needs_manual", [])}
+    return out, stats
+
+
+def _load_panorama(project: Project, doc: dict) -> Any:
+    pano = doc.get("panorama")
+    if not isinstance(pano, dict) or not pano.get("model"):
+        return None
+    try:
+        from ..core.panorama import PanoramaModel
+    except ImportError:  # pragma: no cover - until the stitching stage lands
+        return None
+    return PanoramaModel.from_dict(project.read_json(project.require_file(pano["model"], "panorama.model")))
+
+
+# ---------------------------------------------------------------------------------------------------------
+# The stage
+# ---------------------------------------------------------------------------------------------------------
+def run_solve(project: Project, progress: Progress) -> StageResult:
+    from ..core.frames import hpr_from_rotation
+    from .chain import CarriageInput, ChainLink, SolveOptions, SolveWarning, solve_consist
+
+    s = project.settings
+    cam_path = cameras_path(project)
+    if cam_path is None:
+        raise InputError(f"{project.root}: no cameras: run the georef stage (it needs control_points.json), or "
+                         f"write {project.root / CAMERAS_FILE} by hand (docs/pipeline.md)")
+    corr_path = correspondences_path(project)
+    if corr_path is None:
+        raise InputError(f"{project.root}: no marked points: run the correspond stage, or write "
+                         f"{project.root / CORRESPONDENCES_FILE} by hand (docs/pipeline.md)")
+    progress(0.05, "cameras and marked points")
+    views, cam_doc = read_views(project, cam_path)
+    panorama = _load_panorama(project, cam_doc)
+    obs, corr_stats = read_correspondences(project, corr_path, views, panorama)
+    types = project.carriage_types()
+    carriages = [CarriageInput(number=c.number, carriage_type=types[c.number], observations=obs.get(c.number, {}))
+                 for c in s.consist]
+    links = []
+    for i, c in enumerate(s.consist[:-1]):
+        held = c.coupling_to_next is not None and c.coupling_to_next.value == "held"
+        links.append(ChainLink(i, i + 1, s.solver.slack_held_m if held else s.solver.slack_broken_m))
+    focal_unknown = [v["name"] for v in cam_doc["views"] if v.get("focal_known") is False]
+    opts = SolveOptions(pixel_sigma_px=s.solver.pixel_sigma_px, robust_loss=s.solver.robust_loss.value
+                        if hasattr(s.solver.robust_loss, "value") else str(s.solver.robust_loss),
+                        loss_scale_px=s.solver.loss_scale_px, max_iterations=s.solver.max_iterations,
+                        estimate_focal=bool(s.solver.estimate_focal or focal_unknown),
+                        terrain_sigma_m=s.terrain.dem_vertical_accuracy_m)
+    terrain = None
+    if s.terrain.dem:
+        from ..terrain.dem import TerrainModel
+
+        progress(0.15, "terrain")
+        terrain = TerrainModel.from_geotiff(project.require_file(s.terrain.dem, "terrain.dem"), project.frame,
+                                            aoi_radius_m=s.terrain.aoi_radius_m)
+    progress(0.3, f"solving {len(carriages)} carriages")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SolveWarning)  # recorded in the result's warnings
+        res = solve_consist(carriages, links, views, opts, terrain)
+    progress(0.9, "writing the solution")
+    doc = solution_document(project, res, views, cam_doc, obs)
+    doc["correspondences"] = corr_stats
+    out_dir = project.stage_dir("solve")
+    if not res.converged:
+        attempt = project.write_json(out_dir / "attempt.json", doc)
+        raise StageError(f"solve did not converge ({res.message}); the previous solution is kept; this attempt is in "
+                         f"{attempt}")
+    path = project.write_json(out_dir / "solution.json", doc)
+    n_status = {k: sum(1 for c in res.carriages if c.status == k) for k in ("solved", "carried", "left_out")}
+    stats = {"status": res.status, "time_s": res.time_s, "iterations": res.iterations, "final_cost": res.final_cost,
+             "carriages": n_status, "n_views": len(views), "n_observations": corr_stats["n_observations"],
+             "observations_by_source": corr_stats["by_source"], "sigma_px": _num(res.sigma_px),
+             "sigma_px_estimated": _num(res.sigma_px_estimated), "focal_px": res.focal_px,
+             "route": cam_doc.get("route"), "intrinsics_source": cam_doc.get("intrinsics_source"),
+             "cameras": project.relative(cam_path), "correspondences_file": project.relative(corr_path),
+             "steps": [{"name": st.name, "ran": st.ran, "note": st.note, "cost_before": _num(st.cost_before),
+                        "cost_after": _num(st.cost_after), "iterations": st.iterations, "time_s": st.time_s}
+                       for st in res.steps],
+             "warnings": [w.get("message") for w in res.warnings]}
+    return StageResult(outputs={"solution": path}, stats=stats)
+
+
+def _num(x: Any) -> float | None:
+    try:
+        f = float(x)
+    except (TypeError, ValueError):
+        return None
+    return f if math.isfinite(f) else None
+
+
+def solution_document(project: Project, res: Any, views: list, cam_doc: dict, obs: dict) -> dict:
+    """The ``solution.json`` document (docs/pipeline.md) of a :class:`SolveResult`."""
+    from ..core.frames import hpr_from_rotation
+
+    frame = project.frame
+    d = res.to_dict()
+    s = project.settings
+    cars_out = []
+    by_number = {c.number: c for c in res.carriages}
+    for i, car in enumerate(s.consist):
+        cr = by_number[car.number]
+        e = d["carriages"][i]
+        rec: dict[str, Any] = {"index": i, "number": car.number, "type": cr.type_id, "status": cr.status,
+                               "n_points": cr.n_points, "coupling_to_next": car.coupling_to_next.value
+                               if car.coupling_to_next else None}
+        if cr.world_from_carriage is not None:
+            M = np.asarray(cr.world_from_carriage)
+            c_enu = np.asarray(cr.body_centre_m, dtype=float)
+            h, p, r = hpr_from_rotation(M[:3, :3])
+            rec.update({
+                "world_from_carriage": M.tolist(), "origin_enu": M[:3, 3].tolist(),
+                "body_centre_enu": c_enu.tolist(),
+                "body_centre_crs": frame.crs_from_enu(c_enu[None])[0].tolist(),
+                "body_centre_wgs84": frame.wgs84_from_enu(c_enu[None])[0].tolist(),
+                "heading_deg": float(h), "pitch_deg": float(p), "roll_deg": float(r),
+            })
+        for k in ("sigma_body_centre_m", "ci95_body_centre_m", "sigma_position_m", "ci95_position_m",
+                  "sigma_hpr_deg", "ci95_hpr_deg", "covariance_pose", "residuals_px", "rms_px", "clearance_m"):
+            rec[k] = e.get(k)
+        rec["observations"] = {v: {p: list(uv) for p, uv in pts.items()} for v, pts in obs.get(car.number, {}).items()}
+        cars_out.append(rec)
+    # coupler gaps along the consist
+    types = project.carriage_types()
+    for i in range(len(cars_out) - 1):
+        a, b = cars_out[i], cars_out[i + 1]
+        gap = None
+        if "world_from_carriage" in a and "world_from_carriage" in b:
+            Ma, Mb = np.asarray(a["world_from_carriage"]), np.asarray(b["world_from_carriage"])
+            ra = Ma[:3, :3] @ np.asarray(types[a["number"]].coupler_rear) + Ma[:3, 3]
+            fb = Mb[:3, :3] @ np.asarray(types[b["number"]].coupler_front) + Mb[:3, 3]
+            gap = float(np.linalg.norm(ra - fb))
+        a["coupler_gap_to_next_m"] = gap
+    if cars_out:
+        cars_out[-1]["coupler_gap_to_next_m"] = None
+    loc = s.location
+    return {
+        "status": res.status, "message": res.message,
+        "frame": {"crs": loc.crs, "lat": loc.lat, "lon": loc.lon, "height_m": loc.height_m},
+        "route": cam_doc.get("route"), "intrinsics_source": cam_doc.get("intrinsics_source"),
+        "georegistration": cam_doc.get("georegistration"),
+        "views": [v.name for v in views], "focal_px": d.get("focal_px"), "sigma_focal_px": d.get("sigma_focal_px"),
+        "sigma_px": d.get("sigma_px"), "sigma_px_estimated": d.get("sigma_px_estimated"), "dof": d.get("dof"),
+        "ci95_factor": d.get("ci95_factor"), "iterations": d.get("iterations"), "time_s": d.get("time_s"),
+        "final_cost": d.get("final_cost"), "carriages": cars_out, "links": d.get("links", []),
+        "neighbour_correlation": d.get("neighbour_correlation", []), "steps": d.get("steps", []),
+        "warnings": d.get("warnings", []),
+    }
+
+
+STAGE = StageSpec("solve", "every carriage's pose from the marked points (chained least squares, four steps)",
+                  run_solve, inputs=_inputs, settings_sections=("consist", "solver", "terrain", "location"),
+                  depends_on=("inputs",), applies=_applies)
