@@ -94,11 +94,8 @@ def _runner(path: Path):
     return project, Runner(project, STAGES)
 
 
-@app.command()
-def run(path: Path = typer.Argument(..., help="incident folder"),
-        only: Optional[list[str]] = typer.Option(None, "--only", help="run only this stage (repeatable)"),
-        force: bool = typer.Option(False, "--force", help="run stages even if their inputs did not change")) -> None:
-    """Run every stage in order, skipping those whose inputs did not change."""
+def _execute(path: Path, **kw) -> None:
+    """Run stages with progress bars (a terminal) or one line per stage (a log), then list the outputs."""
     project, runner = _runner(path)
     with _progress() as prog:
         tasks = {}
@@ -115,8 +112,33 @@ def run(path: Path = typer.Argument(..., help="incident folder"),
             if not console.is_terminal and kind == "done":
                 console.print(f"{spec.name}: {kind}")
 
-        statuses = runner.run(only=only, force=force, progress_factory=factory, on_event=event)
+        steps = kw.pop("steps", None) or [kw]
+        for step in steps:
+            statuses = runner.run(progress_factory=factory, on_event=event, **step)
     _print_outputs(project, statuses)
+
+
+@app.command()
+def run(path: Path = typer.Argument(..., help="incident folder"),
+        only: Optional[list[str]] = typer.Option(None, "--only", help="run only this stage (repeatable)"),
+        force: bool = typer.Option(False, "--force", help="run stages even if their inputs did not change")) -> None:
+    """Run every stage in order, skipping those whose inputs did not change."""
+    _execute(path, only=only, force=force)
+
+
+def _stage_command(name: str, description: str) -> None:
+    def command(path: Path = typer.Argument(..., help="incident folder"),
+                force: bool = typer.Option(False, "--force", help=f"run {name} even if its inputs did not change")
+                ) -> None:
+        from .pipeline import STAGES
+
+        names = [s.name for s in STAGES]
+        before = names[names.index(name) - 1] if names.index(name) > 0 else None
+        steps = ([{"until": before}] if before else []) + [{"only": [name], "force": force}]
+        _execute(path, steps=steps)
+
+    command.__doc__ = f"Run the {name} stage ({description}), and the stages before it that are not done."
+    app.command(name=name)(command)
 
 
 def _print_outputs(project, statuses) -> None:
@@ -154,6 +176,17 @@ def types(project: Optional[Path] = typer.Option(None, help="also list an incide
     for tid, t in sorted(load_library(extra_dirs=extra).items()):
         table.add_row(tid, t.name, f"{t.length_m:.2f}", str(len(t.marked_points)), str(t.source_path))
     out.print(table)
+
+
+def _register_stage_commands() -> None:
+    from .pipeline import STAGES
+
+    for spec in STAGES:
+        if spec.name not in ("inputs",) and spec.name not in {c.name for c in app.registered_commands}:
+            _stage_command(spec.name, spec.description)
+
+
+_register_stage_commands()
 
 
 def main() -> None:

@@ -136,10 +136,11 @@ class Runner:
         return StageStatus(spec.name, "done", "", rec)
 
     # -- running -------------------------------------------------------------------------------------------
-    def run(self, *, only: list[str] | None = None, force: bool = False,
+    def run(self, *, only: list[str] | None = None, until: str | None = None, force: bool = False,
             progress_factory: Callable[[StageSpec], Progress] | None = None,
             on_event: Callable[[str, StageSpec, dict], None] | None = None) -> list[StageStatus]:
-        """Run the stages in order (or only those named), skipping done ones unless ``force``.
+        """Run the stages in order (or only those named, or those up to ``until``), skipping done ones unless
+        ``force``.
 
         Stops at the first failure (raises the stage's :class:`WorkbenchError` after recording it).
         """
@@ -147,7 +148,12 @@ class Runner:
             unknown = [n for n in only if n not in self.by_name]
             if unknown:
                 raise StageError(f"unknown stage(s) {unknown}; the stages are {list(self.by_name)}")
+        if until is not None and until not in self.by_name:
+            raise StageError(f"unknown stage {until!r}; the stages are {list(self.by_name)}")
         selected = [s for s in self.stages if not only or s.name in only]
+        if until is not None:  # the stage and every stage before it (those not done run; done ones are skipped)
+            last = [s.name for s in self.stages].index(until)
+            selected = [s for s in selected if [x.name for x in self.stages].index(s.name) <= last]
         for spec in selected:
             state = self.project.read_state()
             st = self._status_of(spec, state)

@@ -1129,6 +1129,11 @@ def _lm_struct(prob: _Problem, lay: _Layout, contact: _Contact | None, options: 
                     continue
                 if np.all(np.isfinite(ax)):
                     dx = dx + 0.5 * ax
+            if 0.0 <= pred <= tol * cost:
+                # the model predicts no reduction worth taking (MINPACK's ftol test on the predicted
+                # reduction): a minimum to the tolerance, also at the kink of the contact term, where
+                # rejected steps would otherwise shrink the region without end
+                return x, nfev, "converged (predicted reduction below tolerance)", True
             xn = x + dx
             if zl.nf and not np.all((xn[lay.f_off:] >= flo) & (xn[lay.f_off:] <= fhi)):
                 # the focal would leave the sweep's field-of-view range: a failed step (radius shrinks)

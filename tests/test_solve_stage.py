@@ -1,0 +1,133 @@
+"""The solve stage on a small synthetic incident: known cameras + hand picks (true pixels + 1 px) -> poses."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from workbench.errors import InputError, WorkbenchError
+from workbench.pipeline import STAGES
+from workbench.project import Project
+from workbench.runner import Runner
+from workbench.synth.generate import SynthOptions, generate_incident
+from workbench.synth.handpicks import write_known_cameras, write_true_correspondences
+
+
+@pytest.fixture(scope="module")
+def incident(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("solve_stage") / "inc"
+    generate_incident(root, SynthOptions(scenario="spuyten-duyvil", seed=2, n_cars=3, photo_width=480,
+                                         photo_height=360, n_panorama=3, n_multiview=0, supersample=1))
+    write_known_cameras(root, "panorama")
+    write_true_correspondences(root, "panorama", sigma_px=1.0, seed=5)
+    Runner(Project(root), STAGES).run()
+    return root
+
+
+def _truth(root: Path) -> dict:
+    return json.loads((root / "truth" / "ground_truth.json").read_text())
+
+
+def test_solution_against_truth(incident):
+    sol = json.loads((incident / "out" / "solve" / "solution.json").read_text())
+    truth = {c["number"]: c for c in _truth(incident)["carriages"]}
+    assert sol["status"] == "converged"
+    assert 0.4 < sol["sigma_px_estimated"] < 1.8  # 1 px noise was added
+    solved = [c for c in sol["carriages"] if c["status"] == "solved"]
+    assert len(solved) >= 2
+    for c in sol["carriages"]:
+        if c["status"] == "left_out":
+            continue
+        t = truth[c["number"]]
+        err = np.asarray(c["body_centre_enu"]) - np.asarray(t["body_centre_enu"])
+        ci = np.asarray(c["ci95_body_centre_m"])
+        assert np.all(ci > 0.005) and np.all(ci < 5.0)  # not absurd intervals
+        # within the stated uncertainty (1.75 x the 95 % half width: about 3.5 sigma per axis)
+        assert np.all(np.abs(err) <= 1.75 * ci + 0.02), (c["number"], err, ci)
+        assert np.linalg.norm(err) < 3.0
+        dh = (c["heading_deg"] - t["heading_deg"] + 180) % 360 - 180
+        assert abs(dh) <= 1.75 * c["ci95_hpr_deg"][0] + 0.1
+        assert c["rms_px"] is not None and 0.1 < c["rms_px"] < 4.0
+
+
+def test_solution_frames_round_trip(incident):
+    from workbench.core.frames import rotation_from_hpr
+
+    p = Project(incident)
+    sol = json.loads((incident / "out" / "solve" / "solution.json").read_text())
+    for c in sol["carriages"]:
+        if "body_centre_enu" not in c:
+            continue
+        enu = np.asarray(c["body_centre_enu"])[None]
+        assert np.allclose(p.frame.enu_from_crs(np.asarray(c["body_centre_crs"])[None]), enu, atol=1e-6)
+        assert np.allclose(p.frame.enu_from_wgs84(np.asarray(c["body_centre_wgs84"])[None]), enu, atol=1e-6)
+        R = np.asarray(c["world_from_carriage"])[:3, :3]
+        assert np.allclose(rotation_from_hpr(c["heading_deg"], c["pitch_deg"], c["roll_deg"]), R, atol=1e-9)
+
+
+def test_coupler_gaps_respect_the_slack(incident):
+    p = Project(incident)
+    sol = json.loads((incident / "out" / "solve" / "solution.json").read_text())
+    for car, rec in zip(p.settings.consist, sol["carriages"]):
+        if car.coupling_to_next is not None and car.coupling_to_next.value == "held" and \
+                rec["coupler_gap_to_next_m"] is not None:
+            assert 0.0 <= rec["coupler_gap_to_next_m"] <= p.settings.solver.slack_held_m + 1e-6
+
+
+def test_second_run_is_skipped(incident):
+    before = (incident / "out" / "solve" / "solution.json").read_bytes()
+    statuses = Runner(Project(incident), STAGES).run()
+    assert {s.name: s.status for s in statuses}["solve"] == "done"
+    assert (incident / "out" / "solve" / "solution.json").read_bytes() == before
+
+
+def _copy_with_corr(incident: Path, tmp_path: Path, edit) -> Path:
+    root = tmp_path / "inc"
+    shutil.copytree(incident, root, ignore=shutil.ignore_patterns("out"))
+    doc = json.loads((root / "correspondences.json").read_text())
+    edit(doc["observations"])
+    (root / "correspondences.json").write_text(json.dumps(doc))
+    return root
+
+
+@pytest.mark.parametrize("edit, words", [
+    (lambda o: o[0].update(carriage="9999"), ["9999", "not in the consist"]),
+    (lambda o: o[0].update(point="chimney"), ["chimney", "not a marked point"]),
+    (lambda o: o[0].update(uv=[5000.0, 10.0]), ["outside", "480x360"]),
+    (lambda o: o[0].update(uv=[float("nan"), 3.0]), ["not a finite"]),
+    (lambda o: o.append(dict(o[0])), ["given twice"]),
+    (lambda o: o[0].update(view="nope.jpg"), ["nope.jpg", "not a photo"]),
+])
+def test_bad_correspondences_are_named(incident, tmp_path, edit, words):
+    root = _copy_with_corr(incident, tmp_path, edit)
+    with pytest.raises(InputError) as exc:
+        Runner(Project(root), STAGES).run()
+    msg = str(exc.value)
+    assert "correspondences.json" in msg and "observations[" in msg
+    for w in words:
+        assert w in msg
+
+
+def test_missing_cameras_says_what_to_do(incident, tmp_path):
+    root = _copy_with_corr(incident, tmp_path, lambda o: None)
+    (root / "cameras.json").unlink()
+    with pytest.raises(WorkbenchError) as exc:
+        Runner(Project(root), STAGES).run()
+    assert "cameras" in str(exc.value) and "georef" in str(exc.value)
+
+
+def test_not_converged_keeps_the_previous_solution(incident, tmp_path, monkeypatch):
+    root = _copy_with_corr(incident, tmp_path, lambda o: None)
+    Runner(Project(root), STAGES).run()
+    good = (root / "out" / "solve" / "solution.json").read_bytes()
+    text = (root / "project.toml").read_text().replace("[camera]", "[solver]\nmax_iterations = 1\n\n[camera]", 1)
+    (root / "project.toml").write_text(text)
+    with pytest.raises(WorkbenchError) as exc:
+        Runner(Project(root), STAGES).run()
+    assert "did not converge" in str(exc.value)
+    assert (root / "out" / "solve" / "solution.json").read_bytes() == good
+    assert (root / "out" / "solve" / "attempt.json").is_file()
