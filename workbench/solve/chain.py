@@ -45,8 +45,7 @@ Method (one for every step and every size)
     dense, O(N^3)). The step is identical to the dense one in ``x``. Exact analytic Jacobians (projection
     derivatives from :mod:`.projection`, the SO(3) left Jacobian, the chain rule of the couplings). Robust
     losses (scipy's ``huber``, ``soft_l1``, ``cauchy``) enter as in scipy's ``least_squares`` (rows rescaled
-    by the loss' derivatives). ``SolveOptions.dense_max_params`` is kept for compatibility: it only matters
-    with the previous scipy path (``_SOLVER = "scipy"``, TRF exact / dense LM), kept for comparison.
+    by the loss' derivatives).
 
 The four steps (as the seed, plus an optional contact term)
     1. each carriage alone, constraints off (PnP start: SQPnP on undistorted normalised points, then one joint
@@ -69,7 +68,6 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 import scipy.sparse as sp
-from scipy.optimize import least_squares
 
 from ..core.camera import CameraIntrinsics
 from ..core.frames import hpr_from_rotation
@@ -153,7 +151,6 @@ class SolveOptions:
     check_image_bounds: bool = True
     compute_covariance: bool = True
     prior_dof: float = 5.0
-    dense_max_params: int = 400
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> None:
@@ -633,87 +630,11 @@ def _residuals_and_jac(prob: _Problem, lay: _Layout, x: np.ndarray, contact: _Co
     return res, J
 
 
-ZMETRIC = False  # trust-region metric: each carriage's own motion (diag of Hz) instead of the diag in x
-ACCEL = False  # geodesic acceleration in :func:`_lm_struct` (linear loss)
-ACC_H = 0.1  # finite-difference step (fraction of the LM step) for the second directional derivative
-ACC_MAX = 0.75  # largest accepted 2|a| / |v| (scaled), GSL's avmax
 _TRACE: list | None = None  # debugging: per evaluation of :func:`_lm_struct` (nfev, cost, new cost, predicted, lambda, |dx|, scaled grad)
-_SOLVER = "struct"  # "struct": the sparse trust-region LM (:func:`_lm_struct`); "scipy": the previous path
 
 
 def _run_lsq(prob: _Problem, lay: _Layout, contact: _Contact | None, options: SolveOptions):
-    if _SOLVER == "struct":
-        return _lm_struct(prob, lay, contact, options)
-    cache: dict[str, Any] = {}
-    dense = lay.n <= options.dense_max_params
-
-    def fun(x):
-        r, J = _residuals_and_jac(prob, lay, x, contact, True)
-        cache["x"], cache["J"] = x.copy(), J
-        return r
-
-    def jac(x):
-        if "x" not in cache or not np.array_equal(cache["x"], x):
-            fun(x)
-        return cache["J"] if dense else sp.csr_matrix(cache["J"])
-
-    x0 = lay.x0
-    if lay.n == 0:
-        return x0, 0, "nothing to optimise", True
-    tol = options.tolerance
-    if not dense and options.robust_loss == "linear":
-        return _lm_dense(lambda x: _residuals_and_jac(prob, lay, x, contact, True), x0, int(options.max_iterations),
-                         tol)
-    kw = {"tr_solver": "exact"} if dense else {"tr_solver": "lsmr", "tr_options": {"atol": 1e-12, "btol": 1e-12}}
-    res = least_squares(fun, x0, jac=jac, method="trf", loss=options.robust_loss, f_scale=options.loss_scale_px,
-                        x_scale="jac", ftol=tol, xtol=tol, gtol=tol, max_nfev=int(options.max_iterations), **kw)
-    ok = res.status > 0
-    return res.x, int(res.nfev), res.message, ok
-
-
-def _lm_dense(fj, x0: np.ndarray, max_iter: int, tol: float):
-    """Levenberg-Marquardt (a trust-region method: the damping is the radius' multiplier) on the dense normal
-    equations with Marquardt scaling and a Cholesky solve — for the large linear-loss problems, where it is
-    far cheaper per iteration than scipy's TRF with LSMR (which also takes many more, inexact, steps)."""
-    x = x0.copy()
-    r, J = fj(x)
-    cost = 0.5 * float(r @ r)
-    lam, nu = 1e-4, 2.0
-    nfev = 1
-    for it in range(max_iter):
-        A = J.T @ J
-        g = J.T @ r
-        d = np.maximum(np.diag(A), 1e-12 * max(1.0, float(np.max(np.diag(A)))))
-        if float(np.max(np.abs(g) / np.sqrt(d))) < tol * max(1.0, math.sqrt(2 * cost)):
-            return x, nfev, "gradient small", True
-        while True:
-            try:
-                L = np.linalg.cholesky(A + lam * np.diag(d))
-                dx = -np.linalg.solve(L.T, np.linalg.solve(L, g))
-            except np.linalg.LinAlgError:
-                lam *= 10.0
-                continue
-            xn = x + dx
-            rn, Jn = fj(xn)
-            nfev += 1
-            cn = 0.5 * float(rn @ rn)
-            pred = -(g @ dx) - 0.5 * float(dx @ (A @ dx))
-            rho = (cost - cn) / pred if pred > 0 else -1.0
-            if rho > 0:
-                small = abs(cost - cn) < tol * cost or float(np.linalg.norm(dx)) < tol * (tol + float(np.linalg.norm(x)))
-                x, r, J, cost = xn, rn, Jn, cn
-                lam *= max(1.0 / 3.0, 1.0 - (2.0 * rho - 1.0) ** 3)
-                nu = 2.0
-                if small:
-                    return x, nfev, "converged (cost / step change below tolerance)", True
-                break
-            lam *= nu
-            nu *= 2.0
-            if lam > 1e16 or nfev >= max_iter:
-                return x, nfev, "trust region collapsed" if lam > 1e16 else "maximum evaluations", lam > 1e16
-        if nfev >= max_iter:
-            break
-    return x, nfev, "maximum evaluations reached", False
+    return _lm_struct(prob, lay, contact, options)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -1058,7 +979,6 @@ def _lm_struct(prob: _Problem, lay: _Layout, contact: _Contact | None, options: 
 
         m = 2 * len(prob.P) + (len(contact.samples) if contact is not None else 0) + 3 * zl.n_links
         loss_fn = construct_loss_function(m, options.robust_loss, options.loss_scale_px)
-    accel = ACCEL and loss_fn is None
     x = lay.x0.copy()
     # the focal is kept inside the field-of-view range of the sweep (guards against runaway along the
     # depth / focal ambiguity): log(f / f_ref) within [log f(hfov_hi), log f(hfov_lo)]
@@ -1084,11 +1004,7 @@ def _lm_struct(prob: _Problem, lay: _Layout, contact: _Contact | None, options: 
             return x, nfev, "gradient small", True
         Hz, gz, C = _struct_system(lay, zl, E, AB)
         dz = np.zeros(zl.nz)
-        if ZMETRIC:
-            hd = Hz.diagonal()
-            dz[:] = np.maximum(hd, 1e-12 * max(1.0, float(np.max(hd))))
-        else:
-            dz[zl.xz] = d
+        dz[zl.xz] = d
         while True:
             K = sp.bmat([[Hz + sp.diags(lam * dz), C.T], [C, None]], format="csc") if nc else \
                 (Hz + sp.diags(lam * dz)).tocsc()
@@ -1106,29 +1022,6 @@ def _lm_struct(prob: _Problem, lay: _Layout, contact: _Contact | None, options: 
             z = sol[:zl.nz]
             dx = z[zl.xz]
             pred = -float(gz @ z) - 0.5 * float(z @ (Hz @ z))
-            if accel:
-                # geodesic acceleration (Transtrum & Sethna 2012; GSL's lmaccel): the second directional
-                # derivative of the residuals along the step, by a finite difference, gives a second-order
-                # correction a from the same factorisation; the step v + a/2 follows a curved valley
-                # instead of crawling along it. Used only while |a| <= ACC_MAX |v| (scaled norms).
-                r_h = _struct_resid(prob, lay, x + ACC_H * dx, contact)
-                nfev += 1
-                rvv = (2.0 / ACC_H) * ((r_h - E["r"]) / ACC_H - _struct_jz(E, zl, z))
-                sa = lu.solve(np.concatenate([-_struct_jtr(E, zl, rvv), np.zeros(nc)]))
-                ax = sa[:zl.nz][zl.xz]
-                sd = np.sqrt(d)
-                if np.all(np.isfinite(ax)) and 2.0 * float(np.linalg.norm(sd * ax)) > ACC_MAX * float(
-                        np.linalg.norm(sd * dx)):
-                    # the second-order term is not small against the step: the model is not trusted
-                    lam *= nu
-                    nu *= 2.0
-                    if lam > 1e16:
-                        return x, nfev, "trust region collapsed", False
-                    if nfev >= max_ev:
-                        return x, nfev, "maximum evaluations reached", False
-                    continue
-                if np.all(np.isfinite(ax)):
-                    dx = dx + 0.5 * ax
             if 0.0 <= pred <= tol * cost:
                 # the model predicts no reduction worth taking (MINPACK's ftol test on the predicted
                 # reduction): a minimum to the tolerance, also at the kink of the contact term, where
@@ -1481,25 +1374,13 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
     _place_carried(R, t, cars, final_chains, solo)
     R_init, t_init = R.copy(), t.copy()
     cost0 = _pixel_cost(prob, R, t, f)
-    if focal_views or _SOLVER == "struct":
-        # one joint refinement: the focal ties the carriages together; without it the problem is block diagonal
-        # and the structured solver treats all the independent poses at once (same minimum, one loop)
-        solo_prob = _Problem(cars, solo, views, weights)
-        lay = _Layout([[k] for k in solo], [[] for _ in solo], True, focal_views, cars, R, t, f)
-        x, nfev, msg, ok = _run_lsq(solo_prob, lay, None, options)
-        total_nfev += nfev
-        R, t, f, *_ = lay.unpack(x, with_derivs=False)
-    else:  # independent problems: one small refinement per carriage
-        nfev, msgs1 = 0, set()
-        for k in solo:
-            lay = _Layout([[k]], [[]], True, [], cars, R, t, f)
-            x, n1, m1, _ = _run_lsq(_Problem(cars, [k], views, weights), lay, None, options)
-            Rk, tk, *_ = lay.unpack(x, with_derivs=False)
-            R[k], t[k] = Rk[k], tk[k]
-            nfev += n1
-            msgs1.add(m1)
-        total_nfev += nfev
-        msg = "; ".join(sorted(msgs1))
+    # one joint refinement of every independent pose (a block-diagonal problem, one loop in the sparse solver);
+    # with an unknown focal the focal ties the carriages together
+    solo_prob = _Problem(cars, solo, views, weights)
+    lay = _Layout([[k] for k in solo], [[] for _ in solo], True, focal_views, cars, R, t, f)
+    x, nfev, msg, ok = _run_lsq(solo_prob, lay, None, options)
+    total_nfev += nfev
+    R, t, f, *_ = lay.unpack(x, with_derivs=False)
     # carried ones follow their (refined) neighbours again
     _place_carried(R, t, cars, final_chains, solo)
     steps.append(StepStats("1_alone", True, (note + "; " if note else "") + "PnP (SQPnP) then joint refinement, "
