@@ -71,8 +71,14 @@ def simulate_consist(n_cars: int = 6, *, seed: int = 0, pixel_sigma_px: float = 
                      broken: tuple[int, ...] = (), slope_deg: float = 2.0, n_points: int = 7,
                      width: int = 4000, height: int = 3000, focal_px: float = 3000.0,
                      distortion: tuple[float, float] = (-0.02, 0.004), jackknife_deg: tuple[float, float] = (4.0, 25.0),
-                     distance_factor: float = 1.1, camera_height_m: float = 10.0) -> SimProblem:
-    """A synthetic consist problem. ``broken``: link indices i (between cars i and i+1) that are broken."""
+                     distance_factor: float = 1.1, camera_height_m: float = 10.0,
+                     max_distance_m: float | None = None, hfov_deg: float = 60.0) -> SimProblem:
+    """A synthetic consist problem. ``broken``: link indices i (between cars i and i+1) that are broken.
+
+    One photo from ``distance_factor`` train lengths away sees the whole consist. With ``max_distance_m`` the
+    camera stands no farther than that and, when the consist does not fit one photo, turns: a panorama of
+    photos (``hfov_deg`` wide, the focal set to match, ~40 % overlap) from one place, each carriage observed in
+    the photo where it is nearest the centre (how a long freight train is photographed)."""
     rng = np.random.default_rng(seed)
     types = [get_type(TYPE_CYCLE[i % len(TYPE_CYCLE)]) for i in range(n_cars)]
     az = rng.uniform(0, 2 * np.pi)
@@ -117,17 +123,39 @@ def simulate_consist(n_cars: int = 6, *, seed: int = 0, pixel_sigma_px: float = 
     else:
         d = truth[0][:2, 0]
     perp = np.array([-d[1], d[0]]) * rng.choice([-1.0, 1.0])
-    eye_xy = centre[:2] + perp * distance_factor * total
+    dist = distance_factor * total if max_distance_m is None else min(distance_factor * total, max_distance_m)
+    eye_xy = centre[:2] + perp * dist
     eye = np.array([*eye_xy, float(terrain.height_at(eye_xy[None])[0]) + camera_height_m])
-    target = centre + n * 1.5
-    cam_from_world = look_at(eye, target)
+    if max_distance_m is not None:
+        focal_px = 0.5 * width / np.tan(np.deg2rad(hfov_deg) / 2)
     f = focal_px * (1.0 + rng.uniform(-0.02, 0.02))
     intr = CameraIntrinsics(width=width, height=height, fx=f, fy=f, cx=(width - 1) / 2 + rng.uniform(-10, 10),
                             cy=(height - 1) / 2 + rng.uniform(-10, 10), k1=distortion[0], k2=distortion[1])
-    view = View(name="photo", intrinsics=intr, cam_from_world=cam_from_world)
+    # bearings (about the vertical through the eye) of the carriages; photos spaced to cover them
+    body = np.array([M[:3, :3] @ np.array([0.0, 0.0, ct.height_m / 2]) + M[:3, 3] for ct, M in zip(types, truth)])
+    rel = body[:, :2] - eye[:2]
+    az_c = np.arctan2(rel[:, 1], rel[:, 0])
+    az0 = np.arctan2(*(centre[:2] - eye[:2])[::-1])
+    daz = (az_c - az0 + np.pi) % (2 * np.pi) - np.pi
+    span = float(daz.max() - daz.min())
+    step = np.deg2rad(hfov_deg) * 0.6
+    n_views = 1 if max_distance_m is None else max(1, int(np.ceil((span + np.deg2rad(hfov_deg) * 0.2) / step)))
+    mids = [0.5 * (daz.max() + daz.min())] if n_views == 1 else \
+        list(np.linspace(daz.min() + 0.4 * step, daz.max() - 0.4 * step, n_views))
+    views = []
+    for j, m in enumerate(mids):
+        a = az0 + m
+        tgt = eye + np.array([np.cos(a), np.sin(a), 0.0]) * dist
+        tgt[2] = centre[2] + 1.5 if n_views == 1 else tgt[2] - camera_height_m + 1.5
+        if n_views == 1:
+            tgt = centre + n * 1.5
+        views.append(View(name="photo" if n_views == 1 else f"photo_{j + 1:02d}", intrinsics=intr,
+                          cam_from_world=look_at(eye, tgt)))
     carriages, clean = [], []
     for i, (ct, M) in enumerate(zip(types, truth)):
         R, t = M[:3, :3], M[:3, 3]
+        view = views[int(np.argmin([abs(daz[i] - m) for m in mids]))]
+        cam_from_world = view.cam_from_world
         vc = eye - (R @ np.array([0.0, 0.0, ct.height_m / 2]) + t)
         vc /= np.linalg.norm(vc)
         names = list(ct.marked_points)
@@ -144,7 +172,7 @@ def simulate_consist(n_cars: int = 6, *, seed: int = 0, pixel_sigma_px: float = 
             raise RuntimeError(f"simulate_consist(seed={seed}): car {i} is not fully in the image")
         clean.append({nm: tuple(map(float, uv[j])) for j, nm in enumerate(chosen)})
         carriages.append(CarriageInput(number=f"{100 + i}", carriage_type=ct,
-                                       observations={"photo": {nm: tuple(map(float, noisy[j]))
-                                                               for j, nm in enumerate(chosen)}}))
+                                       observations={view.name: {nm: tuple(map(float, noisy[j]))
+                                                                 for j, nm in enumerate(chosen)}}))
     links = [ChainLink(i, i + 1, None if i in broken else slack_m) for i in range(n_cars - 1)]
-    return SimProblem(carriages, links, [view], truth, offsets, terrain, pixel_sigma_px, clean)
+    return SimProblem(carriages, links, views, truth, offsets, terrain, pixel_sigma_px, clean)
