@@ -218,3 +218,23 @@ def test_30_car_chain_converges_quickly():
     for L in res.links:
         assert L["offset_norm_m"] <= L["slack_m"] + 1e-9
     assert dt < 5.0, dt  # ~0.5 s on one core; generous for loaded CI machines
+
+
+def test_photos_of_one_camera_share_one_focal():
+    """The photos of a panorama (identical intrinsics, known relative rotations) get one focal parameter: the
+    estimate is the same for all of them, near the truth within its own sigma, and far sharper than a focal
+    estimated from the carriages of one photo alone."""
+    sim = simulate_consist(20, seed=3, pixel_sigma_px=1.0, max_distance_m=250.0)
+    assert len(sim.views) >= 2
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SolveWarning)
+        res = solve_consist(sim.carriages, sim.links, sim.views, SolveOptions(pixel_sigma_px=1.0, estimate_focal=True),
+                            terrain=sim.terrain)
+    assert res.converged
+    f_true = sim.views[0].intrinsics.fx
+    fs = {round(v, 9) for v in res.focal_px.values()}
+    assert len(fs) == 1
+    f = fs.pop()
+    sig = res.sigma_focal_px[sim.views[0].name]
+    assert 0.05 < sig < 0.01 * f_true
+    assert abs(f - f_true) < 4.0 * sig + 0.5

@@ -496,8 +496,9 @@ class _Layout:
             T_links.append(Tl)
             self.GT.append(GTc)
         f = self.f_ref.copy()
-        for i, v in enumerate(self.focal_views):
-            f[v] = self.f_ref[v] * math.exp(x[self.f_off + i])
+        for i, grp in enumerate(self.focal_views):
+            for v in grp:
+                f[v] = self.f_ref[v] * math.exp(x[self.f_off + i])
         return R, t, f, D, Jl, T_links
 
 
@@ -572,6 +573,27 @@ class _Contact:
         return np.where(np.isfinite(g), g, 0.0)
 
 
+def focal_groups(views: Sequence[View], used: Sequence[int]) -> list[list[int]]:
+    """Views (indices, among ``used``) that share one focal parameter: those with identical intrinsics, i.e.
+    photos from one camera (the source photos of a panorama, a multi-view set of one camera)."""
+    groups: list[list[int]] = []
+    keys: list[CameraIntrinsics] = []
+    for v in used:
+        intr = views[v].intrinsics
+        for g, key in zip(groups, keys):
+            if intr == key:
+                g.append(v)
+                break
+        else:
+            groups.append([v])
+            keys.append(intr)
+    return groups
+
+
+def _group_rows(prob: "_Problem", group: Sequence[int]) -> np.ndarray:
+    return np.concatenate([prob.by_view[v] for v in group]) if len(group) > 1 else prob.by_view[group[0]]
+
+
 def _residuals_and_jac(prob: _Problem, lay: _Layout, x: np.ndarray, contact: _Contact | None, jac: bool):
     R, t, f, D, Jl, T_links = lay.unpack(x, with_derivs=True)
     uv, Xw, JX, Jf = prob.project(R, t, f, jac=jac)
@@ -608,11 +630,11 @@ def _residuals_and_jac(prob: _Problem, lay: _Layout, x: np.ndarray, contact: _Co
             Jr = -np.einsum("nab,nbc->nac", JXw[idx], skew(q)) @ Jl[k]  # (n, 2, 3)
             ro = o + 3 + 3 * j
             J[rows, ro:ro + 3] += np.concatenate([Jr[:, 0, :], Jr[:, 1, :]], axis=0)
-    for i, v in enumerate(lay.focal_views):
-        idx = prob.by_view[v]
+    for i, grp in enumerate(lay.focal_views):
+        idx = _group_rows(prob, grp)
         col = lay.f_off + i
-        J[2 * idx, col] = Jf[idx, 0] * w[idx] * f[v]
-        J[2 * idx + 1, col] = Jf[idx, 1] * w[idx] * f[v]
+        J[2 * idx, col] = Jf[idx, 0] * w[idx] * f[prob.view[idx]]
+        J[2 * idx + 1, col] = Jf[idx, 1] * w[idx] * f[prob.view[idx]]
     for i, k in enumerate(cars_c):
         cl = cinfo[i]
         if cl is None:
@@ -749,9 +771,9 @@ def _struct_eval(prob: _Problem, lay: _Layout, zl: _ZLayout, x: np.ndarray, cont
         Jpt = JXw
     nf = zl.nf
     Jfp = np.zeros((M, 2, nf))
-    for i, v in enumerate(lay.focal_views):
-        idx = prob.by_view[v]
-        Jfp[idx, :, i] = Jf[idx] * (w[idx] * f[v])[:, None]
+    for i, grp in enumerate(lay.focal_views):
+        idx = _group_rows(prob, grp)
+        Jfp[idx, :, i] = Jf[idx] * (w[idx] * f[prob.view[idx]])[:, None]
     cars_c = list(contact.samples) if contact is not None else []
     rc = np.zeros(len(cars_c))
     Jc = np.zeros((len(cars_c), zl.bs))
@@ -984,7 +1006,8 @@ def _lm_struct(prob: _Problem, lay: _Layout, contact: _Contact | None, options: 
     # depth / focal ambiguity): log(f / f_ref) within [log f(hfov_hi), log f(hfov_lo)]
     flo = np.zeros(zl.nf)
     fhi = np.zeros(zl.nf)
-    for i, v in enumerate(lay.focal_views):
+    for i, grp in enumerate(lay.focal_views):
+        v = grp[0]
         half_w = 0.5 * prob.views[v].intrinsics.width
         lo_deg, hi_deg = options.hfov_range_deg
         flo[i] = math.log(half_w / math.tan(math.radians(hi_deg) / 2) / lay.f_ref[v])
@@ -1151,22 +1174,23 @@ def _pnp(P: np.ndarray, uv: np.ndarray, intr: CameraIntrinsics, cam_from_world: 
     return Rw @ Rcc, Rw @ tcc + tw, sse
 
 
-def _focal_sweep(prob: _Problem, cars: list[_Car], solo: list[int], v: int, options: SolveOptions) -> float | None:
-    view = prob.views[v]
-    intr0 = view.intrinsics
+def _focal_sweep(prob: _Problem, cars: list[_Car], solo: list[int], group: list[int],
+                 options: SolveOptions) -> float | None:
+    """The focal (px) of least total PnP reprojection error over the views of ``group`` (one camera), swept
+    over the horizontal field-of-view range; None when no carriage has 4 points in one of its views."""
+    intr0 = prob.views[group[0]].intrinsics
     lo, hi = options.hfov_range_deg
     half_w = 0.5 * intr0.width
     fs = half_w / np.tan(np.deg2rad(np.linspace(hi, lo, options.hfov_steps)) / 2.0)
-    members = [k for k in solo if np.sum(cars[k].views == v) >= 4]
+    members = [(k, v) for v in group for k in solo if np.sum(cars[k].views == v) >= 4]
     if not members:
         return None
     best = (np.inf, None)
     for fv in fs:
-        intr = prob.intrinsics(v, fv)
         tot = 0.0
-        for k in members:
+        for k, v in members:
             sel = cars[k].views == v
-            r = _pnp(cars[k].P[sel], cars[k].uv[sel], intr, view.cam_from_world)
+            r = _pnp(cars[k].P[sel], cars[k].uv[sel], prob.intrinsics(v, fv), prob.views[v].cam_from_world)
             tot += r[2] if r is not None else 1e12
         if tot < best[0]:
             best = (tot, fv)
@@ -1334,7 +1358,8 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
     R = np.tile(np.eye(3), (N, 1, 1))
     t = np.zeros((N, 3))
     steps: list[StepStats] = []
-    focal_views = [v for v in range(V) if len(prob.by_view[v]) > 0] if options.estimate_focal else []
+    focal_views = focal_groups(views, [v for v in range(V) if len(prob.by_view[v]) > 0]) \
+        if options.estimate_focal else []
     total_nfev = 0
     all_ok = True
     messages = []
@@ -1344,14 +1369,16 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
     solo = [k for k in active if alone_ok[k]]
     note = ""
     if options.estimate_focal:
-        for v in focal_views:
-            fb = _focal_sweep(prob, cars, solo, v, options)
+        for grp in focal_views:
+            fb = _focal_sweep(prob, cars, solo, grp, options)
+            names = ", ".join(views[v].name for v in grp)
             if fb is not None:
-                f[v] = fb
+                f[grp] = fb
             else:
-                _warn(wl, None, "focal", f"view {views[v].name!r}: no carriage with 4 points in it; the focal "
-                                         f"sweep kept the given focal {f[v]:.1f} px")
-        note = "focal sweep: " + ", ".join(f"{views[v].name}={f[v]:.1f}px" for v in focal_views)
+                _warn(wl, None, "focal", f"view(s) {names}: no carriage with 4 points in one photo; the focal "
+                                         f"sweep kept the given focal {f[grp[0]]:.1f} px")
+        note = "focal sweep: " + ", ".join(f"{'+'.join(views[v].name for v in grp)}={f[grp[0]]:.1f}px"
+                                           for grp in focal_views)
     for k in solo:
         c = cars[k]
         best = None

@@ -57,8 +57,8 @@ def _rows(prob, R, t, f, focal_views):
         J[2 * idx + 1, c:c + 3] = Jr[idx, 1] * w[idx, None]
         J[2 * idx, c + 3:c + 6] = JX[idx, 0] * w[idx, None]
         J[2 * idx + 1, c + 3:c + 6] = JX[idx, 1] * w[idx, None]
-    for i, v in enumerate(focal_views):
-        idx = prob.by_view[v]
+    for i, grp in enumerate(focal_views):
+        idx = np.concatenate([prob.by_view[v] for v in grp])
         J[2 * idx, 6 * len(act) + i] = Jf[idx, 0] * w[idx]
         J[2 * idx + 1, 6 * len(act) + i] = Jf[idx, 1] * w[idx]
     r = ((uv - prob.uv) * w[:, None]).reshape(-1)
@@ -202,7 +202,7 @@ def attach_covariance(res, prob, R, t, f, focal_views, chains, slacks, contact, 
     for k in prob.active:
         n = prob.cars[k].number
         order += [f"{n}.omega_x", f"{n}.omega_y", f"{n}.omega_z", f"{n}.x", f"{n}.y", f"{n}.z"]
-    order += [f"focal.{prob.views[v].name}" for v in focal_views]
+    order += ["focal." + "+".join(prob.views[v].name for v in grp) for grp in focal_views]
     res.covariance_order = order
     Jbs = {}
     for k in prob.active:
@@ -219,9 +219,10 @@ def attach_covariance(res, prob, R, t, f, focal_views, chains, slacks, contact, 
         Jh = _hpr_jac(R[k])
         sh = np.sqrt(np.maximum(np.diag(Jh @ C[:3, :3] @ Jh.T), 0))
         cr.sigma_hpr_deg, cr.ci95_hpr_deg = sh, q * sh
-    for i, v in enumerate(focal_views):
+    for i, grp in enumerate(focal_views):
         j = 6 * len(prob.active) + i
-        res.sigma_focal_px[prob.views[v].name] = float(math.sqrt(max(cov[j, j], 0.0)))
+        for v in grp:
+            res.sigma_focal_px[prob.views[v].name] = float(math.sqrt(max(cov[j, j], 0.0)))
     for ch in chains:
         for j in range(len(ch) - 1):
             a, b = ch[j], ch[j + 1]
@@ -267,7 +268,9 @@ def crb(carriages: Sequence[Any], links: Sequence[Any], views: Sequence[Any], wo
         chains.append(ch)
         k += 1
     slacks = [[slack[ch[j]] for j in range(len(ch) - 1)] for ch in chains]
-    fv = list(range(len(views))) if estimate_focal else []
+    from .chain import focal_groups
+
+    fv = focal_groups(views, list(range(len(views)))) if estimate_focal else []
     prob.uv = prob.project(R, t, f)[0]  # residuals zero at the truth
     model = covariance_model(prob, R, t, f, fv, chains, slacks, None, sigma_px, sigma_fixed=sigma_px)
     out = {"body_centre_cov": [], "rotation_cov": [], "origin_cov": [], "focal_sigma": []}
