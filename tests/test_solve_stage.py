@@ -131,3 +131,18 @@ def test_not_converged_keeps_the_previous_solution(incident, tmp_path, monkeypat
     assert "did not converge" in str(exc.value)
     assert (root / "out" / "solve" / "solution.json").read_bytes() == good
     assert (root / "out" / "solve" / "attempt.json").is_file()
+
+
+def test_a_wrong_point_is_rejected(incident, tmp_path):
+    def edit(o):
+        o[0]["uv"] = [min(o[0]["uv"][0] + 30.0, 470.0), o[0]["uv"][1]]
+
+    root = _copy_with_corr(incident, tmp_path, edit)
+    first = json.loads((root / "correspondences.json").read_text())["observations"][0]
+    Runner(Project(root), STAGES).run()
+    sol = json.loads((root / "out" / "solve" / "solution.json").read_text())
+    rej = [(r["carriage"], r["view"], r["point"]) for r in sol["rejected_points"]]
+    assert (first["carriage"], first["view"], first["point"]) in rej
+    assert len(rej) <= 2  # the honest points stay
+    car = next(c for c in sol["carriages"] if c["number"] == first["carriage"])
+    assert first["point"] not in car["residuals_px"].get(first["view"], {})

@@ -100,6 +100,10 @@ class Solver(_Strict):
     slack_broken_m: Annotated[float, Field(gt=0.0)] | None = None  # None: a broken coupling gives no link
     estimate_focal: bool = False
     max_iterations: Annotated[int, Field(ge=1, le=10_000)] = 200
+    # a marked point whose residual exceeds this many pixel sigmas is dropped and the solve repeated (worst
+    # point of each carriage per round, at most `max_rejection_rounds`); 0 turns the rejection off
+    reject_outliers_sigma: Annotated[float, Field(ge=0.0)] = 5.0
+    max_rejection_rounds: Annotated[int, Field(ge=0, le=50)] = 5
 
 
 class ProjectSettings(_Strict):
@@ -229,4 +233,5 @@ slack_held_m = 0.05           # coupler slack of a coupling that held, metres
 # slack_broken_m = 2.0        # absent: a broken coupling gives no link
 estimate_focal = false
 max_iterations = 200
+reject_outliers_sigma = 5.0    # drop a marked point farther than this many pixel sigmas from the fit (0: off)
 """

@@ -239,12 +239,12 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
         terrain = TerrainModel.from_geotiff(project.require_file(s.terrain.dem, "terrain.dem"), project.frame,
                                             aoi_radius_m=s.terrain.aoi_radius_m)
     progress(0.3, f"solving {len(carriages)} carriages")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", SolveWarning)  # recorded in the result's warnings
-        res = solve_consist(carriages, links, views, opts, terrain)
+    res, rejected = _solve_rejecting(carriages, links, views, opts, terrain, s.solver, progress)
     progress(0.9, "writing the solution")
-    doc = solution_document(project, res, views, cam_doc, obs)
+    used = {c.number: c.observations for c in carriages}
+    doc = solution_document(project, res, views, cam_doc, used)
     doc["correspondences"] = corr_stats
+    doc["rejected_points"] = rejected
     out_dir = project.stage_dir("solve")
     if not res.converged:
         attempt = project.write_json(out_dir / "attempt.json", doc)
@@ -261,8 +261,44 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
              "steps": [{"name": st.name, "ran": st.ran, "note": st.note, "cost_before": _num(st.cost_before),
                         "cost_after": _num(st.cost_after), "iterations": st.iterations, "time_s": st.time_s}
                        for st in res.steps],
-             "warnings": [w.get("message") for w in res.warnings]}
+             "rejected_points": len(rejected), "warnings": [w.get("message") for w in res.warnings]}
     return StageResult(outputs={"solution": path}, stats=stats)
+
+
+def _solve_rejecting(carriages: list, links: list, views: list, opts: Any, terrain: Any, solver: Any,
+                     progress: Progress) -> tuple[Any, list[dict]]:
+    """Solve; while a marked point lies farther than ``reject_outliers_sigma`` pixel sigmas from the fit, drop the
+    worst point of each such carriage and solve again (a wrong automatic match must not bend the consist)."""
+    from .chain import SolveWarning, solve_consist
+
+    rejected: list[dict] = []
+    thr = float(solver.reject_outliers_sigma) * float(solver.pixel_sigma_px)
+    for rnd in range(int(solver.max_rejection_rounds) + 1):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", SolveWarning)  # recorded in the result's warnings
+            res = solve_consist(carriages, links, views, opts, terrain)
+        if thr <= 0 or rnd == int(solver.max_rejection_rounds):
+            break
+        dropped = False
+        for cin, cr in zip(carriages, res.carriages):
+            if cr.status == "left_out" or not cr.residuals_px:
+                continue
+            worst = max(((math.hypot(*e), v, p) for v, pts in cr.residuals_px.items() for p, e in pts.items()),
+                        default=None)
+            if worst is None or worst[0] <= thr:
+                continue
+            _, v, p = worst
+            obs = {vn: dict(pts) for vn, pts in cin.observations.items()}
+            uv = obs[v].pop(p)
+            cin.observations = obs
+            rejected.append({"carriage": cin.number, "view": v, "point": p, "uv": list(uv),
+                             "residual_px": round(worst[0], 2), "round": rnd + 1})
+            dropped = True
+        if not dropped:
+            break
+        log.info("solve: round %d dropped %d outlying point(s)", rnd + 1, sum(r["round"] == rnd + 1 for r in rejected))
+        progress(0.3 + 0.1 * (rnd + 1), f"{len(rejected)} outlying point(s) dropped")
+    return res, rejected
 
 
 def _num(x: Any) -> float | None:
