@@ -121,3 +121,30 @@ def test_project_paths_and_atomic_json(tmp_path):
     assert not [f for f in path.parent.iterdir() if f.name.startswith(".")]  # no temp files left
     with pytest.raises(InputError, match="no such incident folder"):
         Project(tmp_path / "missing")
+
+
+def test_a_stage_after_a_not_applicable_one_is_done_not_stale(tmp_path):
+    p = make_project(tmp_path)
+    calls = []
+
+    def later(project, progress):
+        calls.append("later")
+        return StageResult(outputs={"x": project.write_json(project.stage_dir("later") / "x.json", {})})
+
+    specs = [StageSpec("optional", "never applies", lambda project, progress: None, applies=lambda project: False),
+             StageSpec("later", "after it", later, depends_on=("optional",))]
+    r = Runner(p, specs)
+    r.run()
+    assert [s.status for s in r.status()] == ["skipped", "done"]
+    r.run()
+    assert calls == ["later"]
+
+
+def test_until_runs_the_stages_up_to_one(tmp_path):
+    p = make_project(tmp_path)
+    calls = []
+    r = Runner(p, stages(calls, {}))
+    r.run(until="first")
+    assert calls == ["first"]
+    with pytest.raises(StageError, match="unknown stage"):
+        r.run(until="nope")

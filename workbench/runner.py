@@ -115,7 +115,7 @@ class Runner:
         if rec.get("status") == "failed":
             return StageStatus(spec.name, "failed", rec.get("error", ""), rec)
         for d in spec.depends_on:
-            if state.get(d, {}).get("status") != "done":
+            if state.get(d, {}).get("status") != "done" and self.by_name[d].applies(self.project):
                 return StageStatus(spec.name, "stale", f"depends on {d!r}, which is not done", rec)
         try:
             fp = self._fingerprint(spec, state)

@@ -1510,6 +1510,16 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
             T = T_links[c_][j]
             link_info.append({"front": ch[j], "rear": ch[j + 1], "slack_m": chain_slacks[c_][j],
                               "offset_m": T.tolist(), "offset_norm_m": float(np.linalg.norm(T))})
+    lo_deg, hi_deg = options.hfov_range_deg
+    for grp in focal_views:
+        intr = views[grp[0]].intrinsics
+        hfov = math.degrees(2.0 * math.atan(0.5 * intr.width / f[grp[0]]))
+        if hfov < lo_deg * 1.02 or hfov > hi_deg * 0.98:
+            _warn(wl, None, "focal_at_limit",
+                  f"view(s) {', '.join(views[v].name for v in grp)}: the estimated focal ({f[grp[0]]:.0f} px, "
+                  f"{hfov:.1f} deg field of view) ran to the edge of the plausible range {lo_deg:g}-{hi_deg:g} deg: "
+                  f"the photo shows too little perspective to tell the focal from the distance, so the positions "
+                  f"along the viewing direction are not determined; give the focal (camera profile or EXIF)")
     status = "converged" if all_ok else "not_converged"
     if not all_ok:
         _warn(wl, None, "not_converged", "solve did not converge: " + "; ".join(messages))
