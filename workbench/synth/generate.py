@@ -277,6 +277,13 @@ def _is_synthetic(settings_path: Path) -> bool:
         return False
 
 
+def _write_control_points(root: Path) -> None:
+    """control_points.json from the truth (cheap: no rendering; kept when already up to date)."""
+    from .control_points import write_control_points
+
+    write_control_points(root)
+
+
 def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
                       progress: Callable[[float, str], None] = lambda f, m="": None) -> dict:
     """Generate (or, when already generated with the same options, keep) a synthetic incident in ``root``."""
@@ -298,6 +305,7 @@ def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
             photos_ok = all((root / ph["photo"]).is_file() for ph in old.get("photos", []))
             if old.get("generator", {}).get("spec_hash") == opts.spec_hash() and photos_ok:
                 log.info("synth: %s is already generated with these options; nothing to do", root)
+                _write_control_points(root)
                 return {"skipped": True, "truth": str(truth_path)}
         except (json.JSONDecodeError, KeyError, TypeError):
             pass  # an unreadable old truth file: generate afresh
@@ -440,5 +448,7 @@ def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
               f"# scenario = {scn.id}, seed = {opts.seed}\n\n")
     atomic_write_text(settings_path, header + tomli_w.dumps(settings))
     atomic_write_text(truth_path, to_json(truth))  # last: its presence marks a complete incident
+    progress(0.98, "control points")
+    _write_control_points(root)
     progress(1.0, "done")
     return {"skipped": False, "truth": str(truth_path), "photos": len(photos), "carriages": len(cars)}

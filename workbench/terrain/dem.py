@@ -43,7 +43,8 @@ if TYPE_CHECKING:  # pragma: no cover
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TerrainModel", "DemHolesFilled"]
+__all__ = ["TerrainModel", "DemHolesFilled", "DemVerticalUnits", "resolve_dem_sources", "simplify_terrain_mesh",
+           "vertical_unit_factor"]
 
 # Neighbour cells searched (in this order) when the polynomial guess of a query's cell is off by an edge.
 _NEIGHBOURS = [(0, 0), (0, -1), (0, 1), (-1, 0), (1, 0), (-1, -1), (-1, 1), (1, -1), (1, 1)]
@@ -52,6 +53,100 @@ _BARY_EPS = 1e-9
 
 class DemHolesFilled(WorkbenchWarning):
     """Nodata cells of a DEM were filled by inpainting; heights there are interpolated, not measured."""
+
+
+class DemVerticalUnits(WorkbenchWarning):
+    """A DEM's heights were not in metres (its band unit or vertical CRS says feet or centimetres); converted."""
+
+
+# Band / vertical-axis unit names (lower case) -> metres per unit.
+_UNIT_FACTORS = {
+    "": 1.0, "m": 1.0, "metre": 1.0, "meter": 1.0, "metres": 1.0, "meters": 1.0,
+    "ft": 0.3048, "foot": 0.3048, "feet": 0.3048, "international foot": 0.3048,
+    "us-ft": 1200.0 / 3937.0, "ftus": 1200.0 / 3937.0, "us survey foot": 1200.0 / 3937.0,
+    "foot_us": 1200.0 / 3937.0, "us_survey_foot": 1200.0 / 3937.0,
+    "cm": 0.01, "centimetre": 0.01, "centimeter": 0.01, "centimetres": 0.01, "centimeters": 0.01,
+    "dm": 0.1, "mm": 0.001, "millimetre": 0.001, "millimeter": 0.001,
+}
+PLAUSIBLE_HEIGHTS_M = (-500.0, 9000.0)  # lowest and highest land surface on Earth, with margin
+
+
+def vertical_unit_factor(src, where: str) -> tuple[float, str]:
+    """(metres per DEM unit, unit name) from the band's unit tag or the vertical part of a compound CRS.
+
+    An unknown unit name is an :class:`InputError` naming the file.
+    """
+    names = []
+    units = getattr(src, "units", None) or (None,)
+    if units and units[0]:
+        names.append(("band unit", str(units[0]).strip()))
+    crs = _pyproj_crs(src.crs)
+    if crs is not None and crs.is_compound and len(crs.sub_crs_list) > 1:
+        ax = crs.sub_crs_list[1].axis_info
+        if ax:
+            names.append(("vertical CRS unit", ax[0].unit_name))
+    for what, name in names:
+        f = _UNIT_FACTORS.get(name.lower())
+        if f is None:
+            raise InputError(f"DEM {where}: {what} {name!r} is not a length unit the workbench knows; heights must be "
+                             f"in metres (or a declared foot / centimetre unit): convert it, e.g. gdal_calc.py, "
+                             f"or set the unit with gdal_edit.py -units m {where}")
+        if f != 1.0:
+            return f, name
+    return 1.0, "metre"
+
+
+def _read_heights(src, win, where: str, info: dict) -> np.ndarray:
+    """Band 1 in ``win`` as float metres (NaN = nodata): scale/offset tags applied, then the unit factor."""
+    z = src.read(1, window=win, masked=True).astype(float).filled(np.nan)
+    scale = (getattr(src, "scales", None) or (1.0,))[0] or 1.0
+    offset = (getattr(src, "offsets", None) or (0.0,))[0] or 0.0
+    if scale != 1.0 or offset != 0.0:
+        z = z * scale + offset
+        info["scale_offset"] = (float(scale), float(offset))
+    f, unit = vertical_unit_factor(src, where)
+    info["vertical_unit"] = unit
+    if f != 1.0:
+        z = z * f
+        msg = f"DEM {where}: heights are in {unit!r}; converted to metres (x {f:.6g})"
+        log.warning(msg)
+        warnings.warn(msg, DemVerticalUnits, stacklevel=4)
+    return z
+
+
+def _check_plausible_heights(z: np.ndarray, where: str) -> None:
+    lo, hi = float(np.nanmin(z)), float(np.nanmax(z))
+    if lo < PLAUSIBLE_HEIGHTS_M[0] or hi > PLAUSIBLE_HEIGHTS_M[1]:
+        raise InputError(f"DEM {where}: heights from {lo:.1f} to {hi:.1f} are not plausible metres (land lies between "
+                         f"{PLAUSIBLE_HEIGHTS_M[0]:.0f} and {PLAUSIBLE_HEIGHTS_M[1]:.0f} m); the DEM may be in "
+                         f"centimetres or feet, or its nodata value is not set: declare the unit "
+                         f"(gdal_edit.py -units cm|ft), set -a_nodata, or convert it to metres")
+
+
+def resolve_dem_sources(value: str | Path, base: Path) -> list[Path]:
+    """``terrain.dem`` -> the DEM file(s): one file, a folder (every .tif/.tiff in it) or a glob pattern.
+
+    Relative values are relative to ``base`` (the incident folder). No match is an :class:`InputError`.
+    """
+    import glob as _glob
+
+    raw = str(value)
+    p = Path(raw)
+    p = p if p.is_absolute() else Path(base) / p
+    if any(ch in raw for ch in "*?["):
+        files = sorted(Path(x) for x in _glob.glob(str(p), recursive=True) if Path(x).is_file())
+        what = "pattern"
+    elif p.is_dir():
+        files = sorted(x for x in p.iterdir() if x.suffix.lower() in (".tif", ".tiff") and not x.name.startswith("."))
+        what = "folder"
+    else:
+        if not p.is_file():
+            raise InputError(f"terrain.dem = {raw!r} -> {p} does not exist; fix the path or put the DEM there")
+        return [p]
+    if not files:
+        raise InputError(f"terrain.dem = {raw!r}: the {what} {p} matches no GeoTIFF; put the DEM tiles there or fix "
+                         f"the key")
+    return files
 
 
 def _pyproj_crs(crs: Any) -> CRS | None:
@@ -194,6 +289,84 @@ class TerrainModel:
                                          vertical_accuracy_m=vertical_accuracy_m)
 
     @classmethod
+    def from_sources(cls, paths: list[str | Path] | str | Path, frame: SceneFrame, *,
+                     aoi_radius_m: float | None = None, max_cells: int = 400_000,
+                     vertical_accuracy_m: float = 0.5) -> "TerrainModel":
+        """One DEM file, or several tiles mosaicked (they must share one CRS; overlaps: the first tile wins).
+
+        Only the part of the mosaic around the area of interest is read. Tiles in different CRSs are an
+        :class:`InputError` naming two of them.
+        """
+        from rasterio.merge import merge
+
+        paths = [Path(paths)] if isinstance(paths, (str, Path)) else [Path(x) for x in paths]
+        if not paths:
+            raise InputError("no DEM files given")
+        if len(paths) == 1:
+            return cls.from_geotiff(paths[0], frame, aoi_radius_m=aoi_radius_m, max_cells=max_cells,
+                                    vertical_accuracy_m=vertical_accuracy_m)
+        srcs = []
+        try:
+            for path in paths:
+                try:
+                    srcs.append(rasterio.open(path))
+                except rasterio.errors.RasterioIOError as exc:
+                    raise InputError(f"DEM tile {path} cannot be read by rasterio ({exc}); replace it with a valid "
+                                     f"GeoTIFF") from None
+            crss = [_pyproj_crs(s.crs) for s in srcs]
+            for path, c in zip(paths, crss):
+                if c is None:
+                    raise InputError(f"DEM tile {path} has no CRS; assign one with gdal_edit.py -a_srs EPSG:XXXX "
+                                     f"{path}")
+            for path, c in zip(paths[1:], crss[1:]):
+                if not _same_crs(c, crss[0]):
+                    raise InputError(f"DEM tiles are in different CRSs: {paths[0]} is {crss[0].to_string()}, {path} is "
+                                     f"{c.to_string()}; reproject them to one CRS (gdalwarp -t_srs "
+                                     f"{crss[0].to_string()} ...) or build one mosaic (gdalbuildvrt)")
+            units = {vertical_unit_factor(s, str(pth)) for s, pth in zip(srcs, paths)}
+            if len(units) > 1:
+                raise InputError(f"DEM tiles {[str(x) for x in paths]} declare different height units {sorted(units)}; "
+                                 f"convert them to metres first")
+            bounds = None
+            if aoi_radius_m is not None:
+                o = frame.origin_crs
+                g = math.radians(frame.grid_convergence_deg())
+                h = aoi_radius_m * (abs(math.cos(g)) + abs(math.sin(g))) * 1.01 + 1e-6
+                T0 = srcs[0].transform
+                b = transform_bounds(frame.crs.to_wkt(), srcs[0].crs, o[0] - h, o[1] - h, o[0] + h, o[1] + h,
+                                     densify_pts=21)
+                m = 3 * max(abs(T0.a), abs(T0.e))
+                u = [min(s.bounds.left for s in srcs), min(s.bounds.bottom for s in srcs),
+                     max(s.bounds.right for s in srcs), max(s.bounds.top for s in srcs)]
+                bounds = (max(b[0] - m, u[0]), max(b[1] - m, u[1]), min(b[2] + m, u[2]), min(b[3] + m, u[3]))
+                if bounds[0] >= bounds[2] or bounds[1] >= bounds[3]:
+                    bounds = None  # no overlap: _from_dataset reports that the mosaic misses the origin
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                arr, T = merge(srcs, bounds=bounds, dtype="float64", nodata=np.nan, indexes=[1])
+            profile = {"driver": "GTiff", "width": arr.shape[2], "height": arr.shape[1], "count": 1,
+                       "dtype": "float64", "crs": srcs[0].crs, "transform": T, "nodata": np.nan}
+            f, unit = vertical_unit_factor(srcs[0], str(paths[0]))
+            names = ", ".join(x.name for x in paths[:4]) + (f", ... ({len(paths)} tiles)" if len(paths) > 4 else "")
+        finally:
+            for s_ in srcs:
+                s_.close()
+        if f != 1.0:  # the merge does not apply units: convert here, once, with the warning
+            arr = arr * f
+            msg = f"DEM tiles {names}: heights are in {unit!r}; converted to metres (x {f:.6g})"
+            log.warning(msg)
+            warnings.warn(msg, DemVerticalUnits, stacklevel=2)
+        with MemoryFile() as mem:
+            with mem.open(**profile) as ds:
+                ds.write(arr[0], 1)
+            with mem.open() as ds:
+                tm = cls._from_dataset(ds, frame, f"mosaic of {names}", aoi_radius_m=aoi_radius_m,
+                                       max_cells=max_cells, vertical_accuracy_m=vertical_accuracy_m)
+        tm.info["tiles"] = [str(x) for x in paths]
+        tm.info["vertical_unit"] = unit
+        return tm
+
+    @classmethod
     def _from_dataset(cls, src, frame: SceneFrame, where: str, *, aoi_radius_m: float | None, max_cells: int,
                       vertical_accuracy_m: float) -> "TerrainModel":
         src_crs = _pyproj_crs(src.crs)
@@ -239,7 +412,7 @@ class TerrainModel:
             else:
                 c0, c1, r0, r1 = 0, src.width, 0, src.height
             win = Window(c0, r0, c1 - c0, r1 - r0)
-            z = src.read(1, window=win, masked=True).astype(float).filled(np.nan)
+            z = _read_heights(src, win, where, info)
             Tw = src.window_transform(win)
             k = 1
             if z.size > max_cells:
@@ -268,7 +441,7 @@ class TerrainModel:
                 dst_b = full
                 c0, c1, r0, r1 = 0, src.width, 0, src.height
             win = Window(c0, r0, c1 - c0, r1 - r0)
-            zs = src.read(1, window=win, masked=True).astype(float).filled(np.nan)
+            zs = _read_heights(src, win, where, info)
             Ts = src.window_transform(win)
             # Destination resolution: the source cell size measured in the project CRS at the origin.
             px, py = warp_transform(src.crs, frame.crs.to_wkt(), [ox, ox + T.a, ox + T.b], [oy, oy + T.d, oy + T.e])
@@ -301,6 +474,7 @@ class TerrainModel:
         if z.shape[0] < 2 or z.shape[1] < 2:
             raise InputError(f"DEM {where}: the area of interest holds only {z.shape} cells; need at least 2 x 2")
         z, n_filled = _fill_holes(z, f"DEM {where}")
+        _check_plausible_heights(z, where)
         info["filled_cells"] = n_filled
         if n_filled:
             msg = (f"DEM {where}: filled {n_filled} nodata cell(s) of {z.size} by inpainting; terrain there is "
@@ -469,3 +643,59 @@ def _barycentric(p: np.ndarray, P0: np.ndarray, P1: np.ndarray, P2: np.ndarray) 
     l1 = (v2x * v1y - v1x * v2y) / den
     l2 = (v0x * v2y - v2x * v0y) / den
     return np.column_stack([1.0 - l1 - l2, l1, l2])
+
+
+def simplify_terrain_mesh(model: TerrainModel, max_error_m: float, *, max_iterations: int = 60
+                          ) -> tuple[trimesh.Trimesh, dict]:
+    """A mesh of the terrain with fewer vertices where it is flat: greedy refinement (Garland & Heckbert's
+    insertion, batched): start from the grid's border nodes, Delaunay-triangulate in east/north, and add, in each
+    triangle, the grid node whose height differs most from the triangle's plane, until no node differs by more
+    than ``max_error_m``.
+
+    Returns ``(mesh, info)``; ``info["max_error_m"]`` is the largest vertical difference between the simplified
+    surface and the DEM at any grid node (<= ``max_error_m``), ``info["n_vertices"]``/``["n_vertices_full"]``.
+    Vertices are grid nodes (exact ENU positions); the border is kept node for node, so the outline is the same.
+    """
+    from scipy.spatial import Delaunay
+
+    if not max_error_m > 0:
+        raise ValueError(f"max_error_m={max_error_m} must be positive")
+    R, C = model.shape
+    G = model.grid_enu.reshape(-1, 3)
+    xy = G[:, :2] - G[:, :2].mean(axis=0)
+    border = np.zeros((R, C), bool)
+    border[0, :] = border[-1, :] = border[:, 0] = border[:, -1] = True
+    sel = border.ravel().copy()
+    err_max = np.inf
+    tri = None
+    for it in range(max_iterations):
+        idx = np.nonzero(sel)[0]
+        tri = Delaunay(xy[idx])
+        simp = tri.find_simplex(xy)
+        inside = simp >= 0
+        err = np.zeros(len(G))
+        T = tri.transform[simp[inside]]
+        b2 = np.einsum("nij,nj->ni", T[:, :2, :], xy[inside] - T[:, 2, :])
+        bary = np.column_stack([b2, 1.0 - b2.sum(axis=1)])
+        zt = np.einsum("nk,nk->n", bary, G[idx[tri.simplices[simp[inside]]], 2])
+        err[inside] = np.abs(zt - G[inside, 2])
+        err[~inside & ~sel] = np.inf  # outside the hull (rounding on the border): insert
+        err[sel] = 0.0
+        err_max = float(err.max())
+        if err_max <= max_error_m:
+            break
+        bad = np.nonzero(err > max_error_m)[0]
+        key = np.where(simp[bad] >= 0, simp[bad], -1 - bad)  # one insertion per triangle per round
+        order = np.lexsort((-err[bad], key))
+        first = np.ones(len(order), bool)
+        first[1:] = key[order][1:] != key[order][:-1]
+        sel[bad[order][first]] = True
+    faces = idx[tri.simplices]  # the last triangulation (if the loop ran out, info says the error it reached)
+    V = G
+    nz = np.cross(V[faces[:, 1]] - V[faces[:, 0]], V[faces[:, 2]] - V[faces[:, 0]])[:, 2]
+    faces[nz < 0] = faces[nz < 0][:, [0, 2, 1]]  # counter-clockwise seen from above
+    used, inv = np.unique(faces, return_inverse=True)
+    mesh = trimesh.Trimesh(vertices=V[used].copy(), faces=inv.reshape(-1, 3), process=False)
+    info = {"max_error_m": err_max, "tolerance_m": float(max_error_m), "n_vertices": int(len(used)),
+            "n_vertices_full": int(len(G)), "n_faces": int(len(mesh.faces)), "iterations": it + 1}
+    return mesh, info

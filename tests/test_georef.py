@@ -1,0 +1,405 @@
+"""Camera georegistration from ground control points: synthetic truth (panorama, multiview, single photo),
+the real Berlin GCPs (OpenSfM), and bad input."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import warnings
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from workbench.core.camera import CameraIntrinsics
+from workbench.core.frames import SceneFrame
+from workbench.core.io import atomic_write_json
+from workbench.errors import InputError, StageError
+from workbench.georef.control_points import load_control_points, parse_control_points
+from workbench.georef.solvers import GeorefOptions, GeorefResidualsLarge, SfmView, solve_similarity, umeyama
+from workbench.georef.stage import STAGE, georef_route, run_georef
+from workbench.project import Project
+from workbench.synth.control_points import true_panorama_model, true_reconstruction, write_control_points
+
+REPO = Path(__file__).resolve().parents[1]
+SAMPLE = REPO / "projects" / "spuyten-duyvil"
+BERLIN = REPO.parent / "shared" / "data" / "multiview" / "opensfm_berlin"
+WORLD_FROM_PANO = Rotation.from_euler("zyx", [30.0, -5.0, 3.0], degrees=True).as_matrix()
+
+
+def _no_progress(f: float, m: str = "") -> None:
+    pass
+
+
+def _rot_err_deg(A: np.ndarray, B: np.ndarray) -> float:
+    return float(np.degrees(Rotation.from_matrix(np.asarray(A)[:3, :3] @ np.asarray(B)[:3, :3].T).magnitude()))
+
+
+@pytest.fixture(scope="module")
+def sample(tmp_path_factory):
+    """A copy of the committed Spuyten Duyvil sample (and its layers) with synthetic control points."""
+    if not (SAMPLE / "truth" / "ground_truth.json").is_file():
+        pytest.skip("sample incident not present")
+    truth = json.loads((SAMPLE / "truth" / "ground_truth.json").read_text())
+    base = tmp_path_factory.mktemp("georef")
+    root = base / "projects" / "spuyten-duyvil"
+    shutil.copytree(SAMPLE, root, ignore=shutil.ignore_patterns("out"))
+    layer_dir = (SAMPLE / truth["layers"]["dem"]).resolve().parent
+    dst_layers = (root / truth["layers"]["dem"]).resolve().parent
+    if not dst_layers.exists():
+        shutil.copytree(layer_dir, dst_layers)
+    write_control_points(root)
+    return root, truth
+
+
+def _fresh(sample, tmp_path, name: str, toml_edit=None) -> Path:
+    root, truth = sample
+    dst = root.parent / name
+    if dst.exists():
+        shutil.rmtree(dst)
+    shutil.copytree(root, dst, ignore=shutil.ignore_patterns("photos", "out"))
+    (dst / "photos").mkdir()
+    for sub in ("panorama", "multiview"):
+        if (root / "photos" / sub).is_dir():
+            (dst / "photos" / sub).symlink_to(root / "photos" / sub)
+    if toml_edit:
+        p = dst / "project.toml"
+        p.write_text(toml_edit(p.read_text()))
+    return dst
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Synthetic control points
+# ----------------------------------------------------------------------------------------------------------
+def test_synthetic_control_points_are_true_pixels(sample):
+    root, truth = sample
+    doc = json.loads((root / "control_points.json").read_text())
+    frame = SceneFrame(truth["frame"]["crs"], truth["frame"]["lat"], truth["frame"]["lon"], truth["frame"]["height_m"])
+    cps = load_control_points(root / "control_points.json", frame)
+    assert len(cps) >= 12
+    kinds = {p["kind"] for p in doc["points"]}
+    assert {"roof_corner", "ground_mark"} <= kinds <= {"roof_corner", "wall_base_corner", "ground_mark"}
+    per_photo = {Path(ph["photo"]).name: 0 for ph in truth["photos"]}
+    errs = []
+    for cp in cps:
+        for name, uv in cp.pixels.items():
+            per_photo[name] += 1
+            ph = next(p for p in truth["photos"] if Path(p["photo"]).name == name)
+            intr = CameraIntrinsics.from_dict(ph["intrinsics"])
+            M = np.asarray(ph["cam_from_world"])
+            q = M[:3, :3] @ cp.enu + M[:3, 3]
+            errs.append(np.hypot(*(intr.project(q[None])[0] - uv)))
+    errs = np.array(errs)
+    # 0.5 px noise per axis: the pixel error is Rayleigh with mean 0.63 px (coords rounded to 1 mm, pixels to 0.01)
+    assert 0.45 < errs.mean() < 0.8 and errs.max() < 3.0
+    pano = [n for n in per_photo if n.startswith("pano")]
+    assert all(per_photo[n] >= 6 for n in pano)
+    # deterministic: a second run gives the same file
+    before = (root / "control_points.json").read_text()
+    write_control_points(root, force=True)
+    assert (root / "control_points.json").read_text() == before
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Panorama route
+# ----------------------------------------------------------------------------------------------------------
+def _check_panorama(dst: Path, truth: dict, *, centre_band=(0.001, 0.10), rot_band=(0.0005, 0.10)) -> dict:
+    atomic_write_json(dst / "out" / "stitch" / "panorama.json", true_panorama_model(dst, WORLD_FROM_PANO))
+    project = Project(dst)
+    assert georef_route(project) == "panorama"
+    res = run_georef(project, _no_progress)
+    doc = json.loads(res.outputs["cameras"].read_text())
+    assert doc["route"] == "panorama" and doc["intrinsics_source"] == "calibrated"
+    W = np.asarray(doc["panorama"]["world_from_pano"])
+    centre_err = float(np.linalg.norm(W[:3, 3] - np.asarray(truth["panorama_center_enu"])))
+    rot_err = _rot_err_deg(W, WORLD_FROM_PANO)
+    assert centre_band[0] < centre_err < centre_band[1], centre_err
+    assert rot_band[0] < rot_err < rot_band[1], rot_err
+    truth_by = {Path(p["photo"]).name: p for p in truth["photos"]}
+    for v in doc["views"]:
+        T = np.asarray(truth_by[v["name"]]["cam_from_world"])
+        assert _rot_err_deg(v["cam_from_world"], T) < rot_band[1]
+        M = np.asarray(v["cam_from_world"])
+        assert np.allclose(-M[:3, :3].T @ M[:3, 3], v["center_enu"], atol=1e-9)
+    g = doc["georegistration"]
+    assert 0.2 < g["rms_px"] < 1.5 and g["rms_m"] < 0.2
+    return doc
+
+
+def test_panorama_with_position_prior(sample, tmp_path):
+    root, truth = sample
+    dst = _fresh(sample, tmp_path, "pano_prior")
+    doc = _check_panorama(dst, truth)
+    assert doc["georegistration"]["prior_source"] == "camera.position_enu"
+
+
+def test_panorama_without_prior_uses_p3p(sample, tmp_path):
+    root, truth = sample
+
+    def drop_position(text: str) -> str:
+        lines, out, skip = text.splitlines(), [], False
+        for ln in lines:
+            if ln.startswith("position_enu"):
+                skip = not ln.rstrip().endswith("]")
+                continue
+            if skip:
+                skip = not ln.strip().startswith("]")
+                continue
+            out.append(ln)
+        return "\n".join(out) + "\n"
+
+    dst = _fresh(sample, tmp_path, "pano_noprior", drop_position)
+    assert Project(dst).settings.camera.position_enu is None
+    doc = _check_panorama(dst, truth)
+    assert doc["georegistration"]["prior"] == "no"
+
+
+def test_panorama_outlier_is_rejected_and_warned(sample, tmp_path):
+    root, truth = sample
+    dst = _fresh(sample, tmp_path, "pano_outlier")
+    cp = json.loads((dst / "control_points.json").read_text())
+    victim = next(p for p in cp["points"] if any(k.startswith("pano") for k in p["pixels"]))
+    name = next(k for k in victim["pixels"] if k.startswith("pano"))
+    victim["pixels"][name][0] += 80.0
+    (dst / "control_points.json").write_text(json.dumps(cp))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        doc = _check_panorama(dst, truth)
+    bad = [r for r in doc["georegistration"]["residuals"] if r["point"] == victim["name"] and r["view"] == name]
+    assert bad and not bad[0]["inlier"] and 60 < bad[0]["error_px"] < 100
+    assert any(victim["name"] in w for w in doc["georegistration"]["warnings"])
+
+
+def test_panorama_picks_made_in_the_stitched_image(sample, tmp_path):
+    """Control points picked in the panorama image (key "panorama") are mapped into their source photos."""
+    from workbench.core.panorama import PanoramaModel
+    from workbench.synth.control_points import true_world_from_pano
+
+    root, truth = sample
+    dst = _fresh(sample, tmp_path, "pano_picks")
+    pdoc = true_panorama_model(dst)
+    atomic_write_json(dst / "out" / "stitch" / "panorama.json", pdoc)
+    model = PanoramaModel.from_dict(pdoc)
+    cp = json.loads((dst / "control_points.json").read_text())
+    n = 0
+    for p in cp["points"]:
+        pano = sorted(k for k in p["pixels"] if k.startswith("pano"))
+        if pano:
+            uv = model.from_source(model.source_index(pano[0]), np.asarray([p["pixels"][pano[0]]]))[0]
+            for k in pano:
+                del p["pixels"][k]
+            p["pixels"]["panorama"] = uv.tolist()
+            n += 1
+    (dst / "control_points.json").write_text(json.dumps(cp))
+    assert n >= 8
+    doc = json.loads(run_georef(Project(dst), _no_progress).outputs["cameras"].read_text())
+    W = np.asarray(doc["panorama"]["world_from_pano"])
+    assert 0.001 < np.linalg.norm(W[:3, 3] - truth["panorama_center_enu"]) < 0.2
+    assert 0.0005 < _rot_err_deg(W, true_world_from_pano(dst)) < 0.1
+    assert doc["georegistration"]["n_observations"] == n
+    cp["points"][0]["pixels"] = {"panorama": [-500.0, -500.0]}
+    (dst / "control_points.json").write_text(json.dumps(cp))
+    with pytest.raises(InputError, match="outside every source photo"):
+        run_georef(Project(dst), _no_progress)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Multiview (SfM similarity) and single photo
+# ----------------------------------------------------------------------------------------------------------
+def test_multiview_similarity(sample, tmp_path):
+    root, truth = sample
+    dst = _fresh(sample, tmp_path, "multiview", lambda t: t.replace('source = "calibrated"', 'source = "sfm"')
+                 .replace('photos = "photos/panorama"', 'photos = "photos/multiview"'))
+    S = np.eye(4)
+    Rs = Rotation.from_euler("zyx", [120.0, 10.0, -20.0], degrees=True).as_matrix()
+    S[:3, :3] = 0.37 * Rs
+    S[:3, 3] = [40.0, -20.0, 5.0]
+    atomic_write_json(dst / "out" / "sfm" / "reconstruction.json", true_reconstruction(dst, S))
+    project = Project(dst)
+    assert georef_route(project) == "multiview"
+    res = run_georef(project, _no_progress)
+    doc = json.loads(res.outputs["cameras"].read_text())
+    assert doc["route"] == "multiview" and doc["panorama"] is None
+    Wm = np.asarray(doc["georegistration"]["world_from_model"])
+    assert abs(np.cbrt(np.linalg.det(Wm[:3, :3])) - 0.37) < 0.37 * 1e-3
+    truth_by = {Path(p["photo"]).name: p for p in truth["photos"]}
+    c_err = [np.linalg.norm(np.asarray(v["center_enu"]) - truth_by[v["name"]]["center_enu"]) for v in doc["views"]]
+    r_err = [_rot_err_deg(v["cam_from_world"], truth_by[v["name"]]["cam_from_world"]) for v in doc["views"]]
+    assert len(doc["views"]) == sum(1 for p in truth["photos"] if p["set"] == "multiview")
+    assert 0.001 < max(c_err) < 0.10, c_err
+    assert 0.0005 < max(r_err) < 0.10, r_err
+    assert doc["georegistration"]["n_triangulated"] >= 6
+
+
+def test_single_photo_pnp(sample, tmp_path):
+    root, truth = sample
+    dst = _fresh(sample, tmp_path, "single", lambda t: t.replace('photos = "photos/panorama"',
+                                                                 'photos = "photos/single"'))
+    ph = next(p for p in truth["photos"] if p["photo"].endswith("pano_02.jpg"))
+    (dst / "photos" / "single").mkdir()
+    shutil.copy(root / ph["photo"], dst / "photos" / "single" / "pano_02.jpg")
+    project = Project(dst)
+    assert georef_route(project) == "single"
+    doc = json.loads(run_georef(project, _no_progress).outputs["cameras"].read_text())
+    v = doc["views"][0]
+    assert doc["route"] == "single" and v["name"] == "pano_02.jpg"
+    assert 0.001 < np.linalg.norm(np.asarray(v["center_enu"]) - ph["center_enu"]) < 0.25
+    assert 0.0005 < _rot_err_deg(v["cam_from_world"], ph["cam_from_world"]) < 0.1
+    # without a camera profile: the EXIF focal, no distortion model (k1 = -0.08 unmodelled: metres, not cm)
+    toml = (dst / "project.toml").read_text()
+    (dst / "project.toml").write_text(toml.replace('source = "calibrated"', 'source = "exif"')
+                                      .replace('profile = "camera_profile.json"\n', ""))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        doc = json.loads(run_georef(Project(dst), _no_progress).outputs["cameras"].read_text())
+    v = doc["views"][0]
+    assert doc["intrinsics_source"] == "exif" and not v["focal_known"]
+    assert abs(v["intrinsics"]["fx"] / ph["intrinsics"]["fx"] - 1.0) < 0.01
+    err = np.linalg.norm(np.asarray(v["center_enu"]) - ph["center_enu"])
+    assert 0.05 < err < 5.0
+
+
+def test_known_cameras_are_validated_and_checked(sample, tmp_path):
+    from workbench.synth.handpicks import write_known_cameras
+
+    root, truth = sample
+    dst = _fresh(sample, tmp_path, "known")
+    write_known_cameras(dst, "panorama")
+    project = Project(dst)
+    assert georef_route(project) == "known"
+    res = run_georef(project, _no_progress)
+    assert json.loads(res.outputs["cameras"].read_text()) == json.loads((dst / "cameras.json").read_text())
+    assert 0.2 < res.stats["control_point_check"]["rms_px"] < 1.5
+    doc = json.loads((dst / "cameras.json").read_text())
+    doc["views"][0]["center_enu"] = [0.0, 0.0, 0.0]
+    (dst / "cameras.json").write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=r"center_enu .* disagrees with cam_from_world"):
+        run_georef(Project(dst), _no_progress)
+
+
+def test_stage_spec():
+    assert STAGE.name == "georef" and set(STAGE.depends_on) == {"stitch", "sfm"}
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Bad input
+# ----------------------------------------------------------------------------------------------------------
+def test_bad_control_points(sample, tmp_path):
+    root, truth = sample
+    dst = _fresh(sample, tmp_path, "bad")
+    atomic_write_json(dst / "out" / "stitch" / "panorama.json", true_panorama_model(dst, WORLD_FROM_PANO))
+    good = json.loads((dst / "control_points.json").read_text())
+
+    def run_with(doc):
+        (dst / "control_points.json").write_text(json.dumps(doc))
+        return run_georef(Project(dst), _no_progress)
+
+    doc = json.loads(json.dumps(good))
+    p = next(p for p in doc["points"] if "pano_00.jpg" in p["pixels"])
+    p["pixels"]["pano_00.jpg"] = [1700.0, 300.0]
+    with pytest.raises(InputError, match=rf"{p['name']}.*pano_00.jpg.*outside the 1600x1200 image"):
+        run_with(doc)
+    doc = json.loads(json.dumps(good))
+    doc["points"][0]["coords"] = doc["points"][0]["coords"][::-1][1:] + [0.0]  # northing first: lands far away
+    with pytest.raises(InputError, match="km from the incident"):
+        run_with(doc)
+    doc = json.loads(json.dumps(good))
+    doc["points"][0]["sigma"] = 0.1
+    with pytest.raises(InputError, match="unknown key 'points\\[0\\].sigma'"):
+        run_with(doc)
+    doc = {"crs": "EPSG:4326", "points": [{"name": "a", "coords": [40.878, -73.92, 5.0]}]}  # lat, lon swapped
+    with pytest.raises(InputError, match="km from the incident|longitude first"):
+        run_with(doc)
+    doc = json.loads(json.dumps(good))
+    keep = [p for p in doc["points"] if any(k.startswith("pano") for k in p["pixels"])][:1]
+    doc["points"] = keep
+    with pytest.raises(InputError, match="at least 3"):
+        run_with(doc)
+    (dst / "control_points.json").write_text(json.dumps(good))
+    (dst / "out" / "stitch" / "panorama.json").unlink()
+    with pytest.raises(StageError, match="stitch"):
+        run_georef(Project(dst), _no_progress)
+
+
+def test_umeyama_round_trip():
+    rng = np.random.default_rng(1)
+    src = rng.normal(size=(10, 3))
+    R = Rotation.random(random_state=2).as_matrix()
+    dst = 2.5 * src @ R.T + [1.0, 2.0, 3.0]
+    s, R2, t = umeyama(src, dst)
+    assert abs(s - 2.5) < 1e-12 and np.allclose(R2, R) and np.allclose(t, [1, 2, 3])
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Real data: OpenSfM Berlin, 3 photos, 2 GCPs with lat/lon/alt, EXIF GPS
+# ----------------------------------------------------------------------------------------------------------
+def _berlin():
+    from workbench.georef.gps import read_gps
+
+    rec = json.loads((BERLIN / "reconstruction_example.json").read_text())[0]
+    cam = next(iter(rec["cameras"].values()))
+    w, h = cam["width"], cam["height"]
+    size = max(w, h)
+    # OpenSfM: normalised = (pixel + 0.5 - w/2) / max(w, h) with pixel centres at integers -> cx = w/2 - 0.5
+    intr = CameraIntrinsics(width=w, height=h, fx=cam["focal"] * size, fy=cam["focal"] * size, cx=w / 2 - 0.5,
+                            cy=h / 2 - 0.5, k1=cam["k1"], k2=cam["k2"])
+    ref = rec["reference_lla"]
+    frame = SceneFrame("EPSG:25833", ref["latitude"], ref["longitude"], ref["altitude"])
+    views = []
+    for name, s in sorted(rec["shots"].items()):
+        M = np.eye(4)
+        M[:3, :3] = Rotation.from_rotvec(s["rotation"]).as_matrix()
+        M[:3, 3] = s["translation"]
+        views.append(SfmView(name, intr, M))
+    g = json.loads((BERLIN / "ground_control_points.json").read_text())
+    pts = [{"name": f"gcp_{p['id']}", "sigma_m": 0.1,
+            "coords": [p["position"]["longitude"], p["position"]["latitude"], p["position"]["altitude"]],
+            "pixels": {o["shot_id"]: [o["projection"][0] * size + w / 2 - 0.5, o["projection"][1] * size + h / 2 - 0.5]
+                       for o in p["observations"]}}
+           for p in g["points"] if "position" in p]
+    cps = parse_control_points({"crs": "EPSG:4326", "points": pts}, frame, "ground_control_points.json")
+    gps = {}
+    for v in views:
+        lon, lat, alt = read_gps(BERLIN / "images" / v.name)
+        gps[v.name] = frame.enu_from_wgs84(np.array([lon, lat, alt]))
+    return views, cps, gps, rec
+
+
+@pytest.mark.skipif(not (BERLIN / "ground_control_points.json").is_file(), reason="shared Berlin data missing")
+def test_berlin_gcps_real_data(capsys):
+    views, cps, gps, rec = _berlin()
+    assert len(cps) == 2 and sum(len(c.pixels) for c in cps) == 3
+    # the EXIF GPS read here is what OpenSfM stored (its topocentric frame = our ENU at reference_lla)
+    for v in views:
+        assert np.allclose(gps[v.name], rec["shots"][v.name]["gps_position"], atol=0.05)
+    # GCP 0 is picked in two photos: its rays meet in the OpenSfM model (pixel conventions agree)
+    from workbench.georef.solvers import triangulate_rays
+
+    cp0 = next(c for c in cps if c.name == "gcp_0")
+    by = {v.name: v for v in views}
+    cs, ds = [], []
+    for name, uv in cp0.pixels.items():
+        M = by[name].cam_from_model
+        cs.append(-M[:3, :3].T @ M[:3, 3])
+        ds.append(M[:3, :3].T @ by[name].intrinsics.rays(uv[None])[0])
+    X, angle = triangulate_rays(np.array(cs), np.array(ds))
+    for name, uv in cp0.pixels.items():
+        M = by[name].cam_from_model
+        e = np.hypot(*(by[name].intrinsics.project((M[:3, :3] @ X + M[:3, 3])[None])[0] - uv))
+        assert 0.01 < e < 8.0, (name, e)
+    # similarity from the 2 GCPs + 3 GPS centres; the residuals are reported (and warned about when large)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        res = solve_similarity(views, cps, gps_centres=gps, opts=GeorefOptions(), where="berlin")
+    s = res.stats
+    with capsys.disabled():
+        print(f"\nBerlin: scale {s['scale']:.3f}, GCP rms {s['rms_px']:.2f} px / {s['rms_m']:.3f} m, "
+              f"GPS centre rms {s['gps_rms_m']:.1f} m; per pick: "
+              + ", ".join(f"{r['point']}@{r['view']} {r['error_px']:.1f} px {r['error_m']:.3f} m"
+                          for r in res.residuals))
+    assert 0.5 < s["rms_px"] < 10.0 and 0.001 < s["rms_m"] < 0.5
+    assert 1.0 < s["gps_rms_m"] < 40.0  # phone GPS: metres horizontally, tens of metres in altitude
+    assert 0.5 < s["scale"] < 2.0
+    warned = [w for w in caught if issubclass(w.category, GeorefResidualsLarge)]
+    assert (s["rms_px"] > GeorefOptions().warn_rms_px) == any("RMS" in str(w.message) for w in warned)

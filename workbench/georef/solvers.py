@@ -1,0 +1,609 @@
+"""Camera georegistration solvers: place cameras in the scene frame from ground control points.
+
+Two problems, both robust (RANSAC for the start, a robust loss in the refinement) and both reporting every
+control point's residual in pixels and metres:
+
+* :func:`solve_central` -- a *central* rig: one projection centre, several photos that only turned (a
+  panorama, its frame ``pano`` = ``rig``), or a single photo (``rig`` = the camera). Unknowns: ``rig_from_world``
+  (rotation) and the centre (3). Start: P3P (OpenCV) on the control-point rays in the rig frame, each triple
+  seen through a virtual pinhole looking along their mean direction; with a centre prior (``camera.position_enu``
+  or EXIF GPS) also the rotation that best aligns the rays with the directions to the points (Kabsch).
+  Refinement: reprojection error in every source photo (its own intrinsics and distortion), each residual
+  divided by ``sqrt(sigma_px^2 + (f sigma_m / depth)^2)``, plus the prior.
+* :func:`solve_similarity` -- an SfM model in its own frame (arbitrary scale): ``world_from_model``
+  (scale, rotation, translation) from control points triangulated in the model and/or SfM camera centres
+  with GPS. Start: Umeyama on triples (RANSAC); refinement: reprojection error of every control-point pixel
+  (single-view points count too) plus the GPS centres in metres.
+
+Frames and names follow docs/conventions.md: ``cam_from_rig`` (3, 3) rotations, ``cam_from_model`` (4, 4),
+``p_b = b_from_a @ p_a``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from ..core.camera import CameraIntrinsics
+from ..errors import InputError, WorkbenchWarning
+from .control_points import ControlPoint
+
+log = logging.getLogger(__name__)
+
+__all__ = ["GeorefOptions", "RigView", "SfmView", "CentralResult", "SimilarityResult", "GeorefResidualsLarge",
+           "solve_central", "solve_similarity", "umeyama", "triangulate_rays"]
+
+_LOSSES = ("linear", "huber", "soft_l1", "cauchy")
+
+
+class GeorefResidualsLarge(WorkbenchWarning):
+    """Control-point residuals after georegistration are larger than expected: a point or a pick is wrong."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class GeorefOptions:
+    """Options of the georegistration solvers (units in the names)."""
+
+    sigma_px: float = 1.0  # a priori pixel noise of a pick
+    loss: str = "soft_l1"  # robust loss of the refinement (scipy least_squares)
+    loss_scale: float = 3.0  # in units of the residuals' sigma
+    ransac_threshold_px: float = 12.0  # an observation is an inlier below this reprojection error
+    ransac_iterations: int = 400
+    prior_sigma_m: float = 1.0  # camera.position_enu
+    gps_sigma_m: tuple[float, float, float] = (5.0, 5.0, 10.0)  # EXIF GPS, east/north/up 1-sigma
+    warn_rms_px: float = 3.0
+    warn_point_px: float = 6.0
+    warn_point_m: float = 0.5
+    min_triangulation_angle_deg: float = 2.0
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if self.loss not in _LOSSES:
+            raise ValueError(f"loss={self.loss!r}; choose one of {_LOSSES}")
+        for name in ("sigma_px", "loss_scale", "ransac_threshold_px", "prior_sigma_m", "warn_rms_px",
+                     "warn_point_px", "warn_point_m"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name}={getattr(self, name)} must be positive")
+
+
+@dataclass(frozen=True)
+class RigView:
+    """A photo of a central rig: its name, intrinsics and ``cam_from_rig`` rotation (3, 3)."""
+
+    name: str
+    intrinsics: CameraIntrinsics
+    cam_from_rig: np.ndarray = field(default_factory=lambda: np.eye(3))
+
+
+@dataclass(frozen=True)
+class SfmView:
+    """A photo of an SfM model: its name, intrinsics and ``cam_from_model`` (4, 4), model units."""
+
+    name: str
+    intrinsics: CameraIntrinsics
+    cam_from_model: np.ndarray
+
+
+@dataclass
+class _Obs:
+    point: int  # index into the control points
+    view: int  # index into the views
+    uv: np.ndarray  # (2,) pixels
+
+
+def _observations(cps: Sequence[ControlPoint], views: Sequence, where: str) -> list[_Obs]:
+    """Every pick of a control point in one of ``views``; pixels outside a photo are an error."""
+    by_name = {v.name: i for i, v in enumerate(views)}
+    obs: list[_Obs] = []
+    ignored: set[str] = set()
+    for k, cp in enumerate(cps):
+        for photo, uv in cp.pixels.items():
+            i = by_name.get(photo)
+            if i is None:
+                ignored.add(photo)
+                continue
+            intr = views[i].intrinsics
+            if not intr.in_image(np.asarray(uv, float)[None])[0]:
+                raise InputError(f"{where}: control point {cp.name!r} has pixel {list(map(float, uv))} in photo "
+                                 f"{photo!r}, outside the {intr.width}x{intr.height} image (u in [-0.5, "
+                                 f"{intr.width - 0.5}], v in [-0.5, {intr.height - 0.5}]); fix the pick (u right, "
+                                 f"v down, origin at the top-left pixel's centre) or remove it")
+            obs.append(_Obs(k, i, np.asarray(uv, float)))
+    if ignored:
+        log.info("%s: pixels in photo(s) %s are not used by this route (its photos: %s)", where, sorted(ignored),
+                 sorted(by_name))
+    return obs
+
+
+def _rotation_kabsch(a: np.ndarray, b: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """Rotation R (3, 3) minimising sum w |R a_k - b_k|^2 for (n, 3) vectors a, b."""
+    w = np.ones(len(a)) if w is None else w
+    H = (a * w[:, None]).T @ b
+    U, _, Vt = np.linalg.svd(H)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    return Vt.T @ D @ U.T
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray, w: np.ndarray | None = None) -> tuple[float, np.ndarray, np.ndarray]:
+    """Similarity (s, R, t) with ``dst ~ s R src + t`` for (n, 3) points (weighted Umeyama 1991)."""
+    src = np.asarray(src, float)
+    dst = np.asarray(dst, float)
+    w = np.ones(len(src)) if w is None else np.asarray(w, float)
+    w = w / w.sum()
+    ms, md = w @ src, w @ dst
+    xs, xd = src - ms, dst - md
+    cov = (xd * w[:, None]).T @ xs
+    U, S, Vt = np.linalg.svd(cov)
+    d = np.sign(np.linalg.det(U) * np.linalg.det(Vt))
+    D = np.diag([1.0, 1.0, d])
+    R = U @ D @ Vt
+    var = float(w @ np.sum(xs * xs, axis=1))
+    s = float(np.trace(np.diag(S) @ D) / var) if var > 0 else 1.0
+    t = md - s * R @ ms
+    return s, R, t
+
+
+def triangulate_rays(centres: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, float]:
+    """Least-squares intersection of rays (n, 3) centres, (n, 3) unit directions -> (point (3,), max angle deg)."""
+    A = np.zeros((3, 3))
+    b = np.zeros(3)
+    for c, d in zip(centres, dirs):
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        b += P @ c
+    X = np.linalg.lstsq(A, b, rcond=None)[0]
+    cosines = np.clip(dirs @ dirs.T, -1.0, 1.0)
+    return X, float(np.degrees(np.arccos(cosines.min())))
+
+
+def _robust_sigma(intr: CameraIntrinsics, sigma_px: float, sigma_m: float, depth_m: float) -> float:
+    f = 0.5 * (intr.fx + intr.fy)
+    return math.sqrt(sigma_px ** 2 + (f * sigma_m / max(depth_m, 1e-3)) ** 2)
+
+
+def _point_line_distance(X: np.ndarray, c: np.ndarray, d: np.ndarray) -> float:
+    v = X - c
+    return float(np.linalg.norm(v - (v @ d) * d))
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Central rig (panorama or single photo)
+# ----------------------------------------------------------------------------------------------------------
+@dataclass
+class CentralResult:
+    """``rig_from_world`` rotation (3, 3), ``centre_enu`` (3,), residuals and statistics."""
+
+    rig_from_world: np.ndarray
+    centre_enu: np.ndarray
+    residuals: list[dict]
+    stats: dict
+    warnings: list[str]
+
+    @property
+    def world_from_rig(self) -> np.ndarray:
+        """(4, 4) ``world_from_rig``."""
+        M = np.eye(4)
+        M[:3, :3] = self.rig_from_world.T
+        M[:3, 3] = self.centre_enu
+        return M
+
+    def cam_from_world(self, cam_from_rig: np.ndarray) -> np.ndarray:
+        """(4, 4) ``cam_from_world`` of a photo of the rig with ``cam_from_rig`` (3, 3)."""
+        R = np.asarray(cam_from_rig, float) @ self.rig_from_world
+        M = np.eye(4)
+        M[:3, :3] = R
+        M[:3, 3] = -R @ self.centre_enu
+        return M
+
+
+def _p3p_candidates(bearings: np.ndarray, X: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``(rig_from_world R, centre)`` candidates from 3 bearings (3, 3) in the rig frame and 3 world points."""
+    import cv2
+
+    m = bearings.sum(axis=0)
+    if np.linalg.norm(m) < 1e-6:
+        return []
+    z = m / np.linalg.norm(m)
+    x = np.cross([0.0, 1.0, 0.0] if abs(z[1]) < 0.9 else [1.0, 0.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    Q = np.vstack([x, y, z])  # virtual_from_rig
+    b = bearings @ Q.T
+    if np.any(b[:, 2] <= 1e-3):
+        return []
+    img = np.ascontiguousarray(b[:, :2] / b[:, 2:3])
+    try:
+        n, rvecs, tvecs = cv2.solveP3P(np.ascontiguousarray(X, dtype=np.float64), img, np.eye(3), None,
+                                       flags=cv2.SOLVEPNP_P3P)
+    except cv2.error:
+        return []
+    out = []
+    for rv, tv in zip(rvecs or [], tvecs or []):
+        Rv = cv2.Rodrigues(np.asarray(rv, float))[0]
+        R = Q.T @ Rv
+        t = Q.T @ np.asarray(tv, float).reshape(3)
+        out.append((R, -R.T @ t))
+    return out
+
+
+def _central_errors(R: np.ndarray, c: np.ndarray, views: Sequence[RigView], obs: list[_Obs],
+                    X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Reprojection errors (n,) px (inf when behind) and the residual vectors (n, 2) of every observation."""
+    err = np.full(len(obs), np.inf)
+    vec = np.full((len(obs), 2), np.nan)
+    vi = np.array([o.view for o in obs])
+    P = (X[[o.point for o in obs]] - c) @ R.T  # rig frame
+    UV = np.array([o.uv for o in obs]).reshape(-1, 2)
+    for i in np.unique(vi):
+        k = np.nonzero(vi == i)[0]
+        v = views[i]
+        q = P[k] @ np.asarray(v.cam_from_rig, float).T
+        front = q[:, 2] > 1e-6
+        if not front.any():
+            continue
+        kk = k[front]
+        vec[kk] = v.intrinsics.project(q[front]) - UV[kk]
+        err[kk] = np.hypot(vec[kk, 0], vec[kk, 1])
+    return err, vec
+
+
+def solve_central(views: Sequence[RigView], cps: Sequence[ControlPoint], *, prior_centre: np.ndarray | None = None,
+                  prior_sigma_m: np.ndarray | float | None = None, opts: GeorefOptions = GeorefOptions(),
+                  where: str = "control_points.json") -> CentralResult:
+    """Place a central rig (panorama or single photo) from control points; see the module docstring.
+
+    ``prior_centre`` (3,) ENU metres with ``prior_sigma_m`` (scalar or (3,)): a soft prior on the centre.
+    Needs 3 control points (4 or more to be safe) seen in the photos, or 2 with a centre prior.
+    """
+    obs = _observations(cps, views, where)
+    X = np.array([cp.enu for cp in cps], float)
+    n_pts = len({o.point for o in obs})
+    has_prior = prior_centre is not None
+    if n_pts < 3 and not (has_prior and n_pts >= 2):
+        raise InputError(f"{where}: {n_pts} control point(s) are picked in the photos {[v.name for v in views]}; "
+                         f"placing the camera needs at least 3 (4 or more to check them), or 2 with the camera "
+                         f"position known (camera.position_enu or GPS in the photos); add points to the file")
+    bear = np.array([views[o.view].cam_from_rig.T @ views[o.view].intrinsics.rays(o.uv[None])[0] for o in obs])
+    pts = np.array([o.point for o in obs])
+    rng = np.random.default_rng(opts.seed)
+    candidates: list[tuple[np.ndarray, np.ndarray]] = []
+    if has_prior:
+        c0 = np.asarray(prior_centre, float)
+        u = X[pts] - c0
+        ok = np.linalg.norm(u, axis=1) > 1e-3
+        u[ok] /= np.linalg.norm(u[ok], axis=1, keepdims=True)
+        if ok.sum() >= 2:
+            candidates.append((_rotation_kabsch(u[ok], bear[ok]), c0))  # rig_from_world maps world dirs to bearings
+            for _ in range(min(opts.ransac_iterations, 100)):
+                i, j = rng.choice(np.nonzero(ok)[0], 2, replace=False)
+                if pts[i] != pts[j]:
+                    candidates.append((_rotation_kabsch(u[[i, j]], bear[[i, j]]), c0))
+    if n_pts >= 3:
+        by_point: dict[int, list[int]] = {}
+        for k, p in enumerate(pts):
+            by_point.setdefault(int(p), []).append(k)
+        keys = sorted(by_point)
+        for _ in range(opts.ransac_iterations):
+            trip = rng.choice(len(keys), 3, replace=False)
+            ks = [by_point[keys[t]][rng.integers(len(by_point[keys[t]]))] for t in trip]
+            candidates.extend(_p3p_candidates(bear[ks], X[pts[ks]]))
+    if not candidates:
+        raise InputError(f"{where}: the control points give no camera pose (degenerate geometry: are the points "
+                         f"on one line, or all picked at the same place?); add points spread over the view")
+    best, best_score = None, -np.inf
+    thr = opts.ransac_threshold_px
+    for R, c in candidates:
+        err, _ = _central_errors(R, c, views, obs, X)
+        score = float(np.sum(np.maximum(0.0, 1.0 - (np.minimum(err, thr) / thr) ** 2)))  # MSAC-like, bounded
+        if has_prior:
+            sig = np.broadcast_to(np.asarray(prior_sigma_m if prior_sigma_m is not None else opts.prior_sigma_m,
+                                             float), (3,))
+            score -= 0.01 * float(np.sum(((c - c0) / sig) ** 2)) / max(len(obs), 1)
+        if score > best_score:
+            best, best_score = (R, c), score
+    R0, c0_est = best
+    err0, _ = _central_errors(R0, c0_est, views, obs, X)
+    inl = err0 < thr
+    if inl.sum() < min(3, len(obs)) and not has_prior:
+        raise InputError(f"{where}: no camera pose agrees with more than {int(inl.sum())} of the {len(obs)} picks "
+                         f"(threshold {thr} px); check the point names, coordinates and pixels")
+
+    sig_prior = None
+    if has_prior:
+        sig_prior = np.broadcast_to(np.asarray(prior_sigma_m if prior_sigma_m is not None else opts.prior_sigma_m,
+                                               float), (3,)).copy()
+
+    def refine(R_init, c_init, use: np.ndarray, loss: str):
+        sel = [o for o, u_ in zip(obs, use) if u_]
+        depths = []
+        for o in sel:
+            v = views[o.view]
+            depths.append(max(float((v.cam_from_rig @ (R_init @ (X[o.point] - c_init)))[2]), 1e-3))
+        sig = np.array([_robust_sigma(views[o.view].intrinsics, opts.sigma_px, cps[o.point].sigma_m, d)
+                        for o, d in zip(sel, depths)])
+
+        def fun(p):
+            R = Rotation.from_rotvec(p[:3]).as_matrix() @ R_init
+            c = p[3:]
+            res = []
+            for o, s in zip(sel, sig):
+                v = views[o.view]
+                q = v.cam_from_rig @ (R @ (X[o.point] - c))
+                z = max(q[2], 1e-6)
+                xy = v.intrinsics.distort(np.array([[q[0] / z, q[1] / z]]))
+                uv = v.intrinsics.pixels_from_normalized(xy)[0]
+                res.extend((uv - o.uv) / s)
+            if sig_prior is not None:
+                res.extend((c - np.asarray(prior_centre, float)) / sig_prior)
+            return np.asarray(res)
+
+        x0 = np.concatenate([np.zeros(3), c_init])
+        sol = least_squares(fun, x0, loss=loss, f_scale=opts.loss_scale, x_scale="jac", max_nfev=200)
+        R = Rotation.from_rotvec(sol.x[:3]).as_matrix() @ R_init
+        cov = None
+        try:
+            J = sol.jac
+            cov = np.linalg.inv(J.T @ J)
+        except np.linalg.LinAlgError:
+            pass
+        return R, sol.x[3:].copy(), cov
+
+    R1, c1, _ = refine(R0, c0_est, np.ones(len(obs), bool), opts.loss)
+    err1, _ = _central_errors(R1, c1, views, obs, X)
+    inl = err1 < thr
+    if inl.sum() >= (2 if has_prior else 3):
+        R1, c1, cov = refine(R1, c1, inl, opts.loss)
+    else:
+        cov = None
+    R1 = _orthonormal(R1)
+    err, vec = _central_errors(R1, c1, views, obs, X)
+    residuals = []
+    for k, o in enumerate(obs):
+        v = views[o.view]
+        d_world = R1.T @ bear[k]
+        residuals.append({"point": cps[o.point].name, "view": v.name, "uv": o.uv.tolist(),
+                          "residual_px": vec[k].tolist() if np.isfinite(err[k]) else None,
+                          "error_px": float(err[k]) if np.isfinite(err[k]) else None,
+                          "error_m": _point_line_distance(X[o.point], c1, d_world),
+                          "inlier": bool(err[k] < thr)})
+    stats = _summary(residuals, opts)
+    stats.update({"n_points": n_pts, "n_observations": len(obs), "prior": "yes" if has_prior else "no",
+                  "ransac_candidates": len(candidates)})
+    if cov is not None and np.all(np.isfinite(cov)):
+        sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+        stats["sigma_rotation_deg"] = [float(np.degrees(x)) for x in sd[:3]]
+        stats["sigma_centre_m"] = [float(x) for x in sd[3:]]
+    if has_prior:
+        stats["centre_minus_prior_m"] = (c1 - np.asarray(prior_centre, float)).tolist()
+    warns = _warnings(residuals, stats, opts, where)
+    return CentralResult(R1, c1, residuals, stats, warns)
+
+
+def _orthonormal(R: np.ndarray) -> np.ndarray:
+    U, _, Vt = np.linalg.svd(R)
+    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+
+
+def _summary(residuals: list[dict], opts: GeorefOptions) -> dict:
+    px = np.array([r["error_px"] for r in residuals if r.get("error_px") is not None and r.get("inlier", True)])
+    m = np.array([r["error_m"] for r in residuals if r.get("error_m") is not None and r.get("inlier", True)])
+    per_point: dict[str, dict] = {}
+    for r in residuals:
+        d = per_point.setdefault(r["point"], {"px": [], "m": []})
+        if r.get("error_px") is not None:
+            d["px"].append(r["error_px"])
+        if r.get("error_m") is not None:
+            d["m"].append(r["error_m"])
+    pts = {k: {"rms_px": float(np.sqrt(np.mean(np.square(v["px"])))) if v["px"] else None,
+               "rms_m": float(np.sqrt(np.mean(np.square(v["m"])))) if v["m"] else None,
+               "n_views": len(v["px"])} for k, v in per_point.items()}
+    return {"rms_px": float(np.sqrt(np.mean(px ** 2))) if px.size else None,
+            "max_px": float(px.max()) if px.size else None,
+            "rms_m": float(np.sqrt(np.mean(m ** 2))) if m.size else None,
+            "max_m": float(m.max()) if m.size else None,
+            "n_outliers": int(sum(1 for r in residuals if not r.get("inlier", True))),
+            "points": pts}
+
+
+def _warnings(residuals: list[dict], stats: dict, opts: GeorefOptions, where: str) -> list[str]:
+    import warnings as _w
+
+    out = []
+    if stats.get("rms_px") is not None and stats["rms_px"] > opts.warn_rms_px:
+        out.append(f"{where}: control-point RMS residual {stats['rms_px']:.2f} px exceeds {opts.warn_rms_px} px; "
+                   f"check the picks and the coordinates of the points listed in out/georef/stats.json")
+    for r in residuals:
+        bad_px = r.get("error_px") is None or r["error_px"] > opts.warn_point_px
+        bad_m = r.get("error_m") is not None and r["error_m"] > opts.warn_point_m
+        if bad_px or bad_m or not r.get("inlier", True):
+            e_px = "behind the camera" if r.get("error_px") is None else f"{r['error_px']:.1f} px"
+            e_m = "" if r.get("error_m") is None else f", {r['error_m']:.2f} m"
+            out.append(f"{where}: control point {r['point']!r} in {r['view']}: residual {e_px}{e_m}"
+                       f"{' (rejected as an outlier)' if not r.get('inlier', True) else ''}; check its "
+                       f"coordinates and its pick")
+    for msg in out:
+        log.warning(msg)
+        _w.warn(msg, GeorefResidualsLarge, stacklevel=3)
+    return out
+
+
+# ----------------------------------------------------------------------------------------------------------
+# SfM model: similarity world_from_model
+# ----------------------------------------------------------------------------------------------------------
+@dataclass
+class SimilarityResult:
+    """``world_from_model``: ``p_world = scale * R @ p_model + t``; residuals and statistics."""
+
+    scale: float
+    rotation: np.ndarray
+    translation: np.ndarray
+    residuals: list[dict]
+    stats: dict
+    warnings: list[str]
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """(4, 4) similarity ``world_from_model`` (scale in the upper-left block)."""
+        M = np.eye(4)
+        M[:3, :3] = self.scale * self.rotation
+        M[:3, 3] = self.translation
+        return M
+
+    def apply(self, p_model: np.ndarray) -> np.ndarray:
+        return self.scale * np.asarray(p_model, float) @ self.rotation.T + self.translation
+
+    def cam_from_world(self, cam_from_model: np.ndarray) -> np.ndarray:
+        """(4, 4) rigid, metric ``cam_from_world`` of an SfM camera."""
+        M = np.asarray(cam_from_model, float)
+        Rc, tc = M[:3, :3], M[:3, 3]
+        R = Rc @ self.rotation.T
+        out = np.eye(4)
+        out[:3, :3] = R
+        out[:3, 3] = self.scale * tc - R @ self.translation
+        return out
+
+
+def _model_centre(v: SfmView) -> np.ndarray:
+    M = np.asarray(v.cam_from_model, float)
+    return -M[:3, :3].T @ M[:3, 3]
+
+
+def solve_similarity(views: Sequence[SfmView], cps: Sequence[ControlPoint], *,
+                     gps_centres: dict[str, np.ndarray] | None = None, opts: GeorefOptions = GeorefOptions(),
+                     where: str = "control_points.json") -> SimilarityResult:
+    """``world_from_model`` of an SfM model from control points and/or GPS camera centres (module docstring).
+
+    ``gps_centres``: photo name -> (3,) ENU metres of the camera centre (EXIF GPS), 1-sigma ``opts.gps_sigma_m``.
+    """
+    obs = _observations(cps, views, where) if cps else []
+    gps_centres = dict(gps_centres or {})
+    X = np.array([cp.enu for cp in cps], float).reshape(-1, 3)
+    # 1. control points seen in two or more photos, triangulated in the model frame
+    by_point: dict[int, list[_Obs]] = {}
+    for o in obs:
+        by_point.setdefault(o.point, []).append(o)
+    src, dst, sig, label = [], [], [], []
+    tri_model: dict[int, np.ndarray] = {}
+    for k, lst in sorted(by_point.items()):
+        if len({o.view for o in lst}) < 2:
+            continue
+        cs, ds = [], []
+        for o in lst:
+            v = views[o.view]
+            M = np.asarray(v.cam_from_model, float)
+            cs.append(_model_centre(v))
+            ds.append(M[:3, :3].T @ v.intrinsics.rays(o.uv[None])[0])
+        Xm, angle = triangulate_rays(np.array(cs), np.array(ds))
+        if angle < opts.min_triangulation_angle_deg:
+            log.info("%s: control point %s: rays meet at %.2f deg; not triangulated", where, cps[k].name, angle)
+            continue
+        tri_model[k] = Xm
+        src.append(Xm)
+        dst.append(X[k])
+        sig.append(max(cps[k].sigma_m, 0.01))
+        label.append(("point", cps[k].name))
+    # 2. camera centres with GPS
+    gsig = np.asarray(opts.gps_sigma_m, float)
+    name_to_view = {v.name: v for v in views}
+    for name, g in sorted(gps_centres.items()):
+        if name in name_to_view:
+            src.append(_model_centre(name_to_view[name]))
+            dst.append(np.asarray(g, float))
+            sig.append(float(np.mean(gsig)))
+            label.append(("gps", name))
+    if len(src) < 3:
+        raise InputError(f"{where}: {len(src)} correspondence(s) between the SfM model and the scene (control points "
+                         f"picked in two or more photos: {len(tri_model)}, photos with GPS: {len(gps_centres)}); the "
+                         f"similarity needs at least 3 not on one line; pick each control point in two or more "
+                         f"photos, or add points")
+    src_a, dst_a, sig_a = np.array(src), np.array(dst), np.array(sig)
+    spread = np.linalg.svd(dst_a - dst_a.mean(axis=0), compute_uv=False)
+    if spread[1] < 1e-3 * max(spread[0], 1e-9):
+        raise InputError(f"{where}: the {len(src)} correspondences lie on one line; the rotation about it is unknown; "
+                         f"add a control point off that line")
+    rng = np.random.default_rng(opts.seed)
+    w = 1.0 / sig_a ** 2
+    best = umeyama(src_a, dst_a, w)
+    if len(src) >= 4:
+        def n_in(s, R, t):
+            d = np.linalg.norm(s * src_a @ R.T + t - dst_a, axis=1)
+            return int(np.sum(d < 3.0 * sig_a + 0.05)), float(np.sum(np.minimum(d / (3 * sig_a + 0.05), 1.0)))
+
+        bs = n_in(*best)
+        for _ in range(min(opts.ransac_iterations, 200)):
+            idx = rng.choice(len(src), 3, replace=False)
+            if np.linalg.svd(dst_a[idx] - dst_a[idx].mean(axis=0), compute_uv=False)[1] < 1e-3:
+                continue
+            cand = umeyama(src_a[idx], dst_a[idx])
+            sc = n_in(*cand)
+            if sc[0] > bs[0] or (sc[0] == bs[0] and sc[1] < bs[1]):
+                best, bs = cand, sc
+        d = np.linalg.norm(best[0] * src_a @ best[1].T + best[2] - dst_a, axis=1)
+        inl = d < 3.0 * sig_a + 0.05
+        if inl.sum() >= 3:
+            best = umeyama(src_a[inl], dst_a[inl], w[inl])
+    s0, R0, t0 = best
+
+    # 3. refinement: pixels of every control point (single-view ones too) + GPS centres in metres
+    def sim_from(p):
+        return s0 * math.exp(p[0]), Rotation.from_rotvec(p[1:4]).as_matrix() @ R0, t0 + p[4:7]
+
+    obs_sig = []
+    for o in obs:
+        v = views[o.view]
+        Xm = R0.T @ (X[o.point] - t0) / s0
+        depth = float((np.asarray(v.cam_from_model)[:3, :3] @ Xm + np.asarray(v.cam_from_model)[:3, 3])[2]) * s0
+        obs_sig.append(_robust_sigma(v.intrinsics, opts.sigma_px, cps[o.point].sigma_m, abs(depth)))
+    gps_items = [(name_to_view[n], np.asarray(g, float)) for n, g in sorted(gps_centres.items()) if n in name_to_view]
+
+    def fun(p):
+        s, R, t = sim_from(p)
+        res = []
+        for o, sg in zip(obs, obs_sig):
+            v = views[o.view]
+            M = np.asarray(v.cam_from_model, float)
+            q = M[:3, :3] @ (R.T @ (X[o.point] - t) / s) + M[:3, 3]
+            z = q[2] if q[2] > 1e-9 else 1e-9
+            uv = v.intrinsics.pixels_from_normalized(v.intrinsics.distort(np.array([[q[0] / z, q[1] / z]])))[0]
+            res.extend((uv - o.uv) / sg)
+        for v, g in gps_items:
+            res.extend((s * R @ _model_centre(v) + t - g) / gsig)
+        return np.asarray(res)
+
+    sol = least_squares(fun, np.zeros(7), loss=opts.loss, f_scale=opts.loss_scale, x_scale="jac", max_nfev=300)
+    s, R, t = sim_from(sol.x)
+    R = _orthonormal(R)
+    result = SimilarityResult(s, R, t, [], {}, [])
+    residuals = []
+    for o in obs:
+        v = views[o.view]
+        Mw = result.cam_from_world(v.cam_from_model)
+        q = Mw[:3, :3] @ X[o.point] + Mw[:3, 3]
+        if q[2] > 1e-6:
+            vec = v.intrinsics.project(q[None])[0] - o.uv
+            e_px = float(np.hypot(*vec))
+        else:
+            vec, e_px = None, None
+        c_w = -Mw[:3, :3].T @ Mw[:3, 3]
+        d_w = Mw[:3, :3].T @ v.intrinsics.rays(o.uv[None])[0]
+        e_m = _point_line_distance(X[o.point], c_w, d_w)  # the known point's distance from the observed ray
+        tri_m = float(np.linalg.norm(result.apply(tri_model[o.point]) - X[o.point])) if o.point in tri_model else None
+        residuals.append({"point": cps[o.point].name, "view": v.name, "uv": o.uv.tolist(),
+                          "residual_px": None if vec is None else vec.tolist(), "error_px": e_px, "error_m": e_m,
+                          "triangulated_error_m": tri_m,
+                          "inlier": e_px is not None and e_px < opts.ransac_threshold_px})
+    gps_res = {v.name: (result.apply(_model_centre(v)) - g).tolist() for v, g in gps_items}
+    stats = _summary(residuals, opts)
+    stats.update({"n_points": len(by_point), "n_triangulated": len(tri_model), "n_observations": len(obs),
+                  "n_gps_centres": len(gps_items), "scale": s, "gps_residuals_m": gps_res,
+                  "gps_rms_m": float(np.sqrt(np.mean([np.sum(np.square(r)) for r in gps_res.values()])))
+                  if gps_res else None})
+    warns = _warnings(residuals, stats, opts, where) if residuals else []
+    result.residuals, result.stats, result.warnings = residuals, stats, warns
+    return result
