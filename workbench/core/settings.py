@@ -48,10 +48,11 @@ class Location(_Strict):
 
 
 class Terrain(_Strict):
-    dem: str | None = None  # GeoTIFF, path relative to the project folder
-    buildings: str | None = None  # GeoJSON footprints with heights, relative path
+    dem: str | None = None  # GeoTIFF, a folder of tiles, or a glob (`dem/*.tif`), relative to the project folder
+    buildings: str | None = None  # GeoJSON footprints with heights, or CityJSON, relative path
     dem_vertical_accuracy_m: Annotated[float, Field(gt=0.0)] = 0.5
     aoi_radius_m: Annotated[float, Field(gt=0.0, le=20_000.0)] = 250.0
+    simplify_max_error_m: Annotated[float, Field(ge=0.0, le=10.0)] = 0.05  # 0: no mesh simplification
 
 
 class Coupling(str, Enum):
