@@ -1,0 +1,259 @@
+"""The stitch stage against ground truth: focal and rotations of views cut from a real photo by known
+rotations (with and without lens distortion) and of the synthetic sample's panorama set; the distractor
+rejected; parallax refused; the stage's files, with a true 3D point landing where the panorama shows it."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from workbench.core.camera import CameraIntrinsics
+from workbench.core.panorama import PanoramaModel
+from workbench.errors import InputError
+from workbench.stitch import StitchOptions, stitch_photos
+from workbench.stitch.cutviews import align_rotation, cut_views, grid_rotations, rotation_errors_deg
+
+REPO = Path(__file__).resolve().parents[1]
+DATA = REPO.parent / "shared" / "data"
+STITCHING = DATA / "stitching"
+SAMPLE = REPO / "projects" / "spuyten-duyvil"
+SMALL = (480, 360)  # the sample's 1600x1200 photos reduced by 0.3
+
+needs_data = pytest.mark.skipif(not STITCHING.is_dir(), reason="../shared/data/stitching is not there")
+needs_sample = pytest.mark.skipif(not (SAMPLE / "truth" / "ground_truth.json").is_file(),
+                                  reason="the spuyten-duyvil sample is not there")
+FAST = StitchOptions(compose=False)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# fixtures
+# ----------------------------------------------------------------------------------------------------------
+def _view_intrinsics(k1: float) -> CameraIntrinsics:
+    w, h = SMALL
+    f = w / 2 / np.tan(np.radians(15.0))  # 30 degrees horizontal field of view
+    return CameraIntrinsics(width=w, height=h, fx=f, fy=f, cx=(w - 1) / 2 + 4.0, cy=(h - 1) / 2 - 3.0, k1=k1)
+
+
+def _cut_set(tmp: Path, k1: float):
+    """Four views in a 2 x 2 grid cut from a real photo (Petra, CC-BY-3.0; see ../shared/data/SOURCES.md)."""
+    src = cv2.imread(str(STITCHING / "skimage_pano_petra" / "DFM_4210.jpg"))
+    intr = _view_intrinsics(k1)
+    views = cut_views(src, 2280.0, grid_rotations([-9.0, 9.0], [-6.0, 6.0], seed=1), intr)
+    tmp.mkdir(parents=True, exist_ok=True)
+    for v in views:
+        cv2.imwrite(str(tmp / v.name), v.image, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    return [tmp / v.name for v in views], {v.name: v.cam_from_src for v in views}, intr
+
+
+@pytest.fixture(scope="module")
+def sample_small(tmp_path_factory):
+    """The sample's panorama photos reduced to 480x360, their true intrinsics and cam_from_world."""
+    truth = json.loads((SAMPLE / "truth" / "ground_truth.json").read_text())
+    out = tmp_path_factory.mktemp("sample_small")
+    paths, intr, rot, photos = [], {}, {}, []
+    for ph in truth["photos"]:
+        if ph["set"] != "panorama":
+            continue
+        name = Path(ph["photo"]).name
+        img = cv2.imread(str(SAMPLE / ph["photo"]))
+        cv2.imwrite(str(out / name), cv2.resize(img, SMALL, interpolation=cv2.INTER_AREA),
+                    [cv2.IMWRITE_JPEG_QUALITY, 95])
+        paths.append(out / name)
+        K = CameraIntrinsics.from_dict(ph["intrinsics"])
+        intr[name] = K.scaled(SMALL[0] / K.width)
+        rot[name] = np.asarray(ph["cam_from_world"])[:3, :3]
+        photos.append(ph)
+    return {"paths": paths, "intrinsics": intr, "cam_from_world": rot, "truth": truth, "photos": photos}
+
+
+# ----------------------------------------------------------------------------------------------------------
+# ground truth: focal and rotations
+# ----------------------------------------------------------------------------------------------------------
+@needs_data
+@pytest.mark.parametrize("k1", [0.0, -0.1])
+def test_cut_views_estimated_focal_and_rotations(tmp_path, k1):
+    """Focal, k1 and rotations estimated (no calibration, no EXIF): focal within 0.5 %, rotations 0.05 deg."""
+    paths, truth, intr = _cut_set(tmp_path, k1)
+    r = stitch_photos(paths, options=FAST)
+    assert r.intrinsics_source == "fallback"
+    assert [s.name for s in r.model.sources] == [p.name for p in paths] and not r.rejected
+    for s in r.model.sources:
+        err = s.intrinsics.fx / intr.fx - 1.0
+        assert -0.005 < err < 0.005, (s.name, err)
+        assert abs(s.intrinsics.k1 - k1) < 0.03
+    errs = rotation_errors_deg({s.name: s.cam_from_pano for s in r.model.sources}, truth)
+    assert all(0.0 < e < 0.05 for e in errs.values()), errs
+    assert r.parallax["verdict"] == "ok"
+    assert 0.05 < r.parallax["rms_work_px"] < 1.0
+
+
+@needs_data
+def test_cut_views_calibrated_keeps_the_lens(tmp_path):
+    paths, truth, intr = _cut_set(tmp_path, -0.1)
+    r = stitch_photos(paths, options=FAST, calibrated={p.name: intr for p in paths})
+    assert r.intrinsics_source == "calibrated"
+    assert all(s.intrinsics == intr for s in r.model.sources)
+    errs = rotation_errors_deg({s.name: s.cam_from_pano for s in r.model.sources}, truth)
+    assert all(0.0 < e < 0.03 for e in errs.values()), errs
+
+
+@needs_sample
+def test_sample_panorama_calibrated(sample_small):
+    """The synthetic sample's panorama set (distorted, k1 = -0.08), calibrated route: rotations to 0.05 deg."""
+    d = sample_small
+    r = stitch_photos(d["paths"], options=FAST, calibrated=d["intrinsics"])
+    assert len(r.model.sources) == len(d["paths"])
+    errs = rotation_errors_deg({s.name: s.cam_from_pano for s in r.model.sources}, d["cam_from_world"])
+    assert all(0.0 < e < 0.05 for e in errs.values()), errs
+    # wave correction: the panorama's y axis is (nearly) the scene's down
+    A = align_rotation({s.name: s.cam_from_pano for s in r.model.sources}, d["cam_from_world"])  # pano_from_world
+    down_in_pano = A @ np.array([0.0, 0.0, -1.0])
+    assert np.degrees(np.arccos(np.clip(down_in_pano[1], -1, 1))) < 15.0
+
+
+# ----------------------------------------------------------------------------------------------------------
+# the connected set, the distractor, parallax
+# ----------------------------------------------------------------------------------------------------------
+@needs_data
+def test_weir_distractor_rejected(tmp_path):
+    names = ["weir_1.jpg", "weir_2.jpg", "weir_3.jpg", "weir_noise.jpg"]
+    paths = []
+    for n in names:  # reduced to about 640 px wide to keep the test fast
+        img = cv2.imread(str(STITCHING / "opencv_weir" / n))
+        s = 640 / 1333
+        cv2.imwrite(str(tmp_path / n), cv2.resize(img, None, fx=s, fy=s, interpolation=cv2.INTER_AREA))
+        paths.append(tmp_path / n)
+    r = stitch_photos(paths, options=StitchOptions(compose=False, check_parallax=False))
+    assert [s.name for s in r.model.sources] == names[:3]
+    assert [x["name"] for x in r.rejected] == ["weir_noise.jpg"]
+    assert "confidence" in r.rejected[0]["reason"]
+
+
+@needs_data
+@needs_sample
+def test_unrelated_photo_rejected_from_sample(sample_small, tmp_path):
+    d = sample_small
+    img = cv2.imread(str(STITCHING / "skimage_pano_arches" / "JDW_9519.jpg"))
+    cv2.imwrite(str(tmp_path / "zz_other.jpg"), cv2.resize(img, SMALL))
+    paths = d["paths"] + [tmp_path / "zz_other.jpg"]
+    intr = dict(d["intrinsics"], **{"zz_other.jpg": d["intrinsics"][d["paths"][0].name]})
+    r = stitch_photos(paths, options=FAST, calibrated=intr)
+    assert [x["name"] for x in r.rejected] == ["zz_other.jpg"]
+    assert len(r.model.sources) == len(d["paths"])
+
+
+@needs_sample
+def test_parallax_is_refused(tmp_path):
+    """Photos from different places (the sample's multi-view set) are refused with advice to use sfm."""
+    for n in ("view_02.jpg", "view_05.jpg", "view_06.jpg"):
+        img = cv2.imread(str(SAMPLE / "photos" / "multiview" / n))
+        cv2.imwrite(str(tmp_path / n), cv2.resize(img, SMALL, interpolation=cv2.INTER_AREA))
+    with pytest.raises(InputError, match="sfm"):
+        stitch_photos(sorted(tmp_path.glob("*.jpg")), options=FAST)
+
+
+def test_too_few_photos(tmp_path):
+    with pytest.raises(InputError, match="at least two"):
+        stitch_photos([tmp_path / "a.jpg"])
+
+
+# ----------------------------------------------------------------------------------------------------------
+# the stage: files, and a true 3D point landing where the panorama image shows it
+# ----------------------------------------------------------------------------------------------------------
+@needs_sample
+def test_stage_writes_panorama_and_exact_model(sample_small, tmp_path):
+    from workbench.pipeline import STAGES
+    from workbench.project import Project
+    from workbench.runner import Runner
+    from workbench.stitch.stage import STAGE
+
+    d = sample_small
+    root = tmp_path / "inc"
+    (root / "photos" / "panorama").mkdir(parents=True)
+    for p in d["paths"]:
+        shutil.copy(p, root / "photos" / "panorama" / p.name)
+    shutil.copy(SAMPLE / "project.toml", root / "project.toml")
+    shutil.copy(SAMPLE / "camera_profile.json", root / "camera_profile.json")  # 1600x1200: scaled by the stage
+    project = Project(root)
+    assert STAGE.applies(project)
+    seen = []
+    Runner(project, [STAGES[0], STAGE]).run(only=["inputs", "stitch"],
+                                           progress_factory=lambda s: (lambda f, m="": seen.append((s.name, f))))
+    assert any(n == "stitch" and 0 < f < 1 for n, f in seen)
+    data = json.loads((root / "out" / "stitch" / "panorama.json").read_text())
+    assert data["intrinsics_source"] == "calibrated" and data["rejected"] == []
+    assert data["parallax"]["verdict"] == "ok"
+    assert data["sources"][0]["image"] == "photos/panorama/pano_00.jpg"
+    model = PanoramaModel.from_dict(data)
+    pano = cv2.imread(str(root / "out" / "stitch" / "panorama.jpg"))
+    assert pano.shape[:2] == (model.height, model.width)
+    stats = json.loads((root / "out" / "stitch" / "stats.json").read_text())
+    assert stats["n_kept"] == len(d["paths"]) and stats["peak_rss_mb"] > 0
+
+    # true marked points of the carriages, projected with the model (scene frame aligned by the rotations)
+    truth = d["truth"]
+    A = align_rotation({s.name: s.cam_from_pano for s in model.sources}, d["cam_from_world"])  # pano_from_world
+    centre = np.asarray(truth["panorama_center_enu"])
+    n_checked = n_ncc = 0
+    for ph in d["photos"]:
+        name = Path(ph["photo"]).name
+        i = model.source_index(name)
+        for car, pts in ph["observations"].items():
+            for pname, o in pts.items():
+                if not o["visible"]:
+                    continue
+                X = np.asarray(next(c for c in truth["carriages"] if c["number"] == car)["marked_points_enu"][pname])
+                uv = model.project(((X - centre) @ A.T)[None])[0]
+                # the same point seen in the photo (true pixel, reduced like the photo) mapped into the panorama
+                uv_true = (np.asarray(o["uv"]) + 0.5) * (SMALL[0] / 1600) - 0.5
+                np.testing.assert_allclose(model.from_source(i, uv_true[None])[0], uv, atol=0.6)
+                n_checked += 1
+                if not (20 < uv[0] < model.width - 20 and 20 < uv[1] < model.height - 20):
+                    continue
+                # the panorama image shows there what the photo shows at the true pixel
+                g = np.arange(-8, 9, dtype=float)
+                gy, gx = np.meshgrid(g, g, indexing="ij")
+                grid = np.column_stack([gx.ravel() + uv[0], gy.ravel() + uv[1]])
+                dirs = model.rays(grid) @ model.sources[i].cam_from_pano.T
+                src_px = model.sources[i].intrinsics.project(dirs).astype(np.float32)
+                if not model.sources[i].intrinsics.in_image(src_px, margin=1.0).all():
+                    continue  # the patch leaves this photo
+                photo = cv2.imread(str(d["paths"][i]), cv2.IMREAD_GRAYSCALE).astype(np.float32)
+                a = cv2.remap(photo, src_px[:, 0].reshape(17, 17), src_px[:, 1].reshape(17, 17), cv2.INTER_LINEAR)
+                b = cv2.remap(cv2.cvtColor(pano, cv2.COLOR_BGR2GRAY).astype(np.float32),
+                              grid[:, 0].reshape(17, 17).astype(np.float32),
+                              grid[:, 1].reshape(17, 17).astype(np.float32), cv2.INTER_LINEAR)
+                if a.std() < 8:
+                    continue  # flat patch: nothing to compare
+                ncc = float(np.corrcoef(a.ravel(), b.ravel())[0, 1])
+                assert ncc > 0.9, (name, car, pname, ncc)
+                n_ncc += 1
+    assert n_checked >= 10 and n_ncc >= 10
+
+
+@needs_sample
+def test_cli_runs_the_stitch_stage(sample_small, tmp_path):
+    """`workbench run PATH --only inputs --only stitch` on a copy of the sample (reduced photos, scaled profile)."""
+    import subprocess
+    import sys
+
+    root = tmp_path / "inc"
+    (root / "photos" / "panorama").mkdir(parents=True)
+    for p in sample_small["paths"]:
+        shutil.copy(p, root / "photos" / "panorama" / p.name)
+    shutil.copy(SAMPLE / "project.toml", root / "project.toml")
+    shutil.copy(SAMPLE / "camera_profile.json", root / "camera_profile.json")
+    exe = Path(sys.executable).parent / "workbench"
+    r = subprocess.run([str(exe), "run", str(root), "--only", "inputs", "--only", "stitch"], capture_output=True,
+                       text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    state = json.loads((root / "out" / "state.json").read_text())
+    assert state["stitch"]["status"] == "done"
+    assert set(state["stitch"]["outputs"]) >= {"panorama_image", "panorama_model", "stats"}
+    model = PanoramaModel.from_dict(json.loads((root / "out" / "stitch" / "panorama.json").read_text()))
+    assert len(model.sources) == len(sample_small["paths"])

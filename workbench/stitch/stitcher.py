@@ -1,0 +1,443 @@
+"""``stitch_photos``: unordered photos from one place -> panorama image + exact panorama model + statistics.
+
+Steps (Brown and Lowe 2007; ``docs/stitching.md``): photos read at reduced resolution (JPEG DCT scaling,
+then area resampling), SIFT, pairwise ratio-test matching and RANSAC homographies with the confidence
+test ``n_inliers > 8 + 0.3 n_matches``, the largest connected set (the others are reported with why),
+focal from the homographies (or the calibration / EXIF), rotations along a maximum spanning tree, a
+rotation-only bundle adjustment through the lens model, the parallax check, wave correction, the
+projection (planar when the field of view allows), composition at full resolution.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import resource
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Callable, Literal
+
+import cv2
+import numpy as np
+from PIL import Image
+
+from ..core.camera import CameraIntrinsics
+from ..core.panorama import PanoramaModel, PanoramaSource
+from ..errors import InputError
+from . import register as reg
+from .compose import compose
+
+log = logging.getLogger(__name__)
+
+ProgressFn = Callable[[float, str], None]
+
+
+@dataclass(frozen=True, kw_only=True)
+class StitchOptions:
+    """Options of :func:`stitch_photos` (keyword-only; unknown keys are a TypeError)."""
+
+    work_megapix: float = 0.6  # registration resolution per photo, megapixels
+    seam_megapix: float = 0.1  # gains and seams, megapixels per photo
+    max_features: int = 2500  # SIFT keypoints per photo
+    sift_half: bool = False  # SIFT without its doubled first octave (faster, a little less precise)
+    sift_contrast: float = 0.02  # SIFT contrast threshold (lower: more keypoints on low-contrast scenes)
+    match_ratio: float = 0.75  # Lowe's ratio test
+    ransac_work_px: float = 3.0  # RANSAC homography threshold, work pixels
+    conf_thresh: float = 1.0  # Brown and Lowe's confidence: n_inliers / (8 + 0.3 n_matches) must exceed it
+    min_inliers: int = 15
+    estimate_distortion: bool = True  # estimate k1 when the intrinsics are not calibrated
+    projection: Literal["auto", "planar", "cylindrical", "spherical"] = "auto"
+    planar_max_deg: float = 50.0  # planar when every ray is within this angle of the panorama's axis
+    cylindrical_max_deg: float = 50.0  # cylindrical when every ray is within this elevation
+    wave_correct: bool = True
+    max_output_megapix: float = 400.0  # larger panoramas are composed at a reduced scale
+    parallax_rms_work_px: float = 3.0  # rotation-only fit worse than this (work pixels, RMS): parallax
+    parallax_p90_work_px: float = 5.0
+    check_parallax: bool = True  # raise when the verdict is "parallax"
+    compose: bool = True
+    seed: int = 0
+
+    def __post_init__(self) -> None:
+        if not (0.05 <= self.work_megapix <= 50 and 0.01 <= self.seam_megapix <= 5):
+            raise ValueError(f"work_megapix={self.work_megapix}, seam_megapix={self.seam_megapix} out of range")
+        if self.projection not in ("auto", "planar", "cylindrical", "spherical"):
+            raise ValueError(f"projection={self.projection!r}; choose auto, planar, cylindrical or spherical")
+
+
+@dataclass
+class StitchResult:
+    model: PanoramaModel | None  # None when fewer than two photos could be registered
+    image: np.ndarray | None  # (height, width, 3) uint8 BGR, or None when not composed
+    rejected: list[dict] = field(default_factory=list)  # {"name", "reason"}
+    intrinsics_source: str = "fallback"
+    parallax: dict = field(default_factory=dict)
+    stats: dict = field(default_factory=dict)
+
+
+def _workers() -> int:
+    return max(1, min(4, os.cpu_count() or 1))
+
+
+def _peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: kilobytes
+
+
+def read_reduced(path: Path, scale: float, *, flags: int = cv2.IMREAD_COLOR) -> tuple[np.ndarray, tuple[int, int]]:
+    """The photo at ``path`` reduced by ``scale`` (<= 1), decoded at 1/2, 1/4 or 1/8 when that is enough.
+
+    Returns (image (round(h s), round(w s)[, 3]) uint8, full size (w, h)). :class:`InputError` if unreadable.
+    """
+    try:
+        with Image.open(path) as im:
+            w, h = im.size
+    except (OSError, ValueError) as exc:
+        raise InputError(f"{path}: cannot read this photo ({exc}); replace it or remove it from the folder") from None
+    color = flags == cv2.IMREAD_COLOR
+    img = None
+    for k, (fc, fg) in ((8, (cv2.IMREAD_REDUCED_COLOR_8, cv2.IMREAD_REDUCED_GRAYSCALE_8)),
+                        (4, (cv2.IMREAD_REDUCED_COLOR_4, cv2.IMREAD_REDUCED_GRAYSCALE_4)),
+                        (2, (cv2.IMREAD_REDUCED_COLOR_2, cv2.IMREAD_REDUCED_GRAYSCALE_2))):
+        if scale * k <= 1.0 and path.suffix.lower() in (".jpg", ".jpeg"):
+            img = cv2.imread(str(path), fc if color else fg)
+            break
+    if img is None:
+        img = cv2.imread(str(path), flags)
+    if img is None:
+        raise InputError(f"{path}: OpenCV cannot decode this photo; convert it to JPEG or PNG")
+    tw, th = max(1, int(round(w * scale))), max(1, int(round(h * scale)))
+    if (img.shape[1], img.shape[0]) != (tw, th):
+        img = cv2.resize(img, (tw, th), interpolation=cv2.INTER_AREA)
+    return img, (w, h)
+
+
+def _choose_frame_and_projection(cam_from_pano: dict[int, np.ndarray], intr: dict[int, CameraIntrinsics],
+                                 opts: StitchOptions) -> tuple[str, np.ndarray, dict]:
+    """(projection, pano_from_pano_wc rotation, extents in degrees) from the photos' border rays."""
+    rays = []
+    for k, R in cam_from_pano.items():
+        w, h = intr[k].width, intr[k].height
+        t = np.linspace(0, 1, 17)
+        b = np.concatenate([np.column_stack([t * w - 0.5, np.full_like(t, -0.5)]),
+                            np.column_stack([t * w - 0.5, np.full_like(t, h - 0.5)]),
+                            np.column_stack([np.full_like(t, -0.5), t * h - 0.5]),
+                            np.column_stack([np.full_like(t, w - 0.5), t * h - 0.5])])
+        rays.append(intr[k].rays(b) @ R)
+    d = np.concatenate(rays)
+    yaw = np.degrees(np.arctan2(d[:, 0], d[:, 2]))
+    elev = np.degrees(np.arctan2(-d[:, 1], np.hypot(d[:, 0], d[:, 2])))
+    # centre the yaw range (the photos never span the +-180 seam after wave correction faces their mean)
+    yaw_mid = 0.5 * (yaw.min() + yaw.max())
+    elev_mid = 0.5 * (elev.min() + elev.max())
+    ext = {"yaw_deg": [float(yaw.min()), float(yaw.max())], "elevation_deg": [float(elev.min()), float(elev.max())]}
+    Ry = cv2.Rodrigues(np.array([0.0, np.radians(yaw_mid), 0.0]))[0]  # pano_wc_from_panoY
+    proj = opts.projection
+    # planar candidate: axis through the centre of the extents
+    Rx = cv2.Rodrigues(np.array([np.radians(elev_mid), 0.0, 0.0]))[0]
+    R_planar = (Ry @ Rx).T  # pano_from_pano_wc
+    dp = d @ R_planar.T
+    max_off = float(np.degrees(np.max(np.arccos(np.clip(dp[:, 2], -1, 1)))))
+    ext["planar_max_off_axis_deg"] = max_off
+    if proj == "auto":
+        if max_off <= opts.planar_max_deg:
+            proj = "planar"
+        elif max(abs(elev.min()), abs(elev.max())) <= opts.cylindrical_max_deg and yaw.max() - yaw.min() < 359:
+            proj = "cylindrical"
+        else:
+            proj = "spherical"
+    if proj == "planar":
+        if max_off >= 89.0:
+            raise InputError(f"the photos span {max_off:.0f} degrees from the panorama's axis: too wide for a planar "
+                             f"panorama; use projection 'cylindrical' or 'spherical'")
+        return proj, R_planar, ext
+    return proj, Ry.T, ext
+
+
+def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options: StitchOptions = StitchOptions(),
+                  calibrated: dict[str, CameraIntrinsics] | None = None,
+                  focal_priors_px: dict[str, float | None] | None = None, image_refs: list[str] | None = None,
+                  progress: ProgressFn = lambda f, m="": None) -> StitchResult:
+    """Stitch ``photos`` (paths) into one panorama.
+
+    ``calibrated``: name -> intrinsics of the photo as on disk (route ``calibrated``: fixed, only rotations
+    are estimated). ``focal_priors_px``: name -> EXIF focal in pixels or None (route ``exif``). Neither:
+    focal (and k1) estimated (``fallback``). ``image_refs``: the path written into the model for each photo
+    (default: the path as given). Raises :class:`InputError` if fewer than two photos can be registered or
+    when the parallax check fails (``options.check_parallax``).
+    """
+    t_start = time.perf_counter()
+    photos = [Path(p) for p in photos]
+    names = names or [p.name for p in photos]
+    image_refs = image_refs or [str(p) for p in photos]
+    n = len(photos)
+    if n < 2:
+        raise InputError(f"stitching needs at least two photos, got {n}")
+    opts = options
+    timings: dict[str, float] = {}
+
+    # -- read at work and seam resolution --------------------------------------------------------------------
+    t0 = time.perf_counter()
+    def read_and_detect(k: int) -> tuple[reg.PhotoFeatures, np.ndarray, tuple[int, int]]:
+        p = photos[k]
+        try:
+            with Image.open(p) as im:
+                w, h = im.size
+        except (OSError, ValueError) as exc:
+            raise InputError(f"{p}: cannot read this photo ({exc}); replace it or remove it from the folder") from None
+        s_work = min(1.0, np.sqrt(opts.work_megapix * 1e6 / (w * h)))
+        s_seam = min(1.0, np.sqrt(opts.seam_megapix * 1e6 / (w * h)))
+        img, (w, h) = read_reduced(p, s_work)
+        sm = cv2.resize(img, (max(1, round(w * s_seam)), max(1, round(h * s_seam))), interpolation=cv2.INTER_AREA)
+        f = reg.detect_features(names[k], cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), (w, h),
+                                max_features=opts.max_features, contrast_threshold=opts.sift_contrast,
+                                half=opts.sift_half)
+        return f, sm, (w, h)
+
+    # OpenCV releases the GIL: photos are read and described in parallel threads
+    with ThreadPoolExecutor(max_workers=_workers()) as pool:
+        done = []
+        for k, r in enumerate(pool.map(read_and_detect, range(n))):
+            progress(0.02 + 0.18 * (k + 1) / n, f"features {photos[k].name}")
+            done.append(r)
+    feats = [d[0] for d in done]
+    small = [d[1] for d in done]
+    sizes = [d[2] for d in done]
+    del done
+    timings["features_s"] = time.perf_counter() - t0
+
+    # -- intrinsics route ---------------------------------------------------------------------------------------
+    calibrated = calibrated or {}
+    focal_priors_px = focal_priors_px or {}
+    init: dict[int, CameraIntrinsics] = {}
+    fixed = bool(calibrated)
+    if fixed:
+        for k, nm in enumerate(names):
+            if nm not in calibrated:
+                raise InputError(f"no calibrated intrinsics for photo {nm}")
+            ci = calibrated[nm]
+            if (ci.width, ci.height) != sizes[k]:
+                raise InputError(f"{photos[k]}: {sizes[k][0]}x{sizes[k][1]} px, but the camera profile is for "
+                                 f"{ci.width}x{ci.height}; use photos at the profile's size or recalibrate")
+            init[k] = ci
+        source = "calibrated"
+    else:
+        source = "exif" if focal_priors_px and all(focal_priors_px.get(nm) for nm in names) else "fallback"
+    # linearised keypoints for matching: undistorted pixels when the lens is known
+    lin = []
+    for k, f in enumerate(feats):
+        if fixed and init[k].has_distortion and len(f.keypoints):
+            ci = init[k]
+            lin.append(ci.pixels_from_normalized(ci.undistort(ci.normalized_from_pixels(f.keypoints))))
+        else:
+            lin.append(f.keypoints)
+
+    # -- pairwise matching --------------------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    ij = [(i, j) for i in range(n) for j in range(i + 1, n)]
+
+    def match(pair: tuple[int, int]) -> reg.PairMatch:
+        i, j = pair
+        pm = reg.match_pair(i, j, feats[i], feats[j], lin[i], lin[j], ratio=opts.match_ratio,
+                            ransac_work_px=opts.ransac_work_px, seed=opts.seed)
+        if pm.n_inliers < opts.min_inliers:
+            pm.confidence = min(pm.confidence, opts.conf_thresh)  # too few to trust
+        return pm
+
+    pairs: list[reg.PairMatch] = []
+    with ThreadPoolExecutor(max_workers=_workers()) as pool:
+        for pm in pool.map(match, ij):
+            pairs.append(pm)
+            progress(0.2 + 0.2 * len(pairs) / max(len(ij), 1), f"matching {names[pm.i]} - {names[pm.j]}")
+    timings["matching_s"] = time.perf_counter() - t0
+    kept = reg.largest_component(n, pairs, opts.conf_thresh)
+    rejected = []
+    for k in range(n):
+        if k in kept:
+            continue
+        cand = [p for p in pairs if k in (p.i, p.j) and (p.j if p.i == k else p.i) in kept]
+        best = max(cand, key=lambda p: p.confidence, default=None)
+        if best is None or best.n_matches == 0:
+            why = "no feature matches with the kept photos"
+        else:
+            other = names[best.j if best.i == k else best.i]
+            why = (f"no confident match with the kept photos (best: {other}, {best.n_inliers} inliers of "
+                   f"{best.n_matches} matches, confidence {best.confidence:.2f} <= {opts.conf_thresh})")
+        if len(feats[k].keypoints) < 20:
+            why += f"; only {len(feats[k].keypoints)} features (blank or blurred photo?)"
+        rejected.append({"name": names[k], "reason": why})
+        log.warning("stitch: %s left out: %s", names[k], why)
+    if len(kept) < 2:
+        raise InputError(f"no two photos of {[str(p) for p in photos]} overlap with enough matches to be stitched "
+                         f"({'; '.join(r['name'] + ': ' + r['reason'] for r in rejected)}); take photos with about "
+                         f"30 to 50 % overlap, or use camera.source = 'sfm' for photos from different places")
+    kept_pairs = [p for p in pairs if p.i in kept and p.j in kept and p.confidence > opts.conf_thresh]
+
+    # -- initial intrinsics and rotations --------------------------------------------------------------------
+    progress(0.42, "rotations and focal")
+    if not fixed:
+        centres = {k: ((sizes[k][0] - 1) / 2.0, (sizes[k][1] - 1) / 2.0) for k in range(n)}
+        f_h = reg.focal_from_homographies(kept_pairs, centres)
+        for k in kept:
+            w, h = sizes[k]
+            prior = focal_priors_px.get(names[k])
+            f = prior or f_h or float(w + h)  # OpenCV's fallback when the homographies say nothing
+            init[k] = CameraIntrinsics(width=w, height=h, fx=f, fy=f, cx=centres[k][0], cy=centres[k][1])
+        if source == "fallback" and f_h is None:
+            log.warning("stitch: the homographies do not determine the focal length; starting from w + h")
+    # camera groups (one focal and lens per group): photos of about the same size (1 %) and the same EXIF focal
+    groups: dict[int, int] = {}
+    reps: list[int] = []
+    for k in kept:
+        for g, r in enumerate(reps):
+            fk, fr = focal_priors_px.get(names[k]) or 0.0, focal_priors_px.get(names[r]) or 0.0
+            same = (abs(sizes[k][0] / sizes[r][0] - 1) < 0.01 and abs(sizes[k][1] / sizes[r][1] - 1) < 0.01
+                    and round(fk, 1) == round(fr, 1))
+            if same and not fixed:
+                groups[k] = g
+                break
+        else:
+            groups[k] = len(reps)
+            reps.append(k)
+    Ks = {k: init[k].K for k in kept}
+    R0 = reg.rotations_from_homographies(kept, kept_pairs, Ks)
+
+    # -- bundle adjustment ------------------------------------------------------------------------------------------
+    t0 = time.perf_counter()
+    progress(0.45, "bundle adjustment")
+    obs = reg.stack_observations(kept_pairs, feats, kept, seed=opts.seed)
+    wscale = {k: feats[k].work_scale for k in kept}
+    prior = None
+    if source == "exif":
+        prior = {groups[k]: focal_priors_px[names[k]] for k in kept}
+    root_first = sorted(kept, key=lambda k: -sum(p.n_inliers for p in kept_pairs if k in (p.i, p.j)))
+    # focal and distortion trade off along a shallow valley: the lens fit starts from the initial focal
+    # (EXIF or homographies), not from a pinhole fit, whose focal has absorbed the distortion
+    lens = not fixed and opts.estimate_distortion
+    ba = reg.bundle_adjust(obs, root_first, groups, init, R0, wscale, fixed_intrinsics=fixed, estimate_k1=lens,
+                           focal_prior=prior)
+    focal_model = "fixed" if fixed else "shared"
+    if not fixed and len(set(groups.values())) < len(kept) and _rms_work(ba, obs, wscale) > 0.8:
+        # one focal per photo when that fits clearly better (zoom changed between photos; no k1 then)
+        own = {k: n_ for n_, k in enumerate(kept)}
+        ba_own = reg.bundle_adjust(obs, root_first, own, init, R0, wscale, fixed_intrinsics=False,
+                                   estimate_k1=False)
+        rms_shared, rms_own = _rms_work(ba, obs, wscale), _rms_work(ba_own, obs, wscale)
+        log.info("stitch: RMS %.3f (one camera: f %.1f, k1 %.4f) vs %.3f work px (one focal per photo)", rms_shared,
+                 ba.intrinsics[kept[0]].fx, ba.intrinsics[kept[0]].k1, rms_own)
+        if rms_shared > 1.3 * rms_own + 0.2:
+            ba, groups, focal_model = ba_own, own, "per_photo"
+    timings["bundle_adjustment_s"] = time.perf_counter() - t0
+
+    # -- residuals and the parallax check ------------------------------------------------------------------------
+    s_obs = np.array([min(wscale[a], wscale[b]) for a, b in zip(obs.a, obs.b)])
+    err_full = np.linalg.norm(ba.residuals_px, axis=2)  # (M, 2)
+    err_work = err_full * s_obs[:, None]
+    f_obs = np.array([ba.intrinsics[a].fx for a in obs.a])
+    err_deg = np.degrees(err_full / f_obs[:, None])
+    u = ba.used
+    rms_w = float(np.sqrt(np.mean(err_work[u] ** 2)))
+    p90_w = float(np.percentile(err_work[u], 90))
+    per_pair = []
+    for pid in np.unique(obs.pair):
+        m = (obs.pair == pid) & u
+        p = kept_pairs[pid]
+        if m.any():
+            per_pair.append({"photos": [names[p.i], names[p.j]], "n": int(m.sum()),
+                             "rms_work_px": round(float(np.sqrt(np.mean(err_work[m] ** 2))), 3)})
+    verdict = "ok" if (rms_w <= opts.parallax_rms_work_px and p90_w <= opts.parallax_p90_work_px) else "parallax"
+    parallax = {
+        "verdict": verdict, "n_observations": int(len(u)), "n_used": int(u.sum()),
+        "rms_work_px": round(rms_w, 4), "p90_work_px": round(p90_w, 4),
+        "median_work_px": round(float(np.median(err_work[u])), 4),
+        "rms_full_px": round(float(np.sqrt(np.mean(err_full[u] ** 2))), 4),
+        "rms_deg": round(float(np.sqrt(np.mean(err_deg[u] ** 2))), 5),
+        "threshold_rms_work_px": opts.parallax_rms_work_px, "threshold_p90_work_px": opts.parallax_p90_work_px,
+        "per_pair": per_pair,
+    }
+    if verdict == "parallax":
+        msg = (f"the photos do not fit a camera turning about one point (rotation-only residuals: RMS "
+               f"{rms_w:.2f} px, 90th percentile {p90_w:.2f} px at registration scale, above "
+               f"{opts.parallax_rms_work_px} / {opts.parallax_p90_work_px}): they were taken from different positions "
+               f"(parallax), and a "
+               f"panorama of them would ghost. Set camera.source = \"sfm\" in project.toml to use the multi-view "
+               f"route, or retake the photos turning the camera about its lens")
+        log.warning("stitch: %s", msg)
+        if opts.check_parallax:
+            raise InputError(msg)
+
+    # -- wave correction, projection, model --------------------------------------------------------------------------
+    Rs = dict(ba.cam_from_pano)
+    if opts.wave_correct:
+        W = reg.wave_correct(Rs)  # pano_from_pano0
+        Rs = {k: R @ W.T for k, R in Rs.items()}
+    proj, R_axis, extents = _choose_frame_and_projection(Rs, ba.intrinsics, opts)
+    Rs = {k: R @ R_axis.T for k, R in Rs.items()}
+    sources = tuple(PanoramaSource(name=names[k], image=image_refs[k], intrinsics=ba.intrinsics[k],
+                                   cam_from_pano=reg._nearest_rotation(Rs[k])) for k in kept)
+    scale = float(np.median([ba.intrinsics[k].fx for k in kept]))
+    model = _fit_extent(PanoramaModel(projection=proj, scale=scale, offset=(0.0, 0.0), width=1, height=1,
+                                      sources=sources))
+    out_scale = 1.0
+    if model.width * model.height > opts.max_output_megapix * 1e6:
+        out_scale = float(np.sqrt(opts.max_output_megapix * 1e6 / (model.width * model.height)))
+        model = _fit_extent(PanoramaModel(projection=proj, scale=scale * out_scale, offset=(0.0, 0.0), width=1,
+                                          height=1, sources=sources))
+        log.warning("stitch: panorama reduced by %.3f to stay under %.0f MP", out_scale, opts.max_output_megapix)
+
+    image = None
+    comp_stats: dict = {}
+    if opts.compose:
+        t0 = time.perf_counter()
+        progress(0.55, "composing")
+        # seam-resolution panorama: the photos' seam scale relative to the output panorama's scale
+        seam_scale = float(np.median([small[k].shape[1] / sizes[k][0] for k in kept])) / out_scale
+        image, comp_stats = compose(model, [photos[k] for k in kept], [small[k] for k in kept],
+                                    seam_scale=seam_scale,
+                                    progress=lambda f, m="": progress(0.55 + 0.43 * f, m))
+        timings["compose_s"] = time.perf_counter() - t0
+    progress(1.0, "done")
+    stats = {
+        "n_photos": n, "n_kept": len(kept), "n_rejected": len(rejected), "kept": [names[k] for k in kept],
+        "rejected": rejected, "intrinsics_source": source, "focal_model": focal_model, "projection": proj,
+        "scale": scale * out_scale,
+        "size": [model.width, model.height], "output_scale": out_scale, "extents": extents,
+        "focal_px": {names[k]: round(ba.intrinsics[k].fx, 3) for k in kept},
+        "k1": {names[k]: round(ba.intrinsics[k].k1, 5) for k in kept},
+        "pairs": [{"photos": [names[p.i], names[p.j]], "matches": p.n_matches, "inliers": p.n_inliers,
+                   "confidence": round(p.confidence, 3)} for p in pairs if p.n_matches > 0],
+        "ba": {"cost": ba.cost, "nfev": ba.n_iterations},
+        "parallax": {k: v for k, v in parallax.items() if k != "per_pair"},
+        "timings_s": {k: round(v, 3) for k, v in timings.items()},
+        "time_s": round(time.perf_counter() - t_start, 3), "peak_rss_mb": round(_peak_rss_mb(), 1),
+        **({"compose": comp_stats} if comp_stats else {}),
+    }
+    return StitchResult(model=model, image=image, rejected=rejected, intrinsics_source=source, parallax=parallax,
+                        stats=stats)
+
+
+def _rms_work(ba: "reg.BAResult", obs: "reg.Observations", wscale: dict[int, float]) -> float:
+    s = np.array([min(wscale[a], wscale[b]) for a, b in zip(obs.a, obs.b)])
+    e = np.linalg.norm(ba.residuals_px, axis=2) * s[:, None]
+    return float(np.sqrt(np.mean(e[ba.used] ** 2)))
+
+
+def _fit_extent(model: PanoramaModel) -> PanoramaModel:
+    """The model with offset, width and height set to the bounding box of every source photo's border."""
+
+    pts = []
+    for i, s in enumerate(model.sources):
+        w, h = s.intrinsics.width, s.intrinsics.height
+        t = np.linspace(0, 1, 65)
+        b = np.concatenate([np.column_stack([t * w - 0.5, np.full_like(t, -0.5)]),
+                            np.column_stack([t * w - 0.5, np.full_like(t, h - 0.5)]),
+                            np.column_stack([np.full_like(t, -0.5), t * h - 0.5]),
+                            np.column_stack([np.full_like(t, w - 0.5), t * h - 0.5])])
+        pts.append(model.project(s.intrinsics.rays(b) @ s.cam_from_pano))
+    uv = np.concatenate(pts)
+    uv = uv[np.all(np.isfinite(uv), axis=1)]
+    # warped = uv (offset 0); pixel centres from floor(min) + 0.5 ... keep pixel edges at the border
+    lo = np.floor(uv.min(axis=0) + 0.5)
+    hi = np.ceil(uv.max(axis=0) - 0.5)
+    width, height = int(hi[0] - lo[0]) + 1, int(hi[1] - lo[1]) + 1
+    return replace(model, offset=(float(lo[0]), float(lo[1])), width=width, height=height)
