@@ -178,6 +178,52 @@ def types(project: Optional[Path] = typer.Option(None, help="also list an incide
     out.print(table)
 
 
+@app.command()
+def view(path: Path = typer.Argument(..., help="incident folder (its solve must have run)"),
+         screenshot: Optional[Path] = typer.Option(None, help="draw one frame, save it as PNG and exit"),
+         select: Optional[str] = typer.Option(None, help="car number to select at start"),
+         width: int = typer.Option(1280, min=320, max=7680), height: int = typer.Option(800, min=240, max=4320)
+         ) -> None:
+    """Open the 3D viewer: orbit the scene, toggle layers, pick a carriage to see its numbers (needs a display;
+    use `xvfb-run -a workbench view ...` on a machine without one)."""
+    from .viewer.app import view as open_view
+
+    shot = open_view(path, screenshot=screenshot, select=select, width=width, height=height)
+    if shot is not None:
+        out.print(f"screenshot {shot}")
+
+
+@app.command()
+def calibrate(images_dir: Path = typer.Argument(..., help="folder of chessboard photos"),
+              out_path: Path = typer.Option(Path("camera_profile.json"), "--out", help="camera profile to write"),
+              pattern: str = typer.Option("9x6", help="inner corners per row x per column, e.g. 9x6"),
+              square_mm: float = typer.Option(25.0, "--square-mm", help="side of one square, millimetres"),
+              glob: str = typer.Option("*", help="which photos of the folder, e.g. 'left*.jpg'"),
+              fix_k3: bool = typer.Option(False, "--fix-k3", help="hold k3 at 0 (lenses with little distortion)"),
+              max_view_rms_px: Optional[float] = typer.Option(None, "--max-view-rms-px",
+                                                              help="drop photos whose RMS exceeds this, refit"),
+              sensor_width_mm: Optional[float] = typer.Option(None, "--sensor-width-mm")) -> None:
+    """Calibrate a camera from chessboard photos and write a camera profile that incidents reuse."""
+    from .intrinsics.calibrate import run_calibrate
+
+    st = run_calibrate(images_dir, out_path, pattern=pattern, square_mm=square_mm, fix_k3=fix_k3,
+                       max_view_rms_px=max_view_rms_px, sensor_width_mm=sensor_width_mm, glob=glob)
+    out.print(f"wrote {out_path}: {st['n_used']} of {st['n_images']} photos used, RMS {st['rms_px']:.3f} px")
+    for r in st.get("rejected", []):
+        out.print(f"  not used: {r}")
+
+
+@app.command(name="control-points")
+def control_points(path: Path = typer.Argument(..., help="synthetic incident folder"),
+                   force: bool = typer.Option(False, "--force", help="replace an existing control_points.json")
+                   ) -> None:
+    """Write control_points.json for a synthetic incident: surveyed landmarks and their pixels, from its truth
+    (`workbench synth` does this too)."""
+    from .synth.control_points import write_control_points
+
+    out.print(f"wrote {write_control_points(path, force=force)}")
+
+
 def _register_stage_commands() -> None:
     from .pipeline import STAGES
 

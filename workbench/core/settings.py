@@ -113,6 +113,9 @@ class ProjectSettings(_Strict):
     terrain: Terrain = Terrain()
     consist: Annotated[list[Car], Field(min_length=1)]
     camera: Camera = Camera()
+    # optional [sfm] table: pycolmap options for the multi-view route (keys of workbench.intrinsics.sfm.SfmOptions,
+    # plus preset = "forward_motion"); checked by the sfm stage, which rejects unknown keys
+    sfm: dict[str, Any] | None = None
     solver: Solver = Solver()
 
     @model_validator(mode="after")

@@ -183,6 +183,9 @@ def _linear_from_srgb(c: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
 
 
+_SRGB_TO_LINEAR = _linear_from_srgb(np.arange(256) / 255.0).astype(np.float32)  # per 8-bit sRGB value
+
+
 def _texture_image(visual) -> np.ndarray | None:
     mat = getattr(visual, "material", None)
     if mat is None:
@@ -211,7 +214,7 @@ def _material_base_color(visual, textured: bool) -> np.ndarray:
     return np.ones(3)
 
 
-def _to_open3d(item: SceneMesh):
+def to_open3d(item: SceneMesh):
     """(Open3D mesh with per-corner normals/colours/UVs, lit material) for one SceneMesh."""
     import open3d as o3d
     from open3d.visualization import rendering
@@ -294,7 +297,7 @@ class OffscreenScene:
             raise ValueError(f"a mesh named {item.name!r} is already in the scene")
         if int(item.instance_id) < -1:
             raise ValueError(f"{item.name!r}: instance_id={item.instance_id} must be >= 0, or -1 for none")
-        m, mat = _to_open3d(item) if self.engine == "filament" else (None, None)
+        m, mat = to_open3d(item) if self.engine == "filament" else (None, None)
         self._items[item.name] = (item, m, mat)
         self._shading[item.name] = _ShadingData.of(item)
         self._version += 1
@@ -469,7 +472,8 @@ class _ShadingData:
         uv = getattr(visual, "uv", None) if kind == "texture" else None
         if tex is not None and uv is not None and len(uv) == len(V):
             base = _material_base_color(visual, True)
-            lin = (_linear_from_srgb(tex.astype(np.float32) / 255.0) * base).astype(np.float32)
+            lin = (_SRGB_TO_LINEAR[tex] * np.asarray(base, dtype=np.float32)).astype(np.float32) \
+                if tex.dtype == np.uint8 else (_linear_from_srgb(tex.astype(np.float32) / 255.0) * base).astype(np.float32)
             return cls(normals, np.asarray(uv, dtype=np.float32)[Fa], lin, None)
         colors = None
         if kind == "vertex":

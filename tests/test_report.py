@@ -1,0 +1,233 @@
+"""Render and report stages on a small synthetic incident: renders against the truth masks, the PDF's pages
+and text, the index files, and the errors for missing stages and missing rendering libraries."""
+
+from __future__ import annotations
+
+import json
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from workbench import pipeline
+from workbench.errors import InputError, RenderError, StageError
+from workbench.project import Project
+from workbench.report import render_stage, report_stage
+from workbench.runner import Runner
+
+SYNTH = dict(n_cars=3, photo_width=320, photo_height=240, n_panorama=2, n_multiview=0)  # `workbench synth` options
+SMALL = {"OVERVIEW_SIZE": (480, 300), "MAP_SIZE": (360, 360), "CLOSEUP_SIZE": (320, 200), "ORBIT_SIZE": (200, 125),
+         "ORBIT_FRAMES": 6}
+
+
+def synth_incident(base: Path) -> Path:
+    """A 3-carriage synthetic incident with known cameras and true picks (1 px noise), generated once per session."""
+    from workbench.synth.generate import SynthOptions, generate_incident
+    from workbench.synth.handpicks import write_known_cameras, write_true_correspondences
+
+    root = base / "report_incident"
+    generate_incident(root, SynthOptions(**SYNTH))  # a no-op when already generated with these options
+    if not (root / "cameras.json").is_file():
+        write_known_cameras(root)
+        write_true_correspondences(root, sigma_px=1.0, seed=0)
+    return root
+
+
+def stages() -> list:
+    """The pipeline's stages (with this package's two, should the pipeline not list them)."""
+    names = [s.name for s in pipeline.STAGES]
+    return list(pipeline.STAGES) + [s for s in (render_stage.STAGE, report_stage.STAGE) if s.name not in names]
+
+
+@pytest.fixture(scope="module")
+def incident(tmp_path_factory):
+    root = synth_incident(tmp_path_factory.getbasetemp())
+    work = tmp_path_factory.mktemp("report") / "inc"
+    shutil.copytree(root, work, ignore=shutil.ignore_patterns("out"))
+    project = Project(work)
+    with pytest.MonkeyPatch.context() as mp:
+        for k, v in SMALL.items():
+            mp.setattr(render_stage, k, v)
+        events = []
+        Runner(project, stages()).run(until="report", on_event=lambda kind, spec, rec: events.append((kind, spec.name)))
+    assert ("done", "render") in events and ("done", "report") in events
+    return project
+
+
+def test_renders_index(incident):
+    idx = json.loads((incident.stage_dir("render") / "renders.json").read_text())
+    kinds = [r["kind"] for r in idx["renders"]]
+    assert kinds.count("overview") == 1 and kinds.count("map") == 1 and kinds.count("orbit") == 1
+    assert kinds.count("photo") == 2
+    assert sorted(r["carriage"] for r in idx["renders"] if r["kind"] == "closeup") == \
+        sorted(c.number for c in incident.settings.consist)
+    for r in idx["renders"]:
+        with Image.open(incident.path(r["path"])) as im:
+            if r["kind"] in ("overview", "closeup", "photo"):
+                assert im.size == (r["width"], r["height"])
+            # not a blank picture
+            assert np.asarray(im.convert("L")).std() > 10.0
+    m = next(r for r in idx["renders"] if r["kind"] == "map")
+    x0, x1, y0, y1 = m["extent_enu"]
+    sol = json.loads((incident.stage_dir("solve") / "solution.json").read_text())
+    for c in sol["carriages"]:
+        e, n = c["body_centre_enu"][:2]
+        assert x0 < e < x1 and y0 < n < y1
+    assert 0.3 < m["grid_convergence_deg"] < 1.1  # UTM 18N at the Bronx: about +0.7 degrees
+    stats = json.loads((incident.stage_dir("render") / "stats.json").read_text())
+    assert stats["terrain_textured"] is True and stats["n_renders"] == len(idx["renders"])
+
+
+def test_photo_overlay_matches_truth_masks(incident):
+    """The carriages rendered from each photo's own camera cover the truth instance masks (solved poses, 1 px noise)."""
+    truth = json.loads((incident.truth_dir / "ground_truth.json").read_text())
+    idx = json.loads((incident.stage_dir("render") / "renders.json").read_text())
+    checked = 0
+    for r in (r for r in idx["renders"] if r["kind"] == "photo"):
+        ph = next(p for p in truth["photos"] if Path(p["photo"]).name == r["view"])
+        true_ids = np.asarray(Image.open(incident.path(ph["mask"])))
+        ids = np.asarray(Image.open(incident.path(r["ids"])))
+        assert ids.shape == true_ids.shape
+        for c in truth["carriages"]:
+            t = true_ids == c["instance_id"]
+            if t.sum() < 150:
+                continue
+            k = c["index"]
+            mine = ids == k
+            iou = (t & mine).sum() / (t | mine).sum()
+            assert 0.80 < iou <= 1.0, (r["view"], c["number"], iou)
+            assert 0.8 < mine.sum() / t.sum() < 1.2
+            # and against the other carriages' masks: nearly no overlap
+            for o in truth["carriages"]:
+                if o["index"] != k and (true_ids == o["instance_id"]).sum() >= 150:
+                    assert ((true_ids == o["instance_id"]) & mine).sum() / mine.sum() < 0.1
+            checked += 1
+        overlay = np.asarray(Image.open(incident.path(r["path"])).convert("RGB")).astype(int)
+        photo = np.asarray(Image.open(incident.path(ph["photo"])).convert("RGB")).astype(int)
+        # the overlay changes the photo on carriage pixels only
+        changed = np.abs(overlay - photo).sum(axis=2) > 40
+        assert changed[ids == 255].mean() < 0.02
+    assert checked >= 2
+
+
+def test_terrain_texture_matches_photos(incident):
+    """The orthophoto is draped where the synthetic photos saw it: the render from a photo's camera matches the photo
+    on terrain pixels, and worse when shifted by 3 px."""
+    from workbench.render.lens import render_photo
+    from workbench.report.scene import load_scene
+
+    sc = load_scene(incident)
+    sr = render_stage.SceneRenderer(sc, camera_glyphs=False)
+    cam = sc.cameras[0]
+    res = render_photo(sr.scene, cam.intrinsics, cam.cam_from_world, supersample=1)
+    photo = np.asarray(Image.open(cam.image).convert("RGB")).astype(float)
+    ground = (res.instance < 0) & np.isfinite(res.depth)
+    assert ground.mean() > 0.2
+    err = np.abs(res.color.astype(float) - photo).mean(axis=2)[ground].mean()
+    shifted = np.abs(np.roll(res.color.astype(float), 3, axis=1) - photo).mean(axis=2)[ground].mean()
+    assert 0.5 < err < 10.0 and err < shifted - 0.5
+
+
+def _pdftotext(pdf: Path) -> str:
+    return subprocess.run(["pdftotext", "-layout", str(pdf), "-"], check=True, capture_output=True, text=True).stdout
+
+
+@pytest.mark.skipif(shutil.which("pdftotext") is None, reason="poppler-utils (pdftotext) not installed")
+def test_pdf_pages_and_text(incident):
+    out = incident.stage_dir("report")
+    pdf = out / "report.pdf"
+    text = _pdftotext(pdf)
+    facts = json.loads((out / "report.json").read_text())
+    info = subprocess.run(["pdfinfo", str(pdf)], check=True, capture_output=True, text=True).stdout
+    pages = int(re.search(r"Pages:\s+(\d+)", info).group(1))
+    assert pages == facts["pages"] and 6 <= pages <= 14
+    assert f"Page 1 of {pages}" in text and f"Page {pages} of {pages}" in text
+    s = incident.settings
+    assert s.incident.name.split(",")[0] in text
+    assert "SYNTHETIC INCIDENT" in text and s.incident.date.isoformat() in text
+    for title in ("Site plan", "Carriages", "Measurements in the photographs", "Reconstruction against the",
+                  "Provenance", "Software", "Settings"):
+        assert title in text
+    sol = json.loads((incident.stage_dir("solve") / "solution.json").read_text())
+    for c in sol["carriages"]:
+        assert c["number"] in text
+        # the table shows the solution's coordinates (cm) and heading (0.1 degree)
+        e, n, _h = c["body_centre_crs"]
+        assert f"{e:.2f}" in text and f"{n:.2f}" in text
+        assert f"{c['heading_deg']:.1f}" in text
+    # "in brief": the wreck's extent from the body centres
+    P = np.array([c["body_centre_enu"] for c in sol["carriages"] if c["status"] != "left_out"])
+    span = np.max(np.linalg.norm(P[:, None, :2] - P[None, :, :2], axis=2))
+    assert f"lie within {span:.0f} m of one another" in " ".join(facts["findings"])
+    assert "In brief".upper() in text.upper()
+    # provenance: the hash of the solution file the render stage read
+    state = json.loads(incident.state_path.read_text())
+    assert state["render"]["inputs"]["solution"][:16] in text
+
+
+def test_panorama_figure_carries_every_point(incident):
+    """With a stitched panorama, every marked point of every photo is drawn in it (through the panorama model)."""
+    if not (incident.stage_dir("stitch") / "panorama.json").is_file():
+        pytest.skip("the stitch stage made no panorama here")
+    facts = json.loads((incident.stage_dir("report") / "report.json").read_text())
+    sol = json.loads((incident.stage_dir("solve") / "solution.json").read_text())
+    n = sum(len(pts) for c in sol["carriages"] for pts in (c.get("observations") or {}).values())
+    assert facts["panorama"] is not None and facts["panorama"]["n_points"] == n
+    # the residuals keep their size through the (nearly pinhole) panorama: RMS within 25% of the photos' RMS
+    assert 0.75 < facts["panorama"]["rms_px"] / facts["residuals"]["rms_px"] < 1.25
+    assert sum(o["n_points"] for o in facts["observations"]) == n
+
+
+def test_html_links_exist(incident):
+    out = incident.stage_dir("report")
+    html = (out / "report.html").read_text()
+    srcs = re.findall(r'src="([^"]+)"', html)
+    assert len(srcs) >= 8
+    for s in srcs:
+        assert (out / s).is_file(), s
+
+
+def test_missing_stages_are_named(incident, tmp_path):
+    work = tmp_path / "inc"
+    shutil.copytree(incident.root, work, ignore=shutil.ignore_patterns("out"))
+    project = Project(work)
+    with pytest.raises(InputError, match="'solve' stage"):
+        render_stage.STAGE.run(project, lambda f, m="": None)
+    with pytest.raises(InputError, match="'solve' stage"):
+        report_stage.STAGE.run(project, lambda f, m="": None)
+    with pytest.raises(StageError, match="'solve'"):
+        Runner(project, stages()).run(only=["render"])
+    # a solution but no renders: the report names the render stage
+    (project.stage_dir("solve")).mkdir(parents=True)
+    shutil.copy(incident.stage_dir("solve") / "solution.json", project.stage_dir("solve") / "solution.json")
+    with pytest.raises(InputError, match="'render' stage"):
+        report_stage.STAGE.run(project, lambda f, m="": None)
+
+
+def test_missing_open3d_names_debian_packages(monkeypatch):
+    monkeypatch.setitem(sys.modules, "open3d", None)  # import open3d now raises ImportError
+    with pytest.raises(RenderError, match="apt-get install -y .*mesa-vulkan-drivers"):
+        render_stage._require_open3d()
+
+
+def test_bad_engine_is_refused(monkeypatch):
+    monkeypatch.setenv(render_stage.ENGINE_ENV, "opengl")
+    with pytest.raises(RenderError, match="raytrace"):
+        render_stage._engine()
+
+
+def test_nice_length_and_top_down_camera():
+    assert [render_stage._nice_length(x) for x in (0.9, 1.0, 3.7, 19.0, 60.0)] == [0.5, 1.0, 2.0, 10.0, 50.0]
+    K, M, mpp = render_stage.top_down_camera(np.array([10.0, -5.0]), 50.0, 500, ground_z=2.0)
+    # a ground point 40 m east and 20 m north of the centre lands 200 px right and 100 px up of the image centre
+    from workbench.core.camera import CameraIntrinsics, project_world
+
+    intr = CameraIntrinsics.from_K(K, 500, 500)
+    uv, depth = project_world(intr, M, np.array([[50.0, 15.0, 2.0]]))
+    assert np.allclose(uv[0], [249.5 + 200.0, 249.5 - 100.0], atol=1e-6)
+    assert mpp == pytest.approx(0.2) and depth[0] > 0

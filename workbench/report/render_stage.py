@@ -1,0 +1,480 @@
+"""The ``render`` stage: off-screen pictures of the reconstructed scene, for the report and for people.
+
+Writes under ``out/render/``:
+
+* ``overview.png``: the whole scene from above and beside the camera's side of the wreck;
+* ``map.png``: a top-down map (true north up, scene frame), carriages outlined and numbered, the camera(s),
+  a scale bar and a north arrow with grid north beside it;
+* ``photo_<view>.png``: each photo with the reconstruction seen from the photo's own camera (through its
+  lens model) blended over it, carriages outlined in their colours; ``photo_<view>_ids.png`` the carriage
+  ids of that render (8-bit: the carriage's index in ``solution.json``, 255 = none);
+* ``car_<number>.png``: a close-up of every carriage with a pose;
+* ``orbit.gif`` (an animation around the scene) and ``orbit_sheet.png`` (some of its frames);
+* ``renders.json``: the index of all of them (kind, file, size, camera, time), read by the report.
+
+Renders use :class:`workbench.render.OffscreenScene`, by default its CPU ray tracer (Open3D's Embree
+``RaycastingScene``); ``WORKBENCH_RENDER_ENGINE=filament`` selects Open3D's Filament rasteriser (Vulkan; on
+a GPU, or lavapipe on the CPU). The scene is read only from files (see :mod:`workbench.report.scene`).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..core.camera import CameraIntrinsics, look_at
+from ..errors import RenderError
+from ..project import Project
+from ..runner import Progress, StageResult, StageSpec
+from .scene import IncidentScene, PlacedCarriage, camera_glyph, car_color, load_scene, scene_input_files
+
+log = logging.getLogger(__name__)
+
+ENGINE_ENV = "WORKBENCH_RENDER_ENGINE"
+DEBIAN_PACKAGES = "libgl1 libegl1 libgomp1 libusb-1.0-0 libvulkan1 mesa-vulkan-drivers"
+
+# sizes (width, height) px and supersampling of each kind of render
+OVERVIEW_SIZE = (1120, 700)
+MAP_SIZE = (900, 900)
+CLOSEUP_SIZE = (600, 375)
+ORBIT_SIZE = (480, 300)
+ORBIT_FRAMES = 12
+PHOTO_MAX_WIDTH = 960
+HFOV_DEG = 45.0
+SUN_AZIMUTH_DEG, SUN_ELEVATION_DEG = 150.0, 40.0
+
+
+def _engine() -> str:
+    engine = os.environ.get(ENGINE_ENV, "raytrace")
+    if engine not in ("raytrace", "filament"):
+        raise RenderError(f"{ENGINE_ENV}={engine!r}: choose 'raytrace' (CPU) or 'filament' (Vulkan)")
+    return engine
+
+
+def _require_open3d() -> None:
+    try:
+        import open3d  # noqa: F401
+    except (ImportError, OSError) as exc:  # a missing shared library shows up as an ImportError/OSError
+        raise RenderError(f"Open3D cannot be loaded ({exc}); install its system libraries, on Debian/Ubuntu: "
+                          f"`apt-get install -y {DEBIAN_PACKAGES}`") from None
+
+
+def _pinhole(width: int, height: int, hfov_deg: float = HFOV_DEG) -> np.ndarray:
+    f = 0.5 * width / math.tan(math.radians(hfov_deg) / 2.0)
+    return np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
+
+
+def _fit_distance(radius: float, width: int, height: int, hfov_deg: float = HFOV_DEG, margin: float = 1.1) -> float:
+    """Distance at which a sphere of ``radius`` fills the narrower field of view."""
+    hf = math.radians(hfov_deg) / 2.0
+    vf = math.atan(math.tan(hf) * height / width)
+    return margin * radius / math.sin(min(hf, vf))
+
+
+def _direction(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+    """Unit vector from the target towards the eye: compass azimuth (clockwise from north), elevation above horizon."""
+    a, e = math.radians(azimuth_deg), math.radians(elevation_deg)
+    return np.array([math.sin(a) * math.cos(e), math.cos(a) * math.cos(e), math.sin(e)])
+
+
+def _viewer_azimuth(sc: IncidentScene, centre: np.ndarray) -> float:
+    """Compass azimuth from the scene centre towards the photo cameras (where people stood), else south-east."""
+    if not sc.cameras:
+        return 135.0
+    d = np.mean([c.center_enu for c in sc.cameras], axis=0) - centre
+    if np.hypot(d[0], d[1]) < 1.0:
+        return 135.0
+    return math.degrees(math.atan2(d[0], d[1])) % 360.0
+
+
+class SceneRenderer:
+    """An :class:`OffscreenScene` holding the incident's layers; renders named views."""
+
+    def __init__(self, sc: IncidentScene, *, engine: str | None = None, camera_glyphs: bool = True) -> None:
+        _require_open3d()
+        from ..render.offscreen import OffscreenScene, SceneMesh
+
+        self.sc = sc
+        self.scene = OffscreenScene(*OVERVIEW_SIZE, background_rgb=(0.70, 0.80, 0.91), supersample=2,
+                                    engine=engine or _engine())
+        if sc.terrain is not None:
+            self.scene.add(SceneMesh("terrain", sc.terrain))
+        if sc.buildings is not None:
+            self.scene.add(SceneMesh("buildings", sc.buildings))
+        for c in sc.carriages:
+            self.scene.add(SceneMesh(f"car_{c.number}", c.mesh, instance_id=c.index))
+        self.centre, self.radius = sc.focus()
+        self._glyphs: list[str] = []
+        if camera_glyphs:
+            size = float(np.clip(0.05 * self.radius, 1.5, 8.0))
+            for i, cam in enumerate(sc.cameras):
+                name = f"camera_{i}"
+                self.scene.add(SceneMesh(name, camera_glyph(cam, size)))
+                self._glyphs.append(name)
+        az, el = math.radians(SUN_AZIMUTH_DEG), math.radians(SUN_ELEVATION_DEG)
+        self.scene.set_sun(-np.array([math.sin(az) * math.cos(el), math.cos(az) * math.cos(el), math.sin(el)]))
+
+    def without_glyphs(self) -> None:
+        for n in self._glyphs:
+            self.scene.remove(n)
+        self._glyphs = []
+
+    def render(self, cam_from_world: np.ndarray, size: tuple[int, int], *, K: np.ndarray | None = None,
+               supersample: int = 2):
+        w, h = size
+        K = _pinhole(w, h) if K is None else K
+        return self.scene.render(K, cam_from_world, size=(w, h), supersample=supersample)
+
+    def view_from(self, target: np.ndarray, radius: float, azimuth_deg: float, elevation_deg: float,
+                  size: tuple[int, int], *, margin: float = 1.1) -> np.ndarray:
+        """``cam_from_world`` of a camera looking at ``target`` from (azimuth, elevation), framing ``radius``."""
+        eye = np.asarray(target, float) + _direction(azimuth_deg, elevation_deg) * _fit_distance(radius, *size,
+                                                                                                  margin=margin)
+        return look_at(eye, target)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Individual pictures
+# ----------------------------------------------------------------------------------------------------------
+def top_down_camera(centre_en: np.ndarray, half_extent_m: float, size_px: int, ground_z: float,
+                    height_m: float | None = None) -> tuple[np.ndarray, np.ndarray, float]:
+    """(K, cam_from_world, metres per pixel at ``ground_z``) of a near-orthographic, north-up camera far above."""
+    # high enough that tall things lean little, low enough that the renderer's aerial haze stays faint
+    height_m = max(300.0, 6.0 * half_extent_m) if height_m is None else float(height_m)
+    R = np.array([[1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.0, 0.0, -1.0]])  # x east, y south (image down), z down
+    eye = np.array([centre_en[0], centre_en[1], ground_z + height_m])
+    M = np.eye(4)
+    M[:3, :3] = R
+    M[:3, 3] = -R @ eye
+    f = height_m * size_px / (2.0 * half_extent_m)
+    K = np.array([[f, 0.0, (size_px - 1) / 2.0], [0.0, f, (size_px - 1) / 2.0], [0.0, 0.0, 1.0]])
+    return K, M, 2.0 * half_extent_m / size_px
+
+
+def _nice_length(max_m: float) -> float:
+    """The largest of 1, 2, 5 x 10^k not above ``max_m``."""
+    k = 10 ** math.floor(math.log10(max_m))
+    for m in (5, 2, 1):
+        if m * k <= max_m:
+            return m * k
+    return k
+
+
+def draw_map(path: Path, image: np.ndarray, extent: tuple[float, float, float, float], sc: IncidentScene,
+             convergence_deg: float, crs_name: str, frame_note: str) -> None:
+    """A map figure: the top-down render with carriage outlines and numbers, cameras, scale bar, north arrows."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.patheffects as pe
+    import matplotlib.pyplot as plt
+    from matplotlib.patches import FancyArrow, Polygon, Rectangle
+
+    x0, x1, y0, y1 = extent
+    fig, ax = plt.subplots(figsize=(7.0, 7.0), dpi=150)
+    ax.imshow(image, extent=extent, origin="upper", interpolation="bilinear")
+    halo = [pe.withStroke(linewidth=3, foreground="white")]
+    for c in sc.carriages:
+        col = np.array(car_color(c.index)) / 255.0
+        fp = c.footprint_enu()
+        ax.add_patch(Polygon(fp, closed=True, fill=False, edgecolor=col, linewidth=1.6))
+        ax.plot(*c.front_enu()[:2], marker="o", color=col, markersize=3.5)
+        ctr = fp.mean(axis=0)
+        ax.annotate(c.number, ctr, xytext=(6, 6), textcoords="offset points", fontsize=8, fontweight="bold",
+                    color=col, path_effects=halo)
+    for cam in sc.cameras:
+        ce = cam.center_enu
+        if not (x0 <= ce[0] <= x1 and y0 <= ce[1] <= y1):
+            continue
+        fwd = cam.cam_from_world[2, :3]
+        ang = math.atan2(fwd[1], fwd[0])
+        half = math.atan(0.5 * cam.intrinsics.width / cam.intrinsics.fx)
+        L = 0.12 * (x1 - x0)
+        wedge = [ce[:2], ce[:2] + L * np.array([math.cos(ang + half), math.sin(ang + half)]),
+                 ce[:2] + L * np.array([math.cos(ang - half), math.sin(ang - half)])]
+        ax.add_patch(Polygon(wedge, closed=True, facecolor=(0.9, 0.15, 0.15, 0.18), edgecolor=(0.9, 0.15, 0.15),
+                             linewidth=0.8))
+        ax.plot(ce[0], ce[1], marker="^", color=(0.85, 0.1, 0.1), markersize=7, markeredgecolor="white")
+    if sc.cameras:
+        ax.plot([], [], marker="^", color=(0.85, 0.1, 0.1), linestyle="none", label="camera (photo position)")
+    ax.plot([], [], color="k", marker="o", markersize=3, linewidth=1.2, label="carriage outline, dot = front")
+    ax.legend(loc="best", fontsize=7, framealpha=0.85)
+    # scale bar (bottom left)
+    W = x1 - x0
+    L = _nice_length(W / 3.2)
+    bx, by = x0 + 0.05 * W, y0 + 0.05 * (y1 - y0)
+    bh = 0.012 * (y1 - y0)
+    ax.add_patch(Rectangle((bx - 0.01 * W, by - 2.2 * bh), L + 0.02 * W, 6.2 * bh, facecolor=(1, 1, 1, 0.8),
+                           edgecolor="none"))
+    for i in range(4):
+        ax.add_patch(Rectangle((bx + i * L / 4, by), L / 4, bh, facecolor="k" if i % 2 == 0 else "white",
+                               edgecolor="k", linewidth=0.6))
+    for f in (0.0, 0.5, 1.0):
+        ax.text(bx + f * L, by + 1.6 * bh, f"{f * L:g}", ha="center", va="bottom", fontsize=7)
+    ax.text(bx + L, by - 0.8 * bh, "metres", ha="right", va="top", fontsize=7)
+    # north arrows (top right): true north (scene +y) and grid north
+    marks = np.vstack([np.vstack([c.footprint_enu() for c in sc.carriages]) if sc.carriages else np.zeros((0, 2)),
+                       np.array([cam.center_enu[:2] for cam in sc.cameras]).reshape(-1, 2)])
+    corners = [(x1 - 0.08 * W, y1 - 0.2 * (y1 - y0)), (x0 + 0.08 * W, y1 - 0.2 * (y1 - y0))]
+    clear = [float(np.min(np.linalg.norm(marks - np.array(q), axis=1))) if len(marks) else 1.0 for q in corners]
+    nx, ny = corners[int(np.argmax(clear))]
+    al = 0.1 * (y1 - y0)
+    ax.add_patch(Rectangle((nx - 0.055 * W, ny - 0.03 * W), 0.11 * W, al + 0.11 * W, facecolor=(1, 1, 1, 0.8),
+                           edgecolor="none"))
+    ax.add_patch(FancyArrow(nx, ny, 0, al, width=0.012 * W, head_width=0.035 * W, head_length=0.035 * W,
+                            length_includes_head=True, color="k"))
+    ax.text(nx, ny + al + 0.01 * W, "N", ha="center", va="bottom", fontsize=11, fontweight="bold")
+    g = math.radians(convergence_deg)
+    ax.plot([nx, nx + al * 0.8 * math.sin(g)], [ny, ny + al * 0.8 * math.cos(g)], color=(0.2, 0.2, 0.8),
+            linewidth=0.9, linestyle="--")
+    ax.text(nx, ny - 0.012 * W, f"GN {convergence_deg:+.2f}°", ha="center", va="top", fontsize=6,
+            color=(0.2, 0.2, 0.8))
+    ax.set_xlim(x0, x1)
+    ax.set_ylim(y0, y1)
+    ax.set_xlabel("east of the reference point (m)", fontsize=8)
+    ax.set_ylabel("north of the reference point (m)", fontsize=8)
+    ax.tick_params(labelsize=7)
+    ax.set_title(f"Site plan: true north up; grid north ({crs_name}) dashed. {frame_note}", fontsize=8)
+    fig.tight_layout()
+    from ..core.io import atomic_write
+
+    atomic_write(path, lambda p: fig.savefig(p, dpi=150))
+    plt.close(fig)
+
+
+def blend_photo(photo: np.ndarray, render: np.ndarray, ids: np.ndarray, alpha: float = 0.55) -> np.ndarray:
+    """The photo with the rendered carriages blended over it (``alpha``) and each outlined in its colour.
+
+    ``photo``, ``render``: (h, w, 3) uint8; ``ids``: (h, w) carriage index, -1 for none.
+    """
+    import cv2
+
+    out = photo.astype(np.float32).copy()
+    car = ids >= 0
+    out[car] = (1 - alpha) * out[car] + alpha * render[car].astype(np.float32)
+    out = out.astype(np.uint8)
+    for k in np.unique(ids[car]):
+        m = (ids == k).astype(np.uint8)
+        edge = cv2.morphologyEx(m, cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0
+        out[edge] = car_color(int(k))
+    return out
+
+
+def _font(size_px: int, bold: bool = True):
+    from matplotlib import font_manager
+    from PIL import ImageFont
+
+    path = font_manager.findfont(font_manager.FontProperties(family="DejaVu Sans", weight="bold" if bold else "normal"))
+    return ImageFont.truetype(path, size_px)
+
+
+def label_carriages(color: np.ndarray, K: np.ndarray, cam_from_world: np.ndarray, sc: IncidentScene,
+                    lift_m: float = 4.0) -> np.ndarray:
+    """Car numbers in boxes of the car's colour above each carriage of a pinhole render (h, w, 3) uint8."""
+    from PIL import Image, ImageDraw
+
+    img = Image.fromarray(color)
+    draw = ImageDraw.Draw(img)
+    font = _font(max(12, color.shape[1] // 70))
+    R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
+    for c in sc.carriages:
+        base = c.body_centre_enu
+        top = base + np.array([0.0, 0.0, lift_m])
+        pc = np.array([R @ base + t, R @ top + t])
+        if np.any(pc[:, 2] <= 0):
+            continue
+        uv = (K @ (pc / pc[:, 2:3]).T).T[:, :2]
+        (u0, v0), (u1, v1) = uv
+        if not (0 <= u1 < color.shape[1] and 0 <= v1 < color.shape[0]):
+            continue
+        col = car_color(c.index)
+        draw.line([(u0, v0), (u1, v1)], fill=col, width=2)
+        text = c.number
+        left, tp, r, b = draw.textbbox((0, 0), text, font=font)
+        w, h = r - left, b - tp
+        box = (u1 - w / 2 - 5, v1 - h - 8, u1 + w / 2 + 5, v1)
+        draw.rounded_rectangle(box, radius=4, fill=(255, 255, 255), outline=col, width=2)
+        draw.text((u1 - w / 2 - left, v1 - h - 4 - tp), text, font=font, fill=(20, 20, 20))
+    return np.asarray(img)
+
+
+def _write_png(project: Project, path: Path, image: np.ndarray) -> Path:
+    """Write an (h, w, 3) or (h, w) uint8 image as PNG, atomically, with fast compression (renders are big)."""
+    from PIL import Image
+
+    img = Image.fromarray(np.ascontiguousarray(image))
+    return project.write_with(path, lambda p: img.save(p, format="PNG", compress_level=1))
+
+
+def _latlon(lat: float, lon: float, nd: int = 5) -> str:
+    return f"{abs(lat):.{nd}f}° {'N' if lat >= 0 else 'S'}, {abs(lon):.{nd}f}° {'E' if lon >= 0 else 'W'}"
+
+
+def _read_rgb(path: Path, size: tuple[int, int]) -> np.ndarray:
+    from PIL import Image
+
+    with Image.open(path) as im:
+        im = im.convert("RGB")
+        if im.size != tuple(size):
+            im = im.resize(size, Image.Resampling.LANCZOS)
+        return np.asarray(im)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The stage
+# ----------------------------------------------------------------------------------------------------------
+def _closeup_azimuth(c: PlacedCarriage, towards_deg: float) -> tuple[float, float]:
+    """(azimuth, elevation) of a close-up: 35° off square to the carriage side nearest the photographer; a carriage
+    lying on its side is seen from above its upturned side, from the roof's direction."""
+    R = c.world_from_carriage[:3, :3]
+    left, up = R[:, 1], R[:, 2]
+    if abs(left[2]) > 0.85:  # on its side (|roll| above about 60°): the up-facing side is +y (left) or -y
+        roof_az = math.degrees(math.atan2(up[0], up[1])) % 360.0
+        return (roof_az + 20.0) % 360.0, 55.0
+    left_az = math.degrees(math.atan2(left[0], left[1])) % 360.0
+    d = (towards_deg - left_az + 180.0) % 360.0 - 180.0
+    base = left_az if abs(d) <= 90.0 else (left_az + 180.0) % 360.0
+    return (base + 35.0) % 360.0, 28.0
+
+
+def run_render(project: Project, progress: Progress) -> StageResult:
+    t_all = time.perf_counter()
+    out = project.stage_dir("render")
+    progress(0.0, "reading the scene")
+    sc = load_scene(project)
+    sr = SceneRenderer(sc)
+    index: list[dict] = []
+    timings: dict[str, float] = {}
+    outputs: dict[str, Path] = {}
+    az0 = _viewer_azimuth(sc, sr.centre)
+    n_steps = 3 + len(sc.carriages) + len(sc.cameras)
+    step = [0]
+
+    def tick(msg: str) -> None:
+        step[0] += 1
+        progress(min(step[0] / n_steps, 0.99), msg)
+
+    def record(kind: str, name: str, path: Path, t0: float, **extra) -> None:
+        dt = time.perf_counter() - t0
+        timings[kind] = timings.get(kind, 0.0) + dt
+        outputs[name] = path
+        index.append({"kind": kind, "name": name, "path": project.relative(path), "time_s": round(dt, 3), **extra})
+
+    # overview
+    tick("overview")
+    t0 = time.perf_counter()
+    M = sr.view_from(sr.centre, sr.radius, az0 + 25.0, 32.0, OVERVIEW_SIZE, margin=0.8)
+    res = sr.render(M, OVERVIEW_SIZE)
+    p = _write_png(project, out / "overview.png", label_carriages(res.color, _pinhole(*OVERVIEW_SIZE), M, sc))
+    record("overview", "overview", p, t0, width=OVERVIEW_SIZE[0], height=OVERVIEW_SIZE[1], cam_from_world=M)
+
+    # top-down map
+    tick("map")
+    t0 = time.perf_counter()
+    pts = [c.footprint_enu() for c in sc.carriages] + [np.array([c.center_enu[:2] for c in sc.cameras])
+                                                      if sc.cameras else np.zeros((0, 2))]
+    P = np.vstack([q for q in pts if len(q)]) if any(len(q) for q in pts) else np.zeros((1, 2))
+    lo, hi = P.min(axis=0), P.max(axis=0)
+    centre_en = 0.5 * (lo + hi)
+    half = float(max(0.5 * np.max(hi - lo) * 1.12 + 6.0, 25.0))
+    K, Mt, mpp = top_down_camera(centre_en, half, MAP_SIZE[0], float(sr.centre[2]))
+    res = sr.render(Mt, MAP_SIZE, K=K, supersample=1)
+    extent = (centre_en[0] - half, centre_en[0] + half, centre_en[1] - half, centre_en[1] + half)
+    conv = project.frame.grid_convergence_deg()
+    map_path = out / "map.png"
+    crs_name = project.settings.location.crs
+    draw_map(map_path, res.color, extent, sc, conv, crs_name,
+             f"Reference point {_latlon(project.settings.location.lat, project.settings.location.lon)}.")
+    record("map", "map", map_path, t0, extent_enu=list(extent), metres_per_px=mpp, grid_convergence_deg=conv,
+           crs=crs_name)
+
+    # every photo with the reconstruction over it
+    sr.without_glyphs()
+    observed_views = {v for c in sc.solution.get("carriages", []) for v in (c.get("observations") or {})}
+    for cam in sc.cameras:
+        tick(f"photo {cam.name}")
+        if cam.image is None or not cam.image.is_file():
+            log.warning("render: photo of view %s not found (%s); no overlay for it", cam.name, cam.image)
+            continue
+        t0 = time.perf_counter()
+        from ..render.lens import render_photo
+
+        scale = min(1.0, PHOTO_MAX_WIDTH / cam.intrinsics.width)
+        intr: CameraIntrinsics = cam.intrinsics.scaled(scale) if scale < 1.0 else cam.intrinsics
+        res = render_photo(sr.scene, intr, cam.cam_from_world, supersample=1)
+        photo = _read_rgb(cam.image, (intr.width, intr.height))
+        blended = blend_photo(photo, res.color, res.instance)
+        stem = Path(cam.name).stem
+        p = _write_png(project, out / f"photo_{stem}.png", blended)
+        ids = np.where(res.instance >= 0, res.instance, 255).astype(np.uint8)
+        pid = _write_png(project, out / f"photo_{stem}_ids.png", ids)
+        outputs[f"photo_{stem}_ids"] = pid
+        record("photo", f"photo_{stem}", p, t0, view=cam.name, width=intr.width, height=intr.height,
+               scale=scale, ids=project.relative(pid), observed=cam.name in observed_views,
+               carriage_pixels={str(int(k)): int(n) for k, n in zip(*np.unique(res.instance[res.instance >= 0],
+                                                                              return_counts=True))})
+
+    # close-ups
+    for c in sc.carriages:
+        tick(f"close-up {c.number}")
+        t0 = time.perf_counter()
+        centre = c.body_centre_enu
+        r = 0.5 * float(np.linalg.norm(c.bbox_carriage[1] - c.bbox_carriage[0]))
+        az, el = _closeup_azimuth(c, az0)
+        M = sr.view_from(centre, r, az, el, CLOSEUP_SIZE, margin=1.0)
+        res = sr.render(M, CLOSEUP_SIZE)
+        p = _write_png(project, out / f"car_{c.number}.png", res.color)
+        record("closeup", f"car_{c.number}", p, t0, carriage=c.number, width=CLOSEUP_SIZE[0],
+               height=CLOSEUP_SIZE[1], azimuth_deg=az, elevation_deg=el)
+
+    # orbit
+    tick("orbit")
+    t0 = time.perf_counter()
+    frames = []
+    for k in range(ORBIT_FRAMES):
+        progress(min((step[0] + k / ORBIT_FRAMES) / n_steps, 0.99), f"orbit frame {k + 1}/{ORBIT_FRAMES}")
+        M = sr.view_from(sr.centre, sr.radius, az0 + 360.0 * k / ORBIT_FRAMES, 30.0, ORBIT_SIZE, margin=0.8)
+        frames.append(sr.render(M, ORBIT_SIZE, supersample=1).color)
+    from PIL import Image
+
+    gif = out / "orbit.gif"
+    imgs = [Image.fromarray(f) for f in frames]
+    project.write_with(gif, lambda q: imgs[0].save(q, format="GIF", save_all=True, append_images=imgs[1:],
+                                                   duration=250, loop=0))
+    sel = frames[:: max(1, ORBIT_FRAMES // 6)][:6]
+    h, w = sel[0].shape[:2]
+    sheet = np.full((2 * h + 6, 3 * w + 12, 3), 255, np.uint8)
+    for i, f in enumerate(sel):
+        r_, c_ = divmod(i, 3)
+        sheet[r_ * (h + 6):r_ * (h + 6) + h, c_ * (w + 6):c_ * (w + 6) + w] = f
+    sp = _write_png(project, out / "orbit_sheet.png", sheet)
+    outputs["orbit_sheet"] = sp
+    sheet_az = [(az0 + 360.0 * k / ORBIT_FRAMES) % 360.0 for k in range(0, ORBIT_FRAMES, max(1, ORBIT_FRAMES // 6))]
+    record("orbit", "orbit", gif, t0, frames=ORBIT_FRAMES, width=ORBIT_SIZE[0], height=ORBIT_SIZE[1],
+           sheet=project.relative(sp), sheet_azimuths_deg=sheet_az[:6])
+
+    total = time.perf_counter() - t_all
+    idx = {"engine": sr.scene.engine, "renders": index, "time_s": round(total, 3),
+           "focus_enu": sr.centre, "focus_radius_m": sr.radius, "viewer_azimuth_deg": az0}
+    outputs["renders"] = project.write_json(out / "renders.json", idx)
+    progress(1.0, "done")
+    return StageResult(outputs=outputs, stats={
+        "engine": sr.scene.engine, "n_renders": len(index), "n_carriages": len(sc.carriages),
+        "n_photos": sum(1 for r in index if r["kind"] == "photo"),
+        "time_by_kind_s": {k: round(v, 3) for k, v in timings.items()},
+        "terrain_textured": bool(sc.terrain is not None and getattr(sc.terrain.visual, "kind", None) == "texture"),
+    })
+
+
+def _render_inputs(project: Project) -> dict[str, Path]:
+    return scene_input_files(project)
+
+
+STAGE = StageSpec("render", "off-screen renders of the reconstructed scene (overview, map, photo overlays, "
+                  "close-ups, orbit)", run_render, inputs=_render_inputs,
+                  settings_sections=("incident", "location", "terrain", "consist"), depends_on=("solve",))

@@ -1,0 +1,294 @@
+"""The reconstructed scene, read from an incident's files: terrain, buildings, posed carriages, cameras.
+
+Everything here is in the scene frame (ENU metres, ``docs/conventions.md``). The render stage, the report
+and the desktop viewer all build their pictures from one :class:`IncidentScene`, which is read only from
+files the stages wrote (``out/solve/solution.json``, ``out/georef/cameras.json`` or the incident's own
+``cameras.json``, ``out/terrain/*.ply``) and from the incident's layers (DEM, orthophoto).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import trimesh
+
+from ..core.camera import CameraIntrinsics
+from ..errors import InputError
+from ..project import Project
+
+log = logging.getLogger(__name__)
+
+# Colours (sRGB 0..255) used for the layers everywhere (renders, map, viewer).
+TERRAIN_RGB = (150, 158, 132)
+BUILDING_RGB = (196, 188, 176)
+CAMERA_RGB = (230, 40, 40)
+MAX_TERRAIN_CELLS = 160_000  # terrain nodes for pictures (the terrain stage keeps 400 000): 1.2 m over 500 m
+MAX_TEXTURE_PX = 2048  # the orthophoto is downsampled to at most this many pixels a side for rendering
+# one distinct colour per carriage (tab10 without grey), for outlines, map and plots
+CAR_COLORS = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75),
+              (227, 119, 194), (188, 189, 34), (23, 190, 207)]
+
+
+def car_color(index: int) -> tuple[int, int, int]:
+    return CAR_COLORS[index % len(CAR_COLORS)]
+
+
+@dataclass
+class PlacedCarriage:
+    """One carriage of the solution with a pose (status ``solved`` or ``carried``)."""
+
+    index: int
+    number: str
+    type_id: str
+    type_name: str
+    status: str
+    world_from_carriage: np.ndarray  # (4, 4)
+    mesh: trimesh.Trimesh  # in the scene frame (textured with its livery when asked for)
+    bbox_carriage: np.ndarray  # (2, 3) min/max corners in the carriage frame
+    record: dict  # the solution.json record
+
+    @property
+    def body_centre_enu(self) -> np.ndarray:
+        return np.asarray(self.record.get("body_centre_enu") or
+                          self.world_from_carriage[:3, :3] @ self.bbox_carriage.mean(axis=0)
+                          + self.world_from_carriage[:3, 3], dtype=float)
+
+    def corners_enu(self) -> np.ndarray:
+        """(8, 3) corners of the model's bounding box in the scene frame."""
+        lo, hi = self.bbox_carriage
+        c = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+        return c @ self.world_from_carriage[:3, :3].T + self.world_from_carriage[:3, 3]
+
+    def footprint_enu(self) -> np.ndarray:
+        """(k, 2) east/north outline (convex hull, counter-clockwise) of the model's bounding box seen from above."""
+        from scipy.spatial import ConvexHull
+
+        xy = self.corners_enu()[:, :2]
+        return xy[ConvexHull(xy).vertices]
+
+    def front_enu(self) -> np.ndarray:
+        """(3,) the front coupler face's centre (carriage +x end) in the scene frame."""
+        lo, hi = self.bbox_carriage
+        p = np.array([hi[0], 0.5 * (lo[1] + hi[1]), 0.5 * (lo[2] + hi[2])])
+        return self.world_from_carriage[:3, :3] @ p + self.world_from_carriage[:3, 3]
+
+
+@dataclass
+class SceneCamera:
+    """One view of ``cameras.json``."""
+
+    name: str
+    image: Path | None
+    intrinsics: CameraIntrinsics
+    cam_from_world: np.ndarray  # (4, 4)
+
+    @property
+    def center_enu(self) -> np.ndarray:
+        R, t = self.cam_from_world[:3, :3], self.cam_from_world[:3, 3]
+        return -R.T @ t
+
+
+@dataclass
+class IncidentScene:
+    terrain: trimesh.Trimesh | None
+    buildings: trimesh.Trimesh | None
+    carriages: list[PlacedCarriage]
+    cameras: list[SceneCamera]
+    solution: dict
+    cameras_json: dict
+    files: dict[str, Path] = field(default_factory=dict)  # what was read
+
+    def focus(self) -> tuple[np.ndarray, float]:
+        """(centre (3,), radius m) of the carriages (or the cameras, when no carriage has a pose)."""
+        pts = [c.corners_enu() for c in self.carriages]
+        if not pts:
+            pts = [np.array([c.center_enu for c in self.cameras])] if self.cameras else [np.zeros((1, 3))]
+        P = np.vstack(pts)
+        lo, hi = P.min(axis=0), P.max(axis=0)
+        centre = 0.5 * (lo + hi)
+        return centre, float(max(np.linalg.norm(hi - lo) / 2.0, 5.0))
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Where the files are
+# ----------------------------------------------------------------------------------------------------------
+def solution_path(project: Project) -> Path:
+    return project.stage_dir("solve") / "solution.json"
+
+
+def cameras_path(project: Project) -> Path | None:
+    """The incident's hand-written ``cameras.json`` (it takes the georef output's place), else georef's."""
+    own = project.root / "cameras.json"
+    if own.is_file():
+        return own
+    geo = project.stage_dir("georef") / "cameras.json"
+    return geo if geo.is_file() else None
+
+
+def require_solution(project: Project, needed_by: str) -> Path:
+    p = solution_path(project)
+    if not p.is_file():
+        raise InputError(f"{p}: not found; the {needed_by} needs the 'solve' stage's output, and the 'solve' stage "
+                         f"has not run for this incident. Run `workbench run {project.root}` first")
+    return p
+
+
+def ortho_path(project: Project) -> Path | None:
+    """The terrain texture (orthophoto) draped on the DEM, when the incident has one.
+
+    Synthetic incidents name it in ``truth/ground_truth.json`` (``layers.ortho``); otherwise a JPEG beside
+    the DEM named like it with ``_ortho`` for ``_dem`` is used.
+    """
+    truth = project.truth_dir / "ground_truth.json"
+    if truth.is_file():
+        try:
+            rel = json.loads(truth.read_text(encoding="utf-8")).get("layers", {}).get("ortho")
+        except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+            rel = None
+        if rel and project.path(rel).is_file():
+            return project.path(rel)
+    dem = project.settings.terrain.dem
+    if dem and project.path(dem).is_file():  # one DEM file (not a folder or pattern of tiles)
+        d = project.path(dem)
+        for cand in (d.with_name(d.stem.replace("_dem", "_ortho") + ".jpg"), d.with_suffix(".ortho.jpg")):
+            if cand != d and cand.is_file():
+                return cand
+    return None
+
+
+def scene_input_files(project: Project) -> dict[str, Path]:
+    """The files an :class:`IncidentScene` is read from (for the runner's input hashes)."""
+    files: dict[str, Path] = {"solution": require_solution(project, "render stage")}
+    cams = cameras_path(project)
+    if cams is not None:
+        files["cameras"] = cams
+    for name in ("terrain.ply", "buildings.ply"):
+        p = project.stage_dir("terrain") / name
+        if p.is_file():
+            files[f"terrain:{name}"] = p
+    o = ortho_path(project)
+    if o is not None and project.settings.terrain.dem:
+        from ..terrain.dem import resolve_dem_sources
+
+        files["ortho"] = o
+        for i, d in enumerate(resolve_dem_sources(project.settings.terrain.dem, project.root)):
+            files["dem" if i == 0 else f"dem:{d.name}"] = d
+    return files
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Loading
+# ----------------------------------------------------------------------------------------------------------
+def _matrix(value, where: str) -> np.ndarray:
+    M = np.asarray(value, dtype=float)
+    if M.shape != (4, 4) or not np.all(np.isfinite(M)):
+        raise InputError(f"{where}: expected a finite 4x4 matrix, got shape {M.shape}")
+    return M
+
+
+def load_cameras(project: Project) -> tuple[dict, list[SceneCamera]]:
+    p = cameras_path(project)
+    if p is None:
+        return {}, []
+    data = project.read_json(p)
+    cams = []
+    for i, v in enumerate(data.get("views", [])):
+        where = f"{p}: views[{i}]"
+        try:
+            intr = CameraIntrinsics.from_dict(v["intrinsics"])
+            M = _matrix(v["cam_from_world"], where + ".cam_from_world")
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"{where}: {exc}; see docs/pipeline.md (cameras.json)") from None
+        img = project.path(v["image"]) if v.get("image") else None
+        cams.append(SceneCamera(str(v.get("name", f"view_{i}")), img, intr, M))
+    return data, cams
+
+
+def _terrain_mesh(project: Project, *, textured: bool) -> trimesh.Trimesh | None:
+    """The terrain with the orthophoto draped on it (the DEM read as the terrain stage reads it), else the
+    terrain stage's mesh in a plain colour."""
+    s = project.settings.terrain
+    ortho = ortho_path(project) if textured else None
+    if ortho is not None and s.dem:
+        from PIL import Image
+
+        from ..terrain.dem import TerrainModel, resolve_dem_sources
+
+        tm = TerrainModel.from_sources(resolve_dem_sources(s.dem, project.root), project.frame,
+                                       aoi_radius_m=s.aoi_radius_m, vertical_accuracy_m=s.dem_vertical_accuracy_m,
+                                       max_cells=MAX_TERRAIN_CELLS)
+        with Image.open(ortho) as im:
+            tex = im.convert("RGB")
+            if max(tex.size) > MAX_TEXTURE_PX:  # the renderers linearise every texel: keep it affordable
+                f = MAX_TEXTURE_PX / max(tex.size)
+                tex = tex.resize((max(1, round(tex.size[0] * f)), max(1, round(tex.size[1] * f))),
+                                 Image.Resampling.BILINEAR, reducing_gap=2.0)
+            tex.load()
+        return tm.mesh(texture=tex)
+    ply = project.stage_dir("terrain") / "terrain.ply"
+    if not ply.is_file():
+        return None
+    m = trimesh.load(ply, process=False, force="mesh")
+    m.visual = trimesh.visual.ColorVisuals(m, face_colors=np.tile([*TERRAIN_RGB, 255], (len(m.faces), 1)))
+    return m
+
+
+def _buildings_mesh(project: Project) -> trimesh.Trimesh | None:
+    ply = project.stage_dir("terrain") / "buildings.ply"
+    if not ply.is_file():
+        return None
+    m = trimesh.load(ply, process=False, force="mesh")
+    if getattr(m.visual, "kind", None) is None:
+        m.visual = trimesh.visual.ColorVisuals(m, face_colors=np.tile([*BUILDING_RGB, 255], (len(m.faces), 1)))
+    return m
+
+
+def load_scene(project: Project, *, textured: bool = True, with_terrain: bool = True) -> IncidentScene:
+    """Read the reconstructed scene of ``project``. :class:`InputError` naming the 'solve' stage if it has not run."""
+    sp = require_solution(project, "scene")
+    solution = project.read_json(sp)
+    if not isinstance(solution, dict) or not isinstance(solution.get("carriages"), list):
+        raise InputError(f"{sp}: no 'carriages' list; see docs/pipeline.md (solution.json)")
+    types = project.carriage_types()
+    cars = []
+    for k, rec in enumerate(solution["carriages"]):
+        number = str(rec.get("number"))
+        if rec.get("status") == "left_out" or rec.get("world_from_carriage") is None:
+            continue
+        if number not in types:
+            raise InputError(f"{sp}: carriages[{k}].number = {number!r} is not in the consist of "
+                             f"{project.settings_path}; run the 'solve' stage again")
+        ct = types[number]
+        M = _matrix(rec["world_from_carriage"], f"{sp}: carriages[{k}].world_from_carriage")
+        mesh = ct.mesh(car_number=number, textured=textured)
+        mesh.apply_transform(M)
+        cars.append(PlacedCarriage(int(rec.get("index", k)), number, ct.id, ct.name, str(rec.get("status", "solved")),
+                                   M, mesh, np.asarray(ct.bounding_box(), float), rec))
+    cam_data, cams = load_cameras(project)
+    terrain = _terrain_mesh(project, textured=textured) if with_terrain else None
+    buildings = _buildings_mesh(project) if with_terrain else None
+    files = {"solution": sp}
+    if cameras_path(project):
+        files["cameras"] = cameras_path(project)
+    return IncidentScene(terrain, buildings, cars, cams, solution, cam_data, files)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Glyphs
+# ----------------------------------------------------------------------------------------------------------
+def camera_glyph(cam: SceneCamera, size_m: float = 3.0, rgb=CAMERA_RGB) -> trimesh.Trimesh:
+    """A solid pyramid (apex at the camera centre, base towards the view) of depth ``size_m``, scene frame."""
+    intr = cam.intrinsics
+    hw = 0.5 * intr.width / intr.fx
+    hh = 0.5 * intr.height / intr.fy
+    V_cam = np.array([[0, 0, 0], [-hw, -hh, 1], [hw, -hh, 1], [hw, hh, 1], [-hw, hh, 1]], float) * size_m
+    F = np.array([[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 4, 1], [1, 3, 2], [1, 4, 3]])
+    R, t = cam.cam_from_world[:3, :3], cam.cam_from_world[:3, 3]
+    V = (V_cam - t) @ R  # world = R^T (cam - t)
+    m = trimesh.Trimesh(V, F, process=False)
+    m.visual = trimesh.visual.ColorVisuals(m, face_colors=np.tile([*rgb, 255], (len(F), 1)))
+    return m

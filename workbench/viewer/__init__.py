@@ -1,0 +1,1 @@
+"""Desktop viewer of a reconstructed incident (Open3D GUI): ``workbench view projects/NAME``."""
