@@ -19,10 +19,6 @@ import numpy as np
 import piexif
 from PIL import Image
 
-from ..errors import InputError
-
-_UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}  # EXIF FocalPlaneResolutionUnit -> millimetres
-
 
 def _rational(x: float, max_den: int = 1_000_000) -> tuple[int, int]:
     fr = Fraction(float(x)).limit_denominator(max_den)
@@ -30,14 +26,6 @@ def _rational(x: float, max_den: int = 1_000_000) -> tuple[int, int]:
     while num > 0xFFFFFFFF or den > 0xFFFFFFFF:  # EXIF rationals are unsigned 32-bit
         num, den = num // 2, max(1, den // 2)
     return int(num), int(den)
-
-
-def _from_rational(v) -> float | None:
-    if v is None:
-        return None
-    if isinstance(v, tuple) and len(v) == 2:
-        return float(v[0]) / float(v[1]) if v[1] else None
-    return float(v)
 
 
 def _tag_value(ifd: str, tag: int, value):
@@ -116,34 +104,12 @@ def write_jpeg(path, image: np.ndarray, *, focal_length_mm: float, sensor_width_
 
 
 def read_focal_px(path) -> float | None:
-    """The focal length in pixels of the JPEG at ``path`` from its EXIF tags, or None if they do not tell.
+    """The focal length in pixels of the photo at ``path`` from its EXIF tags, or None if they do not tell.
 
-    Uses FocalLength x FocalPlaneXResolution (scaled if the image was resized since PixelXDimension was
-    written); falls back to FocalLengthIn35mmFilm (width-based, 36 mm) x image width / 36.
+    Delegates to :func:`workbench.intrinsics.exif.exif_focal_prior`, which handles the EXIF pitfalls (missing
+    or nonsense tags, focal-plane units, resized, cropped or rotated photos) and records what it used.
     """
-    path = Path(path)
-    try:
-        with Image.open(path) as im:
-            width = im.width
-            raw = im.info.get("exif")
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{path}: cannot read the image ({exc})") from None
-    if not raw:
-        return None
-    try:
-        exif = piexif.load(raw).get("Exif", {})
-    except Exception:  # noqa: BLE001 - piexif raises assorted errors on broken EXIF
-        return None
-    f_mm = _from_rational(exif.get(piexif.ExifIFD.FocalLength))
-    res = _from_rational(exif.get(piexif.ExifIFD.FocalPlaneXResolution))
-    unit = exif.get(piexif.ExifIFD.FocalPlaneResolutionUnit, 2)  # EXIF default: inches
-    if f_mm and f_mm > 0 and res and res > 0 and unit in _UNIT_MM:
-        px = f_mm * res / _UNIT_MM[unit]
-        pxdim = exif.get(piexif.ExifIFD.PixelXDimension)
-        if pxdim and pxdim > 0 and pxdim != width:
-            px *= width / float(pxdim)
-        return float(px)
-    f35 = exif.get(piexif.ExifIFD.FocalLengthIn35mmFilm)
-    if f35 and f35 > 0:
-        return float(f35) / 36.0 * width
-    return None
+    from ..intrinsics.exif import exif_focal_prior
+
+    prior = exif_focal_prior(Path(path))
+    return None if prior is None else prior.focal_px

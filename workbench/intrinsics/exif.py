@@ -1,0 +1,313 @@
+"""A focal-length prior (pixels, with a 1-sigma) from a photo's EXIF tags, robust to the known pitfalls.
+
+Three ways to turn EXIF into a focal length in pixels, tried in this order:
+
+1. ``focal_plane``: ``FocalLength [mm] * FocalPlaneXResolution [px/unit] / unit [mm]``, where
+   ``FocalPlaneResolutionUnit`` is 2 = inch (also the EXIF default when the tag is missing), 3 = cm,
+   4 = mm, 5 = micrometre; scaled by ``image width / PixelXDimension`` when the photo was resized after the
+   tags were written.
+2. ``sensor_width``: ``FocalLength / sensor long side [mm] * image long side [px]``, with the sensor size
+   given by the caller (a camera profile's ``sensor_width_mm``) or found in a small built-in table by
+   ``Model`` (:data:`SENSOR_SIZES_MM`).
+3. ``35mm_equivalent``: ``FocalLengthIn35mmFilm / 36 mm * image long side [px]`` (36 mm is the long side of
+   a 35 mm frame; the tag is an integer, and cameras differ in whether they scale by the diagonal or the
+   width, hence the wider sigma).
+
+Pitfalls handled, each reported in ``FocalPrior.warnings`` (and candidates that fail a check are dropped):
+missing tags; zero, negative, NaN or absurd values (``FocalLength`` 0 means "unknown"); focal-plane unit
+missing or wrong (a result that matches the 35 mm equivalent after a 2.54, 10 or 25.4 unit change is
+corrected); photos resized or rotated after the tags were written (``PixelXDimension`` differs); photos
+cropped (aspect ratio changed) or whose implied sensor size contradicts the camera model; a digital zoom;
+fields of view outside [1, 150] degrees; candidates that disagree (the 35 mm equivalent is then preferred).
+
+Pixel sizes refer to the photo as stored (its pixel grid, before any EXIF ``Orientation`` rotation), which is
+how OpenCV (with ``IMREAD_IGNORE_ORIENTATION``) and COLMAP read it.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from ..errors import InputError
+
+log = logging.getLogger(__name__)
+
+# EXIF tag ids (EXIF 2.32): base IFD and Exif sub-IFD
+_MAKE, _MODEL, _ORIENTATION, _EXIF_IFD = 0x010F, 0x0110, 0x0112, 0x8769
+_FOCAL, _F35, _FPXR, _FPYR, _FPUNIT = 0x920A, 0xA405, 0xA20E, 0xA20F, 0xA210
+_PXDIM, _PYDIM, _DZOOM = 0xA002, 0xA003, 0xA404
+
+UNIT_MM = {2: 25.4, 3: 10.0, 4: 1.0, 5: 0.001}  # FocalPlaneResolutionUnit -> millimetres per unit
+UNIT_NAMES = {2: "inch", 3: "cm", 4: "mm", 5: "um"}
+
+#: Sensor sizes (long side, short side) in mm of a few cameras, by EXIF ``Model`` (case-insensitive).
+#: Only a sample (cameras whose photos are in the test data); give ``sensor_width_mm`` for others.
+SENSOR_SIZES_MM: dict[str, tuple[float, float]] = {
+    "canon eos 5d": (35.8, 23.9),
+    "canon eos 5d mark ii": (36.0, 24.0),
+    "nikon d7000": (23.6, 15.6),
+    "nikon d800": (35.9, 24.0),
+    "iphone 4s": (4.54, 3.42),
+}
+
+HFOV_RANGE_DEG = (1.0, 150.0)  # plausible field of view along the long side; outside it a candidate is dropped
+SENSOR_RANGE_MM = (1.0, 100.0)  # plausible sensor long side
+REL_SIGMA = {"focal_plane": 0.02, "sensor_width": 0.03, "35mm_equivalent": 0.05}
+AGREE_TOL = 0.10  # candidates within 10 % agree
+
+
+@dataclass(frozen=True)
+class FocalPrior:
+    """A focal length prior of one photo: ``focal_px`` (fx = fy, px) with 1-sigma ``sigma_px``.
+
+    ``source``: ``focal_plane``, ``sensor_width`` or ``35mm_equivalent``; ``tags``: the EXIF values read
+    (name -> value); ``warnings``: each pitfall met; ``width``, ``height``: the photo's stored size (px).
+    """
+
+    focal_px: float
+    sigma_px: float
+    source: str
+    width: int
+    height: int
+    tags: dict[str, Any] = field(default_factory=dict)
+    candidates: dict[str, float] = field(default_factory=dict)  # every usable estimate, px
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def hfov_deg(self) -> float:
+        """Horizontal field of view (along the image width), degrees."""
+        return math.degrees(2.0 * math.atan(self.width / 2.0 / self.focal_px))
+
+    def to_dict(self) -> dict:
+        return {"focal_px": self.focal_px, "sigma_px": self.sigma_px, "source": self.source,
+                "width": self.width, "height": self.height, "hfov_deg": self.hfov_deg, "tags": dict(self.tags),
+                "candidates": dict(self.candidates), "warnings": list(self.warnings)}
+
+
+def _num(v) -> float | None:
+    """An EXIF number (int, IFDRational, (num, den) tuple) as a float; None if absent or not finite."""
+    if v is None:
+        return None
+    try:
+        if isinstance(v, tuple) and len(v) == 2:
+            x = float(v[0]) / float(v[1]) if v[1] else float("nan")
+        elif isinstance(v, (tuple, list)) and len(v) == 1:
+            x = float(v[0])
+        else:
+            x = float(v)
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+    return x if math.isfinite(x) else None
+
+
+def _text(v) -> str | None:
+    if v is None:
+        return None
+    if isinstance(v, bytes):
+        v = v.decode("ascii", errors="replace")
+    s = str(v).replace("\x00", "").strip()
+    return s or None
+
+
+def read_exif_tags(path: Path) -> tuple[int, int, dict[str, Any]]:
+    """(width, height, {tag name: value}) of the photo at ``path`` (stored pixel grid); tags absent are left out."""
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            w, h = im.size
+            exif = im.getexif()
+            sub = dict(exif.get_ifd(_EXIF_IFD)) if exif else {}
+            base = dict(exif) if exif else {}
+    except (OSError, ValueError, UnidentifiedImageError, SyntaxError) as exc:
+        raise InputError(f"{path}: cannot read the image ({exc}); replace it with an intact copy") from None
+    except Exception as exc:  # noqa: BLE001 - broken EXIF blocks raise assorted errors inside Pillow
+        log.warning("%s: unreadable EXIF (%s); no EXIF prior", path, exc)
+        return w, h, {}
+
+    def get(tag):  # some writers put Exif tags in the base IFD
+        return sub.get(tag, base.get(tag))
+
+    raw = {"Make": _text(base.get(_MAKE)), "Model": _text(base.get(_MODEL)), "Orientation": _num(base.get(_ORIENTATION)),
+           "FocalLength": _num(get(_FOCAL)), "FocalLengthIn35mmFilm": _num(get(_F35)),
+           "FocalPlaneXResolution": _num(get(_FPXR)), "FocalPlaneYResolution": _num(get(_FPYR)),
+           "FocalPlaneResolutionUnit": _num(get(_FPUNIT)), "PixelXDimension": _num(get(_PXDIM)),
+           "PixelYDimension": _num(get(_PYDIM)), "DigitalZoomRatio": _num(get(_DZOOM))}
+    return w, h, {k: v for k, v in raw.items() if v is not None}
+
+
+def _hfov_long_deg(f_px: float, long_px: int) -> float:
+    return math.degrees(2.0 * math.atan(long_px / 2.0 / f_px))
+
+
+def focal_prior_from_tags(width: int, height: int, tags: dict[str, Any], *,
+                          sensor_width_mm: float | None = None) -> FocalPrior | None:
+    """The focal prior of a ``width`` x ``height`` photo from its EXIF ``tags`` (see :func:`read_exif_tags`).
+
+    ``sensor_width_mm``: the sensor's long side, mm, when known (overrides the built-in table).
+    Returns None when the tags do not give a usable focal length (the warnings are logged).
+    """
+    warnings: list[str] = []
+    long_px = max(width, height)
+    used: dict[str, Any] = {}
+    cands: dict[str, float] = {}
+
+    f_mm = tags.get("FocalLength")
+    if f_mm is not None and not (0 < f_mm <= 5000):
+        warnings.append(f"FocalLength = {f_mm:g} mm is not a focal length (0 means unknown); ignored")
+        f_mm = None
+    f35 = tags.get("FocalLengthIn35mmFilm")
+    if f35 is not None and not (0 < f35 <= 10000):
+        warnings.append(f"FocalLengthIn35mmFilm = {f35:g} mm is not a focal length (0 means unknown); ignored")
+        f35 = None
+    zoom = tags.get("DigitalZoomRatio")
+    zoom = zoom if zoom is not None and 1.0 < zoom <= 100.0 else 1.0
+    if zoom > 1.0:
+        warnings.append(f"DigitalZoomRatio = {zoom:g}: the optical focal is multiplied by it")
+        used["DigitalZoomRatio"] = zoom
+    orient = tags.get("Orientation")
+    if orient in (5, 6, 7, 8):
+        warnings.append(f"Orientation = {orient:g}: the photo is stored rotated; the prior is for the stored pixel grid")
+
+    # how the photo's size relates to the size the tags were written for
+    scale, cropped = 1.0, False
+    px, py = tags.get("PixelXDimension"), tags.get("PixelYDimension")
+    if px and py and px > 0 and py > 0:
+        if (round(px), round(py)) != (width, height):
+            if abs(px / py - width / height) < 0.01 * width / height:
+                scale = width / px
+                warnings.append(f"resized: PixelXDimension x PixelYDimension = {px:g}x{py:g} but the photo is "
+                                f"{width}x{height}; focal-plane focal scaled by {scale:.4g}")
+            elif abs(py / px - width / height) < 0.01 * width / height:
+                scale = width / py
+                warnings.append(f"rotated: the tags describe a {px:g}x{py:g} image but the photo is {width}x{height}")
+            else:
+                cropped = True
+                warnings.append(f"cropped: the tags describe a {px:g}x{py:g} image but the photo is {width}x{height} "
+                                f"(another aspect ratio); the focal-plane resolution does not apply")
+
+    # 1. focal-plane resolution
+    fp_sensor_mm = None
+    fp_tags: dict[str, Any] = {}
+    res, unit = tags.get("FocalPlaneXResolution"), tags.get("FocalPlaneResolutionUnit")
+    if f_mm is not None and res is not None and not cropped:
+        if unit is None:
+            unit = 2
+            warnings.append("FocalPlaneResolutionUnit missing: the EXIF default (inch) is assumed")
+        if res <= 0:
+            warnings.append(f"FocalPlaneXResolution = {res:g} is not positive; ignored")
+        elif unit not in UNIT_MM:
+            warnings.append(f"FocalPlaneResolutionUnit = {unit:g} is not a unit EXIF defines (2 inch, 3 cm, 4 mm, "
+                            f"5 um); focal-plane resolution ignored")
+        else:
+            unit_mm = UNIT_MM[int(unit)]
+            f_px = f_mm * res / unit_mm * scale * zoom
+            tagged_long = max(px, py) if (px and py and px > 0 and py > 0) else long_px
+            fp_sensor_mm = tagged_long / res * unit_mm  # sensor long side, mm (square pixels)
+            if not (SENSOR_RANGE_MM[0] <= fp_sensor_mm <= SENSOR_RANGE_MM[1]):
+                warnings.append(f"FocalPlaneXResolution = {res:g} per {UNIT_NAMES[int(unit)]} implies a "
+                                f"{fp_sensor_mm:.3g} mm sensor; implausible, ignored")
+            else:
+                cands["focal_plane"] = f_px
+                fp_tags = {"FocalPlaneXResolution": res, "FocalPlaneResolutionUnit": int(unit)}
+
+    # 2. sensor size (given, or from the table by Model)
+    model = (tags.get("Model") or "").strip().lower()
+    sensor = None
+    if sensor_width_mm is not None:
+        if not sensor_width_mm > 0:
+            raise InputError(f"sensor_width_mm = {sensor_width_mm!r}: must be a positive width in mm")
+        sensor, sensor_from = float(sensor_width_mm), "given"
+    elif model in SENSOR_SIZES_MM:
+        sensor, sensor_from = SENSOR_SIZES_MM[model][0], f"table ({tags.get('Model')})"
+        ss = SENSOR_SIZES_MM[model]
+        if abs(long_px / min(width, height) - ss[0] / ss[1]) > 0.03 * ss[0] / ss[1]:
+            cropped = True
+            warnings.append(f"cropped: the photo's aspect {long_px / min(width, height):.3f} differs from the "
+                            f"{tags.get('Model')} sensor's {ss[0] / ss[1]:.3f}; the focal in pixels is uncertain")
+    if f_mm is not None and sensor is not None:
+        cands["sensor_width"] = f_mm / sensor * long_px * zoom
+        if fp_sensor_mm is not None and abs(fp_sensor_mm / sensor - 1) > AGREE_TOL:
+            warnings.append(f"the focal-plane resolution implies a {fp_sensor_mm:.3g} mm sensor but the sensor is "
+                            f"{sensor:.3g} mm ({sensor_from}): the photo was resized or cropped after the tags "
+                            f"were written; focal-plane resolution ignored")
+            cands.pop("focal_plane", None)
+
+    # 3. 35 mm equivalent
+    if f35 is not None:
+        cands["35mm_equivalent"] = f35 / 36.0 * long_px
+        if f_mm is not None and not (0.3 <= f35 / f_mm <= 15.0):
+            warnings.append(f"FocalLengthIn35mmFilm / FocalLength = {f35 / f_mm:.3g} is not a plausible crop factor")
+
+    # drop absurd fields of view
+    for name in list(cands):
+        hfov = _hfov_long_deg(cands[name], long_px)
+        if not (HFOV_RANGE_DEG[0] <= hfov <= HFOV_RANGE_DEG[1]):
+            warnings.append(f"{name}: focal {cands[name]:.4g} px gives a {hfov:.3g} deg field of view; ignored")
+            del cands[name]
+    if not cands:
+        if tags:
+            log.info("no EXIF focal prior: %s", "; ".join(warnings) or "no focal tags")
+        return None
+
+    # choose
+    order = [n for n in ("focal_plane", "sensor_width", "35mm_equivalent") if n in cands]
+    source = order[0]
+    f_px = cands[source]
+    rel_sigma = REL_SIGMA[source]
+    if "35mm_equivalent" in cands and source != "35mm_equivalent":
+        ref = cands["35mm_equivalent"]
+        ratio = f_px / ref
+        if abs(ratio - 1) > AGREE_TOL:
+            fixed = None
+            if source == "focal_plane":
+                for factor in (2.54, 1 / 2.54, 10.0, 0.1, 25.4, 1 / 25.4):
+                    if abs(ratio * factor - 1) <= AGREE_TOL:
+                        fixed = factor
+                        break
+            if fixed is not None:
+                f_px *= fixed
+                rel_sigma = REL_SIGMA["35mm_equivalent"]
+                warnings.append(f"FocalPlaneResolutionUnit = {fp_tags.get('FocalPlaneResolutionUnit')} looks wrong: the "
+                                f"focal-plane focal times {fixed:.4g} matches the 35 mm equivalent; corrected")
+            else:
+                warnings.append(f"{source} focal {f_px:.4g} px disagrees with the 35 mm-equivalent {ref:.4g} px "
+                                f"({100 * (ratio - 1):+.0f} %); the 35 mm equivalent is used")
+                source, f_px, rel_sigma = "35mm_equivalent", ref, REL_SIGMA["35mm_equivalent"]
+    if source == "35mm_equivalent":
+        rel_sigma = math.hypot(rel_sigma, 0.5 / f35)  # integer tag
+    if cropped:
+        rel_sigma = max(rel_sigma, 0.15)
+    if source != "35mm_equivalent" and f_mm is not None:
+        used["FocalLength"] = f_mm
+    if source == "focal_plane":
+        used.update(fp_tags)
+    if source == "sensor_width":
+        used.update(sensor_long_side_mm=sensor, sensor_from=sensor_from)
+    if source == "35mm_equivalent":
+        used["FocalLengthIn35mmFilm"] = f35
+    for k in ("Make", "Model", "PixelXDimension", "PixelYDimension"):
+        if k in tags:
+            used[k] = tags[k]
+    prior = FocalPrior(focal_px=float(f_px), sigma_px=float(rel_sigma * f_px), source=source, width=int(width),
+                       height=int(height), tags=used, candidates={k: float(v) for k, v in cands.items()},
+                       warnings=tuple(warnings))
+    return prior
+
+
+def exif_focal_prior(path: Path, *, sensor_width_mm: float | None = None) -> FocalPrior | None:
+    """The EXIF focal prior of the photo at ``path``, or None when its tags do not give one.
+
+    :class:`InputError` if the file is not a readable image. See the module docstring for the rules.
+    """
+    width, height, tags = read_exif_tags(Path(path))
+    prior = focal_prior_from_tags(width, height, tags, sensor_width_mm=sensor_width_mm)
+    if prior is not None:
+        for w in prior.warnings:
+            log.info("%s: EXIF: %s", Path(path).name, w)
+    return prior

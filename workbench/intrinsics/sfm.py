@@ -1,0 +1,524 @@
+"""Multi-view structure from motion with pycolmap: intrinsics, distortion and every camera's pose.
+
+Feature extraction (SIFT), matching (exhaustive for small sets, sequential for long ordered sequences),
+geometric verification and incremental mapping run in a temporary folder; the largest model is converted to
+the workbench's conventions (``docs/conventions.md``):
+
+* COLMAP's ``SIMPLE_PINHOLE``, ``PINHOLE``, ``SIMPLE_RADIAL``, ``RADIAL`` and ``OPENCV`` cameras map exactly
+  to our Brown :class:`~workbench.core.camera.CameraIntrinsics` (same distortion polynomial, OpenCV's
+  coefficient order); COLMAP puts the centre of the top-left pixel at (0.5, 0.5), we put it at (0, 0), so
+  ``cx_ours = cx_colmap - 0.5`` (and the same for cy).
+* Image poses become ``cam_from_model`` 4x4 row-major matrices (``p_cam = R p_model + t``); the model frame is
+  COLMAP's arbitrary similarity frame (georegistration places it in the scene).
+
+The result is written by the ``sfm`` stage as ``out/sfm/reconstruction.json`` (``docs/intrinsics.md``).
+"""
+
+from __future__ import annotations
+
+import logging
+import tempfile
+import time
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Callable
+
+import numpy as np
+
+from ..core.camera import CameraIntrinsics
+from ..errors import InputError, SettingsError, StageError
+
+log = logging.getLogger(__name__)
+
+CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+MATCHERS = ("auto", "exhaustive", "sequential")
+
+
+@dataclass(frozen=True, kw_only=True)
+class SfmOptions:
+    """Options of :func:`run_sfm`. Unknown keys (``from_dict``) and bad values raise :class:`SettingsError`.
+
+    ``camera_model``: COLMAP camera model, one of :data:`CAMERA_MODELS` (``RADIAL`` = f, cx, cy, k1, k2).
+    ``single_camera``: all photos share one camera (same camera, same zoom).
+    ``matcher``: ``exhaustive`` (every pair), ``sequential`` (each photo with the next ``sequential_overlap``,
+    for photos taken in order along a path) or ``auto`` (exhaustive up to ``exhaustive_max_images``).
+    ``max_image_size_px``: photos are downscaled to this long side for feature extraction (keypoints are
+    scaled back to full resolution). ``max_num_features``: SIFT features per photo.
+    ``refine_focal``, ``refine_principal_point``, ``refine_distortion``: what bundle adjustment refines.
+    ``verify_min_num_inliers``: a pair of photos counts as matched from this many geometrically verified
+    matches. ``init_*``, ``abs_pose_*``: COLMAP's incremental-mapper thresholds (see :meth:`forward_motion`
+    for a camera that moves forward along a street or a track). The defaults are stricter than COLMAP's
+    (pairs: 40 verified matches instead of 15; registration: 40 inliers and 40 % instead of 30 and 25 %):
+    carriages look alike on both sides and from car to car, and a photo registered on look-alike matches is
+    placed wrongly (on the synthetic Spuyten Duyvil set, a photo from the far side came out turned by
+    150-175 degrees). Stricter thresholds make this rarer, not impossible: fewer photos placed right is better
+    than more placed wrong.
+    ``forward_motion_retry``: if fewer than half the photos register, map again with the forward-motion
+    initial-pair thresholds, and keep that model if it registers clearly more photos (1.5 times, 2 or more).
+    ``num_threads``: CPU threads, unless ``deterministic`` (the default), which runs everything on one thread
+    so that a run repeats bit for bit (COLMAP's threads share work in an order that changes from run to run,
+    and the result with it). ``seed``: random seed.
+    ``max_points``: at most this many 3-D points are written (a fixed-seed subsample).
+    """
+
+    camera_model: str = "RADIAL"
+    single_camera: bool = True
+    matcher: str = "auto"
+    exhaustive_max_images: int = 60
+    sequential_overlap: int = 10
+    max_image_size_px: int = 2000
+    max_num_features: int = 8192
+    refine_focal: bool = True
+    refine_principal_point: bool = False
+    refine_distortion: bool = True
+    init_max_forward_motion: float = 0.95
+    init_min_tri_angle_deg: float = 16.0
+    init_min_num_inliers: int = 100
+    verify_min_num_inliers: int = 40
+    abs_pose_min_num_inliers: int = 40
+    abs_pose_min_inlier_ratio: float = 0.4
+    min_model_size: int = 3
+    forward_motion_retry: bool = True
+    num_threads: int = 2
+    deterministic: bool = True
+    seed: int = 0
+    max_points: int = 20000
+
+    def __post_init__(self) -> None:
+        def bad(key: str, why: str):
+            raise SettingsError(f"sfm options: {key} = {getattr(self, key)!r}: {why}")
+
+        if self.camera_model not in CAMERA_MODELS:
+            bad("camera_model", f"must be one of {list(CAMERA_MODELS)}")
+        if self.matcher not in MATCHERS:
+            bad("matcher", f"must be one of {list(MATCHERS)}")
+        for key, lo in (("exhaustive_max_images", 2), ("verify_min_num_inliers", 8), ("sequential_overlap", 1), ("max_image_size_px", 100),
+                        ("max_num_features", 100), ("init_min_num_inliers", 8), ("abs_pose_min_num_inliers", 4),
+                        ("min_model_size", 2), ("num_threads", 1), ("max_points", 0), ("seed", 0)):
+            v = getattr(self, key)
+            if not isinstance(v, int) or isinstance(v, bool) or v < lo:
+                bad(key, f"must be an integer >= {lo}")
+        if not (0.0 < self.init_max_forward_motion <= 1.0):
+            bad("init_max_forward_motion", "must be in (0, 1]")
+        if not (0.0 < self.abs_pose_min_inlier_ratio < 1.0):
+            bad("abs_pose_min_inlier_ratio", "must be in (0, 1)")
+        if not (0.0 < self.init_min_tri_angle_deg < 90.0):
+            bad("init_min_tri_angle_deg", "must be in (0, 90) degrees")
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "SfmOptions":
+        known = set(cls.__dataclass_fields__)
+        unknown = sorted(set(d) - known)
+        if unknown:
+            raise SettingsError(f"sfm options: unknown key(s) {unknown}; known: {sorted(known)}")
+        return cls(**d)
+
+    @classmethod
+    def forward_motion(cls, **overrides) -> "SfmOptions":
+        """Thresholds for a camera moving forward (e.g. photos walked along a street or a track).
+
+        The values that register all 29 photos of OpenSfM's Lund set (``../shared/data/SOURCES.md``).
+        """
+        base = dict(init_max_forward_motion=1.0, init_min_tri_angle_deg=4.0, init_min_num_inliers=50,
+                    verify_min_num_inliers=15,
+                    abs_pose_min_num_inliers=15, abs_pose_min_inlier_ratio=0.25, refine_distortion=False)
+        base.update(overrides)
+        return cls(**base)
+
+    def forward_motion_variant(self) -> "SfmOptions":
+        """These options with the initial-pair thresholds of :meth:`forward_motion` (the registration thresholds
+        stay: lowering them lets look-alike matches place photos wrongly)."""
+        return replace(self, init_max_forward_motion=1.0, init_min_tri_angle_deg=min(self.init_min_tri_angle_deg, 4.0),
+                       init_min_num_inliers=min(self.init_min_num_inliers, 50), refine_distortion=False)
+
+
+# --------------------------------------------------------------------------------------------------------
+# camera conversions (COLMAP <-> our Brown model)
+# --------------------------------------------------------------------------------------------------------
+def intrinsics_from_colmap(model: str, width: int, height: int, params) -> CameraIntrinsics:
+    """Our :class:`CameraIntrinsics` of a COLMAP camera (exact for the models of :data:`CAMERA_MODELS`).
+
+    COLMAP's principal point is 0.5 px larger than ours (its top-left pixel centre is at (0.5, 0.5)).
+    """
+    p = [float(x) for x in params]
+    if model == "SIMPLE_PINHOLE":
+        f, cx, cy = p
+        d = dict(fx=f, fy=f, cx=cx, cy=cy)
+    elif model == "PINHOLE":
+        fx, fy, cx, cy = p
+        d = dict(fx=fx, fy=fy, cx=cx, cy=cy)
+    elif model == "SIMPLE_RADIAL":
+        f, cx, cy, k = p
+        d = dict(fx=f, fy=f, cx=cx, cy=cy, k1=k)
+    elif model == "RADIAL":
+        f, cx, cy, k1, k2 = p
+        d = dict(fx=f, fy=f, cx=cx, cy=cy, k1=k1, k2=k2)
+    elif model == "OPENCV":
+        fx, fy, cx, cy, k1, k2, p1, p2 = p
+        d = dict(fx=fx, fy=fy, cx=cx, cy=cy, k1=k1, k2=k2, p1=p1, p2=p2)
+    else:
+        raise ValueError(f"COLMAP camera model {model!r} has no exact Brown equivalent; use one of {CAMERA_MODELS}")
+    d["cx"] -= 0.5
+    d["cy"] -= 0.5
+    return CameraIntrinsics(width=int(width), height=int(height), **d)
+
+
+def colmap_params_from_intrinsics(model: str, intr: CameraIntrinsics) -> tuple[list[float], list[str]]:
+    """COLMAP ``params`` of ``model`` for our intrinsics, and the terms the model cannot hold (dropped)."""
+    cx, cy = intr.cx + 0.5, intr.cy + 0.5
+    f = 0.5 * (intr.fx + intr.fy)
+    dropped = []
+    if intr.skew != 0.0:
+        dropped.append("skew")
+    if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL") and intr.fx != intr.fy:
+        dropped.append("fx != fy")
+    names = {"SIMPLE_PINHOLE": ("k1", "k2", "k3", "p1", "p2"), "PINHOLE": ("k1", "k2", "k3", "p1", "p2"),
+             "SIMPLE_RADIAL": ("k2", "k3", "p1", "p2"), "RADIAL": ("k3", "p1", "p2"), "OPENCV": ("k3",)}[model]
+    dropped += [n for n in names if getattr(intr, n) != 0.0]
+    params = {"SIMPLE_PINHOLE": [f, cx, cy], "PINHOLE": [intr.fx, intr.fy, cx, cy],
+              "SIMPLE_RADIAL": [f, cx, cy, intr.k1], "RADIAL": [f, cx, cy, intr.k1, intr.k2],
+              "OPENCV": [intr.fx, intr.fy, cx, cy, intr.k1, intr.k2, intr.p1, intr.p2]}[model]
+    return [float(x) for x in params], dropped
+
+
+def similarity_align(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+    """Least-squares similarity ``dst ~ s R src + t`` of (n, 3) point sets, n >= 3 (Umeyama 1991).
+
+    Returns (s, R (3, 3), t (3,), residuals (n,) in ``dst`` units). Points on a line leave the rotation about
+    that line free (any solution is returned; the residuals are still the least-squares ones).
+    """
+    src = np.asarray(src, dtype=float)
+    dst = np.asarray(dst, dtype=float)
+    if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
+        raise ValueError(f"{src.shape=} and {dst.shape=} must be equal (n, 3) with n >= 3")
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    a, b = src - mu_s, dst - mu_d
+    var_s = float(np.mean(np.sum(a * a, axis=1)))
+    if var_s <= 0:
+        raise ValueError("similarity alignment: the source points coincide")
+    U, D, Vt = np.linalg.svd(b.T @ a / len(src))
+    S = np.eye(3)
+    if np.linalg.det(U) * np.linalg.det(Vt) < 0:
+        S[2, 2] = -1.0
+    R = U @ S @ Vt
+    s = float(np.trace(np.diag(D) @ S) / var_s)
+    t = mu_d - s * R @ mu_s
+    res = np.linalg.norm(src @ (s * R).T + t - dst, axis=1)
+    return s, R, t, res
+
+
+# --------------------------------------------------------------------------------------------------------
+# the run
+# --------------------------------------------------------------------------------------------------------
+@dataclass
+class SfmView:
+    name: str
+    path: Path
+    intrinsics: CameraIntrinsics
+    cam_from_model: np.ndarray  # (4, 4)
+    n_points: int  # 3-D points it observes
+
+    @property
+    def center_model(self) -> np.ndarray:
+        M = self.cam_from_model
+        return -M[:3, :3].T @ M[:3, 3]
+
+
+@dataclass
+class SfmResult:
+    views: list[SfmView]
+    unregistered: list[dict]  # {"name", "reason"}
+    points_xyz: np.ndarray  # (n, 3) model frame
+    points_rgb: np.ndarray  # (n, 3) uint8
+    n_points_total: int
+    stats: dict = field(default_factory=dict)
+
+    def to_json(self, relative: Callable[[Path], str] = lambda p: str(p), *, prior: dict | None = None) -> dict:
+        """The ``reconstruction.json`` object (``docs/intrinsics.md``)."""
+        return {
+            "images": [{"name": v.name, "image": relative(v.path), "intrinsics": v.intrinsics.to_dict(),
+                        "cam_from_model": np.asarray(v.cam_from_model).tolist(), "n_points": v.n_points}
+                       for v in self.views],
+            "unregistered": self.unregistered,
+            "points": {"xyz": np.round(self.points_xyz, 5).tolist(), "rgb": self.points_rgb.astype(int).tolist(),
+                       "n": int(len(self.points_xyz)), "n_total": int(self.n_points_total)},
+            "intrinsics_source": "sfm",
+            "prior": prior,
+            "stats": self.stats,
+        }
+
+
+def _quiet_colmap() -> None:
+    try:
+        import pycolmap
+
+        pycolmap.logging.minloglevel = 2  # errors only on stderr; progress goes through our logging
+    except Exception:  # noqa: BLE001 - older pycolmap without logging control
+        pass
+
+
+def _pipeline_options(opts: SfmOptions, intrinsics_fixed: bool):
+    import pycolmap
+
+    po = pycolmap.IncrementalPipelineOptions()
+    threads = 1 if opts.deterministic else opts.num_threads
+    po.num_threads = threads
+    po.random_seed = opts.seed
+    po.min_model_size = opts.min_model_size
+    po.ba_refine_focal_length = opts.refine_focal and not intrinsics_fixed
+    po.ba_refine_principal_point = opts.refine_principal_point and not intrinsics_fixed
+    po.ba_refine_extra_params = opts.refine_distortion and not intrinsics_fixed
+    m = po.mapper
+    m.num_threads = threads
+    m.random_seed = opts.seed
+    m.init_max_forward_motion = opts.init_max_forward_motion
+    m.init_min_tri_angle = opts.init_min_tri_angle_deg
+    m.init_min_num_inliers = opts.init_min_num_inliers
+    m.abs_pose_min_num_inliers = opts.abs_pose_min_num_inliers
+    m.abs_pose_min_inlier_ratio = opts.abs_pose_min_inlier_ratio
+    m.abs_pose_refine_focal_length = po.ba_refine_focal_length
+    m.abs_pose_refine_extra_params = po.ba_refine_extra_params
+    po.triangulation.random_seed = opts.seed
+    po.mapper = m
+    return po
+
+
+def _map(db: Path, image_dir: Path, out: Path, opts: SfmOptions, intrinsics_fixed: bool):
+    import pycolmap
+
+    out.mkdir(parents=True, exist_ok=True)
+    pycolmap.set_random_seed(opts.seed)
+    recs = pycolmap.incremental_mapping(db, image_dir, out, options=_pipeline_options(opts, intrinsics_fixed))
+    if not recs:
+        return None, []
+    ordered = sorted(recs.values(), key=lambda r: r.num_reg_images(), reverse=True)
+    return ordered[0], ordered[1:]
+
+
+def run_sfm(images: list[Path], *, options: SfmOptions | None = None, prior: CameraIntrinsics | None = None,
+            prior_fixed: bool = False, work_dir: Path | None = None,
+            progress: Callable[[float, str], None] | None = None) -> SfmResult:
+    """Structure from motion on ``images`` (paths in one folder, at least 2).
+
+    ``prior``: initial intrinsics (a camera profile, or an EXIF focal with the principal point at the centre),
+    for the photos' size (scaled if the photos have the same aspect but another size); ``prior_fixed``: keep
+    it fixed (a trusted calibration) instead of refining it. ``work_dir``: where COLMAP's database goes
+    (default: a temporary folder, removed afterwards).
+    Raises :class:`InputError` for bad inputs and :class:`StageError` when no model could be built.
+    """
+    import pycolmap
+
+    opts = options or SfmOptions()
+    progress = progress or (lambda f, m="": None)
+    images = [Path(p).resolve() for p in images]
+    if len(images) < 2:
+        raise InputError(f"structure from motion needs at least 2 photos, got {len(images)}")
+    folders = {p.parent for p in images}
+    if len(folders) != 1:
+        raise InputError(f"structure from motion: the photos must be in one folder, got {sorted(map(str, folders))}")
+    image_dir = folders.pop()
+    names = [p.name for p in images]
+    sizes = {}
+    from PIL import Image
+
+    for p in images:
+        try:
+            with Image.open(p) as im:
+                sizes[p.name] = im.size
+        except OSError as exc:
+            raise InputError(f"{p}: cannot read this photo ({exc})") from None
+    distinct = set(sizes.values())
+    single = opts.single_camera
+    if single and len(distinct) > 1:
+        log.warning("sfm: photos have %d different sizes; one camera per photo size", len(distinct))
+        single = False
+    timings: dict[str, float] = {}
+    warnings: list[str] = []
+    _quiet_colmap()
+    pycolmap.set_random_seed(opts.seed)  # RANSAC in matching and mapping
+
+    with tempfile.TemporaryDirectory(prefix="workbench-sfm-", dir=work_dir) as tmp:
+        tmp = Path(tmp)
+        db = tmp / "database.db"
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = opts.camera_model
+        prior_used = None
+        if prior is not None and len(distinct) == 1:
+            w, h = next(iter(distinct))
+            pr = prior
+            if (pr.width, pr.height) != (w, h):
+                if abs(pr.width / pr.height - w / h) < 1e-3:
+                    pr = pr.scaled(w / pr.width)
+                else:
+                    warnings.append(f"prior is for {prior.width}x{prior.height} but the photos are {w}x{h}; unused")
+                    pr = None
+            if pr is not None:
+                params, dropped = colmap_params_from_intrinsics(opts.camera_model, pr)
+                if dropped:
+                    warnings.append(f"the {opts.camera_model} model cannot hold the prior's {', '.join(dropped)}")
+                reader.camera_params = ",".join(f"{x:.10g}" for x in params)
+                prior_used = pr
+        elif prior is not None:
+            warnings.append("photos of several sizes: the intrinsics prior is unused")
+        if prior_fixed and prior_used is None:
+            prior_fixed = False
+        extraction = pycolmap.FeatureExtractionOptions()
+        extraction.num_threads = 1 if opts.deterministic else opts.num_threads
+        extraction.max_image_size = opts.max_image_size_px
+        extraction.sift.max_num_features = opts.max_num_features
+        extraction.use_gpu = False
+        t0 = time.perf_counter()
+        progress(0.05, "features")
+        log.info("sfm: extracting features from %d photos", len(names))
+        pycolmap.extract_features(db, image_dir, image_names=names,
+                                  camera_mode=pycolmap.CameraMode.SINGLE if single else pycolmap.CameraMode.AUTO,
+                                  reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+        timings["features_s"] = time.perf_counter() - t0
+
+        matching = pycolmap.FeatureMatchingOptions()
+        matching.num_threads = 1 if opts.deterministic else opts.num_threads
+        matching.use_gpu = False
+        matcher = opts.matcher
+        if matcher == "auto":
+            matcher = "exhaustive" if len(names) <= opts.exhaustive_max_images else "sequential"
+        t0 = time.perf_counter()
+        progress(0.35, f"matching ({matcher})")
+        log.info("sfm: %s matching", matcher)
+        verification = pycolmap.TwoViewGeometryOptions()
+        verification.min_num_inliers = opts.verify_min_num_inliers
+        verification.ransac.random_seed = opts.seed
+        if matcher == "exhaustive":
+            pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
+                                      device=pycolmap.Device.cpu)
+        else:
+            pairing = pycolmap.SequentialPairingOptions()
+            pairing.overlap = opts.sequential_overlap
+            pairing.num_threads = matching.num_threads
+            pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
+                                      verification_options=verification, device=pycolmap.Device.cpu)
+        timings["matching_s"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        progress(0.6, "incremental mapping")
+        log.info("sfm: incremental mapping")
+        used_opts = opts
+        rec, others = _map(db, image_dir, tmp / "sparse", opts, prior_fixed)
+        n_reg = rec.num_reg_images() if rec is not None else 0
+        retried = False
+        if opts.forward_motion_retry and n_reg < max(opts.min_model_size, (len(names) + 1) // 2):
+            fm = opts.forward_motion_variant()
+            log.info("sfm: %d/%d photos registered; mapping again with the forward-motion thresholds", n_reg,
+                     len(names))
+            progress(0.8, "incremental mapping (forward-motion thresholds)")
+            rec2, others2 = _map(db, image_dir, tmp / "sparse_fm", fm, prior_fixed)
+            retried = True
+            n_reg2 = rec2.num_reg_images() if rec2 is not None else 0
+            if n_reg2 >= max(n_reg + 2, 1.5 * n_reg):  # clearly better, not one more photo on weaker evidence
+                rec, others, used_opts = rec2, others2, fm
+                warnings.append(f"only {n_reg}/{len(names)} photos registered with the default thresholds; the "
+                                f"forward-motion thresholds registered {rec2.num_reg_images()}")
+        timings["mapping_s"] = time.perf_counter() - t0
+        if rec is None or rec.num_reg_images() < 2:
+            raise StageError(f"structure from motion built no model from the {len(names)} photos in {image_dir}: "
+                             f"too few matches between them. Take photos with more overlap (each part of the "
+                             f"scene in 3 or more photos, 60-80 % overlap), or use another camera.source")
+        result = _convert(rec, others, db, images, used_opts)
+
+    n_reg = len(result.views)
+    if prior_used is not None and not prior_fixed:
+        f_sfm = result.views[0].intrinsics.fx
+        change = f_sfm / prior_used.fx - 1
+        if abs(change) > 0.15:
+            warnings.append(f"the SfM focal {f_sfm:.1f} px differs from the initial {prior_used.fx:.1f} px by "
+                            f"{100 * change:+.0f} %: check the EXIF tags or the profile (or the photos' geometry: "
+                            f"forward motion and narrow baselines leave the focal poorly determined)")
+    result.stats.update({
+        "n_images": len(names), "n_registered": n_reg, "matcher": matcher, "camera_model": opts.camera_model,
+        "single_camera": single, "retried_forward_motion": retried,
+        "options": asdict(used_opts), "timings_s": {k: round(v, 3) for k, v in timings.items()},
+        "time_s": round(sum(timings.values()), 3),
+        "prior": None if prior_used is None else {**prior_used.to_dict(), "fixed": bool(prior_fixed)},
+        "warnings": warnings,
+    })
+    log.info("sfm: %d/%d photos registered, %d points, mean reprojection error %.2f px, f = %.1f px",
+             n_reg, len(names), result.n_points_total, result.stats["mean_reprojection_error_px"],
+             result.views[0].intrinsics.fx)
+    progress(1.0, "done")
+    return result
+
+
+def _convert(rec, others, db_path: Path, images: list[Path], opts: SfmOptions) -> SfmResult:
+    import pycolmap
+
+    by_name = {p.name: p for p in images}
+    views = []
+    for image_id in sorted(rec.reg_image_ids()):
+        im = rec.image(image_id)
+        cam = rec.camera(im.camera_id)
+        intr = intrinsics_from_colmap(cam.model.name, cam.width, cam.height, cam.params)
+        M = np.eye(4)
+        M[:3, :] = np.asarray(im.cam_from_world().matrix())
+        views.append(SfmView(name=im.name, path=by_name[im.name], intrinsics=intr, cam_from_model=M,
+                             n_points=int(im.num_points3D)))
+    views.sort(key=lambda v: v.name)
+    registered = {v.name for v in views}
+
+    # why were the others left out?
+    in_other = {}
+    for r in others:
+        for i in r.reg_image_ids():
+            in_other[r.image(i).name] = r.num_reg_images()
+    db = pycolmap.Database.open(db_path)
+    try:
+        id_of = {im.name: im.image_id for im in db.read_all_images()}
+        n_kp = {n: db.num_keypoints_for_image(i) for n, i in id_of.items()}
+        pair_ids, inliers = db.read_two_view_geometry_num_inliers()
+        inl_to_model: dict[str, int] = {n: 0 for n in id_of}
+        name_of = {i: n for n, i in id_of.items()}
+        for pid, k in zip(pair_ids, inliers):
+            a, b = pycolmap.pair_id_to_image_pair(pid)
+            na, nb = name_of.get(a), name_of.get(b)
+            if na is None or nb is None:
+                continue
+            if nb in registered:
+                inl_to_model[na] += int(k)
+            if na in registered:
+                inl_to_model[nb] += int(k)
+    finally:
+        db.close()
+    unregistered = []
+    for p in images:
+        if p.name in registered:
+            continue
+        if n_kp.get(p.name, 0) == 0:
+            reason = "no features found (blank, blurred or tiny photo)"
+        elif p.name in in_other:
+            reason = f"registered only in a separate model of {in_other[p.name]} photos (no overlap with the main one)"
+        else:
+            reason = (f"too few verified matches with the registered photos ({inl_to_model.get(p.name, 0)} inlier "
+                      f"matches in all; {n_kp.get(p.name, 0)} features)")
+        unregistered.append({"name": p.name, "reason": reason})
+
+    ids = np.array(sorted(rec.point3D_ids()), dtype=np.int64)
+    xyz = np.array([rec.point3D(int(i)).xyz for i in ids]).reshape(-1, 3)
+    rgb = np.array([rec.point3D(int(i)).color for i in ids], dtype=np.uint8).reshape(-1, 3)
+    track = np.array([rec.point3D(int(i)).track.length() for i in ids]) if len(ids) else np.zeros(0)
+    err = np.array([rec.point3D(int(i)).error for i in ids]) if len(ids) else np.zeros(0)
+    n_total = len(ids)
+    if n_total > opts.max_points:
+        keep = np.sort(np.random.default_rng(opts.seed).choice(n_total, opts.max_points, replace=False))
+        xyz, rgb = xyz[keep], rgb[keep]
+    cams = {}
+    for cid, cam in rec.cameras.items():
+        cams[str(cid)] = {"model": cam.model.name, "params_colmap": [float(x) for x in cam.params],
+                          "width": int(cam.width), "height": int(cam.height)}
+    stats = {
+        "n_points": int(n_total), "n_points_written": int(len(xyz)),
+        "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()) if n_total else 0.0,
+        "median_point_error_px": float(np.median(err)) if n_total else 0.0,
+        "mean_track_length": float(track.mean()) if n_total else 0.0,
+        "mean_observations_per_image": float(rec.compute_mean_observations_per_reg_image()),
+        "n_models": 1 + len(others), "colmap_cameras": cams,
+    }
+    return SfmResult(views=views, unregistered=unregistered, points_xyz=xyz, points_rgb=rgb, n_points_total=n_total,
+                     stats=stats)
