@@ -12,6 +12,7 @@ from PIL import Image
 from workbench.render.exif import write_jpeg
 
 WB = [sys.executable, "-m", "workbench.cli"]
+FIRST = ("--only", "inputs", "--only", "terrain")  # noise photos: the later stages rightly refuse them
 
 
 def wb(*args, cwd=None):
@@ -44,13 +45,13 @@ def one_line_error(r, *needles):
 
 def test_run_status_and_skip(tmp_path):
     root = small_incident(tmp_path)
-    r = wb("run", root)
+    r = wb("run", root, *FIRST)
     assert r.returncode == 0, r.stderr
     assert "inputs" in r.stdout and "out/inputs/inputs.json" in r.stdout
     data = json.loads((root / "out/inputs/inputs.json").read_text())
     assert data["n_photos"] == 2 and data["n_chains"] == 1
     assert abs(data["photos"]["photos/panorama/p0.jpg"]["exif_focal_px"] - 20.0 / 23.5 * 80) < 0.5
-    r = wb("run", root)
+    r = wb("run", root, *FIRST)
     assert "up to date, skipped" in r.stdout + r.stderr
     r = wb("status", root)
     assert r.returncode == 0 and "done" in r.stdout
@@ -58,37 +59,37 @@ def test_run_status_and_skip(tmp_path):
 
 def test_bad_inputs_fail_cleanly_and_lose_nothing(tmp_path):
     root = small_incident(tmp_path)
-    assert wb("run", root).returncode == 0
+    assert wb("run", root, *FIRST).returncode == 0
     good = (root / "out/inputs/inputs.json").read_bytes()
     settings = (root / "project.toml").read_text()
 
     # a corrupt photo
     (root / "photos/panorama/p1.jpg").write_bytes(b"\xff\xd8\xff\xe0 not really a jpeg")
-    one_line_error(wb("run", root), "p1.jpg", "cannot read this photo")
+    one_line_error(wb("run", root, *FIRST), "p1.jpg", "cannot read this photo")
     assert (root / "out/inputs/inputs.json").read_bytes() == good
     (root / "photos/panorama/p1.jpg").unlink()
 
     # a typo in the settings
     (root / "project.toml").write_text(settings.replace("estimate_focal", "estimate_focl"))
-    one_line_error(wb("run", root), "project.toml", "unknown key 'solver.estimate_focl'")
+    one_line_error(wb("run", root, *FIRST), "project.toml", "unknown key 'solver.estimate_focl'")
     # a CRS that is not projected
     (root / "project.toml").write_text(settings.replace('crs = "EPSG:32618"', 'crs = "EPSG:4326"'))
-    one_line_error(wb("run", root), "project.toml", "location.crs", "not a projected CRS")
+    one_line_error(wb("run", root, *FIRST), "project.toml", "location.crs", "not a projected CRS")
     # an unknown model type
     (root / "project.toml").write_text(settings.replace('type = "shoreliner"', 'type = "shorliner"'))
-    one_line_error(wb("run", root), "consist[1].type = 'shorliner'", "shoreliner")
+    one_line_error(wb("run", root, *FIRST), "consist[1].type = 'shorliner'", "shoreliner")
     # an empty consist
     head = settings.split("[[consist]]")[0]
     tail = "[camera]" + settings.split("[camera]")[1]
     (root / "project.toml").write_text("consist = []\n" + head + tail)
-    one_line_error(wb("run", root), "consist is empty")
+    one_line_error(wb("run", root, *FIRST), "consist is empty")
     # an unreadable DEM
     (root / "project.toml").write_text(settings.replace('# dem = "../../terrain/<region>/dem.tif"', 'dem = "dem.tif"'))
     (root / "dem.tif").write_bytes(b"II*\x00garbage")
-    one_line_error(wb("run", root), "dem.tif")
+    one_line_error(wb("run", root, *FIRST), "dem.tif")
     # a missing photo folder
     (root / "project.toml").write_text(settings.replace('photos = "photos/panorama"', 'photos = "photos/none"'))
-    one_line_error(wb("run", root), "camera.photos = 'photos/none'")
+    one_line_error(wb("run", root, *FIRST), "camera.photos = 'photos/none'")
 
     # the last good run (one photo, after p1 was removed) is intact; the failed terrain stage wrote nothing
     assert json.loads((root / "out/inputs/inputs.json").read_text())["n_photos"] == 1
