@@ -693,9 +693,15 @@ def simplify_terrain_mesh(model: TerrainModel, max_error_m: float, *, max_iterat
     faces = idx[tri.simplices]  # the last triangulation (if the loop ran out, info says the error it reached)
     V = G
     nz = np.cross(V[faces[:, 1]] - V[faces[:, 0]], V[faces[:, 2]] - V[faces[:, 0]])[:, 2]
+    # the border nodes are nearly collinear in east/north (a grid row after the exact CRS -> ENU conversion), so
+    # Delaunay leaves slivers of no plan area along the hull: near-vertical walls whose up/down orientation is
+    # numerical noise. They cover nothing in plan; drop them.
+    sliver = np.abs(nz) < 1e-4 * float(np.median(np.abs(nz)))
+    faces, nz = faces[~sliver], nz[~sliver]
     faces[nz < 0] = faces[nz < 0][:, [0, 2, 1]]  # counter-clockwise seen from above
     used, inv = np.unique(faces, return_inverse=True)
     mesh = trimesh.Trimesh(vertices=V[used].copy(), faces=inv.reshape(-1, 3), process=False)
     info = {"max_error_m": err_max, "tolerance_m": float(max_error_m), "n_vertices": int(len(used)),
-            "n_vertices_full": int(len(G)), "n_faces": int(len(mesh.faces)), "iterations": it + 1}
+            "n_vertices_full": int(len(G)), "n_faces": int(len(mesh.faces)), "iterations": it + 1,
+            "border_slivers_dropped": int(sliver.sum())}
     return mesh, info
