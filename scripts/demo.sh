@@ -17,6 +17,9 @@ fi
 .venv/bin/workbench status "$INCIDENT"
 echo
 echo "Outputs of $INCIDENT:"
-echo "  stage outputs:  $INCIDENT/out/  (inputs/inputs.json, terrain/terrain.ply, terrain/buildings.ply, state.json)"
+echo "  report:         $INCIDENT/out/report/report.pdf  (and report.html)"
+echo "  GIS exports:    $INCIDENT/out/export/  (scene.glb, carriages.geojson, scene.kmz, scene.city.json, tiles/)"
+echo "  renders:        $INCIDENT/out/render/"
+echo "  poses:          $INCIDENT/out/solve/solution.json"
 echo "  photos & truth: $INCIDENT/photos/  $INCIDENT/truth/ground_truth.json"
-echo "  (the report and GIS exports come with the render/report/export stages, which are not built yet)"
+echo "  3D viewer:      xvfb-run -a .venv/bin/workbench view $INCIDENT --screenshot view.png  (or without xvfb-run on a desktop)"
