@@ -1,4 +1,4 @@
-"""The stages of ``workbench run``, in order. Later stages (stitch, solve, render, report, export) plug in here.
+"""The stages of ``workbench run``, in order. Each later stage lives with its module and is listed in _stages().
 
 Each stage is a plain function ``(project, progress) -> StageResult``; the runner handles hashing,
 skipping, timing and the record in ``out/state.json``.
@@ -58,7 +58,11 @@ def read_photo_info(path: Path) -> dict:
             Image.DecompressionBombWarning) as exc:
         raise InputError(f"{path}: cannot read this photo ({exc}); replace it with an intact copy or remove it "
                          f"from the folder") from None
-    return {"width": w, "height": h, "exif_focal_px": read_focal_px(path)}
+    from .intrinsics.exif import exif_focal_prior
+
+    prior = exif_focal_prior(path)
+    return {"width": w, "height": h, "exif_focal_px": read_focal_px(path),
+            "exif_prior": prior.to_dict() if prior is not None else None}
 
 
 def run_inputs(project: Project, progress: Progress) -> StageResult:
@@ -91,56 +95,22 @@ def run_inputs(project: Project, progress: Progress) -> StageResult:
                                                          "n_chains": chains, "camera_source": s.camera.source.value})
 
 
-# ---------------------------------------------------------------------------------------------------
-# terrain: DEM and buildings to meshes in the scene frame
-# ---------------------------------------------------------------------------------------------------
-def _terrain_files(project: Project) -> dict[str, Path]:
-    t = project.settings.terrain
-    files = {"dem": project.require_file(t.dem, "terrain.dem")}
-    if t.buildings:
-        files["buildings"] = project.require_file(t.buildings, "terrain.buildings")
-    return files
-
-
-def run_terrain(project: Project, progress: Progress) -> StageResult:
-    from .synth.buildings import building_meshes, read_buildings_geojson
-    from .terrain.dem import TerrainModel
-
-    t = project.settings.terrain
-    files = _terrain_files(project)
-    progress(0.1, "DEM")
-    tm = TerrainModel.from_geotiff(files["dem"], project.frame, aoi_radius_m=t.aoi_radius_m)
-    mesh = tm.mesh()
-    out = project.stage_dir("terrain")
-    terrain_ply = project.write_with(out / "terrain.ply", lambda p: mesh.export(p))
-    outputs = {"terrain_mesh": terrain_ply}
-    stats = {"dem": project.relative(files["dem"]), "n_vertices": int(len(mesh.vertices)),
-             "n_faces": int(len(mesh.faces)), "bounds_enu": np.asarray(tm.bounds_enu).tolist(),
-             "height_at_origin_m": float(tm.height_at(np.zeros((1, 2)))[0]),
-             "vertical_accuracy_m": t.dem_vertical_accuracy_m}
-    if "buildings" in files:
-        progress(0.6, "buildings")
-        import trimesh
-
-        blds = read_buildings_geojson(files["buildings"])
-        meshes = building_meshes(blds, tm, project.frame)
-        if meshes:
-            merged = trimesh.util.concatenate(meshes)
-            outputs["buildings_mesh"] = project.write_with(out / "buildings.ply", lambda p: merged.export(p))
-        stats["n_buildings"] = len(blds)
-    return StageResult(outputs=outputs, stats=stats)
-
-
 def _stages() -> list[StageSpec]:
+    """The stages after ``inputs``, in order (each module owns its stage; see docs/pipeline.md)."""
+    from .correspond.stage import STAGE as CORRESPOND
+    from .export.stage import STAGE as EXPORT
+    from .georef.stage import STAGE as GEOREF
+    from .intrinsics.stage import STAGE as SFM
+    from .report.render_stage import STAGE as RENDER
+    from .report.report_stage import STAGE as REPORT
     from .solve.stage import STAGE as SOLVE
+    from .stitch.stage import STAGE as STITCH
+    from .terrain.stage import STAGE as TERRAIN
 
-    return [SOLVE]
+    return [TERRAIN, STITCH, SFM, GEOREF, CORRESPOND, SOLVE, EXPORT, RENDER, REPORT]
 
 
 STAGES: list[StageSpec] = [
     StageSpec("inputs", "check photos, camera profile and consist", run_inputs, inputs=_inputs_files,
               settings_sections=("consist", "camera")),
-    StageSpec("terrain", "DEM and buildings to meshes in the scene frame", run_terrain, inputs=_terrain_files,
-              settings_sections=("location", "terrain"), depends_on=(),
-              applies=lambda project: project.settings.terrain.dem is not None),
 ] + _stages()

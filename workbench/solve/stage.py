@@ -59,9 +59,10 @@ def _inputs(project: Project) -> dict[str, Path]:
     pano = _panorama_model_path(project, cp)
     if pano is not None:
         files["panorama_model"] = pano
-    t = project.settings.terrain
-    if t.dem:
-        files["dem"] = project.path(t.dem)
+    if project.settings.terrain.dem:
+        from ..terrain.stage import _files as terrain_files
+
+        files.update({k: v for k, v in terrain_files(project).items() if k.startswith("dem")})
     return files
 
 
@@ -233,11 +234,10 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
                         terrain_sigma_m=s.terrain.dem_vertical_accuracy_m)
     terrain = None
     if s.terrain.dem:
-        from ..terrain.dem import TerrainModel
+        from ..terrain.stage import terrain_model_for
 
         progress(0.15, "terrain")
-        terrain = TerrainModel.from_geotiff(project.require_file(s.terrain.dem, "terrain.dem"), project.frame,
-                                            aoi_radius_m=s.terrain.aoi_radius_m)
+        terrain = terrain_model_for(project)
     progress(0.3, f"solving {len(carriages)} carriages")
     res, rejected = _solve_rejecting(carriages, links, views, opts, terrain, s.solver, progress)
     progress(0.9, "writing the solution")
@@ -370,4 +370,4 @@ def solution_document(project: Project, res: Any, views: list, cam_doc: dict, ob
 
 STAGE = StageSpec("solve", "every carriage's pose from the marked points (chained least squares, four steps)",
                   run_solve, inputs=_inputs, settings_sections=("consist", "solver", "terrain", "location"),
-                  depends_on=("inputs",), applies=_applies)
+                  depends_on=("inputs", "terrain", "georef", "correspond"), applies=_applies)

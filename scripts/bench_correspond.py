@@ -1,0 +1,226 @@
+"""Benchmark of the automatic marked-point finder (issue 5) against synthetic ground truth.
+
+For each incident (the two samples, read only, and fresh seeds generated under --work), runs the SIFT
+finder of the ``correspond`` stage on the photo set and reports, against ``truth/ground_truth.json``:
+
+* found: share of the visible marked points (truth ``visible``) reported within 3 px of the truth;
+* wrong: share of the reported points more than 10 px from the truth (or on a carriage not there);
+* with ``--solve`` (needs workbench/solve/stage.py and workbench/synth/handpicks.py): carriage-centre
+  position and heading errors of the solve from the automatic points, and from the true points plus 1 px
+  noise, on copies of the incidents with their true cameras.
+
+Usage: .venv/bin/python scripts/bench_correspond.py [--seeds 2 3] [--cars 4] [--solve] [--out bench_out/correspond]
+Writes the figures to <out>/bench_correspond.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import shutil
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from workbench.correspond.match import MatchOptions  # noqa: E402
+from workbench.correspond.stage import automatic, photo_intrinsics  # noqa: E402
+from workbench.project import Project  # noqa: E402
+
+SAMPLES = [REPO / "projects" / "spuyten-duyvil", REPO / "projects" / "frankford-junction"]
+
+
+def score(truth: dict, obs: list, photo_set: str = "panorama") -> dict:
+    """found / wrong shares of observations against the truth."""
+    by_photo = {Path(p["photo"]).name: p for p in truth["photos"] if p["set"] == photo_set}
+    n_visible = 0
+    found = 0
+    got = {(o.carriage, o.point, o.view): o for o in obs}
+    errs = []
+    wrong = 0
+    for o in obs:
+        t = by_photo[o.view]["observations"].get(o.carriage, {}).get(o.point)
+        if t is None or t.get("uv") is None:
+            wrong += 1
+            errs.append(np.inf)
+            continue
+        e = float(np.hypot(o.uv[0] - t["uv"][0], o.uv[1] - t["uv"][1]))
+        errs.append(e)
+        wrong += e > 10.0
+    for name, ph in by_photo.items():
+        for car, pts in ph["observations"].items():
+            for pt, t in pts.items():
+                if not t.get("visible"):
+                    continue
+                n_visible += 1
+                o = got.get((car, pt, name))
+                if o is not None and np.hypot(o.uv[0] - t["uv"][0], o.uv[1] - t["uv"][1]) <= 3.0:
+                    found += 1
+    e = np.array(errs)
+    fin = e[np.isfinite(e)]
+    return {"n_visible": n_visible, "n_reported": len(obs), "n_found_3px": found,
+            "found_share": round(found / max(n_visible, 1), 4), "n_wrong_10px": int(wrong),
+            "wrong_share": round(wrong / max(len(obs), 1), 4),
+            "median_err_px": round(float(np.median(fin)), 3) if len(fin) else None,
+            "p90_err_px": round(float(np.percentile(fin, 90)), 3) if len(fin) else None}
+
+
+def run_one(root: Path, opts: MatchOptions) -> tuple[dict, list]:
+    project = Project(root)
+    truth = json.loads((root / "truth" / "ground_truth.json").read_text())
+    photos = project.photo_paths()
+    intr, _ = photo_intrinsics(project, photos)
+    t0 = time.perf_counter()
+    obs, needs, stats = automatic(project, photos, intr, opts, lambda f, m="": None)
+    res = score(truth, obs)
+    res.update({"incident": str(root), "time_s": round(time.perf_counter() - t0, 1), "needs_manual": needs,
+                "by_how": {}})
+    return res, obs
+
+
+def _copy_incident(src: Path, dst: Path) -> Path:
+    """A working copy of an incident (photos and truth linked, terrain paths made absolute), without out/."""
+    import re
+
+    if dst.exists():
+        shutil.rmtree(dst)
+    dst.mkdir(parents=True)
+    text = (src / "project.toml").read_text()
+
+    def absolute(m):
+        return f'{m.group(1)} = "{(src / m.group(2)).resolve().as_posix()}"'
+
+    text = re.sub(r'^(dem|buildings) = "([^"]+)"', absolute, text, flags=re.M)
+    (dst / "project.toml").write_text(text)
+    for f in ("camera_profile.json",):
+        if (src / f).is_file():
+            shutil.copy(src / f, dst / f)
+    for d in ("photos", "truth", "layers", "rolling_stock"):
+        if (src / d).exists():
+            (dst / d).symlink_to((src / d).resolve())
+    return dst
+
+
+def solve_errors(src: Path, work: Path, obs: list | None) -> dict:
+    """Carriage-centre and heading errors of the solve stage on a copy of ``src`` with its true cameras, from
+    ``obs`` (the automatic points), or from the true points plus 1 px noise when ``obs`` is None."""
+    from workbench.correspond import manual as mf
+    from workbench.pipeline import STAGES
+    from workbench.runner import Runner, StageResult, StageSpec
+    from workbench.solve.stage import STAGE as SOLVE
+    from workbench.synth.handpicks import true_correspondences, write_known_cameras
+
+    root = _copy_incident(src, work)
+    write_known_cameras(root, "panorama")
+    if obs is None:
+        doc = true_correspondences(root, "panorama", sigma_px=1.0, seed=0, points_per_car=None)
+    else:
+        doc = mf.CorrespondenceFile(observations=obs).to_json()
+
+    def stand_in(project, progress):  # the correspondences under test, in place of the correspond stage
+        return StageResult(outputs={"correspondences": project.write_json(
+            project.stage_dir("correspond") / "correspondences.json", doc)})
+
+    by_name = {s.name: s for s in STAGES}
+    stages = [by_name["inputs"], by_name["terrain"],
+              StageSpec("georef", "known cameras (cameras.json)", stand_in, applies=lambda p: False),
+              StageSpec("correspond", "points under test", stand_in, depends_on=("inputs",)), SOLVE]
+    project = Project(root)
+    try:
+        Runner(project, stages).run(only=[s.name for s in stages])
+    except Exception as exc:  # noqa: BLE001 - reported, not fatal to the benchmark
+        return {"error": str(exc)}
+    sol = json.loads((root / "out" / "solve" / "solution.json").read_text())
+    truth = json.loads((root / "truth" / "ground_truth.json").read_text())
+    tc = {c["number"]: c for c in truth["carriages"]}
+    pos, hdg, status = {}, {}, {}
+    for c in sol["carriages"]:
+        status[c["number"]] = c["status"]
+        if c["status"] == "left_out" or c.get("body_centre_enu") is None:
+            continue
+        t = tc[c["number"]]
+        pos[c["number"]] = float(np.linalg.norm(np.subtract(c["body_centre_enu"], t["body_centre_enu"])))
+        hdg[c["number"]] = float(abs((c["heading_deg"] - t["heading_deg"] + 180.0) % 360.0 - 180.0))
+    p, h = np.array(list(pos.values())), np.array(list(hdg.values()))
+    return {"status": status, "position_error_m": {k: round(v, 3) for k, v in pos.items()},
+            "heading_error_deg": {k: round(v, 3) for k, v in hdg.items()},
+            "median_position_error_m": round(float(np.median(p)), 3) if len(p) else None,
+            "max_position_error_m": round(float(np.max(p)), 3) if len(p) else None,
+            "median_heading_error_deg": round(float(np.median(h)), 3) if len(h) else None,
+            "max_heading_error_deg": round(float(np.max(h)), 3) if len(h) else None}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seeds", type=int, nargs="*", default=[2])
+    ap.add_argument("--cars", type=int, default=4)
+    ap.add_argument("--width", type=int, default=1600)
+    ap.add_argument("--height", type=int, default=1200)
+    ap.add_argument("--no-samples", action="store_true")
+    ap.add_argument("--solve", action="store_true", help="also solve poses from the automatic and the true points")
+    ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                    help="a MatchOptions field, e.g. --option min_inliers=12 (value parsed as a Python literal)")
+    ap.add_argument("--out", type=Path, default=REPO / "bench_out" / "correspond")
+    ap.add_argument("--work", type=Path, default=Path("/tmp/bench_correspond"))
+    args = ap.parse_args(argv)
+    logging.basicConfig(level=logging.WARNING)
+    import ast
+
+    overrides = {}
+    for kv in args.option:
+        k, _, v = kv.partition("=")
+        overrides[k.strip()] = ast.literal_eval(v.strip())
+    opts = MatchOptions(**overrides)
+    roots = [] if args.no_samples else [s for s in SAMPLES if (s / "truth" / "ground_truth.json").is_file()]
+    for seed in args.seeds:
+        root = args.work / f"seed{seed}"
+        if not (root / "truth" / "ground_truth.json").is_file():
+            subprocess.run([str(REPO / ".venv" / "bin" / "workbench"), "synth", str(root), "--seed", str(seed),
+                            "--cars", str(args.cars), "--width", str(args.width), "--height", str(args.height),
+                            "--multiview", "0"], check=True)
+        roots.append(root)
+    results = []
+    for root in roots:
+        res, obs = run_one(root, opts)
+        results.append(res)
+        print(f"{root.name:24s} visible {res['n_visible']:4d}  reported {res['n_reported']:4d}  "
+              f"found<=3px {res['found_share']:.1%}  wrong>10px {res['wrong_share']:.1%}  "
+              f"median {res['median_err_px']} px  time {res['time_s']} s", flush=True)
+        if args.solve:
+            res["solve_auto"] = solve_errors(root, args.work / f"{root.name}_solve_auto", obs)
+            res["solve_true"] = solve_errors(root, args.work / f"{root.name}_solve_true", None)
+            a, t = res["solve_auto"], res["solve_true"]
+            common = sorted(set(a.get("position_error_m", {})) & set(t.get("position_error_m", {})))
+            if common:  # the same carriages, solved from the automatic and from the true points
+                res["solve_common"] = {
+                    "carriages": common,
+                    "auto_median_position_error_m": round(float(np.median([a["position_error_m"][c] for c in common])), 3),
+                    "true_median_position_error_m": round(float(np.median([t["position_error_m"][c] for c in common])), 3),
+                    "auto_median_heading_error_deg": round(float(np.median([a["heading_error_deg"][c] for c in common])), 3),
+                    "true_median_heading_error_deg": round(float(np.median([t["heading_error_deg"][c] for c in common])), 3)}
+                print(f"   same carriages {common}: {res['solve_common']}", flush=True)
+            for k in ("solve_auto", "solve_true"):
+                r = res[k]
+                print(f"   {k}: {r.get('error') or ''}centre error median {r.get('median_position_error_m')} m, max "
+                      f"{r.get('max_position_error_m')} m; heading error median {r.get('median_heading_error_deg')} "
+                      f"deg, max {r.get('max_heading_error_deg')} deg; {r.get('status')}", flush=True)
+    tot_vis = sum(r["n_visible"] for r in results)
+    tot_rep = sum(r["n_reported"] for r in results)
+    summary = {"found_share": round(sum(r["n_found_3px"] for r in results) / max(tot_vis, 1), 4),
+               "wrong_share": round(sum(r["n_wrong_10px"] for r in results) / max(tot_rep, 1), 4),
+               "targets": {"found_share_min": 0.8, "wrong_share_max": 0.02}}
+    print(f"all: found {summary['found_share']:.1%}  wrong {summary['wrong_share']:.1%}")
+    args.out.mkdir(parents=True, exist_ok=True)
+    summary["options"] = overrides
+    (args.out / "bench_correspond.json").write_text(json.dumps({"results": results, "summary": summary}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

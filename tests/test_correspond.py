@@ -1,0 +1,253 @@
+"""The correspond stage: SIFT marked points against synthetic ground truth, manual files, overrides."""
+
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from workbench.core.camera import CameraIntrinsics
+from workbench.correspond import manual as mf
+from workbench.correspond import stage as cs
+from workbench.correspond.match import MatchOptions, detect_faces, photo_features, refine_detection
+from workbench.correspond.references import FACES, build_references, face_reference
+from workbench.errors import InputError
+from workbench.pipeline import STAGES
+from workbench.project import Project
+from workbench.rolling_stock import get_type
+from workbench.runner import Runner
+
+pytestmark = pytest.mark.slow
+
+
+# ---------------------------------------------------------------------------------------------------------
+# references and homographies, no incident needed
+# ---------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("type_id", ["shoreliner", "acs-64", "amfleet-i"])
+def test_reference_pixels_round_trip_to_marked_points(type_id):
+    ct = get_type(type_id)
+    seen = set()
+    for face in FACES:
+        ref = face_reference(ct, "1234", face, 30.0)
+        h, w = ref.image.shape[:2]
+        for name, uv in ref.points.items():
+            seen.add(name)
+            assert -1.0 <= uv[0] <= w and -1.0 <= uv[1] <= h, (face, name, uv, (w, h))
+            xyz = ref.carriage_from_ref(uv[None])[0]
+            assert np.linalg.norm(xyz - ct.marked_points[name]) < 0.01, (face, name, xyz, ct.marked_points[name])
+        # one pixel step is 1 / px_per_m metres, in the face's plane
+        assert abs(np.linalg.norm(ref.axis_u_m) - 1 / 30.0) < 2e-3 and abs(np.linalg.norm(ref.axis_v_m) - 1 / 30.0) < 2e-3
+        n = ct.face_normal(face)
+        assert abs(ref.axis_u_m @ n) < 1e-9 and abs(ref.axis_v_m @ n) < 1e-9
+    # every side point of a coach is on some face's plane (couplers protrude: they come from the pose)
+    assert {n for n, fs in ct.marked_point_faces.items() if {"left", "right"} & set(fs)} <= seen
+
+
+def test_homography_recovers_a_known_warp():
+    """A reference warped into a blank photo by a known homography: the face is found and its points
+    transferred within a fraction of a pixel."""
+    ct = get_type("shoreliner")
+    opts = MatchOptions()
+    ref = build_references(ct, "6100", px_per_m=opts.px_per_m, tilts=opts.tilts)[0]
+    assert ref.face == "left"
+    h, w = ref.image.shape[:2]
+    src = np.float32([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]])
+    dst = np.float32([[40, 200], [600, 170], [610, 215], [45, 262]])  # seen at an angle
+    H = cv2.getPerspectiveTransform(src, dst)
+    photo = np.full((480, 640, 3), (90, 140, 80), np.uint8)
+    photo = cv2.warpPerspective(ref.image, H, (640, 480), dst=photo, borderMode=cv2.BORDER_TRANSPARENT,
+                                flags=cv2.INTER_AREA)
+    K = CameraIntrinsics(width=640, height=480, fx=700.0, fy=700.0, cx=319.5, cy=239.5)
+    pf = photo_features("warp.png", photo, K, opts)
+    dets = detect_faces(pf, [ref], opts)
+    assert len(dets) == 1 and dets[0].n_inliers >= opts.min_inliers
+    det = refine_detection(pf, dets[0], opts)
+    names = list(ref.points)
+    want = cv2.perspectiveTransform(np.float32([ref.points[n] for n in names])[None], H)[0]
+    got = det.transfer(np.array([ref.points[n] for n in names]))
+    err = np.linalg.norm(got - want, axis=1)
+    assert 0.0 <= err.max() < 0.8, err
+    assert 0.0 < det.confidence <= 1.0
+
+
+# ---------------------------------------------------------------------------------------------------------
+# a small synthetic incident through the stage
+# ---------------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def incident(tmp_path_factory):
+    from workbench.synth.generate import SynthOptions, generate_incident
+
+    root = tmp_path_factory.mktemp("correspond") / "inc"
+    t0 = time.perf_counter()
+    generate_incident(root, SynthOptions(scenario="spuyten-duyvil", seed=1, n_cars=3, photo_width=640,
+                                         photo_height=480, n_panorama=3, n_multiview=0))
+    t_synth = time.perf_counter() - t0
+    project = Project(root)
+    t0 = time.perf_counter()
+    Runner(project, [s for s in STAGES if s.name == "inputs"] + [cs.STAGE]).run(only=["inputs", "correspond"])
+    t_stage = time.perf_counter() - t0
+    truth = json.loads((root / "truth" / "ground_truth.json").read_text())
+    doc = json.loads(cs.output_path(project).read_text())
+    print(f"synth {t_synth:.1f} s, correspond stage {t_stage:.1f} s")
+    return project, truth, doc
+
+
+def _truth_uv(truth, view):
+    ph = next(p for p in truth["photos"] if Path(p["photo"]).name == view)
+    return ph["observations"]
+
+
+def test_points_found_against_truth(incident):
+    project, truth, doc = incident
+    obs = doc["observations"]
+    assert obs and all(o["source"] == "sift" for o in obs)
+    n_vis = found = wrong = 0
+    errs = []
+    got = {(o["carriage"], o["point"], o["view"]): o for o in obs}
+    for o in obs:
+        t = _truth_uv(truth, o["view"])[o["carriage"]][o["point"]]
+        e = float(np.hypot(*(np.asarray(o["uv"]) - t["uv"])))
+        errs.append(e)
+        wrong += e > 10
+        assert 0 < o["confidence"] <= 1 and o["sigma_px"] > 0
+    for ph in truth["photos"]:
+        view = Path(ph["photo"]).name
+        for car, pts in ph["observations"].items():
+            for name, t in pts.items():
+                if t["visible"]:
+                    n_vis += 1
+                    o = got.get((car, name, view))
+                    found += o is not None and np.hypot(*(np.asarray(o["uv"]) - t["uv"])) <= 3
+    share = found / n_vis
+    # measured 0.51 (21 of 41) on this incident: the two nearer coaches' sides and couplers, not the far
+    # end-on one; a regression below 0.3 or a broken truth comparison (above 1) fails
+    assert 0.3 <= share <= 1.0, (found, n_vis)
+    assert wrong == 0, errs
+    assert 0.02 < float(np.median(errs)) < 1.5, errs
+
+
+def test_identical_coaches_are_not_confused(incident):
+    """Every reported point is nearest to the true point of its own carriage (of any carriage's points)."""
+    _, truth, doc = incident
+    for o in doc["observations"]:
+        tv = _truth_uv(truth, o["view"])
+        near = min((np.hypot(*(np.asarray(o["uv"]) - t["uv"])), car, name)
+                   for car, pts in tv.items() for name, t in pts.items() if t["uv"] is not None)
+        assert near[1] == o["carriage"], (o, near)
+
+
+def test_stage_statistics_and_references(incident):
+    project, _, doc = incident
+    stats = json.loads((project.stage_dir("correspond") / "stats.json").read_text())
+    assert stats["n_sift"] == len(doc["observations"]) and stats["n_manual"] == 0
+    assert set(stats["photos"]) == {p.name for p in project.photo_paths()}
+    refs = json.loads((project.stage_dir("correspond") / "references" / "references.json").read_text())
+    assert set(refs) == {c.number for c in project.settings.consist}
+    for car in doc["needs_manual"]:
+        assert car["carriage"] in refs and car["reason"]
+
+
+# ---------------------------------------------------------------------------------------------------------
+# manual correspondences
+# ---------------------------------------------------------------------------------------------------------
+def _write_manual(project, obs, **extra):
+    path = project.root / mf.FILE_NAME
+    path.write_text(json.dumps({"observations": obs, **extra}))
+    return path
+
+
+@pytest.fixture
+def manual_file(incident):
+    project = incident[0]
+    yield project
+    (project.root / mf.FILE_NAME).unlink(missing_ok=True)
+
+
+@pytest.mark.parametrize("bad, message", [
+    ({"carriage": "9999"}, "unknown carriage '9999'"),
+    ({"point": "roof_hatch"}, "no marked point 'roof_hatch'"),
+    ({"uv": [640.0, 10.0]}, "outside view 'pano_00.jpg'"),
+    ({"uv": [-1.0, 10.0]}, "outside view"),
+    ({"view": "pano_09.jpg"}, "unknown view 'pano_09.jpg'"),
+    ({"confidence": 1.5}, "confidence"),
+    ({"extra_key": 1}, "extra_key"),
+])
+def test_manual_file_errors_name_the_item(manual_file, bad, message):
+    good = {"carriage": "6100", "point": "coupler_front", "view": "pano_00.jpg", "uv": [100.0, 200.0],
+            "source": "manual"}
+    path = _write_manual(manual_file, [good, {**good, "point": "coupler_rear", **bad}])
+    with pytest.raises(InputError, match=message) as exc:
+        cs.load_manual(manual_file)
+    assert str(path) in str(exc.value)
+
+
+def test_manual_file_nan_and_duplicates(manual_file):
+    good = {"carriage": "6100", "point": "coupler_front", "view": "pano_00.jpg", "uv": [100.0, 200.0]}
+    path = manual_file.root / mf.FILE_NAME
+    path.write_text('{"observations": [{"carriage": "6100", "point": "coupler_front", "view": "pano_00.jpg", '
+                    '"uv": [NaN, 3.0]}]}')
+    with pytest.raises(InputError, match="not finite"):
+        cs.load_manual(manual_file)
+    _write_manual(manual_file, [good, dict(good)])
+    with pytest.raises(InputError, match=r"duplicate of observations\[0\]"):
+        cs.load_manual(manual_file)
+    path.write_text("{not json")
+    with pytest.raises(InputError, match="not valid JSON"):
+        cs.load_manual(manual_file)
+
+
+def test_manual_point_overrides_automatic(incident, manual_file, monkeypatch):
+    project, _, doc = incident
+    auto = [mf.Observation(**o) for o in doc["observations"]]
+    first = auto[0]
+    moved = {"carriage": first.carriage, "point": first.point, "view": first.view,
+             "uv": [first.uv[0] + 5.0, first.uv[1] - 3.0], "source": "manual", "sigma_px": 1.5}
+    extra = {"carriage": "6227", "point": "coupler_front", "view": "pano_02.jpg", "uv": [10.0, 20.0]}
+    _write_manual(project, [moved, extra], note="test picks")
+    # the automatic part is the fixture's (the matcher itself is tested above); the merge is the stage's
+    monkeypatch.setattr(cs, "automatic", lambda *a, **k: (auto, [{"carriage": "6227", "reason": "no face"}], {}))
+    res = cs.run_correspond(project, lambda f, m="": None)
+    out = json.loads(res.outputs["correspondences"].read_text())
+    by_key = {(o["carriage"], o["point"], o["view"]): o for o in out["observations"]}
+    k = (first.carriage, first.point, first.view)
+    assert by_key[k]["source"] == "manual" and by_key[k]["uv"] == moved["uv"] and by_key[k]["sigma_px"] == 1.5
+    assert by_key[("6227", "coupler_front", "pano_02.jpg")]["source"] == "manual"
+    assert len(out["observations"]) == len(auto) + 1
+    assert res.stats["n_overridden"] == 1 and res.stats["n_manual"] == 2
+    assert out["needs_manual"] == []  # 6227 has a manual point now
+    # leave the fixture's output as the stage wrote it
+    cs.output_path(project).write_text(json.dumps(doc))
+
+
+def test_reference_without_texture_needs_manual_points(incident):
+    project, truth, _ = incident
+    photos = project.photo_paths()[:1]
+    intr, _ = cs.photo_intrinsics(project, photos)
+    obs, needs, _ = cs.automatic(project, photos, intr, MatchOptions(min_reference_keypoints=10 ** 6),
+                                 lambda f, m="": None)
+    assert obs == []
+    assert {n["carriage"] for n in needs} == {c.number for c in project.settings.consist}
+    assert all("no texture" in n["reason"] for n in needs)
+
+
+def test_intrinsics_from_profile_or_known_cameras(incident):
+    project, truth, _ = incident
+    photos = project.photo_paths()
+    intr, src = cs.photo_intrinsics(project, photos)
+    ph = {Path(p["photo"]).name: p for p in truth["photos"]}
+    for name, K in intr.items():
+        assert K.to_dict() == pytest.approx(ph[name]["intrinsics"])
+    assert src == "camera_profile.json"
+    # known cameras (the incident's cameras.json) take precedence over the profile
+    views = [{"name": n, "intrinsics": {**ph[n]["intrinsics"], "fx": 555.0, "fy": 555.0}} for n in intr]
+    cams = project.root / "cameras.json"
+    cams.write_text(json.dumps({"route": "panorama", "views": views}))
+    try:
+        intr2, src2 = cs.photo_intrinsics(project, photos)
+    finally:
+        cams.unlink()
+    assert src2 == "cameras.json" and all(K.fx == 555.0 for K in intr2.values())

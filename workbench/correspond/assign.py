@@ -1,0 +1,260 @@
+"""Joint assignment of detected faces to the consist's carriages, and the marked points they give.
+
+Identical coaches differ only by their painted number and their grime, so every car has its own face
+references. In one photo, detections of the same type and face that overlap are one *region*; each region
+is scored against every car of that type by the car's own livery (:func:`match.support`), and regions are
+assigned to cars jointly (Hungarian), then improved by pairwise swaps under the consist's chain: a held
+coupling puts car k's rear coupler next to car k+1's front coupler, which the per-face poses (planar PnP
+with the photo's intrinsics) can check.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from ..rolling_stock import CarriageType
+from .match import FaceDetection, MatchOptions, PhotoFeatures, detect_faces, refine_detection, support
+from .references import FaceReference
+
+log = logging.getLogger(__name__)
+
+EXTRAPOLATE = 0.1  # share of a face's length a homography may be extrapolated beyond its matches
+CHAIN_WEIGHT = 1.0  # inliers of support worth one metre of coupler gap in a held link
+CHAIN_CAP_M = 10.0
+
+
+@dataclass
+class CarInPhoto:
+    """A car's face found in a photo: the refined detection and its pose (cam_from_carriage, 4 x 4) or None."""
+
+    number: str
+    detection: FaceDetection
+    support: int
+    cam_from_carriage: np.ndarray | None
+
+
+@dataclass
+class PointObservation:
+    carriage: str
+    point: str
+    view: str
+    uv: tuple[float, float]  # px of the photo on disk
+    confidence: float
+    sigma_px: float
+    face: str
+    how: str  # "homography" (on the face plane) or "pose" (off the plane, from the face's pose)
+
+
+def _overlap(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over the smaller area of two convex quads (4, 2)."""
+    a32, b32 = a.astype(np.float32), b.astype(np.float32)
+    inter, _ = cv2.intersectConvexConvex(a32, b32)
+    small = min(abs(cv2.contourArea(a32)), abs(cv2.contourArea(b32)))
+    return float(inter / small) if small > 0 else 0.0
+
+
+def _pose(det: FaceDetection, K) -> np.ndarray | None:
+    """cam_from_carriage (4, 4) from a face's inliers (planar PnP in undistorted pixels), or None."""
+    if det.inlier_ref_px is None or len(det.inlier_ref_px) < 6:
+        return None
+    X = det.ref.carriage_from_ref(det.inlier_ref_px)
+    ok, rvec, tvec = cv2.solvePnP(X.astype(np.float64), det.inlier_photo_px.astype(np.float64), K.K, None,
+                                  flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        return None
+    rvec, tvec = cv2.solvePnPRefineLM(X, det.inlier_photo_px.astype(np.float64), K.K, None, rvec, tvec)
+    M = np.eye(4)
+    M[:3, :3] = cv2.Rodrigues(rvec)[0]
+    M[:3, 3] = tvec.ravel()
+    if M[2, 3] <= 0:
+        return None
+    return M
+
+
+def find_cars(photo: PhotoFeatures, refs: dict[str, list[FaceReference]], consist: list[tuple[str, str, str | None]],
+              types: dict[str, CarriageType], opts: MatchOptions) -> list[CarInPhoto]:
+    """The cars' faces in one photo, assigned jointly.
+
+    ``refs``: car number -> its face references; ``consist``: (number, type id, coupling_to_next) front to
+    rear; ``types``: car number -> CarriageType.
+    """
+    by_number = {n: {r.face: r for r in rs} for n, rs in refs.items()}
+    usable = [r for rs in refs.values() for r in rs
+              if r.descriptors is not None and len(r.descriptors) >= opts.min_reference_keypoints]
+    # 1. candidates: every car's every face, by its own livery
+    cands: list[FaceDetection] = []
+    for ref in usable:
+        cands.extend(detect_faces(photo, [ref], opts))
+    # 2. regions: overlapping candidates of the same type and face group (a side's instances compete
+    #    with the other side's: their layouts are alike)
+    regions: list[list[FaceDetection]] = []
+    for d in sorted(cands, key=lambda d: -d.n_inliers):
+        poly = d.polygon()
+        for reg in regions:
+            r0 = reg[0]
+            if r0.ref.type_id == d.ref.type_id and _group(r0.ref.face) == _group(d.ref.face) \
+                    and _overlap(poly, r0.polygon()) > 0.3:
+                reg.append(d)
+                break
+        else:
+            regions.append([d])
+    # 3. cars to regions jointly (Hungarian on the evidence), per type: a region's evidence for a car is
+    #    the best inlier count of that car's own references there
+    chosen: list[tuple[FaceDetection, str, int]] = []
+    for type_id in sorted({r.ref.type_id for reg in regions for r in reg}):
+        idx = [i for i, reg in enumerate(regions) if reg[0].ref.type_id == type_id]
+        cars = [n for n, t, _ in consist if t == type_id and n in by_number]
+        S = np.zeros((len(idx), len(cars)))
+        best: dict[tuple[int, int], FaceDetection] = {}
+        for a, i in enumerate(idx):
+            for d in regions[i]:
+                b = cars.index(d.ref.car_number)
+                if d.n_inliers > S[a, b]:
+                    S[a, b], best[(a, b)] = d.n_inliers, d
+            # cars without a detection of their own here: how many of their matches agree with the region's
+            # homography (their evidence, for the margin test; identical coaches share most features)
+            d0 = regions[i][0]
+            for b, n in enumerate(cars):
+                if (a, b) in best:
+                    continue
+                for f in _group(d0.ref.face):
+                    r = by_number[n].get(f)
+                    if r is None or r.image.shape != d0.ref.image.shape:
+                        continue
+                    sup = support(photo, r, d0.photo_from_ref, opts)
+                    if sup > S[a, b]:
+                        S[a, b] = sup
+                        best[(a, b)] = FaceDetection(r, photo.name, d0.photo_from_ref, d0.n_inliers, d0.rms_px,
+                                                     None, d0.inlier_photo_px, d0.inlier_ref_px)
+        # two regions of one face group cannot both be one car: the Hungarian gives each car one region
+        # per group; run it per group
+        for group in FACE_GROUPS:
+            rows_g = [a for a, i in enumerate(idx) if _group(regions[i][0].ref.face) == group]
+            if not rows_g:
+                continue
+            Sg = S[rows_g]
+            rows, cols = linear_sum_assignment(-Sg)
+            for a, b in zip(rows, cols):
+                if Sg[a, b] < opts.min_inliers:
+                    continue
+                # the winner must stand out from the other cars (identical coaches differ by little)
+                others = np.delete(Sg[a], b)
+                if len(others) and Sg[a, b] < opts.min_margin * others.max():
+                    log.info("%s: a %s face of type %s is ambiguous (%d vs %d inliers); left out", photo.name,
+                             group, type_id, Sg[a, b], others.max())
+                    continue
+                chosen.append((best[(rows_g[a], b)], cars[b], int(Sg[a, b])))
+    # 4. poses, and pairwise swaps of same-type assignments that shorten the held couplings
+    found = [CarInPhoto(n, det, s, _pose(det, photo.intrinsics)) for det, n, s in chosen]
+    found = _improve_by_chain(found, consist, types, photo, by_number, opts)
+    # 5. refine the accepted faces
+    if opts.refine:
+        for c in found:
+            c.detection = refine_detection(photo, c.detection, opts)
+            c.cam_from_carriage = _pose(c.detection, photo.intrinsics) if c.cam_from_carriage is not None else None
+    return found
+
+
+FACE_GROUPS = (("left", "right"), ("front", "rear"), ("roof",))  # faces of like layout, never seen together
+
+
+def _group(face: str) -> tuple[str, str]:
+    return next(g for g in FACE_GROUPS if face in g)
+
+
+def _gap_cost(found: list[CarInPhoto], consist, types) -> float:
+    pose = {}
+    for c in found:
+        if c.cam_from_carriage is not None and c.number not in pose:
+            pose[c.number] = c.cam_from_carriage
+    cost = 0.0
+    for (n0, _, coupling), (n1, _, _) in zip(consist, consist[1:]):
+        if coupling != "held" or n0 not in pose or n1 not in pose:
+            continue
+        a = pose[n0][:3, :3] @ types[n0].coupler_rear + pose[n0][:3, 3]
+        b = pose[n1][:3, :3] @ types[n1].coupler_front + pose[n1][:3, 3]
+        cost += min(float(np.linalg.norm(a - b)), CHAIN_CAP_M)
+    return cost
+
+
+def _improve_by_chain(found: list[CarInPhoto], consist, types, photo, by_number, opts) -> list[CarInPhoto]:
+    """Swap the cars of two same-type, same-face detections while that raises support - weight * gaps."""
+    if len(found) < 2:
+        return found
+
+    def score(fs):
+        return sum(c.support for c in fs) - CHAIN_WEIGHT * _gap_cost(fs, consist, types)
+
+    best = score(found)
+    improved = True
+    while improved:
+        improved = False
+        for i, j in itertools.combinations(range(len(found)), 2):
+            a, b = found[i], found[j]
+            if a.detection.ref.type_id != b.detection.ref.type_id or \
+                    a.detection.ref.image.shape != b.detection.ref.image.shape or \
+                    a.detection.ref.face not in by_number[b.number] or b.detection.ref.face not in by_number[a.number]:
+                continue
+            trial = list(found)
+            new = []
+            for c, other in ((a, b.number), (b, a.number)):
+                ref = by_number[other][c.detection.ref.face]
+                s = support(photo, ref, c.detection.photo_from_ref, opts)
+                det = FaceDetection(ref, photo.name, c.detection.photo_from_ref, c.detection.n_inliers,
+                                    c.detection.rms_px, None, c.detection.inlier_photo_px, c.detection.inlier_ref_px)
+                new.append(CarInPhoto(other, det, s, c.cam_from_carriage))
+            trial[i], trial[j] = new
+            sc = score(trial)
+            if sc > best + 1e-9 and min(x.support for x in new) >= opts.min_support:
+                log.info("%s: swapped cars %s and %s (chain)", photo.name, a.number, b.number)
+                found, best, improved = trial, sc, True
+                break
+    return found
+
+
+def observations_of(found: list[CarInPhoto], photo: PhotoFeatures, types: dict[str, CarriageType], *,
+                    pose_points: bool = True, margin_px: float = 2.0) -> list[PointObservation]:
+    """Marked points from the found faces, one per (car, point): on a face's plane by its homography, the
+    other points of a car (couplers, corners of an unseen face) from its pose when their face turns to the
+    camera. A point seen by two faces keeps the face with more inliers."""
+    K = photo.intrinsics
+    best: dict[tuple[str, str], PointObservation] = {}
+    for c in sorted(found, key=lambda c: -c.detection.n_inliers):
+        det, ct = c.detection, types[c.number]
+        conf = det.confidence
+        sigma = float(np.clip(det.rms_px, 0.5, 3.0)) if det.ecc is None else 0.5
+        # the homography is trusted near its evidence only: a face seen in part (the rest hidden, or out of
+        # the photo) is not extrapolated beyond its matches by more than EXTRAPOLATE of its length
+        w_ref = det.ref.image.shape[1]
+        u_in = det.inlier_ref_px[:, 0] if det.inlier_ref_px is not None and len(det.inlier_ref_px) else np.zeros(1)
+        lo, hi = float(u_in.min()) - EXTRAPOLATE * w_ref, float(u_in.max()) + EXTRAPOLATE * w_ref
+        names = [n for n in det.ref.points if lo <= det.ref.points[n][0] <= hi]
+        if names:
+            uv = photo.distort_px(det.transfer(np.array([det.ref.points[n] for n in names])))
+            for n, p in zip(names, uv):
+                if (c.number, n) in best or not np.all(np.isfinite(p)) or not K.in_image(p[None], margin_px)[0]:
+                    continue
+                best[(c.number, n)] = PointObservation(c.number, n, photo.name, (float(p[0]), float(p[1])),
+                                                       round(conf, 3), round(sigma, 2), det.ref.face, "homography")
+        if not pose_points or c.cam_from_carriage is None or (hi - lo) < (0.5 + 2 * EXTRAPOLATE) * w_ref:
+            continue  # a pose from a short stretch of one face is too weak to place the car's other points
+        M = c.cam_from_carriage
+        for n, X in ct.marked_points.items():
+            if (c.number, n) in best or n in det.ref.points:  # a plane point is the homography's, or none
+                continue
+            Xc = M[:3, :3] @ X + M[:3, 3]
+            facing = any(float((M[:3, :3] @ ct.face_normal(f)) @ Xc) < 0 for f in ct.marked_point_faces[n])
+            if Xc[2] <= 0 or not facing:
+                continue
+            p = K.project(Xc[None])[0]
+            if not np.all(np.isfinite(p)) or not K.in_image(p[None], margin_px)[0]:
+                continue
+            best[(c.number, n)] = PointObservation(c.number, n, photo.name, (float(p[0]), float(p[1])),
+                                                   round(0.5 * conf, 3), 2.0, det.ref.face, "pose")
+    return list(best.values())

@@ -1,0 +1,158 @@
+"""The correspondence file (``correspondences.json``, docs/pipeline.md): validation, merging, writing.
+
+The incident's hand-written file and the ``correspond`` stage's output share one format::
+
+    {"observations": [{"carriage": "6100", "point": "front_left_cant", "view": "pano_01.jpg",
+                       "uv": [812.4, 433.0], "source": "manual", "confidence": 1.0, "sigma_px": 1.0}],
+     "needs_manual": [{"carriage": "6227", "reason": "..."}]}
+
+Pixels follow docs/conventions.md: (0, 0) is the centre of the top-left pixel, so an image of width w spans
+u in [-0.5, w - 0.5]. ``view`` is a photo name of the photo set, or ``"panorama"``.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from ..errors import InputError
+
+FILE_NAME = "correspondences.json"
+PANORAMA = "panorama"
+
+
+class Observation(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    carriage: str
+    point: str
+    view: str
+    uv: tuple[float, float]
+    source: Literal["manual", "sift"] = "manual"
+    confidence: float = Field(1.0, ge=0.0, le=1.0)
+    sigma_px: float | None = Field(None, gt=0.0)
+
+    @field_validator("uv")
+    @classmethod
+    def _finite(cls, v):
+        if not all(math.isfinite(x) for x in v):
+            raise ValueError(f"uv = {list(v)} is not finite")
+        return v
+
+    @property
+    def key(self) -> tuple[str, str, str]:
+        return (self.carriage, self.point, self.view)
+
+    def to_json(self) -> dict:
+        d = {"carriage": self.carriage, "point": self.point, "view": self.view,
+             "uv": [round(float(self.uv[0]), 3), round(float(self.uv[1]), 3)], "source": self.source,
+             "confidence": round(float(self.confidence), 3)}
+        if self.sigma_px is not None:
+            d["sigma_px"] = round(float(self.sigma_px), 3)
+        return d
+
+
+class NeedsManual(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    carriage: str
+    reason: str = ""
+
+
+class CorrespondenceFile(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    observations: list[Observation] = Field(default_factory=list)
+    needs_manual: list[NeedsManual] = Field(default_factory=list)
+    note: str | None = None  # free text (who picked, how)
+
+    def to_json(self) -> dict:
+        d = {"observations": [o.to_json() for o in self.observations],
+             "needs_manual": [n.model_dump() for n in self.needs_manual]}
+        if self.note:
+            d["note"] = self.note
+        return d
+
+
+def _where(loc: tuple) -> str:
+    return ".".join(str(x) if not isinstance(x, int) else f"[{x}]" for x in loc).replace(".[", "[")
+
+
+def parse(data: object, path: Path | str) -> CorrespondenceFile:
+    """Structure check (keys, types, finite numbers, ranges); :class:`InputError` naming the entry."""
+    try:
+        return CorrespondenceFile.model_validate(data)
+    except ValidationError as exc:
+        errs = "; ".join(f"{_where(e['loc'])}: {e['msg']} (got {e.get('input')!r})" for e in exc.errors()[:5])
+        raise InputError(f"{path}: invalid correspondence file: {errs}. See docs/pipeline.md "
+                         f"(correspondences.json)") from None
+
+
+def validate(cf: CorrespondenceFile, path: Path | str, *, points: dict[str, list[str]],
+             image_sizes: dict[str, tuple[int, int]]) -> CorrespondenceFile:
+    """Names and coordinates against the incident: unknown carriages, points or views, coordinates outside
+    the image and duplicate (carriage, point, view) entries are an :class:`InputError` naming them.
+
+    ``points``: car number -> marked point names of its type; ``image_sizes``: view name -> (width, height)
+    (``"panorama"`` may be absent when no panorama is stitched yet: its coordinates are then only checked to
+    be finite and non-negative).
+    """
+    problems: list[str] = []
+    seen: dict[tuple[str, str, str], int] = {}
+    for i, o in enumerate(cf.observations):
+        where = f"observations[{i}]"
+        if o.carriage not in points:
+            problems.append(f"{where}: unknown carriage {o.carriage!r} (the consist has {', '.join(points)})")
+            continue
+        if o.point not in points[o.carriage]:
+            problems.append(f"{where}: carriage {o.carriage!r} has no marked point {o.point!r} (its points: "
+                            f"{', '.join(points[o.carriage])})")
+        if o.view in image_sizes:
+            w, h = image_sizes[o.view]
+            u, v = o.uv
+            if not (-0.5 <= u <= w - 0.5 and -0.5 <= v <= h - 0.5):
+                problems.append(f"{where}: uv = [{u}, {v}] is outside view {o.view!r} ({w} x {h} px; pixel centres "
+                                f"span [-0.5, {w - 0.5}] x [-0.5, {h - 0.5}])")
+        elif o.view == PANORAMA:
+            if min(o.uv) < -0.5:
+                problems.append(f"{where}: uv = {list(o.uv)} is outside the panorama")
+        else:
+            problems.append(f"{where}: unknown view {o.view!r} (the photos are {', '.join(sorted(image_sizes))}"
+                            f", or 'panorama')")
+        if o.key in seen:
+            problems.append(f"{where}: duplicate of observations[{seen[o.key]}] (carriage {o.carriage!r}, point "
+                            f"{o.point!r}, view {o.view!r}); keep one")
+        else:
+            seen[o.key] = i
+    for i, n in enumerate(cf.needs_manual):
+        if n.carriage not in points:
+            problems.append(f"needs_manual[{i}]: unknown carriage {n.carriage!r}")
+    if problems:
+        more = f" (and {len(problems) - 8} more)" if len(problems) > 8 else ""
+        raise InputError(f"{path}: " + "; ".join(problems[:8]) + more)
+    return cf
+
+
+def load(path: Path, *, points: dict[str, list[str]], image_sizes: dict[str, tuple[int, int]]) -> CorrespondenceFile:
+    """Read and validate a correspondence file."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"{path}: file not found") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: not valid JSON ({exc})") from None
+    return validate(parse(data, path), path, points=points, image_sizes=image_sizes)
+
+
+def merge(automatic: list[Observation], manual: list[Observation]) -> list[Observation]:
+    """Automatic and manual observations; a manual one replaces the automatic one of the same
+    (carriage, point, view). Ordered by carriage, view, point."""
+    out = {o.key: o for o in automatic}
+    for o in manual:
+        out[o.key] = o
+    return sorted(out.values(), key=lambda o: (o.carriage, o.view, o.point))

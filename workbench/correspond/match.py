@@ -1,0 +1,317 @@
+"""SIFT matching of face references against a photo, and a homography per face (RANSAC).
+
+Everything geometric happens in the photo's **undistorted** pixel frame (same K, no distortion), where a
+planar face maps to the reference by a homography; transferred points are distorted back into the photo
+as it is on disk. Pixel (0, 0) is the centre of the top-left pixel (``docs/conventions.md``), as in OpenCV.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from ..core.camera import CameraIntrinsics
+from .references import FaceReference, sift_features
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True)
+class MatchOptions:
+    """Options of the automatic matcher (keyword-only; unknown keys are a TypeError)."""
+
+    px_per_m: float = 25.0  # reference resolution
+    # (horizontal, vertical) compressions of the side references (ASIFT-like): along the car, from above/below
+    tilts: tuple[tuple[float, float], ...] = ((1.0, 1.0), (1.7, 1.0), (3.0, 1.0), (1.0, 2.0), (1.7, 2.0),
+                                              (3.0, 2.0), (1.0, 3.5))
+    end_tilts: tuple[tuple[float, float], ...] = ((1.0, 1.0), (1.7, 1.0), (1.0, 1.7))
+    photo_upsample: float = 2.5  # photos are upsampled before SIFT (carriages are small in wide shots) ...
+    max_photo_side_px: int = 4000  # ... to at most this long side
+    ratio: float = 0.8  # Lowe's ratio test (nearest / second nearest reference descriptor)
+    ransac_px: float = 2.0  # RANSAC threshold in (undistorted) photo pixels
+    min_inliers: int = 15  # fewer RANSAC inliers (pooled over the type's cars): the face is not reported
+    min_support: int = 8  # fewer matches of the car's own livery agreeing with the face: not that car
+    min_margin: float = 1.3  # a face goes to a car only with this many times the inliers of any other car
+    min_reference_keypoints: int = 25  # a reference with fewer has "no texture"
+    refine: bool = True  # guided re-matching and ECC alignment of each accepted face
+    max_instances: int = 2  # homographies tried per face reference and photo
+    carry_between_photos: bool = True  # panorama sets: carry points into the other photos (rotation homography)
+
+    def __post_init__(self) -> None:
+        if not self.px_per_m > 0 or not self.photo_upsample > 0 or not 0 < self.ratio < 1:
+            raise ValueError(f"bad MatchOptions: {self}")
+
+
+@dataclass
+class PhotoFeatures:
+    """A photo prepared for matching: its intrinsics, undistorted grey image and SIFT features."""
+
+    name: str
+    intrinsics: CameraIntrinsics
+    gray_undistorted: np.ndarray  # (h, w) uint8, pinhole K, photo size
+    keypoints: np.ndarray  # (n, 2) undistorted photo px
+    descriptors: np.ndarray  # (n, 128) float32
+    cache: dict = field(default_factory=dict, repr=False)  # matches per reference
+
+    def distort_px(self, uv_und: np.ndarray) -> np.ndarray:
+        """Undistorted photo px (n, 2) -> px of the photo on disk (n, 2)."""
+        K = self.intrinsics
+        return K.pixels_from_normalized(K.distort(K.normalized_from_pixels(np.asarray(uv_und, float).reshape(-1, 2))))
+
+    def undistort_px(self, uv: np.ndarray) -> np.ndarray:
+        K = self.intrinsics
+        return K.pixels_from_normalized(K.undistort(K.normalized_from_pixels(np.asarray(uv, float).reshape(-1, 2))))
+
+
+def undistorted_image(image: np.ndarray, K: CameraIntrinsics) -> np.ndarray:
+    """The photo resampled to the pinhole camera (same K, no distortion), same size."""
+    if not K.has_distortion:
+        return image
+    h, w = image.shape[:2]
+    u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
+    xy = K.distort(K.normalized_from_pixels(np.column_stack([u.ravel(), v.ravel()])))
+    src = K.pixels_from_normalized(xy).astype(np.float32)
+    mx, my = src[:, 0].reshape(h, w), src[:, 1].reshape(h, w)
+    return cv2.remap(image, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def photo_features(name: str, rgb: np.ndarray, K: CameraIntrinsics, opts: MatchOptions) -> PhotoFeatures:
+    """Undistort the photo, upsample it and detect SIFT features (keypoints in undistorted photo px)."""
+    gray = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY) if rgb.ndim == 3 else rgb
+    und = undistorted_image(gray, K)
+    s = min(opts.photo_upsample, opts.max_photo_side_px / max(und.shape))
+    big = und if abs(s - 1) < 1e-6 else cv2.resize(und, None, fx=s, fy=s, interpolation=cv2.INTER_CUBIC)
+    kp, desc = sift_features(big)
+    kp = (kp + 0.5) / s - 0.5
+    return PhotoFeatures(name, K, und, kp, desc)
+
+
+@dataclass
+class FaceDetection:
+    """A face of a car found in a photo: ``photo_from_ref`` (3, 3) homography into undistorted photo px."""
+
+    ref: FaceReference
+    photo: str
+    photo_from_ref: np.ndarray
+    n_inliers: int
+    rms_px: float
+    ecc: float | None = None  # correlation after ECC alignment (None: not refined)
+    inlier_photo_px: np.ndarray | None = None  # (n, 2) undistorted photo px
+    inlier_ref_px: np.ndarray | None = None  # (n, 2)
+
+    @property
+    def confidence(self) -> float:
+        c = self.n_inliers / (self.n_inliers + 20.0)
+        if self.ecc is not None:
+            c *= float(np.clip(self.ecc, 0.0, 1.0)) ** 0.5
+        return float(np.clip(c, 0.0, 1.0))
+
+    def polygon(self) -> np.ndarray:
+        """(4, 2) undistorted photo px of the face's outline."""
+        return _apply_h(self.photo_from_ref, self.ref.corners())
+
+    def transfer(self, ref_px: np.ndarray) -> np.ndarray:
+        return _apply_h(self.photo_from_ref, ref_px)
+
+
+def _apply_h(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
+    p = np.asarray(pts, dtype=float).reshape(-1, 2)
+    q = np.column_stack([p, np.ones(len(p))]) @ np.asarray(H, float).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return q[:, :2] / q[:, 2:]
+
+
+def _plausible(H: np.ndarray, ref: FaceReference, size: tuple[int, int]) -> bool:
+    """A homography that keeps orientation, maps the face to a convex quad of sane size, mostly in the image."""
+    if H is None or not np.all(np.isfinite(H)):
+        return False
+    poly = _apply_h(H, ref.corners())
+    if not np.all(np.isfinite(poly)):
+        return False
+    # the face must not cross the vanishing line: the homogeneous scale keeps its sign over the corners
+    c = np.column_stack([ref.corners(), np.ones(4)]) @ np.asarray(H, float).T
+    if not (np.all(c[:, 2] > 0) or np.all(c[:, 2] < 0)):
+        return False
+    e = np.roll(poly, -1, axis=0) - poly
+    cross = e[:, 0] * np.roll(e, -1, axis=0)[:, 1] - e[:, 1] * np.roll(e, -1, axis=0)[:, 0]
+    if not np.all(cross > 0):  # convex and clockwise in image coordinates (v down), like the reference
+        return False
+    area = 0.5 * abs(np.sum(poly[:, 0] * np.roll(poly[:, 1], -1) - np.roll(poly[:, 0], -1) * poly[:, 1]))
+    w, h = size
+    if area < 100 or area > 4 * w * h:
+        return False
+    # sides of the quad: the shortest at least 3 px, the ratio of opposite sides bounded (no extreme perspective)
+    lens = np.linalg.norm(e, axis=1)
+    if lens.min() < 3 or max(lens[0] / lens[2], lens[2] / lens[0], lens[1] / lens[3], lens[3] / lens[1]) > 8:
+        return False
+    # a long face (a side: 25 m by 2.5 m) foreshortens along its length, hardly across it: its top and bottom
+    # edges stay of about equal length in the photo unless the camera is within a few metres
+    h_ref, w_ref = ref.image.shape[:2]
+    if w_ref > 3 * h_ref and max(lens[0] / lens[2], lens[2] / lens[0]) > 1.5:
+        return False
+    return True
+
+
+def _matches(photo: PhotoFeatures, ref: FaceReference, ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """Matches photo -> reference: (photo px (m, 2), reference px (m, 2)).
+
+    A match is kept if it passes Lowe's ratio test against the reference's second-nearest descriptor, or if
+    it is a mutual nearest neighbour (photo -> reference and back): the ratio test alone rejects the
+    repeated windows of a long side, the mutual test alone keeps too few distinctive features. Cached per
+    (photo, reference).
+    """
+    key = (id(ref), ratio)
+    if key in photo.cache:
+        return photo.cache[key]
+    if len(photo.keypoints) < 2 or ref.descriptors is None or len(ref.descriptors) < 2:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    matcher = cv2.BFMatcher(cv2.NORM_L2)
+    knn = matcher.knnMatch(photo.descriptors, ref.descriptors, k=2)
+    back = {m.queryIdx: m.trainIdx for m in matcher.match(ref.descriptors, photo.descriptors)}
+    qi, ti = [], []
+    for pair in knn:
+        if len(pair) < 2:
+            continue
+        a, b = pair
+        if a.distance < ratio * b.distance or back.get(a.trainIdx) == a.queryIdx:
+            qi.append(a.queryIdx)
+            ti.append(a.trainIdx)
+    out = photo.keypoints[qi], ref.keypoints[ti]
+    photo.cache[key] = out
+    return out
+
+
+def _guided(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray, radius_px: float,
+            ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """Matches restricted to photo keypoints within ``radius_px`` of where ``H`` puts each reference keypoint."""
+    proj = _apply_h(H, ref.keypoints)
+    P, R = [], []
+    kp = photo.keypoints
+    for j, q in enumerate(proj):
+        if not np.all(np.isfinite(q)):
+            continue
+        near = np.nonzero(np.sum((kp - q) ** 2, axis=1) < radius_px ** 2)[0]
+        if len(near) == 0:
+            continue
+        d = np.linalg.norm(photo.descriptors[near] - ref.descriptors[j], axis=1)
+        k = int(np.argmin(d))
+        if len(near) > 1:
+            d2 = np.partition(d, 1)[1]
+            if d[k] > ratio * d2:
+                continue
+        P.append(kp[near[k]])
+        R.append(ref.keypoints[j])
+    return np.array(P).reshape(-1, 2), np.array(R).reshape(-1, 2)
+
+
+def _ecc_refine(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray) -> tuple[np.ndarray, float] | None:
+    """Dense alignment of the reference to the photo (ECC, homography), started from ``H``.
+
+    The photo is warped into the reference frame (scaled to about the photo's resolution there) and the
+    warp is refined; the correlation coefficient is returned with the refined photo_from_ref.
+    """
+    poly = _apply_h(H, ref.corners())
+    h_ref, w_ref = ref.image.shape[:2]
+    # photo pixels per reference pixel along the face (mean edge ratio)
+    e = np.linalg.norm(np.roll(poly, -1, axis=0) - poly, axis=1)
+    s = float(np.clip(np.mean([e[0] / w_ref, e[2] / w_ref, e[1] / h_ref, e[3] / h_ref]), 0.25, 1.0))
+    S = np.diag([s, s, 1.0])  # reference px -> working px (about photo resolution)
+    S[0, 2] = S[1, 2] = 0.5 * s - 0.5
+    Wk, Hk = max(16, int(round(w_ref * s))), max(16, int(round(h_ref * s)))
+    tmpl = cv2.resize(cv2.cvtColor(ref.image, cv2.COLOR_RGB2GRAY), (Wk, Hk), interpolation=cv2.INTER_AREA)
+    tmpl = tmpl.astype(np.float32)
+    photo_from_work = H @ np.linalg.inv(S)
+    warp = photo_from_work.astype(np.float32) / np.float32(photo_from_work[2, 2])
+    img = photo.gray_undistorted.astype(np.float32)
+    try:
+        cc, warp = cv2.findTransformECC(tmpl, img, warp, cv2.MOTION_HOMOGRAPHY,
+                                        (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-5), None, 3)
+    except cv2.error:
+        return None
+    Hn = warp.astype(float) @ S
+    return Hn / Hn[2, 2], float(cc)
+
+
+def detect_faces(photo: PhotoFeatures, refs: list[FaceReference], opts: MatchOptions,
+                 max_instances: int | None = None) -> list[FaceDetection]:
+    """Instances of a face in ``photo`` by sequential RANSAC, best first.
+
+    ``refs`` are references of the same face of cars of one type (same geometry, different liveries): their
+    matches are pooled, since any car's livery shares the windows, doors and stripes of the type. Each
+    detection carries ``refs[0]``; which car it is is decided later by :func:`support`. ``n_inliers`` counts
+    the distinct matches that RANSAC kept.
+    """
+    ref = refs[0]
+    Ps, Rs = [], []
+    for r in refs:
+        if r.image.shape != ref.image.shape:
+            raise ValueError(f"references of one face must share their geometry: {r.image.shape=} {ref.image.shape=}")
+        P, R = _matches(photo, r, opts.ratio)
+        Ps.append(P)
+        Rs.append(R)
+    PR = np.unique(np.round(np.hstack([np.vstack(Ps), np.vstack(Rs)]), 2), axis=0)
+    P, R = PR[:, :2], PR[:, 2:]
+    size = (photo.intrinsics.width, photo.intrinsics.height)
+    out: list[FaceDetection] = []
+    remaining = np.ones(len(P), dtype=bool)
+    for _ in range(max_instances or opts.max_instances):
+        if remaining.sum() < max(6, opts.min_inliers // 2):
+            break
+        idx = np.nonzero(remaining)[0]
+        H, mask = cv2.findHomography(R[idx], P[idx], cv2.USAC_MAGSAC, opts.ransac_px, maxIters=20000,
+                                     confidence=0.9999)
+        if H is None:
+            break
+        inl = idx[mask.ravel() > 0]
+        remaining[inl] = False
+        if len(inl) < opts.min_inliers or not _plausible(H, ref, size):
+            continue
+        resid = np.linalg.norm(_apply_h(H, R[inl]) - P[inl], axis=1)
+        out.append(FaceDetection(ref, photo.name, H / H[2, 2], int(len(inl)), float(np.sqrt(np.mean(resid ** 2))),
+                                 None, P[inl], R[inl]))
+    out.sort(key=lambda d: -d.n_inliers)
+    return out
+
+
+def support(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray, opts: MatchOptions) -> int:
+    """How many of ``ref``'s ratio-test matches agree with ``H`` (within ``opts.ransac_px``): the evidence for
+    this car's livery at the place ``H`` describes."""
+    P, R = _matches(photo, ref, opts.ratio)
+    if len(P) == 0:
+        return 0
+    return int(np.sum(np.linalg.norm(_apply_h(H, R) - P, axis=1) < opts.ransac_px))
+
+
+def _agrees(Ha: np.ndarray, Hb: np.ndarray, ref_px: np.ndarray, tol_px: float = 4.0) -> bool:
+    """Two homographies agree where the evidence is: 90 % of the reference points move by less than tol_px."""
+    d = np.linalg.norm(_apply_h(Ha, ref_px) - _apply_h(Hb, ref_px), axis=1)
+    return bool(len(d) and np.percentile(d, 90) < tol_px)
+
+
+def refine_detection(photo: PhotoFeatures, det: FaceDetection, opts: MatchOptions) -> FaceDetection:
+    """Guided re-matching around the RANSAC estimate, a least-squares refit, then ECC (dense) alignment.
+
+    Each step is kept only if it agrees with the previous estimate where the matches are (by under 4 px):
+    repeated windows could otherwise pull the face along by one window pitch.
+    """
+    ref = det.ref
+    size = (photo.intrinsics.width, photo.intrinsics.height)
+    H, Pi, Ri = det.photo_from_ref, det.inlier_photo_px, det.inlier_ref_px
+    Pg, Rg = _guided(photo, ref, H, radius_px=3.0, ratio=0.8)
+    if len(Pg) >= len(Pi):
+        H2, m2 = cv2.findHomography(Rg, Pg, cv2.RANSAC, opts.ransac_px)
+        if H2 is not None and _plausible(H2, ref, size) and m2.sum() >= len(Pi) and _agrees(H2, H, Ri):
+            H, Pi, Ri = H2, Pg[m2.ravel() > 0], Rg[m2.ravel() > 0]
+    ecc = None
+    res = _ecc_refine(photo, ref, H)
+    if res is not None:
+        Hn, cc = res
+        resid = np.linalg.norm(_apply_h(Hn, Ri) - Pi, axis=1)
+        if _agrees(Hn, H, Ri) and np.median(resid) < 2.0 and _plausible(Hn, ref, size):
+            H, ecc = Hn, cc
+    resid = np.linalg.norm(_apply_h(H, Ri) - Pi, axis=1)
+    return FaceDetection(ref, det.photo, H / H[2, 2], det.n_inliers, float(np.sqrt(np.mean(resid ** 2))), ecc,
+                         Pi, Ri)

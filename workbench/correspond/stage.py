@@ -1,0 +1,243 @@
+"""The ``correspond`` stage: every carriage's marked points in the photos, automatic (SIFT) and manual.
+
+Reads the photos of the set (``camera.photos``), their intrinsics (the incident's ``cameras.json``, else
+``out/georef/cameras.json``, else the camera profile, else EXIF or a default focal), the consist, and the
+incident's hand-written ``correspondences.json`` (validated). Writes ``out/correspond/correspondences.json``
+(docs/pipeline.md): the automatic observations, with every manual one replacing the automatic one of the
+same (carriage, point, view), and the carriages that need manual points. Pixels are those of the photos as
+they are on disk (distorted), docs/conventions.md.
+
+Per photo: SIFT features of the undistorted photo; per car (its own livery) and planar face, a homography
+by RANSAC; the detections are assigned to the cars jointly (:mod:`.assign`); the marked points on a face's
+plane are transferred by its (refined) homography, the others (couplers, corners) projected from the
+face's pose. Face references are written to ``out/correspond/references/`` for review (and the picker).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..core.camera import CameraIntrinsics
+from ..errors import InputError
+from ..project import Project
+from ..runner import Progress, StageResult, StageSpec
+from . import manual as mf
+from .assign import find_cars, observations_of
+from .match import MatchOptions, photo_features
+from .references import FACES, build_references
+from .transfer import carry
+
+log = logging.getLogger(__name__)
+
+CAMERAS_FILE = "cameras.json"
+
+
+def manual_path(project: Project) -> Path:
+    return project.root / mf.FILE_NAME
+
+
+def output_path(project: Project) -> Path:
+    return project.stage_dir("correspond") / mf.FILE_NAME
+
+
+def cameras_file(project: Project) -> Path | None:
+    """The incident's own ``cameras.json`` (known cameras), else the georef stage's, else None."""
+    own = project.root / CAMERAS_FILE
+    if own.is_file():
+        return own
+    out = project.stage_dir("georef") / CAMERAS_FILE
+    return out if out.is_file() else None
+
+
+def _inputs(project: Project) -> dict[str, Path]:
+    files = {f"photo:{p.name}": p for p in project.photo_paths()}
+    if manual_path(project).is_file():
+        files["manual"] = manual_path(project)
+    cams = cameras_file(project)
+    if cams is not None:
+        files["cameras"] = cams
+    if project.settings.camera.profile:
+        files["camera_profile"] = project.path(project.settings.camera.profile)
+    if project.rolling_stock_dir.is_dir():
+        for t in sorted(project.rolling_stock_dir.glob("*.toml")):
+            files[f"rolling_stock:{t.name}"] = t
+    pano = project.stage_dir("stitch") / "panorama.jpg"
+    if pano.is_file():
+        files["panorama"] = pano
+    return files
+
+
+def _read_rgb(path: Path) -> np.ndarray:
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return np.asarray(im.convert("RGB"))
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read this photo ({exc})") from None
+
+
+def _image_size(path: Path) -> tuple[int, int]:
+    from PIL import Image
+
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read this image ({exc})") from None
+
+
+def photo_intrinsics(project: Project, photos: list[Path]) -> tuple[dict[str, CameraIntrinsics], str]:
+    """Intrinsics of each photo (name -> CameraIntrinsics of the photo as on disk) and where they came from."""
+    sizes = {p.name: _image_size(p) for p in photos}
+    cams = cameras_file(project)
+    if cams is not None:
+        doc = project.read_json(cams)
+        views = {v.get("name"): v for v in doc.get("views", []) if isinstance(v, dict)}
+        if all(n in views for n in sizes):
+            out = {}
+            for n in sizes:
+                try:
+                    out[n] = CameraIntrinsics.from_dict(views[n]["intrinsics"])
+                except (KeyError, TypeError, ValueError) as exc:
+                    raise InputError(f"{cams}: views[{n!r}].intrinsics is invalid ({exc}); see docs/pipeline.md") from None
+            return out, project.relative(cams)
+        log.warning("%s does not list every photo of the set; using the camera profile", cams)
+    prof = project.settings.camera.profile
+    if prof:
+        pf = project.require_file(prof, "camera.profile")
+        doc = project.read_json(pf)
+        try:
+            base = CameraIntrinsics.from_dict(doc["intrinsics"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise InputError(f"{pf}: 'intrinsics' is invalid ({exc}); see docs/formats.md (camera_profile.json)") from None
+        out = {}
+        for n, (w, h) in sizes.items():
+            out[n] = base if (w, h) == (base.width, base.height) else base.scaled(w / base.width)
+        return out, project.relative(pf)
+    from ..render.exif import read_focal_px
+
+    out = {}
+    for p in photos:
+        w, h = sizes[p.name]
+        f = read_focal_px(p) or 1.2 * max(w, h)
+        out[p.name] = CameraIntrinsics(width=w, height=h, fx=f, fy=f, cx=(w - 1) / 2, cy=(h - 1) / 2)
+    return out, "exif-or-default"
+
+
+def load_manual(project: Project, photos: list[Path] | None = None) -> mf.CorrespondenceFile:
+    """The incident's manual correspondences (empty if there is no file), validated against the incident."""
+    path = manual_path(project)
+    if not path.is_file():
+        return mf.CorrespondenceFile()
+    types = project.carriage_types()
+    photos = photos if photos is not None else project.photo_paths()
+    sizes = {p.name: _image_size(p) for p in photos}
+    pano = project.stage_dir("stitch") / "panorama.jpg"
+    if pano.is_file():
+        sizes[mf.PANORAMA] = _image_size(pano)
+    return mf.load(path, points={n: list(t.marked_points) for n, t in types.items()}, image_sizes=sizes)
+
+
+def automatic(project: Project, photos: list[Path], intrinsics: dict[str, CameraIntrinsics], opts: MatchOptions,
+              progress: Progress, reference_dir: Path | None = None) -> tuple[list[mf.Observation], list[dict], dict]:
+    """SIFT observations of every photo, the carriages needing manual points, and statistics."""
+    s = project.settings
+    types = project.carriage_types()
+    consist = [(c.number, types[c.number].id, c.coupling_to_next.value if c.coupling_to_next else None)
+               for c in s.consist]
+    refs = {}
+    untextured = []
+    ref_doc = {}
+    for k, (number, _, _) in enumerate(consist):
+        progress(0.05 * k / len(consist), f"references of {number}")
+        rs = build_references(types[number], number, px_per_m=opts.px_per_m, tilts=opts.tilts,
+                              end_tilts=opts.end_tilts)
+        textured = [r for r in rs if r.descriptors is not None and len(r.descriptors) >= opts.min_reference_keypoints]
+        if not textured:
+            untextured.append(number)
+        refs[number] = rs
+        if reference_dir is not None:
+            for r in rs:
+                img_path = reference_dir / f"{number}_{r.face}.png"
+                project.write_image(img_path, r.image)
+                ref_doc.setdefault(number, {})[r.face] = {
+                    "image": project.relative(img_path), "type": r.type_id, "px_per_m": r.px_per_m,
+                    "n_keypoints": int(len(r.keypoints)), "points": {n: p.tolist() for n, p in r.points.items()},
+                    "origin_m": r.origin_m.tolist(), "axis_u_m": r.axis_u_m.tolist(), "axis_v_m": r.axis_v_m.tolist()}
+    if reference_dir is not None:
+        project.write_json(reference_dir / "references.json", ref_doc)
+    obs: list[mf.Observation] = []
+    per_photo = {}
+    if len(untextured) == len(consist):
+        photos = []  # nothing to match against
+    per_view: dict = {}
+    features: dict = {}  # kept only to carry points between the photos of a panorama set
+    carry_on = opts.carry_between_photos and len(photos) > 1 and s.camera.source.value != "sfm"
+    for i, p in enumerate(photos):
+        progress(0.05 + 0.9 * i / len(photos), p.name)
+        t0 = time.perf_counter()
+        pf = photo_features(p.name, _read_rgb(p), intrinsics[p.name], opts)
+        found = find_cars(pf, refs, consist, types, opts)
+        per_view[p.name] = observations_of(found, pf, types)
+        if carry_on:
+            features[p.name] = pf
+        per_photo[p.name] = {"keypoints": int(len(pf.keypoints)), "time_s": round(time.perf_counter() - t0, 2),
+                             "faces": [{"carriage": c.number, "face": c.detection.ref.face,
+                                        "inliers": c.detection.n_inliers, "support": c.support,
+                                        "rms_px": round(c.detection.rms_px, 2),
+                                        "ecc": None if c.detection.ecc is None else round(c.detection.ecc, 3)}
+                                       for c in found],
+                             "points": len(per_view[p.name])}
+    carried_stats = None
+    if carry_on:
+        progress(0.95, "carrying points between the photos of the panorama")
+        per_view, carried_stats = carry(per_view, features)
+    for name, pts in per_view.items():
+        for o in pts:
+            obs.append(mf.Observation(carriage=o.carriage, point=o.point, view=o.view, uv=o.uv, source="sift",
+                                      confidence=o.confidence, sigma_px=o.sigma_px))
+    needs = [{"carriage": n, "reason": "reference has no texture (too few features on every face); pick its "
+                                       "points by hand"} for n in untextured]
+    seen = {o.carriage for o in obs}
+    needs += [{"carriage": n, "reason": "no face matched in any photo"} for n, _, _ in consist
+              if n not in seen and n not in untextured]
+    return obs, needs, {"photos": per_photo, "carried": carried_stats}
+
+
+def run_correspond(project: Project, progress: Progress, opts: MatchOptions | None = None) -> StageResult:
+    opts = opts or MatchOptions()
+    photos = project.photo_paths()
+    man = load_manual(project, photos)  # validate first: a bad file fails before minutes of matching
+    intrinsics, intr_source = photo_intrinsics(project, photos)
+    out_dir = project.stage_dir("correspond")
+    auto, needs, stats = automatic(project, photos, intrinsics, opts, progress, reference_dir=out_dir / "references")
+    merged = mf.merge(auto, man.observations)
+    manual_cars = {o.carriage for o in man.observations}
+    needs = [n for n in needs if n["carriage"] not in manual_cars]
+    known = {n["carriage"] for n in needs}
+    needs += [n.model_dump() for n in man.needs_manual if n.carriage not in known and n.carriage not in manual_cars]
+    doc = mf.CorrespondenceFile(observations=merged, needs_manual=[mf.NeedsManual(**n) for n in needs])
+    path = project.write_json(output_path(project), doc.to_json())
+    overridden = len({o.key for o in auto} & {o.key for o in man.observations})
+    by_car: dict[str, int] = {}
+    for o in merged:
+        by_car[o.carriage] = by_car.get(o.carriage, 0) + 1
+    stats.update({"intrinsics": intr_source, "n_observations": len(merged), "n_sift": len(auto),
+                  "n_manual": len(man.observations), "n_overridden": overridden, "by_carriage": by_car,
+                  "needs_manual": needs, "options": {k: getattr(opts, k) for k in opts.__dataclass_fields__}})
+    for n in needs:
+        log.warning("carriage %s needs manual points: %s", n["carriage"], n["reason"])
+    return StageResult(outputs={"correspondences": path, "references": out_dir / "references" / "references.json"},
+                       stats=stats)
+
+
+STAGE = StageSpec("correspond", "marked points in the photos: SIFT against each car's livery, plus manual picks",
+                  run_correspond, inputs=_inputs, settings_sections=("consist", "camera"),
+                  depends_on=("inputs",))
+
+__all__ = ["STAGE", "run_correspond", "load_manual", "photo_intrinsics", "automatic", "FACES"]

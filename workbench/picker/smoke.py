@@ -1,0 +1,95 @@
+"""Drive the picker page in a headless Chromium as a person would (Playwright), for the tests.
+
+Standalone (standard library + ``playwright`` only), so it runs under any Python that has Playwright::
+
+    python workbench/picker/smoke.py URL PLAN.json SCREENSHOT.png [--chromium /usr/bin/chromium]
+
+PLAN.json: ``{"car": "6223", "point": "front_door_top_front_left", "face": "left", "view": "pano_01.jpg",
+"first_uv": [u, v], "uv": [u, v]}``. The run: choose the photo and the carriage, click the point on the
+model's face, click ``first_uv`` in the photo (a rough pick), zoom in with the wheel at ``uv`` and click it
+(the careful pick), undo it (Ctrl+Z: back to the rough pick), pick ``uv`` again, save (Ctrl+S), take a
+screenshot. Prints a JSON summary (status line after each step) on stdout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+
+def _screen(page, uv):
+    """Page coordinates of image pixel ``uv`` on the photo canvas (inverse of picker.js toImage)."""
+    return page.evaluate(
+        """([u, v]) => { const S = window.pickerState, r = document.getElementById('photo-canvas').getBoundingClientRect();
+             return [r.left + (u + 0.5) * S.scale + S.ox, r.top + (v + 0.5) * S.scale + S.oy]; }""", list(uv))
+
+
+def drive(url: str, plan: dict, screenshot: str, chromium: str | None = None) -> dict:
+    from playwright.sync_api import sync_playwright
+
+    log = {}
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox"]) if chromium \
+            else p.chromium.launch(args=["--no-sandbox"])
+        page = browser.new_page(viewport={"width": 1400, "height": 800})
+        page.goto(url)
+        page.wait_for_function("document.getElementById('status').textContent.includes('automatic')", timeout=30000)
+        log["loaded"] = page.inner_text("#status")
+        page.select_option("#photo-select", plan["view"])
+        page.wait_for_timeout(300)
+        page.select_option("#car-select", plan["car"])
+        page.wait_for_timeout(500)
+        # the point on the model: its reference pixel on the face canvas
+        face = page.locator(f"#face-{plan['face']}")
+        face.scroll_into_view_if_needed()
+        box = face.bounding_box()
+        ref = page.evaluate("([c, f, n]) => window.pickerState.doc.cars.find(x => x.number === c).faces[f].points[n]",
+                            [plan["car"], plan["face"], plan["point"]])
+        fw = page.evaluate("([c, f]) => window.pickerState.doc.cars.find(x => x.number === c).faces[f].width",
+                           [plan["car"], plan["face"]])
+        s = box["width"] / fw
+        page.mouse.click(box["x"] + (ref[0] + 0.5) * s, box["y"] + (ref[1] + 0.5) * s)
+        log["point_selected"] = page.evaluate("window.pickerState.point")
+        # rough pick at fit zoom
+        x, y = _screen(page, plan["first_uv"])
+        page.mouse.click(x, y)
+        log["rough"] = page.inner_text("#status")
+        # zoom in at the true place, careful pick
+        x, y = _screen(page, plan["uv"])
+        page.mouse.move(x, y)
+        for _ in range(6):
+            page.mouse.wheel(0, -120)
+            page.wait_for_timeout(50)
+        log["scale"] = page.evaluate("window.pickerState.scale")
+        x, y = _screen(page, plan["uv"])
+        page.mouse.click(x, y)
+        log["careful"] = page.inner_text("#status")
+        page.keyboard.press("Control+z")
+        log["undo"] = page.inner_text("#status")
+        log["after_undo"] = page.evaluate("window.pickerState.manual.slice(-1)[0]")
+        x, y = _screen(page, plan["uv"])
+        page.mouse.click(x, y)
+        page.keyboard.press("Control+s")
+        page.wait_for_function("document.getElementById('status').textContent.startsWith('saved')", timeout=10000)
+        log["saved"] = page.inner_text("#status")
+        page.screenshot(path=screenshot)
+        browser.close()
+    return log
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("url")
+    ap.add_argument("plan")
+    ap.add_argument("screenshot")
+    ap.add_argument("--chromium", default=None)
+    a = ap.parse_args(argv)
+    with open(a.plan, encoding="utf-8") as f:
+        plan = json.load(f)
+    print(json.dumps(drive(a.url, plan, a.screenshot, a.chromium)))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
