@@ -94,15 +94,19 @@ def _copy_with_corr(incident: Path, tmp_path: Path, edit) -> Path:
     return root
 
 
-@pytest.mark.parametrize("edit, words", [
-    (lambda o: o[0].update(carriage="9999"), ["9999", "not in the consist"]),
-    (lambda o: o[0].update(point="chimney"), ["chimney", "not a marked point"]),
-    (lambda o: o[0].update(uv=[5000.0, 10.0]), ["outside", "480x360"]),
-    (lambda o: o[0].update(uv=[float("nan"), 3.0]), ["not a finite"]),
-    (lambda o: o.append(dict(o[0])), ["given twice"]),
-    (lambda o: o[0].update(view="nope.jpg"), ["nope.jpg", "not a photo"]),
-])
+BAD = [
+    (lambda o: o[0].update(carriage="9999"), ["9999", "consist"]),
+    (lambda o: o[0].update(point="chimney"), ["chimney"]),
+    (lambda o: o[0].update(uv=[5000.0, 10.0]), ["outside", "480"]),
+    (lambda o: o[0].update(uv=[float("nan"), 3.0]), ["finite"]),
+    (lambda o: o.append(dict(o[0])), ["observations[0]"]),
+    (lambda o: o[0].update(view="nope.jpg"), ["nope.jpg"]),
+]
+
+
+@pytest.mark.parametrize("edit, words", BAD)
 def test_bad_correspondences_are_named(incident, tmp_path, edit, words):
+    """Through the pipeline (the correspond stage checks the hand-written file first)."""
     root = _copy_with_corr(incident, tmp_path, edit)
     with pytest.raises(InputError) as exc:
         Runner(Project(root), STAGES).run()
@@ -112,11 +116,28 @@ def test_bad_correspondences_are_named(incident, tmp_path, edit, words):
         assert w in msg
 
 
+@pytest.mark.parametrize("edit, words", BAD)
+def test_the_solve_stage_checks_correspondences_itself(incident, tmp_path, edit, words):
+    """The solve stage's own reader (it also reads files that did not pass through the correspond stage)."""
+    from workbench.solve.stage import read_correspondences, read_views
+
+    root = _copy_with_corr(incident, tmp_path, edit)
+    p = Project(root)
+    views, _ = read_views(p, root / "cameras.json")
+    with pytest.raises(InputError) as exc:
+        read_correspondences(p, root / "correspondences.json", views)
+    msg = str(exc.value)
+    assert "correspondences.json" in msg and "observations[" in msg
+    for w in words:
+        assert w in msg
+
+
 def test_missing_cameras_says_what_to_do(incident, tmp_path):
     root = _copy_with_corr(incident, tmp_path, lambda o: None)
     (root / "cameras.json").unlink()
+    (root / "control_points.json").unlink(missing_ok=True)  # nothing to place the cameras with
     with pytest.raises(WorkbenchError) as exc:
-        Runner(Project(root), STAGES).run()
+        Runner(Project(root), STAGES).run(only=["inputs", "terrain", "correspond", "solve"])
     assert "cameras" in str(exc.value) and "georef" in str(exc.value)
 
 

@@ -94,6 +94,7 @@ class Observation:
     u: float
     v: float
     visible: bool = True
+    sigma_px: float | None = None  # this point's pixel sigma (None: the solve's pixel_sigma_px)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -268,23 +269,24 @@ class SolveResult:
 # Input checking and flattening
 # ----------------------------------------------------------------------------------------------------------
 def _iter_observations(car: CarriageInput, view_name: str, obs: Any):
+    """(point name, (u, v), sigma_px or None) of the visible observations of one view."""
     if isinstance(obs, Mapping):
         for name, uv in obs.items():
             if uv is None:
                 continue
             if isinstance(uv, Observation):
                 if uv.visible:
-                    yield str(name), (uv.u, uv.v)
+                    yield str(name), (uv.u, uv.v), uv.sigma_px
                 continue
-            yield str(name), uv
+            yield str(name), uv, None
     else:
         for o in obs:
             if isinstance(o, Observation):
                 if o.visible:
-                    yield o.point, (o.u, o.v)
+                    yield o.point, (o.u, o.v), o.sigma_px
             else:
                 name, uv = o
-                yield str(name), uv
+                yield str(name), uv, None
 
 
 @dataclass
@@ -300,6 +302,7 @@ class _Car:
     c_front: np.ndarray
     c_rear: np.ndarray
     c_body: np.ndarray
+    scale: np.ndarray | None = None  # (n,) each point's sigma / the solve's pixel sigma (None: all 1)
 
 
 def _prepare(carriages: Sequence[CarriageInput], views: Sequence[View], options: SolveOptions) -> list[_Car]:
@@ -320,14 +323,14 @@ def _prepare(carriages: Sequence[CarriageInput], views: Sequence[View], options:
     out = []
     for i, c in enumerate(carriages):
         ct = c.carriage_type
-        names, vi, P, uv = [], [], [], []
+        names, vi, P, uv, sc = [], [], [], [], []
         for vname, obs in (c.observations or {}).items():
             if vname not in vindex:
                 raise InputError(f"car {c.number}: observations for view {vname!r}, which is not among the views "
                                  f"{vnames}")
             intr = views[vindex[vname]].intrinsics
             seen: set[str] = set()
-            for name, pix in _iter_observations(c, vname, obs):
+            for name, pix, sig in _iter_observations(c, vname, obs):
                 if name not in ct.marked_points:
                     raise InputError(f"car {c.number}, view {vname!r}: point {name!r} is not a marked point of type "
                                      f"{ct.id!r} (it has: {', '.join(ct.marked_points)})")
@@ -341,15 +344,20 @@ def _prepare(carriages: Sequence[CarriageInput], views: Sequence[View], options:
                 if options.check_image_bounds and not intr.in_image(a[None])[0]:
                     raise InputError(f"car {c.number}, view {vname!r}, point {name!r}: pixel ({a[0]:.1f}, "
                                      f"{a[1]:.1f}) is outside the {intr.width}x{intr.height} image")
+                if sig is not None and not (np.isfinite(sig) and sig > 0):
+                    raise InputError(f"car {c.number}, view {vname!r}, point {name!r}: sigma_px = {sig!r} must be a "
+                                     f"positive number of pixels")
                 names.append(name)
                 vi.append(vindex[vname])
                 P.append(ct.marked_points[name])
                 uv.append(a)
+                sc.append(1.0 if sig is None else float(sig) / options.pixel_sigma_px)
         distinct = sorted(set(names))
         body = np.array([0.0, 0.0, 0.5 * float(ct.height_m)])
         out.append(_Car(i, str(c.number), ct, names, np.asarray(vi, dtype=int),
                         np.asarray(P, dtype=float).reshape(-1, 3), np.asarray(uv, dtype=float).reshape(-1, 2),
-                        distinct, np.asarray(ct.coupler_front, float), np.asarray(ct.coupler_rear, float), body))
+                        distinct, np.asarray(ct.coupler_front, float), np.asarray(ct.coupler_rear, float), body,
+                        np.asarray(sc, dtype=float)))
     return out
 
 
@@ -509,19 +517,24 @@ class _Problem:
     def __init__(self, cars: list[_Car], active: list[int], views: Sequence[View], weights: dict[int, float]):
         self.cars, self.views = cars, views
         self.active = active
-        rows_car, rows_view, P, uv, w = [], [], [], [], []
+        rows_car, rows_view, P, uv, w, wv = [], [], [], [], [], []
         for k in active:
             c = cars[k]
             rows_car.append(np.full(len(c.P), k))
             rows_view.append(c.views)
             P.append(c.P)
             uv.append(c.uv)
-            w.append(np.full(len(c.P), weights[k]))
+            sc = c.scale if c.scale is not None and len(c.scale) == len(c.P) else np.ones(len(c.P))
+            # a point with its own sigma s_j is whitened by pixel_sigma / s_j; the carriage's normalisation
+            # weight multiplies it (and is what the weighted rows' noise variance keeps: see .uncertainty)
+            w.append(weights[k] / sc)
+            wv.append(np.full(len(c.P), weights[k]))
         self.car = np.concatenate(rows_car) if rows_car else np.zeros(0, int)
         self.view = np.concatenate(rows_view) if rows_view else np.zeros(0, int)
         self.P = np.vstack(P) if P else np.zeros((0, 3))
         self.uv = np.vstack(uv) if uv else np.zeros((0, 2))
-        self.w = np.concatenate(w) if w else np.zeros(0)
+        self.w = np.concatenate(w) if w else np.zeros(0)  # row weights (normalisation x whitening)
+        self.w_noise = np.concatenate(wv) if wv else np.zeros(0)  # sd of a weighted row / pixel sigma
         self.by_view = [np.nonzero(self.view == v)[0] for v in range(len(views))]
         self.by_car = {k: np.nonzero(self.car == k)[0] for k in active}
 

@@ -129,8 +129,10 @@ def read_views(project: Project, path: Path) -> tuple[list, dict]:
 
 
 def read_correspondences(project: Project, path: Path, views: list, panorama: Any = None) -> tuple[dict, dict]:
-    """``({car number: {view name: {point: (u, v)}}}, stats)``; every bad item is an :class:`InputError`
+    """``({car number: {view name: {point: Observation}}}, stats)``; every bad item is an :class:`InputError`
     naming it. ``view == "panorama"`` pixels are mapped into their source photo with the panorama model."""
+    from .chain import Observation
+
     doc = project.read_json(path)
     if not isinstance(doc, dict) or not isinstance(doc.get("observations"), list):
         raise InputError(f"{path}: needs an 'observations' list; see docs/pipeline.md (correspondences.json)")
@@ -175,12 +177,21 @@ def read_correspondences(project: Project, path: Path, views: list, panorama: An
         if not intr.in_image(a[None])[0]:
             raise InputError(f"{where} (car {car}, point {point}, view {view}): ({a[0]:.1f}, {a[1]:.1f}) is outside "
                              f"the {intr.width}x{intr.height} image")
+        sig = o.get("sigma_px")
+        if sig is not None:
+            try:
+                sig = float(sig)
+            except (TypeError, ValueError):
+                sig = float("nan")
+            if not (math.isfinite(sig) and sig > 0):
+                raise InputError(f"{where} (car {car}, point {point}): sigma_px = {o.get('sigma_px')!r} must be a "
+                                 f"positive number of pixels (or left out)")
         key = (car, view, point)
         if key in src:
             raise InputError(f"{where}: car {car}, point {point} in view {view} is given twice (also "
                              f"{src[key]}); keep one")
         src[key] = f"observations[{i}]"
-        out.setdefault(car, {}).setdefault(view, {})[point] = (float(a[0]), float(a[1]))
+        out.setdefault(car, {}).setdefault(view, {})[point] = Observation(point, float(a[0]), float(a[1]), True, sig)
         s = str(o.get("source", "manual"))
         sources[s] = sources.get(s, 0) + 1
     stats = {"file": project.relative(path), "n_observations": len(src), "by_source": sources,
@@ -283,16 +294,21 @@ def _solve_rejecting(carriages: list, links: list, views: list, opts: Any, terra
         for cin, cr in zip(carriages, res.carriages):
             if cr.status == "left_out" or not cr.residuals_px:
                 continue
-            worst = max(((math.hypot(*e), v, p) for v, pts in cr.residuals_px.items() for p, e in pts.items()),
-                        default=None)
+            def scale(v: str, p: str) -> float:  # the point's own sigma relative to the solve's
+                o = cin.observations.get(v, {}).get(p)
+                sig = getattr(o, "sigma_px", None)
+                return 1.0 if sig is None else float(sig) / float(solver.pixel_sigma_px)
+
+            worst = max(((math.hypot(*e) / scale(v, p), v, p, math.hypot(*e))
+                         for v, pts in cr.residuals_px.items() for p, e in pts.items()), default=None)
             if worst is None or worst[0] <= thr:
                 continue
-            _, v, p = worst
+            _, v, p, r_px = worst
             obs = {vn: dict(pts) for vn, pts in cin.observations.items()}
-            uv = obs[v].pop(p)
+            o = obs[v].pop(p)
             cin.observations = obs
-            rejected.append({"carriage": cin.number, "view": v, "point": p, "uv": list(uv),
-                             "residual_px": round(worst[0], 2), "round": rnd + 1})
+            rejected.append({"carriage": cin.number, "view": v, "point": p, "uv": [o.u, o.v],
+                             "residual_px": round(r_px, 2), "round": rnd + 1})
             dropped = True
         if not dropped:
             break
@@ -338,7 +354,10 @@ def solution_document(project: Project, res: Any, views: list, cam_doc: dict, ob
         for k in ("sigma_body_centre_m", "ci95_body_centre_m", "sigma_position_m", "ci95_position_m",
                   "sigma_hpr_deg", "ci95_hpr_deg", "covariance_pose", "residuals_px", "rms_px", "clearance_m"):
             rec[k] = e.get(k)
-        rec["observations"] = {v: {p: list(uv) for p, uv in pts.items()} for v, pts in obs.get(car.number, {}).items()}
+        rec["observations"] = {v: {p: [o.u, o.v] for p, o in pts.items()} for v, pts in obs.get(car.number, {}).items()}
+        sig = {v: {p: o.sigma_px for p, o in pts.items() if o.sigma_px is not None}
+               for v, pts in obs.get(car.number, {}).items()}
+        rec["sigma_px"] = {v: d for v, d in sig.items() if d}
         cars_out.append(rec)
     # coupler gaps along the consist
     types = project.carriage_types()

@@ -129,7 +129,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     """Covariance in free-pose parameters (see the module doc). ``sigma_fixed``: use that pixel sigma (CRB)."""
     J, r, col, P = _rows(prob, R, t, f, focal_views)
     M = len(prob.P)
-    w2 = np.repeat(prob.w**2, 2)
+    w2 = np.repeat(prob.w_noise**2, 2)  # variance factor of the weighted rows (whitened points keep w_i^2)
     r2pt = (r.reshape(-1, 2) ** 2).sum(1)
     rho = np.repeat(_robust_weights(r2pt, loss, loss_scale), 2)
     Hp_unit = (J * rho[:, None]).T @ J
