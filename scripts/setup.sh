@@ -4,14 +4,15 @@
 #  - Debian packages: headless rendering (Open3D 0.20 renders through Vulkan; Mesa's lavapipe driver
 #    provides it on the CPU), Xvfb for the desktop windows, Pango for the PDF report (WeasyPrint),
 #    poppler-utils to look at PDF pages, and the clients the export tests check the files with: GDAL's
-#    ogrinfo, Blender, Node.js with the Khronos glTF validator (npm package gltf-validator);
+#    ogrinfo, Blender, Node.js with the Khronos glTF validator (npm package gltf-validator); Chromium, which
+#    the picker test drives (through Playwright);
 #  - uv, a virtual environment in .venv, and the package with the locked dependency versions (uv.lock).
 # `scripts/setup.sh --bench` also installs Hugin (hugin-tools, enblend) for scripts/bench_stitch.py.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
 APT_PACKAGES=(libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 libgl1 libgomp1 xvfb xauth poppler-utils
-              libpango-1.0-0 libpangoft2-1.0-0 gdal-bin blender)
+              libpango-1.0-0 libpangoft2-1.0-0 gdal-bin blender chromium)
 if [ "${1:-}" = "--bench" ]; then APT_PACKAGES+=(hugin-tools enblend); fi
 command -v npm >/dev/null 2>&1 || APT_PACKAGES+=(nodejs npm)
 missing=()

@@ -194,6 +194,18 @@ def view(path: Path = typer.Argument(..., help="incident folder (its solve must 
 
 
 @app.command()
+def pick(path: Path = typer.Argument(..., help="incident folder"),
+         port: int = typer.Option(8765, min=1024, max=65535, help="local port of the picker page"),
+         no_browser: bool = typer.Option(False, "--no-browser", help="do not open a browser; print the address")
+         ) -> None:
+    """Pick marked points by hand (and review the automatic ones) in a local web page: the photo beside the
+    carriage model; saves the incident's correspondences.json (a manual point overrides an automatic one)."""
+    from .picker import serve
+
+    serve(path, host="127.0.0.1", port=port, open_browser=not no_browser)
+
+
+@app.command()
 def calibrate(images_dir: Path = typer.Argument(..., help="folder of chessboard photos"),
               out_path: Path = typer.Option(Path("camera_profile.json"), "--out", help="camera profile to write"),
               pattern: str = typer.Option("9x6", help="inner corners per row x per column, e.g. 9x6"),

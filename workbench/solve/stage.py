@@ -257,6 +257,13 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
     doc["correspondences"] = corr_stats
     doc["rejected_points"] = rejected
     out_dir = project.stage_dir("solve")
+    if all(c.status == "left_out" for c in res.carriages):
+        attempt = project.write_json(out_dir / "attempt.json", doc)
+        needs = ", ".join(str(n.get("carriage")) for n in corr_stats.get("needs_manual") or []
+                          if isinstance(n, dict)) or "see the warnings"
+        raise InputError(f"no carriage could be solved: too few marked points were found ({corr_stats['n_observations']} "
+                         f"in all; carriages needing manual points: {needs}); pick them with `workbench pick "
+                         f"{project.root}` (or write {project.root / CORRESPONDENCES_FILE}); details in {attempt}")
     if not res.converged:
         attempt = project.write_json(out_dir / "attempt.json", doc)
         raise StageError(f"solve did not converge ({res.message}); the previous solution is kept; this attempt is in "
