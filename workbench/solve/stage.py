@@ -191,7 +191,11 @@ def read_correspondences(project: Project, path: Path, views: list, panorama: An
             raise InputError(f"{where}: car {car}, point {point} in view {view} is given twice (also "
                              f"{src[key]}); keep one")
         src[key] = f"observations[{i}]"
-        out.setdefault(car, {}).setdefault(view, {})[point] = Observation(point, float(a[0]), float(a[1]), True, sig)
+        # a point's own sigma can only down-weight it: the solve's pixel sigma is the floor (a finder's sub-pixel
+        # claims on one face are correlated through its homography, not independent evidence)
+        sig_used = None if sig is None else max(sig, float(project.settings.solver.pixel_sigma_px))
+        out.setdefault(car, {}).setdefault(view, {})[point] = Observation(point, float(a[0]), float(a[1]), True,
+                                                                          sig_used)
         s = str(o.get("source", "manual"))
         sources[s] = sources.get(s, 0) + 1
     stats = {"file": project.relative(path), "n_observations": len(src), "by_source": sources,
