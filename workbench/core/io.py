@@ -76,3 +76,19 @@ def hash_file(path: Path, chunk: int = 1 << 20) -> str:
 
 def hash_bytes(data: bytes) -> str:
     return hashlib.sha256(data).hexdigest()
+
+
+def matrix_from_json(value, shape: tuple[int, ...], where: str):
+    """A finite float array of ``shape`` from a JSON value; :class:`InputError` naming ``where`` otherwise."""
+    import numpy as np
+
+    from ..errors import InputError
+
+    dims = "x".join(str(n) for n in shape)
+    try:
+        M = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: not a {dims} array of numbers") from None
+    if M.shape != tuple(shape) or not np.all(np.isfinite(M)):
+        raise InputError(f"{where}: must be a finite {dims} array (got shape {M.shape})")
+    return M

@@ -53,6 +53,7 @@ class Terrain(_Strict):
     dem_vertical_accuracy_m: Annotated[float, Field(gt=0.0)] = 0.5
     aoi_radius_m: Annotated[float, Field(gt=0.0, le=20_000.0)] = 250.0
     simplify_max_error_m: Annotated[float, Field(ge=0.0, le=10.0)] = 0.05  # 0: no mesh simplification
+    ortho: str | None = None  # orthophoto (JPEG/PNG) covering the DEM's extent, row 0 north; drapes the terrain
 
 
 class Coupling(str, Enum):

@@ -308,28 +308,15 @@ def _height_colors(z: np.ndarray) -> np.ndarray:
 
 
 def find_orthophoto(project: "Project") -> tuple[Path, Path] | None:
-    """(orthophoto image, DEM whose extent it covers) for the project, or None.
+    """(orthophoto image, DEM whose extent it covers) for the project, or None (see
+    :func:`workbench.terrain.stage.orthophoto_path`)."""
+    from ..terrain.stage import orthophoto_path
 
-    A project setting ``terrain.ortho`` (when the settings have it) wins; a synthetic incident's
-    ``truth/ground_truth.json`` names its orthophoto in ``layers.ortho`` (it covers the DEM's whole extent,
-    row 0 = north edge).
-    """
     t = project.settings.terrain
     if not t.dem:
         return None
-    dem = project.path(t.dem)
-    own = getattr(t, "ortho", None)
-    if own:
-        return project.require_file(own, "terrain.ortho"), dem
-    truth = project.truth_dir / "ground_truth.json"
-    if truth.is_file():
-        try:
-            rel = json.loads(truth.read_text(encoding="utf-8")).get("layers", {}).get("ortho")
-        except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
-            rel = None
-        if rel and project.path(rel).is_file():
-            return project.path(rel), dem
-    return None
+    ortho = orthophoto_path(project)
+    return (ortho, project.path(t.dem)) if ortho is not None else None
 
 
 def texture_uv(vertices_enu: np.ndarray, frame: SceneFrame, dem_path: Path) -> np.ndarray:

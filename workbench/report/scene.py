@@ -138,26 +138,11 @@ def require_solution(project: Project, needed_by: str) -> Path:
 
 
 def ortho_path(project: Project) -> Path | None:
-    """The terrain texture (orthophoto) draped on the DEM, when the incident has one.
+    """The terrain texture (orthophoto) draped on the DEM, when the incident has one (see
+    :func:`workbench.terrain.stage.orthophoto_path`)."""
+    from ..terrain.stage import orthophoto_path
 
-    Synthetic incidents name it in ``truth/ground_truth.json`` (``layers.ortho``); otherwise a JPEG beside
-    the DEM named like it with ``_ortho`` for ``_dem`` is used.
-    """
-    truth = project.truth_dir / "ground_truth.json"
-    if truth.is_file():
-        try:
-            rel = json.loads(truth.read_text(encoding="utf-8")).get("layers", {}).get("ortho")
-        except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
-            rel = None
-        if rel and project.path(rel).is_file():
-            return project.path(rel)
-    dem = project.settings.terrain.dem
-    if dem and project.path(dem).is_file():  # one DEM file (not a folder or pattern of tiles)
-        d = project.path(dem)
-        for cand in (d.with_name(d.stem.replace("_dem", "_ortho") + ".jpg"), d.with_suffix(".ortho.jpg")):
-            if cand != d and cand.is_file():
-                return cand
-    return None
+    return orthophoto_path(project)
 
 
 def scene_input_files(project: Project) -> dict[str, Path]:

@@ -86,14 +86,10 @@ def _panorama_model_path(project: Project, cameras: Path | None) -> Path | None:
 # ---------------------------------------------------------------------------------------------------------
 # Reading and checking
 # ---------------------------------------------------------------------------------------------------------
-def _matrix(value: Any, shape: tuple[int, int], where: str) -> np.ndarray:
-    try:
-        M = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(f"{where}: not a {shape[0]}x{shape[1]} matrix of numbers") from None
-    if M.shape != shape or not np.all(np.isfinite(M)):
-        raise InputError(f"{where}: must be a finite {shape[0]}x{shape[1]} matrix (got shape {M.shape})")
-    return M
+def _matrix(value: Any, shape: tuple[int, ...], where: str) -> np.ndarray:
+    from ..core.io import matrix_from_json
+
+    return matrix_from_json(value, shape, where)
 
 
 def read_views(project: Project, path: Path) -> tuple[list, dict]:

@@ -155,3 +155,28 @@ def run_terrain(project: Project, progress: Progress) -> StageResult:
 STAGE = StageSpec("terrain", "DEM and buildings to meshes in the scene frame", run_terrain, inputs=_files,
                   settings_sections=("location", "terrain"), depends_on=(),
                   applies=lambda project: project.settings.terrain.dem is not None)
+
+
+def orthophoto_path(project: Project) -> Path | None:
+    """The orthophoto draped on the terrain, or None: ``terrain.ortho`` when set; else a synthetic incident's
+    (``truth/ground_truth.json`` ``layers.ortho``); else a JPEG beside a single DEM file named like it with
+    ``_ortho`` for ``_dem``. It covers the DEM's whole extent, row 0 at the north edge."""
+    import json
+
+    t = project.settings.terrain
+    if t.ortho:
+        return project.require_file(t.ortho, "terrain.ortho")
+    truth = project.truth_dir / "ground_truth.json"
+    if truth.is_file():
+        try:
+            rel = json.loads(truth.read_text(encoding="utf-8")).get("layers", {}).get("ortho")
+        except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+            rel = None
+        if rel and project.path(rel).is_file():
+            return project.path(rel)
+    if t.dem and project.path(t.dem).is_file():  # one DEM file (not a folder or pattern of tiles)
+        d = project.path(t.dem)
+        for cand in (d.with_name(d.stem.replace("_dem", "_ortho") + ".jpg"), d.with_suffix(".ortho.jpg")):
+            if cand != d and cand.is_file():
+                return cand
+    return None
