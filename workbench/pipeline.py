@@ -10,7 +10,6 @@ import logging
 import warnings
 from pathlib import Path
 
-import numpy as np
 
 from .errors import InputError
 from .project import Project

@@ -154,13 +154,9 @@ class Project:
 
     # -- reading and writing --------------------------------------------------------------------------
     def read_json(self, path: Path) -> Any:
-        path = Path(path)
-        try:
-            return json.loads(path.read_text(encoding="utf-8"))
-        except FileNotFoundError:
-            raise InputError(f"{path}: file not found") from None
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-            raise InputError(f"{path}: not valid JSON ({exc})") from None
+        from .core.io import read_json
+
+        return read_json(path)
 
     def write_json(self, path: Path, data: Any) -> Path:
         return atomic_write_json(Path(path), data)

@@ -92,3 +92,20 @@ def matrix_from_json(value, shape: tuple[int, ...], where: str):
     if M.shape != tuple(shape) or not np.all(np.isfinite(M)):
         raise InputError(f"{where}: must be a finite {dims} array (got shape {M.shape})")
     return M
+
+
+def read_json(path, *, missing: str = ""):
+    """The JSON document at ``path``; :class:`InputError` naming the file when it is missing (with ``missing``
+    appended: what to do) or not valid JSON."""
+    import json
+    from pathlib import Path
+
+    from ..errors import InputError
+
+    path = Path(path)
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise InputError(f"{path}: " + (missing or "file not found")) from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise InputError(f"{path}: not valid JSON ({exc})") from None

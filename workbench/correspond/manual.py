@@ -12,7 +12,6 @@ u in [-0.5, w - 0.5]. ``view`` is a photo name of the photo set, or ``"panorama"
 
 from __future__ import annotations
 
-import json
 import math
 from pathlib import Path
 from typing import Literal
@@ -139,13 +138,10 @@ def validate(cf: CorrespondenceFile, path: Path | str, *, points: dict[str, list
 
 def load(path: Path, *, points: dict[str, list[str]], image_sizes: dict[str, tuple[int, int]]) -> CorrespondenceFile:
     """Read and validate a correspondence file."""
+    from ..core.io import read_json
+
     path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(f"{path}: file not found") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: not valid JSON ({exc})") from None
+    data = read_json(path)
     return validate(parse(data, path), path, points=points, image_sizes=image_sizes)
 
 

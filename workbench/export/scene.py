@@ -13,7 +13,6 @@ until a writer converts it. The writers convert *exactly per vertex* with :class
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -168,13 +167,10 @@ def read_solution(path: Path, frame: SceneFrame, carriage_types: dict[str, Any])
     ``carriage_types``: ``{car number: CarriageType}`` (``Project.carriage_types()``). Raises
     :class:`InputError` naming the file and key when the solution is malformed or was made for another scene frame.
     """
+    from ..core.io import read_json
+
     path = Path(path)
-    try:
-        doc = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(f"{path}: not found; run the solve stage first (`workbench run`)") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: not valid JSON ({exc})") from None
+    doc = read_json(path, missing="not found; run the solve stage first (`workbench run`)")
     if not isinstance(doc, dict) or not isinstance(doc.get("carriages"), list):
         raise InputError(f"{path}: no 'carriages' list; see docs/pipeline.md (solution.json)")
     fr = doc.get("frame")

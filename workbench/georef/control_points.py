@@ -143,13 +143,7 @@ def parse_control_points(data: Any, frame: SceneFrame, where: str = CONTROL_POIN
 
 def load_control_points(path: str | Path, frame: SceneFrame) -> list[ControlPoint]:
     """Read ``control_points.json``; :class:`InputError` naming the file, the point and the value on bad input."""
-    import json
+    from ..core.io import read_json
 
     path = Path(path)
-    try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(f"{path}: file not found") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: not valid JSON ({exc})") from None
-    return parse_control_points(data, frame, str(path))
+    return parse_control_points(read_json(path), frame, str(path))

@@ -262,15 +262,10 @@ def validate_profile(profile: dict, where: str = "camera profile") -> CameraIntr
 
 def load_camera_profile(path: Path) -> tuple[CameraIntrinsics, dict]:
     """Read a ``camera_profile.json``: (intrinsics, the whole profile)."""
-    import json
+    from ..core.io import read_json
 
     path = Path(path)
-    try:
-        profile = json.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise InputError(f"{path}: camera profile not found; make one with `workbench calibrate`") from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: not valid JSON ({exc})") from None
+    profile = read_json(path, missing="camera profile not found; make one with `workbench calibrate`")
     return validate_profile(profile, str(path)), profile
 
 

@@ -8,7 +8,6 @@ files the stages wrote (``out/solve/solution.json``, ``out/georef/cameras.json``
 
 from __future__ import annotations
 
-import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path

@@ -72,7 +72,7 @@ import scipy.sparse as sp
 from ..core.camera import CameraIntrinsics
 from ..core.frames import hpr_from_rotation
 from ..errors import InputError, SettingsError, WorkbenchWarning
-from .projection import exp_so3, left_jacobian_so3, log_so3, project_world_points_with_jacobians, skew
+from .projection import exp_so3, left_jacobian_so3, project_world_points_with_jacobians, skew
 
 
 SQRT5 = math.sqrt(5.0)  # slack / sigma_T: an offset uniform in the ball |T| <= s has per-axis sd s / sqrt(5)

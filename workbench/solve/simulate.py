@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..core.camera import CameraIntrinsics, look_at, project_world
-from ..core.frames import rot_x, rot_y, rot_z
+from ..core.frames import rot_z
 from ..rolling_stock import get_type
 from .chain import CarriageInput, ChainLink, View
 

@@ -214,8 +214,7 @@ def _load_panorama(project: Project, doc: dict) -> Any:
 # The stage
 # ---------------------------------------------------------------------------------------------------------
 def run_solve(project: Project, progress: Progress) -> StageResult:
-    from ..core.frames import hpr_from_rotation
-    from .chain import CarriageInput, ChainLink, SolveOptions, SolveWarning, solve_consist
+    from .chain import CarriageInput, ChainLink, SolveOptions
 
     s = project.settings
     cam_path = cameras_path(project)
