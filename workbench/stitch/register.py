@@ -18,8 +18,6 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.optimize._numdiff import approx_derivative, group_columns
-from scipy.sparse import coo_matrix
 from scipy.spatial.transform import Rotation
 
 from ..core.camera import CameraIntrinsics
@@ -83,23 +81,44 @@ class PairMatch:
     H: np.ndarray | None  # homography j_from_i in the linearised pixels used for matching
     idx_i: np.ndarray = field(repr=False)
     idx_j: np.ndarray = field(repr=False)
+    # the inliers' pixels (full resolution, as on disk) for the bundle adjustment: photo i's keypoints and
+    # photo j's matching points refined to sub-pixel precision (:func:`refine_matches`); None: the keypoints
+    x_i: np.ndarray | None = field(default=None, repr=False)
+    x_j: np.ndarray | None = field(default=None, repr=False)
+
+
+def build_index(f: PhotoFeatures) -> "cv2.flann_Index | None":
+    """A FLANN k-d forest (4 trees) over a photo's descriptors, built once and searched by every pair."""
+    if len(f.descriptors) < 8:
+        return None
+    return cv2.flann_Index(f.descriptors, {"algorithm": 1, "trees": 4})
+
+
+def _ratio_matches(index: "cv2.flann_Index", query: np.ndarray, ratio: float, checks: int) -> tuple[np.ndarray, np.ndarray]:
+    """(query indices, train indices) of the query descriptors whose nearest neighbour passes Lowe's ratio test."""
+    ind, dist = index.knnSearch(query, 2, params={"checks": checks})
+    good = dist[:, 0] < (ratio * ratio) * dist[:, 1]  # FLANN's L2 distances are squared
+    return np.flatnonzero(good), ind[good, 0].astype(int)
 
 
 def match_pair(i: int, j: int, fi: PhotoFeatures, fj: PhotoFeatures, lin_i: np.ndarray, lin_j: np.ndarray, *,
-               ratio: float = 0.75, ransac_work_px: float = 3.0, seed: int = 0) -> PairMatch:
-    """Ratio-test matches, both ways (union), then a RANSAC homography on ``lin_*`` (linearised keypoints (N, 2) px)."""
+               ratio: float = 0.75, ransac_work_px: float = 3.0, seed: int = 0, index_i=None, index_j=None,
+               checks: int = 16) -> PairMatch:
+    """Ratio-test matches, both ways (union), then a RANSAC homography on ``lin_*`` (linearised keypoints (N, 2) px).
+
+    ``index_i``, ``index_j``: :func:`build_index` of each photo (built here when not given).
+    """
     empty = PairMatch(i, j, 0, 0, 0.0, None, np.zeros(0, int), np.zeros(0, int))
     if len(fi.descriptors) < 8 or len(fj.descriptors) < 8:
         return empty
-    matcher = cv2.FlannBasedMatcher({"algorithm": 1, "trees": 4}, {"checks": 32})
-    pairs: set[tuple[int, int]] = set()
-    for a, b, flip in ((fi.descriptors, fj.descriptors, False), (fj.descriptors, fi.descriptors, True)):
-        for m in matcher.knnMatch(a, b, k=2):
-            if len(m) == 2 and m[0].distance < ratio * m[1].distance:
-                pairs.add((m[0].trainIdx, m[0].queryIdx) if flip else (m[0].queryIdx, m[0].trainIdx))
-    if len(pairs) < 8:
-        return PairMatch(i, j, len(pairs), 0, 0.0, None, np.zeros(0, int), np.zeros(0, int))
-    idx = np.array(sorted(pairs))
+    index_i = build_index(fi) if index_i is None else index_i
+    index_j = build_index(fj) if index_j is None else index_j
+    qi, tj = _ratio_matches(index_j, fi.descriptors, ratio, checks)  # i -> j
+    qj, ti = _ratio_matches(index_i, fj.descriptors, ratio, checks)  # j -> i
+    both = np.concatenate([np.column_stack([qi, tj]), np.column_stack([ti, qj])])
+    idx = np.unique(both, axis=0) if len(both) else both.reshape(0, 2)
+    if len(idx) < 8:
+        return PairMatch(i, j, len(idx), 0, 0.0, None, np.zeros(0, int), np.zeros(0, int))
     src, dst = lin_i[idx[:, 0]], lin_j[idx[:, 1]]
     thresh = ransac_work_px / min(fi.work_scale, fj.work_scale)
     cv2.setRNGSeed(seed)
@@ -110,6 +129,89 @@ def match_pair(i: int, j: int, fi: PhotoFeatures, fj: PhotoFeatures, lin_i: np.n
     n_in = int(inl.sum())
     conf = n_in / (8.0 + 0.3 * len(idx))
     return PairMatch(i, j, len(idx), n_in, conf, H, idx[inl, 0], idx[inl, 1])
+
+
+def _homography_jacobian(H: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """d(H x)/dx (n, 2, 2) of the homography ``H`` (3, 3) at pixels ``x`` (n, 2)."""
+    p = np.column_stack([x, np.ones(len(x))]) @ H.T  # (n, 3)
+    w = p[:, 2]
+    J = np.empty((len(x), 2, 2))
+    for r in range(2):
+        J[:, r, :] = (H[r, :2][None, :] * w[:, None] - p[:, r:r + 1] * H[2, :2][None, :]) / (w * w)[:, None]
+    return J
+
+
+def smooth_for_refinement(gray: np.ndarray) -> np.ndarray:
+    """The work-resolution grey photo (h, w) uint8 as :func:`refine_matches` wants it: float32, Gaussian sigma 0.8."""
+    return cv2.GaussianBlur(gray, (5, 5), 0.8).astype(np.float32)
+
+
+def refine_matches(gray_a: np.ndarray, gray_b: np.ndarray, xa: np.ndarray, xb: np.ndarray, size_a: tuple[int, int],
+                   size_b: tuple[int, int], local_b_from_a: np.ndarray, *, radius: int = 6, iterations: int = 8,
+                   max_shift_work_px: float = 1.5, min_ncc: float = 0.8) -> tuple[np.ndarray, np.ndarray]:
+    """Sub-pixel refinement of matches ``xa`` -> ``xb`` (n, 2) full-resolution pixels, by Lucas-Kanade.
+
+    ``gray_a``, ``gray_b``: the photos at work resolution, :func:`smooth_for_refinement` (h, w) float32, of
+    full sizes ``size_*`` = (w, h).
+    ``local_b_from_a`` (n, 2, 2): the local linear map from photo a to photo b at each match (full-resolution
+    pixels, e.g. the homography's Jacobian), which shapes the template: a (2 radius + 1)^2 patch of photo b's
+    pixel grid around ``xb`` seen in photo a (bilinear). The translation of ``xb`` that best aligns photo b
+    with it (intensities normalised to zero mean and unit variance: gains differ between photos) is found
+    by inverse-compositional Gauss-Newton (the template's gradients, one resampling per iteration).
+    SIFT's keypoints are localised to about 0.3 px; this brings the matches to a few hundredths of a pixel
+    on textured patches (``tests/test_stitch.py``). Returns (refined xb (n, 2) full-resolution pixels, ok (n,)
+    bool: well conditioned, moved less than ``max_shift_work_px``, normalised cross-correlation > ``min_ncc``).
+    """
+    n = len(xa)
+    if n == 0:
+        return xb.copy(), np.zeros(0, bool)
+    sa = np.array([gray_a.shape[1] / size_a[0], gray_a.shape[0] / size_a[1]])
+    sb = np.array([gray_b.shape[1] / size_b[0], gray_b.shape[0] / size_b[1]])
+    pa = (xa + 0.5) * sa - 0.5  # work pixels
+    pb = (xb + 0.5) * sb - 0.5
+    A = local_b_from_a * sb[None, :, None] / sa[None, None, :]  # work px of b per work px of a
+    ok = np.isfinite(A).all(axis=(1, 2)) & (np.abs(np.linalg.det(np.where(np.isfinite(A), A, 0.0))) > 1e-6)
+    Ainv = np.linalg.inv(np.where(ok[:, None, None], A, np.eye(2)))
+    side = 2 * radius + 1
+    g1 = np.arange(-radius, radius + 1, dtype=np.float64)
+    gy, gx = np.meshgrid(g1, g1, indexing="ij")
+    g = np.stack([gx.ravel(), gy.ravel()], axis=1)  # (P, 2) offsets in photo b
+    P = len(g)
+
+    def sample(img: np.ndarray, pts: np.ndarray) -> np.ndarray:  # pts (n, P, 2) -> (n, P)
+        m = pts.reshape(n * side, side, 2).astype(np.float32)
+        return cv2.remap(img, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+                         ).reshape(n, P).astype(np.float64)
+
+    def normalise(v: np.ndarray) -> np.ndarray:
+        v = v - v.mean(axis=1, keepdims=True)
+        return v / (np.sqrt(np.mean(v * v, axis=1, keepdims=True)) + 1e-6)
+
+    ia, ib = gray_a, gray_b
+    qa = pa[:, None, :] + np.einsum("nij,pj->npi", Ainv, g)
+    T = normalise(sample(ia, qa))
+    Ty, Tx = np.gradient(T.reshape(n, side, side), axis=(1, 2))
+    Jx, Jy = Tx.reshape(n, P), Ty.reshape(n, P)
+    a11, a12, a22 = (Jx * Jx).sum(1), (Jx * Jy).sum(1), (Jy * Jy).sum(1)
+    det = a11 * a22 - a12 * a12
+    ok &= det > 1e-3 * (a11 + a22) ** 2 + 1e-9  # an edge or a flat patch locates nothing along it
+    det = np.where(ok, det, 1.0)
+    d = np.zeros((n, 2))
+    for _ in range(iterations):
+        e = normalise(sample(ib, pb[:, None, :] + d[:, None, :] + g[None])) - T
+        b1, b2 = (Jx * e).sum(1), (Jy * e).sum(1)
+        step = np.column_stack([(a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det])
+        step[~ok] = 0.0
+        d -= np.clip(step, -1.0, 1.0)
+        if np.max(np.abs(step), initial=0.0) < 2e-3:
+            break
+    q = pb[:, None, :] + d[:, None, :] + g[None]
+    ncc = np.mean(normalise(sample(ib, q)) * T, axis=1)
+    inside = ((q.min(axis=1) >= 0).all(1) & (q[..., 0].max(1) <= gray_b.shape[1] - 1)
+              & (q[..., 1].max(1) <= gray_b.shape[0] - 1) & (qa.min(axis=1) >= 0).all(1)
+              & (qa[..., 0].max(1) <= gray_a.shape[1] - 1) & (qa[..., 1].max(1) <= gray_a.shape[0] - 1))
+    ok &= inside & (np.linalg.norm(d, axis=1) < max_shift_work_px) & (ncc > min_ncc)
+    return (pb + d + 0.5) / sb - 0.5, ok
 
 
 def largest_component(n: int, pairs: list[PairMatch], conf_thresh: float) -> list[int]:
@@ -225,20 +327,22 @@ class Observations:
 
 
 def stack_observations(pairs: list[PairMatch], feats: list[PhotoFeatures], kept: list[int], *,
-                       max_per_pair: int = 200, seed: int = 0) -> Observations:
+                       max_per_pair: int = 300, seed: int = 0) -> Observations:
     rng = np.random.default_rng(seed)
     kset = set(kept)
     a, b, xa, xb, pid = [], [], [], [], []
     for k, p in enumerate(pairs):
         if p.i not in kset or p.j not in kset or p.n_inliers == 0:
             continue
-        sel = np.arange(p.n_inliers)
+        x_i = feats[p.i].keypoints[p.idx_i] if p.x_i is None else p.x_i
+        x_j = feats[p.j].keypoints[p.idx_j] if p.x_j is None else p.x_j
+        sel = np.arange(len(x_i))
         if len(sel) > max_per_pair:
             sel = np.sort(rng.choice(len(sel), max_per_pair, replace=False))
         a.append(np.full(len(sel), p.i))
         b.append(np.full(len(sel), p.j))
-        xa.append(feats[p.i].keypoints[p.idx_i[sel]])
-        xb.append(feats[p.j].keypoints[p.idx_j[sel]])
+        xa.append(x_i[sel])
+        xb.append(x_j[sel])
         pid.append(np.full(len(sel), k))
     return Observations(np.concatenate(a), np.concatenate(b), np.concatenate(xa), np.concatenate(xb),
                         np.concatenate(pid))
@@ -254,19 +358,47 @@ class BAResult:
     n_iterations: int
 
 
-def _undistort_radial(xd: np.ndarray, k1: np.ndarray, k2: np.ndarray, iterations: int = 8) -> np.ndarray:
+def _undistort_radial(xd: np.ndarray, k1: np.ndarray, k2: np.ndarray, iterations: int = 6) -> np.ndarray:
+    """Undistorted normalised (n, 2) of distorted ``xd`` (n, 2) under ``x (1 + k1 r^2 + k2 r^4)``, by Newton."""
     x = xd.copy()
     for _ in range(iterations):
         r2 = np.sum(x * x, axis=1)
-        x = xd / (1.0 + r2 * (k1 + k2 * r2))[:, None]
+        s = 1.0 + r2 * (k1 + k2 * r2)
+        ds = k1 + 2.0 * k2 * r2
+        g = x * s[:, None] - xd
+        # A = s I + 2 ds x x^T; A^-1 g by Sherman-Morrison
+        xg = np.sum(x * g, axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = (g - x * (2.0 * ds * xg / (s + 2.0 * ds * r2))[:, None]) / s[:, None]
+        x = x - np.where(np.isfinite(step), step, 0.0)
     return x
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(n, 3) -> (n, 3, 3) cross-product matrices [v]x."""
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
+    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
+    return S
+
+
+def _left_jacobian_so3(phi: np.ndarray) -> np.ndarray:
+    """(n, 3) rotation vectors -> (n, 3, 3) left Jacobians: exp(phi + d) = exp(J_l(phi) d) exp(phi) to first order."""
+    th = np.linalg.norm(phi, axis=1)
+    K = _skew(phi)
+    small = th < 1e-6
+    t = np.where(small, 1.0, th)
+    a = np.where(small, 0.5 - th ** 2 / 24.0, (1.0 - np.cos(t)) / t ** 2)
+    b = np.where(small, 1.0 / 6.0 - th ** 2 / 120.0, (t - np.sin(t)) / t ** 3)
+    return np.eye(3)[None] + a[:, None, None] * K + b[:, None, None] * (K @ K)
 
 
 def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], init: dict[int, CameraIntrinsics],
                   R0: dict[int, np.ndarray], work_scale: dict[int, float], *, fixed_intrinsics: bool,
                   estimate_k1: bool, focal_prior: dict[int, float] | None = None, focal_prior_sigma: float = 0.05,
                   k1_prior_sigma: float = 0.25, pp_prior_sigma: float = 0.05, k2_prior_sigma: float = 0.25,
-                  loss_scale_work_px: float = 1.0, reject_work_px: float = 4.0, max_nfev: int = 60) -> BAResult:
+                  loss_scale_work_px: float = 1.0, reject_work_px: float = 4.0, max_nfev: int = 60,
+                  robust_per_pair: int = 100) -> BAResult:
     """Refine rotations (and, unless ``fixed_intrinsics``, one focal, optionally k1, k2 and the principal
     point, per camera group).
 
@@ -275,6 +407,9 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
     intrinsics are fx = fy = f, radial k1 and k2, and the principal point (``estimate_k1``), with weak priors
     (k: 0 +- ``k1_prior_sigma``; principal point: ``init``'s +- ``pp_prior_sigma`` x focal).
     The root (first kept photo) keeps its rotation: the panorama's rotation is fixed later by wave correction.
+    Residuals: every observation transferred a -> b and b -> a (4 per observation, work pixels); the
+    Jacobian is analytic (rotations through SO(3)'s left Jacobian, the lens by implicit differentiation of
+    the undistortion), so each step costs one evaluation.
     """
     kept = list(kept)
     pos = {k: n for n, k in enumerate(kept)}
@@ -284,11 +419,21 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
     gpos = {g: n for n, g in enumerate(gids)}
     n_rot = 3 * len(free)
     n_gp = 0 if fixed_intrinsics else (5 if estimate_k1 else 1)  # log f [, k1, k2, dcx / f0, dcy / f0]
+    n_par = n_rot + n_gp * len(gids)
     f0 = {g: np.mean([init[k].fx for k in kept if groups[k] == g]) for g in gids}
 
     a_pos = np.array([pos[k] for k in obs.a])
     b_pos = np.array([pos[k] for k in obs.b])
     s_obs = np.array([min(work_scale[x], work_scale[y]) for x, y in zip(obs.a, obs.b)])
+    # parameter column of each photo position's rotation (-1: the root) and of its group's first parameter
+    rot_col = np.full(len(kept), -1)
+    for n_, k in enumerate(free):
+        rot_col[pos[k]] = 3 * n_
+    grp_of_pos = np.array([gpos[groups[k]] for k in kept])
+    f0_of_pos = np.array([f0[groups[k]] for k in kept])
+    gp_col = n_rot + n_gp * grp_of_pos
+    cx0 = np.array([init[k].cx for k in kept])
+    cy0 = np.array([init[k].cy for k in kept])
 
     if fixed_intrinsics:  # rays of the observations once, exactly
         ray_a = np.zeros((len(obs.a), 3))
@@ -305,158 +450,237 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
 
     def unpack(x):
         Rs = R0s.copy()
+        Jl = np.zeros((len(kept), 3, 3))
         if free:
-            dR = Rotation.from_rotvec(x[:n_rot].reshape(-1, 3)).as_matrix()
+            phi = x[:n_rot].reshape(-1, 3)
+            dR = Rotation.from_rotvec(phi).as_matrix()
+            Jf = _left_jacobian_so3(phi)
             for n, k in enumerate(free):
                 Rs[pos[k]] = dR[n] @ R0s[pos[k]]
+                Jl[pos[k]] = Jf[n]
         gp = x[n_rot:].reshape(len(gids), n_gp) if n_gp else np.zeros((len(gids), 0))
-        return Rs, gp
+        return Rs, Jl, gp
 
-    cx0 = np.array([init[k].cx for k in kept])
-    cy0 = np.array([init[k].cy for k in kept])
-
-    grp_of_pos = np.array([gpos[groups[k]] for k in kept])
-    f0_of_pos = np.array([f0[groups[k]] for k in kept])
-
-    def cam_params(gp, photo_pos_arr):
-        """Per observation row: f, k1, k2, cx, cy for the photo at each position."""
-        g = grp_of_pos[photo_pos_arr]
-        f0r = f0_of_pos[photo_pos_arr]
+    def cam_params(gp, ppos):
+        """Per row: f, k1, k2, cx, cy of the photo at each position."""
+        g = grp_of_pos[ppos]
+        f0r = f0_of_pos[ppos]
         f = f0r * np.exp(gp[g, 0])
         if n_gp == 5:
-            return f, gp[g, 1], gp[g, 2], cx0[photo_pos_arr] + gp[g, 3] * f0r, cy0[photo_pos_arr] + gp[g, 4] * f0r
+            return f, gp[g, 1], gp[g, 2], cx0[ppos] + gp[g, 3] * f0r, cy0[ppos] + gp[g, 4] * f0r
         z = np.zeros(len(g))
-        return f, z, z, cx0[photo_pos_arr], cy0[photo_pos_arr]
+        return f, z, z, cx0[ppos], cy0[ppos]
 
-    def rays_est(x_px, ppos, gp):
+    def rays_est(x_px, ppos, gp, jac):
+        """Rays (n, 3) (z = 1) of pixels ``x_px`` and, with ``jac``, d ray / d group parameters (n, 3, n_gp)."""
         f, k1, k2, cx, cy = cam_params(gp, ppos)
         xd = np.column_stack([(x_px[:, 0] - cx) / f, (x_px[:, 1] - cy) / f])
         xu = _undistort_radial(xd, k1, k2) if n_gp == 5 else xd
-        d = np.column_stack([xu, np.ones(len(xu))])
-        return d / np.linalg.norm(d, axis=1, keepdims=True)
+        r = np.column_stack([xu, np.ones(len(xu))])
+        if not jac:
+            return r, None
+        n = len(xu)
+        # d xd / d params: log f -> -xd; dcx/f0 -> (-f0/f, 0); dcy/f0 -> (0, -f0/f)
+        dxd = np.zeros((n, 2, n_gp))
+        dxd[:, :, 0] = -xd
+        if n_gp == 5:
+            q = f0_of_pos[ppos] / f
+            dxd[:, 0, 3] = -q
+            dxd[:, 1, 4] = -q
+            r2 = np.sum(xu * xu, axis=1)
+            s = 1.0 + r2 * (k1 + k2 * r2)
+            ds = k1 + 2.0 * k2 * r2
+            rhs = dxd.copy()
+            rhs[:, :, 1] -= xu * r2[:, None]
+            rhs[:, :, 2] -= xu * (r2 * r2)[:, None]
+            # A^-1 rhs, A = s I + 2 ds xu xu^T (Sherman-Morrison)
+            xr = np.einsum("ni,nip->np", xu, rhs)
+            dxu = (rhs - xu[:, :, None] * (2.0 * ds / (s + 2.0 * ds * r2))[:, None, None] * xr[:, None, :]) \
+                / s[:, None, None]
+        else:
+            dxu = dxd
+        dr = np.zeros((n, 3, n_gp))
+        dr[:, :2, :] = dxu
+        return r, dr
 
-    def project_est(d, ppos, gp):
+    def project_est(d, ppos, gp, jac):
+        """Pixels (n, 2) of directions ``d`` (n, 3); with ``jac``: d p / d d (n, 2, 3), d p / d params (n, 2, n_gp)."""
         f, k1, k2, cx, cy = cam_params(gp, ppos)
         with np.errstate(divide="ignore", invalid="ignore"):
-            xy = d[:, :2] / d[:, 2:3]
+            iz = 1.0 / d[:, 2]
+        y = d[:, :2] * iz[:, None]
+        r2 = np.sum(y * y, axis=1)
+        s = 1.0 + r2 * (k1 + k2 * r2) if n_gp == 5 else np.ones(len(y))
+        yd = y * s[:, None]
+        p = f[:, None] * yd + np.column_stack([cx, cy])
+        if not jac:
+            return p, None, None
+        n = len(y)
+        dy_dd = np.zeros((n, 2, 3))
+        dy_dd[:, 0, 0] = dy_dd[:, 1, 1] = iz
+        dy_dd[:, :, 2] = -y * iz[:, None]
+        ds = (k1 + 2.0 * k2 * r2) if n_gp == 5 else np.zeros(n)
+        dyd_dy = s[:, None, None] * np.eye(2)[None] + 2.0 * ds[:, None, None] * y[:, :, None] * y[:, None, :]
+        dp_dd = f[:, None, None] * (dyd_dy @ dy_dd)
+        dp_dg = np.zeros((n, 2, n_gp))
+        dp_dg[:, :, 0] = f[:, None] * yd
         if n_gp == 5:
-            r2 = np.sum(xy * xy, axis=1)
-            xy = xy * (1.0 + r2 * (k1 + k2 * r2))[:, None]
-        return np.column_stack([f * xy[:, 0] + cx, f * xy[:, 1] + cy])
+            dp_dg[:, :, 1] = f[:, None] * y * r2[:, None]
+            dp_dg[:, :, 2] = f[:, None] * y * (r2 * r2)[:, None]
+            dp_dg[:, 0, 3] = f0_of_pos[ppos]
+            dp_dg[:, 1, 4] = f0_of_pos[ppos]
+        return p, dp_dd, dp_dg
 
-    def project_fixed(d, ppos):
+    def project_fixed(d, ppos, jac):
         out = np.zeros((len(d), 2))
+        J = np.zeros((len(d), 2, 3)) if jac else None
         for k in kept:
             m = ppos == pos[k]
-            if m.any():
-                out[m] = init[k].project(d[m])
-        return out
+            if not m.any():
+                continue
+            out[m] = init[k].project(d[m])
+            if jac:  # d p / d d by central differences (the full Brown-Conrady model; exact to ~1e-9 px)
+                dm = d[m]
+                h = 1e-6 * np.linalg.norm(dm, axis=1)
+                for c in range(3):
+                    e = np.zeros(3)
+                    e[c] = 1.0
+                    J[m, :, c] = (init[k].project(dm + h[:, None] * e) - init[k].project(dm - h[:, None] * e)) \
+                        / (2.0 * h[:, None])
+        return out, J
 
-    def transfer(Rs, gp, idx):
-        """(n, 2, 2) residuals a->b and b->a, full-res pixels, for observation rows ``idx``."""
+    def one_way(Rs, Jl, gp, idx, src_pos, dst_pos, x_src, x_dst, ray_src, jac):
+        """Residuals (n, 2) (full-resolution px) of photo src's pixels transferred into photo dst, and the
+        Jacobian blocks: d res / d rot(src) (n, 2, 3), d res / d rot(dst), d res / d group(src), group(dst)."""
+        if fixed_intrinsics:
+            r, dr = ray_src[idx], None
+        else:
+            r, dr = rays_est(x_src[idx], src_pos, gp, jac)
+        M = Rs[dst_pos] @ np.transpose(Rs[src_pos], (0, 2, 1))  # dst_from_src
+        d = np.einsum("nij,nj->ni", M, r)
+        if fixed_intrinsics:
+            p, dp_dd = project_fixed(d, dst_pos, jac)
+            dp_dg = None
+        else:
+            p, dp_dd, dp_dg = project_est(d, dst_pos, gp, jac)
+        res = p - x_dst[idx]
+        bad = (d[:, 2] <= 0) | ~np.all(np.isfinite(res), axis=1)
+        res[bad] = 1e3  # behind the other camera: a large, finite residual
+        if not jac:
+            return res, None
+        # d d / d (src rotation perturbation) = M [r]x; d d / d (dst) = -[d]x; then the left Jacobians
+        J_src = dp_dd @ M @ _skew(r) @ Jl[src_pos]
+        J_dst = -(dp_dd @ _skew(d)) @ Jl[dst_pos]
+        J_gs = dp_dd @ M @ dr if dr is not None else None
+        blocks = [J_src, J_dst, J_gs, dp_dg]
+        for B in blocks:
+            if B is not None:
+                B[bad] = 0.0
+        return res, blocks
+
+    n_prior = ((sum(1 for g in gids if focal_prior and g in focal_prior) if n_gp else 0)
+               + (4 * len(gids) if n_gp == 5 else 0))
+
+    def evaluate(x, idx, jac):
+        Rs, Jl, gp = unpack(x)
         ap, bp = a_pos[idx], b_pos[idx]
-        if fixed_intrinsics:
-            ra, rb = ray_a[idx], ray_b[idx]
-        else:
-            ra = rays_est(obs.xa[idx], ap, gp)
-            rb = rays_est(obs.xb[idx], bp, gp)
-        # d_b = R_b R_a^T r_a
-        da = np.einsum("nij,nj->ni", Rs[bp], np.einsum("nji,nj->ni", Rs[ap], ra))
-        db = np.einsum("nij,nj->ni", Rs[ap], np.einsum("nji,nj->ni", Rs[bp], rb))
-        if fixed_intrinsics:
-            pa, pb = project_fixed(da, bp), project_fixed(db, ap)
-        else:
-            pa, pb = project_est(da, bp, gp), project_est(db, ap, gp)
-        res = np.stack([pa - obs.xb[idx], pb - obs.xa[idx]], axis=1)
-        res[da[:, 2] <= 0, 0] = 1e3  # behind the other camera: a large, finite residual
-        res[db[:, 2] <= 0, 1] = 1e3
-        return np.where(np.isfinite(res), res, 1e3)
-
-    def fun(x, idx):
-        Rs, gp = unpack(x)
-        r = (transfer(Rs, gp, idx) * s_obs[idx, None, None]).reshape(-1)
-        extra = []
+        ra = ray_a if fixed_intrinsics else None
+        rb = ray_b if fixed_intrinsics else None
+        res_ab, B_ab = one_way(Rs, Jl, gp, idx, ap, bp, obs.xa, obs.xb, ra, jac)
+        res_ba, B_ba = one_way(Rs, Jl, gp, idx, bp, ap, obs.xb, obs.xa, rb, jac)
+        s = s_obs[idx]
+        r = (np.stack([res_ab, res_ba], axis=1) * s[:, None, None]).reshape(-1)
+        extra, Jx = [], []
         if n_gp and focal_prior:
             for g in gids:
                 if g in focal_prior:
                     f_g = f0[g] * np.exp(gp[gpos[g], 0])
-                    extra.append((f_g - focal_prior[g]) / (focal_prior_sigma * focal_prior[g]))
+                    sig = focal_prior_sigma * focal_prior[g]
+                    extra.append((f_g - focal_prior[g]) / sig)
+                    Jx.append((n_rot + n_gp * gpos[g], f_g / sig))
         if n_gp == 5:
-            extra.extend(gp[:, 1] / k1_prior_sigma)
-            extra.extend(gp[:, 2] / k2_prior_sigma)
-            extra.extend(gp[:, 3] / pp_prior_sigma)
-            extra.extend(gp[:, 4] / pp_prior_sigma)
-        return np.concatenate([r, np.asarray(extra, dtype=float)]) if extra else r
-
-    def sparsity(idx):
-        n_extra = (sum(1 for g in gids if focal_prior and g in focal_prior) if n_gp else 0) \
-            + (4 * len(gids) if n_gp == 5 else 0)
-        n_par = n_rot + n_gp * len(gids)
-        fpos = {k: n for n, k in enumerate(free)}
-        rows, cols = [], []
-        base = 4 * np.arange(len(idx))
-        for photos in (obs.a[idx], obs.b[idx]):
-            for k in np.unique(photos):
-                sel = base[photos == k]
-                r4 = (sel[:, None] + np.arange(4)).ravel()
-                if k in fpos:
-                    for c in range(3):
-                        rows.append(r4)
-                        cols.append(np.full(len(r4), 3 * fpos[k] + c))
-                if n_gp:
-                    g = gpos[groups[k]]
-                    for c in range(n_gp):
-                        rows.append(r4)
-                        cols.append(np.full(len(r4), n_rot + n_gp * g + c))
-        r = 4 * len(idx)
-        if n_gp and focal_prior:
-            for g in gids:
-                if g in focal_prior:
-                    rows.append(np.array([r]))
-                    cols.append(np.array([n_rot + n_gp * gpos[g]]))
-                    r += 1
-        if n_gp == 5:
-            for q in range(1, 5):
+            for q, sig in ((1, k1_prior_sigma), (2, k2_prior_sigma), (3, pp_prior_sigma), (4, pp_prior_sigma)):
                 for g in gids:
-                    rows.append(np.array([r]))
-                    cols.append(np.array([n_rot + n_gp * gpos[g] + q]))
-                    r += 1
-        rr, cc = np.concatenate(rows), np.concatenate(cols)
-        S = coo_matrix((np.ones(len(rr), np.int8), (rr, cc)), shape=(4 * len(idx) + n_extra, n_par)).tocsr()
-        S.data[:] = 1
-        return S
+                    extra.append(gp[gpos[g], q] / sig)
+                    Jx.append((n_rot + n_gp * gpos[g] + q, 1.0 / sig))
+        r = np.concatenate([r, np.asarray(extra, dtype=float)])
+        if not jac:
+            return r, None
+        n = len(idx)
+        J = np.zeros((4 * n + len(extra), n_par))
+        rows = 4 * np.arange(n)
+        for w, (src, dst), B in ((0, (ap, bp), B_ab), (2, (bp, ap), B_ba)):
+            J_src, J_dst, J_gs, J_gd = (None if b_ is None else b_ * s[:, None, None] for b_ in B)
+            for c_row in range(2):
+                rr = rows + w + c_row
+                for pp_, Bk in ((src, J_src), (dst, J_dst)):
+                    m = rot_col[pp_] >= 0
+                    if m.any():
+                        cols = rot_col[pp_][m][:, None] + np.arange(3)[None]
+                        J[rr[m][:, None], cols] += Bk[m, c_row, :]
+                if n_gp:
+                    for pp_, Bk in ((src, J_gs), (dst, J_gd)):
+                        if Bk is None:
+                            continue
+                        cols = gp_col[pp_][:, None] + np.arange(n_gp)[None]
+                        np.add.at(J, (np.broadcast_to(rr[:, None], cols.shape), cols), Bk[:, c_row, :])
+        for q, (c, v) in enumerate(Jx):
+            J[4 * n + q, c] = v
+        return r, J
 
-    x = np.zeros(n_rot + n_gp * len(gids))
+    c_loss = loss_scale_work_px
+
+    def soft_l1(r, J, n_obs):
+        """Residuals and Jacobian rescaled so that their sum of squares is the soft-L1 loss of the observations'
+        residuals (scale ``loss_scale_work_px``): rho(z) = 2 (sqrt(1 + z^2) - 1) = g(z)^2, g(z) = z sqrt(2 / (1 + sqrt(1 + z^2)))."""
+        z = r[:n_obs] / c_loss
+        rho = np.sqrt(1.0 + z * z)
+        sq = np.sqrt(2.0 / (1.0 + rho))
+        r = r.copy()
+        r[:n_obs] = c_loss * z * sq
+        if J is not None:
+            J = J.copy()
+            J[:n_obs] *= (sq - z * z / (sq * rho * (1.0 + rho) ** 2))[:, None]
+        return r, J
+
+    def fun(x, idx, robust):
+        r = evaluate(x, idx, False)[0]
+        return soft_l1(r, None, 4 * len(idx))[0] if robust else r
+
+    def jac(x, idx, robust):
+        r, J = evaluate(x, idx, True)
+        return soft_l1(r, J, 4 * len(idx))[1] if robust else J
+
+    x = np.zeros(n_par)
     used = np.ones(len(obs.a), dtype=bool)
     nfev = 0
     cost = 0.0
+    # the robust pass walks from the initial guess on at most ``robust_per_pair`` observations of each pair; the
+    # final pass starts next to the minimum with every inlier, and converges in a few steps
+    rng = np.random.default_rng(0)
+    sub = np.zeros(len(obs.a), dtype=bool)
+    for pid in np.unique(obs.pair):
+        rows = np.flatnonzero(obs.pair == pid)
+        sub[rng.permutation(rows)[:robust_per_pair]] = True
     for rnd in range(2):
-        idx = np.flatnonzero(used)
+        idx = np.flatnonzero(sub if rnd == 0 else used)
         if len(x) == 0:
             break
-        if rnd == 0:  # robust first pass (soft L1), then plain least squares on the inliers
-            sol = least_squares(fun, x, args=(idx,), jac_sparsity=sparsity(idx), method="trf", loss="soft_l1",
-                                f_scale=loss_scale_work_px, x_scale="jac", xtol=1e-8, ftol=1e-6, max_nfev=30)
-        else:
-            # Levenberg-Marquardt (MINPACK) walks the focal / distortion valley far better than trf; its
-            # Jacobian comes from finite differences grouped by the sparsity (a few evaluations per step)
-            S = sparsity(idx)
-            groups_fd = group_columns(S)
-
-            def jac(xx, idx_=idx, S_=S, g_=groups_fd):
-                return approx_derivative(fun, xx, method="2-point", sparsity=(S_, g_), args=(idx_,)).toarray()
-
-            sol = least_squares(fun, x, jac=jac, args=(idx,), method="lm", xtol=1e-12, ftol=1e-12,
-                                max_nfev=max_nfev * 4)
-        x, cost, nfev = sol.x, float(sol.cost), nfev + sol.nfev
-        log.debug("BA round %d: %d evaluations, cost %.4g, %s", rnd, sol.nfev, sol.cost, sol.message)
-        Rs, gp = unpack(x)
-        res = transfer(Rs, gp, np.arange(len(obs.a))) * s_obs[:, None, None]
+        # Levenberg-Marquardt (MINPACK) with the analytic Jacobian: a robust first pass (soft L1, by rescaling the
+        # residuals: the loss is their sum of squares), then plain least squares on the inliers. LM walks the
+        # focal / distortion valley far better than trf.
+        robust = rnd == 0
+        sol = least_squares(fun, x, jac=jac, args=(idx, robust), method="lm", xtol=1e-10, ftol=1e-10,
+                            max_nfev=max_nfev * 2)
+        x, cost, n_ev, msg = sol.x, float(sol.cost), sol.nfev, sol.message
+        nfev += n_ev
+        log.debug("BA round %d: %d evaluations, cost %.4g, %s", rnd, n_ev, cost, msg)
+        res = _transfer_all(evaluate, x, len(obs.a))
         err = np.max(np.linalg.norm(res, axis=2), axis=1)
         new_used = err < reject_work_px
         if rnd == 0 and new_used.sum() >= 0.5 * len(used):
             used = new_used  # else: the robust pass has not converged yet; LM goes on with every inlier
-    Rs, gp = unpack(x)
+    Rs, _, gp = unpack(x)
     out_R = {k: Rs[pos[k]] for k in kept}
     out_K = {}
     for k in kept:
@@ -470,8 +694,14 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
                                         cx=init[k].cx + lens[2] * f0[groups[k]],
                                         cy=init[k].cy + lens[3] * f0[groups[k]],
                                         k1=float(lens[0]), k2=float(lens[1]))
-    res = transfer(Rs, gp, np.arange(len(obs.a)))
+    res = _transfer_all(evaluate, x, len(obs.a)) / s_obs[:, None, None]
     return BAResult(out_R, out_K, res, used, cost, nfev)
+
+
+def _transfer_all(evaluate, x: np.ndarray, m: int) -> np.ndarray:
+    """(m, 2, 2) residuals (work pixels) of every observation, a -> b and b -> a."""
+    r, _ = evaluate(x, np.arange(m), False)
+    return r[:4 * m].reshape(m, 2, 2)
 
 
 # ----------------------------------------------------------------------------------------------------------

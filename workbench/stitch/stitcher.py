@@ -22,6 +22,7 @@ from typing import Callable, Literal
 import cv2
 import numpy as np
 from PIL import Image
+from PIL import JpegImagePlugin, PngImagePlugin  # noqa: F401 - loaded with the module, not in the first stitch
 
 from ..core.camera import CameraIntrinsics
 from ..core.panorama import PanoramaModel, PanoramaSource
@@ -41,7 +42,10 @@ class StitchOptions:
     work_megapix: float = 0.6  # registration resolution per photo, megapixels
     seam_megapix: float = 0.1  # gains and seams, megapixels per photo
     max_features: int = 2500  # SIFT keypoints per photo
-    sift_half: bool = False  # SIFT without its doubled first octave (faster, a little less precise)
+    sift_half: bool = True  # SIFT on a half-size copy (no doubled first octave at work scale): 3x faster; the
+    # matches are then refined to sub-pixel precision at the work scale (refine_matches)
+    sift_half_min_megapix: float = 0.3  # ... when the photo at work scale has at least this many megapixels
+    sift_half_max_photo_megapix: float = 1.2  # ... and the photo itself at most this many
     sift_contrast: float = 0.02  # SIFT contrast threshold (lower: more keypoints on low-contrast scenes)
     match_ratio: float = 0.75  # Lowe's ratio test
     ransac_work_px: float = 3.0  # RANSAC homography threshold, work pixels
@@ -57,6 +61,8 @@ class StitchOptions:
     parallax_p90_work_px: float = 5.0
     check_parallax: bool = True  # raise when the verdict is "parallax"
     compose: bool = True
+    refine_matches: bool = True  # sub-pixel Lucas-Kanade refinement of the inliers before the bundle adjustment
+    max_refined_per_pair: int = 300  # inliers refined (and adjusted) per pair, at most
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -178,7 +184,7 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
 
     # -- read at work and seam resolution --------------------------------------------------------------------
     t0 = time.perf_counter()
-    def read_and_detect(k: int) -> tuple[reg.PhotoFeatures, np.ndarray, tuple[int, int]]:
+    def read_and_detect(k: int) -> tuple:  # features, seam-size photo, full size, smoothed grey, FLANN index
         p = photos[k]
         try:
             with Image.open(p) as im:
@@ -189,10 +195,16 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
         s_seam = min(1.0, np.sqrt(opts.seam_megapix * 1e6 / (w * h)))
         img, (w, h) = read_reduced(p, s_work)
         sm = cv2.resize(img, (max(1, round(w * s_seam)), max(1, round(h * s_seam))), interpolation=cv2.INTER_AREA)
-        f = reg.detect_features(names[k], cv2.cvtColor(img, cv2.COLOR_BGR2GRAY), (w, h),
-                                max_features=opts.max_features, contrast_threshold=opts.sift_contrast,
-                                half=opts.sift_half)
-        return f, sm, (w, h)
+        gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        # SIFT on a half-size copy only where that copy keeps enough pixels for features (small photos: full size)
+        # and for photos that are themselves small: reduced from larger photos, the full SIFT's extra matches
+        # constrain the focal of a single row better (docs/stitching.md)
+        half = (opts.sift_half and gray.size >= opts.sift_half_min_megapix * 1e6
+                and w * h <= opts.sift_half_max_photo_megapix * 1e6)
+        f = reg.detect_features(names[k], gray, (w, h), max_features=opts.max_features,
+                                contrast_threshold=opts.sift_contrast, half=half)
+        smooth = reg.smooth_for_refinement(gray) if opts.refine_matches else None
+        return f, sm, (w, h), smooth, reg.build_index(f)
 
     # OpenCV releases the GIL: photos are read and described in parallel threads
     with ThreadPoolExecutor(max_workers=_workers()) as pool:
@@ -203,6 +215,8 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
     feats = [d[0] for d in done]
     small = [d[1] for d in done]
     sizes = [d[2] for d in done]
+    grays = [d[3] for d in done]  # work resolution, for the sub-pixel refinement of the matches
+    indexes = [d[4] for d in done]  # FLANN forests of the descriptors
     del done
     timings["features_s"] = time.perf_counter() - t0
 
@@ -239,9 +253,20 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
     def match(pair: tuple[int, int]) -> reg.PairMatch:
         i, j = pair
         pm = reg.match_pair(i, j, feats[i], feats[j], lin[i], lin[j], ratio=opts.match_ratio,
-                            ransac_work_px=opts.ransac_work_px, seed=opts.seed)
+                            ransac_work_px=opts.ransac_work_px, seed=opts.seed, index_i=indexes[i],
+                            index_j=indexes[j])
         if pm.n_inliers < opts.min_inliers:
             pm.confidence = min(pm.confidence, opts.conf_thresh)  # too few to trust
+        if opts.refine_matches and pm.confidence > opts.conf_thresh:
+            sel = np.arange(pm.n_inliers)
+            if len(sel) > opts.max_refined_per_pair:  # a random subset (seeded) is plenty for the adjustment
+                sel = np.sort(np.random.default_rng(opts.seed + 7919 * i + j).choice(
+                    len(sel), opts.max_refined_per_pair, replace=False))
+            xi, xj = feats[i].keypoints[pm.idx_i[sel]], feats[j].keypoints[pm.idx_j[sel]]
+            J = reg._homography_jacobian(pm.H, lin[i][pm.idx_i[sel]])
+            xj_ref, ok = reg.refine_matches(grays[i], grays[j], xi, xj, sizes[i], sizes[j], J)
+            if ok.sum() >= max(opts.min_inliers, 0.3 * len(ok)):
+                pm.x_i, pm.x_j = xi[ok], xj_ref[ok]
         return pm
 
     pairs: list[reg.PairMatch] = []
@@ -320,7 +345,9 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
     if not fixed and len(set(groups.values())) < len(kept) and _rms_work(ba, obs, wscale) > 0.8:
         # one focal per photo when that fits clearly better (zoom changed between photos; no k1 then)
         own = {k: n_ for n_, k in enumerate(kept)}
-        ba_own = reg.bundle_adjust(obs, root_first, own, init, R0, wscale, fixed_intrinsics=False,
+        # from the shared fit's rotations and focal (the root keeps its rotation in both fits)
+        init_own = {k: replace(init[k], fx=ba.intrinsics[k].fx, fy=ba.intrinsics[k].fx) for k in kept}
+        ba_own = reg.bundle_adjust(obs, root_first, own, init_own, ba.cam_from_pano, wscale, fixed_intrinsics=False,
                                    estimate_k1=False)
         rms_shared, rms_own = _rms_work(ba, obs, wscale), _rms_work(ba_own, obs, wscale)
         log.info("stitch: RMS %.3f (one camera: f %.1f, k1 %.4f) vs %.3f work px (one focal per photo)", rms_shared,
