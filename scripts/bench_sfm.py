@@ -5,6 +5,10 @@ Sets (``--sets``, comma separated):
   render    8 and 16 ray-cast photos (480x360) of a textured scene with exact cameras (workbench.intrinsics.synthetic)
   synth     a small `workbench synth` incident (2 cars, 8 multi-view photos of 480x360), generated here
   spuyten   projects/spuyten-duyvil/photos/multiview (12 photos, 1600x1200), truth in truth/ground_truth.json
+            (generate the photos first: `workbench synth projects/spuyten-duyvil ...` as scripts/demo.sh does,
+            or give a generated copy with --spuyten PATH)
+  frankford the same for projects/frankford-junction (--frankford PATH)
+  extra     every incident given with --extra PATH (e.g. a fresh seed: `workbench synth /tmp/x --seed 7`)
   lund      ../shared/data/multiview/opensfm_lund (29 photos, 1024x768, forward motion; GPS in EXIF)
   berlin    ../shared/data/multiview/opensfm_berlin (3 photos, 3264x2448; OpenSfM reference reconstruction)
 
@@ -131,8 +135,15 @@ def _truth_of_incident(root: Path):
     return centres, rots, CameraIntrinsics.from_dict(mv[0]["intrinsics"])
 
 
+def _label(root: Path) -> str:
+    g = json.loads((root / "truth" / "ground_truth.json").read_text())["generator"]["options"]
+    return f"{g['scenario']} seed {g['seed']}"
+
+
 def bench_incident(root: Path, label: str, variants) -> list[dict]:
     photos = sorted((root / "photos" / "multiview").glob("*.jpg"))
+    if not photos or not (root / "truth" / "ground_truth.json").is_file():
+        raise FileNotFoundError(f"{root}: no generated multi-view photos or truth; run `workbench synth` on it first")
     centres, rots, intr = _truth_of_incident(root)
     rows = []
     for vlabel, opts, use_prior in variants:
@@ -143,6 +154,15 @@ def bench_incident(root: Path, label: str, variants) -> list[dict]:
             rows.append({"set": label, "variant": vlabel, "n_images": len(photos), "n_registered": 0,
                          "error": str(exc)[:200]})
     return rows
+
+
+BEFORE = SfmOptions(max_num_features=8192, sift_peak_threshold=0.02 / 3, sift_affine_shape=False,
+                    sift_domain_size_pooling=False)  # the features before issue 4's fix (COLMAP's SIFT defaults)
+
+
+def incident_variants() -> list:
+    return [("EXIF prior (the stage's way)", SfmOptions(), True),
+            ("EXIF prior, COLMAP SIFT defaults (before)", BEFORE, True)]
 
 
 def bench_synth(out: Path) -> list[dict]:
@@ -214,9 +234,12 @@ def bench_berlin() -> list[dict]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sets", default="render,synth,spuyten,lund,berlin")
+    ap.add_argument("--sets", default="render,synth,spuyten,frankford,lund,berlin")
     ap.add_argument("--out", default=str(ROOT / "bench_out" / "sfm.json"))
     ap.add_argument("--work", default=str(ROOT / "bench_out" / "sfm_work"))
+    ap.add_argument("--spuyten", default=str(ROOT / "projects" / "spuyten-duyvil"), help="generated incident folder")
+    ap.add_argument("--frankford", default=str(ROOT / "projects" / "frankford-junction"), help="generated incident folder")
+    ap.add_argument("--extra", action="append", default=[], help="more generated incident folders (set 'extra')")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     work = Path(args.work)
@@ -230,8 +253,10 @@ def main() -> None:
     runs = {
         "render": lambda: bench_render(work, 8) + bench_render(work, 16),
         "synth": lambda: bench_synth(work),
-        "spuyten": lambda: bench_incident(ROOT / "projects" / "spuyten-duyvil", "spuyten-duyvil 12x 1600x1200", [
-            ("no prior", SfmOptions(), False), ("EXIF prior", SfmOptions(), True)]),
+        "spuyten": lambda: bench_incident(Path(args.spuyten), "spuyten-duyvil seed 1", incident_variants()),
+        "frankford": lambda: bench_incident(Path(args.frankford), "frankford-junction seed 1", incident_variants()),
+        "extra": lambda: [r for p in args.extra for r in bench_incident(Path(p), f"{_label(Path(p))}",
+                                                                        incident_variants())],
         "lund": bench_lund,
         "berlin": bench_berlin,
     }
@@ -245,9 +270,9 @@ def main() -> None:
             new_rows = [{"set": name, "variant": "-", "error": f"{type(exc).__name__}: {exc}"[:300]}]
         rows += [{"group": name, **r} for r in new_rows]
         atomic_write_json(out, {"rows": rows})
-    cols = [("set", 30, "{}"), ("variant", 36, "{}"), ("n_registered", 4, "{}"), ("n_images", 4, "{}"),
+    cols = [("set", 26, "{}"), ("variant", 42, "{}"), ("n_registered", 4, "{}"), ("n_images", 4, "{}"),
             ("focal_px", 8, "{:.1f}"), ("focal_err_pct", 7, "{:+.2f}"), ("k1", 7, "{:+.3f}"), ("k2", 7, "{:+.3f}"),
-            ("position_rms_m", 7, "{:.3f}"), ("position_rms_inliers_m", 7, "{:.3f}"), ("spread_m", 6, "{:.1f}"), ("rotation_err_deg_max", 6, "{:.2f}"),
+            ("position_rms_m", 7, "{:.3f}"), ("position_max_m", 7, "{:.3f}"), ("position_rms_inliers_m", 7, "{:.3f}"), ("spread_m", 6, "{:.1f}"), ("rotation_err_deg_max", 6, "{:.2f}"),
             ("n_points", 6, "{}"), ("reproj_px", 5, "{:.2f}"), ("time_s", 6, "{:.1f}")]
     print(" | ".join(f"{c[:w]:>{w}}" for c, w, _ in cols))
     for r in rows:
@@ -259,6 +284,9 @@ def main() -> None:
     for r in rows:
         if r.get("error"):
             print(f"{r['set']} / {r['variant']}: {r['error']}")
+        if r.get("per_view_position_err_m"):
+            print(f"{r['set']} / {r['variant']}: registered, position error (m): "
+                  + " ".join(f"{k}:{v:.2f}" for k, v in r["per_view_position_err_m"].items()))
         if r.get("outlier_views"):
             print(f"{r['set']} / {r['variant']}: outlier views (left out of the inlier RMS): {r['outlier_views']}")
         if r.get("warnings"):

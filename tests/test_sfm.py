@@ -124,6 +124,11 @@ def test_options_are_validated():
         SfmOptions(matcher="vocab")
     with pytest.raises(SettingsError, match="init_max_forward_motion"):
         SfmOptions(init_max_forward_motion=0)
+    with pytest.raises(SettingsError, match="sift_peak_threshold"):
+        SfmOptions(sift_peak_threshold=0.0)
+    # the features that keep wide-baseline photos matched (issue 4): low contrast threshold, affine SIFT, DSP
+    d = SfmOptions()
+    assert d.sift_peak_threshold < 0.0067 and d.sift_affine_shape and d.sift_domain_size_pooling
     fm = SfmOptions.forward_motion()
     assert fm.init_max_forward_motion == 1.0 and fm.init_min_tri_angle_deg == 4 and not fm.refine_distortion
 
