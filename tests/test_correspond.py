@@ -74,6 +74,104 @@ def test_homography_recovers_a_known_warp():
     assert 0.0 < det.confidence <= 1.0
 
 
+def _warp_into(photo: np.ndarray, image: np.ndarray, H: np.ndarray) -> np.ndarray:
+    return cv2.warpPerspective(image, H, (photo.shape[1], photo.shape[0]), dst=photo,
+                               borderMode=cv2.BORDER_TRANSPARENT, flags=cv2.INTER_AREA)
+
+
+def test_hough_finds_a_small_side_among_clutter():
+    """A coach side 200 px long (its wall 16 px high), rotated by 50 degrees, in a photo whose other
+    features (three other coaches' sides, large) outnumber its own: the Hough clustering of k-NN matches
+    finds it, within a pixel after the ECC refinement the stage applies."""
+    from workbench.correspond.match import _apply_h, _knn_matches, hough_clusters, hough_detections
+
+    ct = get_type("shoreliner")
+    opts = MatchOptions()
+    refs = {n: build_references(ct, n, px_per_m=opts.px_per_m, tilts=opts.tilts)[0] for n in ("6100", "6223")}
+    ref = refs["6100"]
+    h, w = ref.image.shape[:2]
+    rng = np.random.default_rng(0)
+    photo = (rng.integers(60, 160, (720, 1280, 1)) * np.ones((1, 1, 3))).astype(np.uint8)
+    photo = cv2.GaussianBlur(photo, (0, 0), 3)
+    # distractors: the other coach's side (same windows, another number), big, three times
+    other = refs["6223"].image
+    for k, y in enumerate((40, 250, 470)):
+        src = np.float32([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]])
+        dst = np.float32([[30 + 40 * k, y], [1150, y + 10], [1150, y + 90], [30 + 40 * k, y + 80]])
+        photo = _warp_into(photo, other, cv2.getPerspectiveTransform(src, dst))
+    # the face: 200 px long, rotated 50 degrees, slightly foreshortened
+    a = np.deg2rad(50.0)
+    Rm = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    quad = np.array([[0, 0], [200, 0], [196, 16], [2, 17]], float) @ Rm.T + [900, 360]
+    H = cv2.getPerspectiveTransform(np.float32([[-0.5, -0.5], [w - 0.5, -0.5], [w - 0.5, h - 0.5], [-0.5, h - 0.5]]),
+                                    np.float32(quad))
+    photo = _warp_into(photo, ref.image, H)
+    K = CameraIntrinsics(width=1280, height=720, fx=1400.0, fy=1400.0, cx=639.5, cy=359.5)
+    pf = photo_features("clutter.png", photo, K, opts)
+    qi, ti = _knn_matches(pf, ref, opts.hough_k)
+    right = np.linalg.norm(_apply_h(H, ref.keypoints[ti]) - pf.keypoints[qi], axis=1) < 2.0
+    assert 0 < right.mean() < 0.2, right.mean()  # a small share of the matches is right
+    clusters = hough_clusters(pf, ref, k=opts.hough_k, min_votes=opts.hough_min_votes)
+    assert clusters and max(right[c].sum() for c in clusters) >= 8
+    dets = [d for d in hough_detections(pf, ref, opts) if d.hough]
+    corners = ref.corners()
+    errs = [np.abs(d.polygon() - _apply_h(H, corners)).max() for d in dets]
+    assert errs and 0.0 <= min(errs) < 3.0, errs  # the outline's corners, from matches on a 16 px wall
+    best = refine_detection(pf, dets[int(np.argmin(errs))], opts)  # as the stage does: ECC on the whole face
+    assert best.ecc is not None and best.ecc >= opts.hough_min_ecc
+    assert 0.0 <= np.abs(best.polygon() - _apply_h(H, corners)).max() < 1.0
+
+
+def test_guided_completion_aligns_the_other_faces():
+    """A coach posed in front of a camera, its left side and front end painted into the photo by their
+    exact homographies: given the pose from the side (perturbed by 0.5 degree and 5 cm), the front end is
+    aligned by ECC to within a pixel at its corners, the joint pose is closer to the truth than the start, and a face
+    that is not in the photo (the roof, left blank) is not reported."""
+    from workbench.correspond.complete import guided_face, joint_pose, predicted_homography
+    from workbench.correspond.match import FaceDetection, _apply_h
+
+    ct = get_type("shoreliner")
+    opts = MatchOptions()
+    K = CameraIntrinsics(width=1280, height=960, fx=1500.0, fy=1500.0, cx=639.5, cy=479.5)
+    # camera looking at the car's left side and front end from 35 m, at 40 degrees
+    yaw = np.deg2rad(40.0)
+    R_wc = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])  # world_from_carriage
+    eye = np.array([12.0, 35.0, 6.0])
+    from workbench.core.camera import look_at
+    cam_from_world = look_at(eye, np.array([4.0, 8.0, 2.0]))
+    M = np.eye(4)
+    M[:3, :3] = cam_from_world[:3, :3] @ R_wc
+    M[:3, 3] = cam_from_world[:3, 3]
+    photo = np.full((960, 1280, 3), (110, 150, 90), np.uint8)
+    refs = {f: face_reference(ct, "6100", f, opts.px_per_m) for f in ("left", "front", "roof")}
+    for f in ("left", "front"):
+        photo = _warp_into(photo, refs[f].image, predicted_homography(M, refs[f], K))
+    from workbench.correspond.match import PhotoFeatures, undistorted_image
+    gray = cv2.cvtColor(photo, cv2.COLOR_RGB2GRAY)
+    pf = PhotoFeatures("posed.png", K, undistorted_image(gray, K), np.zeros((0, 2)), np.zeros((0, 128), np.float32))
+    # the start: the true pose, turned by 0.5 degree about the vertical and shifted 5 cm
+    d = np.deg2rad(0.5)
+    turn = np.array([[np.cos(d), -np.sin(d), 0], [np.sin(d), np.cos(d), 0], [0, 0, 1]])
+    start = M.copy()
+    start[:3, :3] = M[:3, :3] @ turn
+    start[:3, 3] += [0.05, 0.0, 0.0]
+    front = guided_face(pf, refs["front"], start, ct, opts)
+    assert front is not None and front.guided and front.ecc >= opts.guided_min_ecc
+    corners = refs["front"].corners()
+    err = np.abs(front.polygon() - _apply_h(predicted_homography(M, refs["front"], K), corners)).max()
+    assert 0.0 <= err < 1.0, err  # the outline's corners: the face's edges, blurred by the warp
+    assert guided_face(pf, refs["roof"], start, ct, opts) is None
+    # the left side as a detection at its true homography, then the joint pose from both faces
+    g = np.stack(np.meshgrid(np.linspace(0, refs["left"].image.shape[1] - 1, 9),
+                             np.linspace(0, refs["left"].image.shape[0] - 1, 3)), -1).reshape(-1, 2)
+    Hl = predicted_homography(M, refs["left"], K)
+    left = FaceDetection(refs["left"], "posed.png", Hl, len(g), 0.0, 1.0, _apply_h(Hl, g), g)
+    J = joint_pose([left, front], K, start)
+    assert J is not None
+    ang = lambda A: np.degrees(np.arccos(np.clip((np.trace(A[:3, :3].T @ M[:3, :3]) - 1) / 2, -1, 1)))  # noqa: E731
+    assert ang(J) < 0.5 * ang(start) and np.linalg.norm(J[:3, 3] - M[:3, 3]) < 0.05
+
+
 # ---------------------------------------------------------------------------------------------------------
 # a small synthetic incident through the stage
 # ---------------------------------------------------------------------------------------------------------

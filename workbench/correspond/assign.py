@@ -19,8 +19,9 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ..rolling_stock import CarriageType
+from .complete import guided_face, joint_pose
 from .match import FaceDetection, MatchOptions, PhotoFeatures, detect_faces, refine_detection, support
-from .references import FaceReference
+from .references import FACES, FaceReference, face_reference
 
 log = logging.getLogger(__name__)
 
@@ -78,11 +79,13 @@ def _pose(det: FaceDetection, K) -> np.ndarray | None:
 
 
 def find_cars(photo: PhotoFeatures, refs: dict[str, list[FaceReference]], consist: list[tuple[str, str, str | None]],
-              types: dict[str, CarriageType], opts: MatchOptions) -> list[CarInPhoto]:
-    """The cars' faces in one photo, assigned jointly.
+              types: dict[str, CarriageType], opts: MatchOptions,
+              ref_cache: dict[tuple[str, str], FaceReference] | None = None) -> list[CarInPhoto]:
+    """The cars' faces in one photo, assigned jointly, completed by their pose-guided faces.
 
     ``refs``: car number -> its face references; ``consist``: (number, type id, coupling_to_next) front to
-    rear; ``types``: car number -> CarriageType.
+    rear; ``types``: car number -> CarriageType; ``ref_cache``: references of the faces not matched by SIFT
+    (the roof), kept between the photos of a set.
     """
     by_number = {n: {r.face: r for r in rs} for n, rs in refs.items()}
     usable = [r for rs in refs.values() for r in rs
@@ -115,8 +118,11 @@ def find_cars(photo: PhotoFeatures, refs: dict[str, list[FaceReference]], consis
         for a, i in enumerate(idx):
             for d in regions[i]:
                 b = cars.index(d.ref.car_number)
-                if d.n_inliers > S[a, b]:
-                    S[a, b], best[(a, b)] = d.n_inliers, d
+                # a Hough face's k-NN inliers are shared by every coach of the type (their windows are
+                # alike): its evidence for this car is the car's own distinctive matches that agree
+                ev = support(photo, d.ref, d.photo_from_ref, opts) if d.hough else d.n_inliers
+                if ev > S[a, b]:
+                    S[a, b], best[(a, b)] = ev, d
             # cars without a detection of their own here: how many of their matches agree with the region's
             # homography (their evidence, for the margin test; identical coaches share most features)
             d0 = regions[i][0]
@@ -131,7 +137,7 @@ def find_cars(photo: PhotoFeatures, refs: dict[str, list[FaceReference]], consis
                     if sup > S[a, b]:
                         S[a, b] = sup
                         best[(a, b)] = FaceDetection(r, photo.name, d0.photo_from_ref, d0.n_inliers, d0.rms_px,
-                                                     None, d0.inlier_photo_px, d0.inlier_ref_px)
+                                                     None, d0.inlier_photo_px, d0.inlier_ref_px, hough=d0.hough)
         # two regions of one face group cannot both be one car: the Hungarian gives each car one region
         # per group; run it per group
         for group in FACE_GROUPS:
@@ -158,7 +164,60 @@ def find_cars(photo: PhotoFeatures, refs: dict[str, list[FaceReference]], consis
         for c in found:
             c.detection = refine_detection(photo, c.detection, opts)
             c.cam_from_carriage = _pose(c.detection, photo.intrinsics) if c.cam_from_carriage is not None else None
+        # a face found only by Hough clustering (few distinctive matches) must be confirmed by the dense
+        # alignment of the whole face
+        found = [c for c in found if not c.detection.hough or (c.detection.ecc or 0.0) >= opts.hough_min_ecc]
+    # 6. each found car's other faces where its pose predicts them, and one pose from all its faces
+    if opts.guided:
+        found = _complete(found, photo, types, by_number, opts, {} if ref_cache is None else ref_cache)
     return found
+
+
+def _complete(found: list[CarInPhoto], photo: PhotoFeatures, types: dict[str, CarriageType],
+              by_number: dict[str, dict[str, FaceReference]], opts: MatchOptions,
+              ref_cache: dict[tuple[str, str], FaceReference]) -> list[CarInPhoto]:
+    """Add the guided faces of every found car with a pose (:mod:`.complete`) and give its entries the joint
+    pose of all its faces."""
+    out = list(found)
+    for number in dict.fromkeys(c.number for c in found):
+        mine = [c for c in found if c.number == number]
+        posed = [c for c in mine if c.cam_from_carriage is not None]
+        if not posed:
+            continue
+        best = max(posed, key=lambda c: c.detection.n_inliers)
+        ct = types[number]
+        have = {c.detection.ref.face for c in mine}
+        by_face = by_number.get(number, {})
+        added = []
+        for face in FACES:
+            if face in have:
+                continue
+            ref = by_face.get(face) or _reference(ct, number, face, opts, ref_cache)
+            det = guided_face(photo, ref, best.cam_from_carriage, ct, opts)
+            if det is not None:
+                added.append(det)
+        if not added:
+            continue
+        dets = [c.detection for c in mine if c.detection.inlier_ref_px is not None] + added
+        M = joint_pose(dets, photo.intrinsics, best.cam_from_carriage)
+        if M is None:
+            log.info("%s: car %s: guided faces %s disagree with its pose; not used", photo.name, number,
+                     [d.ref.face for d in added])
+            continue
+        log.info("%s: car %s: guided faces %s", photo.name, number, [d.ref.face for d in added])
+        for c in mine:
+            c.cam_from_carriage = M
+        out += [CarInPhoto(number, d, 0, M) for d in added]
+    return out
+
+
+def _reference(ct: CarriageType, number: str, face: str, opts: MatchOptions,
+               cache: dict[tuple[str, str], FaceReference]) -> FaceReference:
+    """A face reference for alignment (no features), cached per (car, face) in ``cache``."""
+    key = (number, face)
+    if key not in cache:
+        cache[key] = face_reference(ct, number, face, opts.px_per_m)
+    return cache[key]
 
 
 FACE_GROUPS = (("left", "right"), ("front", "rear"), ("roof",))  # faces of like layout, never seen together
@@ -207,7 +266,8 @@ def _improve_by_chain(found: list[CarInPhoto], consist, types, photo, by_number,
                 ref = by_number[other][c.detection.ref.face]
                 s = support(photo, ref, c.detection.photo_from_ref, opts)
                 det = FaceDetection(ref, photo.name, c.detection.photo_from_ref, c.detection.n_inliers,
-                                    c.detection.rms_px, None, c.detection.inlier_photo_px, c.detection.inlier_ref_px)
+                                    c.detection.rms_px, None, c.detection.inlier_photo_px, c.detection.inlier_ref_px,
+                                    hough=c.detection.hough)
                 new.append(CarInPhoto(other, det, s, c.cam_from_carriage))
             trial[i], trial[j] = new
             sc = score(trial)

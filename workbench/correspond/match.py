@@ -39,6 +39,17 @@ class MatchOptions:
     refine: bool = True  # guided re-matching and ECC alignment of each accepted face
     max_instances: int = 2  # homographies tried per face reference and photo
     carry_between_photos: bool = True  # panorama sets: carry points into the other photos (rotation homography)
+    # pose-guided completion (complete.py): a found car's other faces, aligned by ECC where its pose puts them
+    guided: bool = True
+    guided_min_cosine: float = 0.2  # the face turns at least this much to the camera (cosine of the angle)
+    guided_min_ecc: float = 0.8  # ECC correlation needed to accept a guided face
+    guided_max_shift_px: float = 6.0  # ECC may move a corner this far from the prediction (or 1/4 of an edge)
+    guided_min_edge_px: float = 6.0  # a face whose predicted outline has a shorter edge is not tried
+    # Hough clustering of k-NN matches (Lowe 2004): small faces with a few per cent of their matches right
+    hough: bool = True
+    hough_k: int = 2  # nearest reference descriptors per photo keypoint
+    hough_min_votes: int = 8  # distinct photo keypoints in a bin before it is verified by RANSAC
+    hough_min_ecc: float = 0.85  # a Hough face is kept only if ECC aligns the whole face this well
 
     def __post_init__(self) -> None:
         if not self.px_per_m > 0 or not self.photo_upsample > 0 or not 0 < self.ratio < 1:
@@ -54,6 +65,7 @@ class PhotoFeatures:
     gray_undistorted: np.ndarray  # (h, w) uint8, pinhole K, photo size
     keypoints: np.ndarray  # (n, 2) undistorted photo px
     descriptors: np.ndarray  # (n, 128) float32
+    frames: np.ndarray | None = None  # (n, 2) SIFT size (photo px) and angle (deg) of each keypoint
     cache: dict = field(default_factory=dict, repr=False)  # matches per reference
 
     def distort_px(self, uv_und: np.ndarray) -> np.ndarray:
@@ -84,9 +96,9 @@ def photo_features(name: str, rgb: np.ndarray, K: CameraIntrinsics, opts: MatchO
     und = undistorted_image(gray, K)
     s = min(opts.photo_upsample, opts.max_photo_side_px / max(und.shape))
     big = und if abs(s - 1) < 1e-6 else cv2.resize(und, None, fx=s, fy=s, interpolation=cv2.INTER_CUBIC)
-    kp, desc = sift_features(big)
+    kp, desc, fr = sift_features(big, frames=True)
     kp = (kp + 0.5) / s - 0.5
-    return PhotoFeatures(name, K, und, kp, desc)
+    return PhotoFeatures(name, K, und, kp, desc, np.column_stack([fr[:, 0] / s, fr[:, 1]]))
 
 
 @dataclass
@@ -101,9 +113,13 @@ class FaceDetection:
     ecc: float | None = None  # correlation after ECC alignment (None: not refined)
     inlier_photo_px: np.ndarray | None = None  # (n, 2) undistorted photo px
     inlier_ref_px: np.ndarray | None = None  # (n, 2)
+    guided: bool = False  # aligned by ECC where the car's pose predicted it (complete.py), no SIFT inliers
+    hough: bool = False  # found by Hough clustering of k-NN matches (hough_detections): ECC must confirm it
 
     @property
     def confidence(self) -> float:
+        if self.guided:
+            return float(0.6 * np.clip(self.ecc or 0.0, 0.0, 1.0))
         c = self.n_inliers / (self.n_inliers + 20.0)
         if self.ecc is not None:
             c *= float(np.clip(self.ecc, 0.0, 1.0)) ** 0.5
@@ -272,6 +288,16 @@ def detect_faces(photo: PhotoFeatures, refs: list[FaceReference], opts: MatchOpt
         resid = np.linalg.norm(_apply_h(H, R[inl]) - P[inl], axis=1)
         out.append(FaceDetection(ref, photo.name, H / H[2, 2], int(len(inl)), float(np.sqrt(np.mean(resid ** 2))),
                                  None, P[inl], R[inl]))
+    # sides drowned in the photo's other features (match.hough_detections); not the ends, whose few
+    # features are alike on every coach of a type
+    if opts.hough and ref.face in ("left", "right"):
+        for r in refs:
+            for det in hough_detections(photo, r, opts):
+                # where RANSAC over the distinctive matches found the face, a Hough face overlapping it is
+                # the same face or an alias shifted by a window pitch
+                if det.n_inliers >= opts.min_inliers and \
+                        not any(_overlap_share(det.polygon(), o.polygon()) > 0.3 for o in out):
+                    out.append(det)
     out.sort(key=lambda d: -d.n_inliers)
     return out
 
@@ -314,4 +340,135 @@ def refine_detection(photo: PhotoFeatures, det: FaceDetection, opts: MatchOption
             H, ecc = Hn, cc
     resid = np.linalg.norm(_apply_h(H, Ri) - Pi, axis=1)
     return FaceDetection(ref, det.photo, H / H[2, 2], det.n_inliers, float(np.sqrt(np.mean(resid ** 2))), ecc,
-                         Pi, Ri)
+                         Pi, Ri, hough=det.hough)
+
+
+def _knn_matches(photo: PhotoFeatures, ref: FaceReference, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """Indices (photo keypoint, reference keypoint) of each photo keypoint's ``k`` nearest reference
+    descriptors, no ratio test: a repeated window matches every window, and geometry sorts them out."""
+    key = ("knn", id(ref), k)
+    if key in photo.cache:
+        return photo.cache[key]
+    if len(photo.keypoints) < 2 or ref.descriptors is None or len(ref.descriptors) < k:
+        out = (np.zeros(0, int), np.zeros(0, int))
+    else:
+        knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(photo.descriptors, ref.descriptors, k=k)
+        qi = np.array([m.queryIdx for ms in knn for m in ms], dtype=int)
+        ti = np.array([m.trainIdx for ms in knn for m in ms], dtype=int)
+        out = (qi, ti)
+    photo.cache[key] = out
+    return out
+
+
+def hough_clusters(photo: PhotoFeatures, ref: FaceReference, *, k: int = 4, min_votes: int = 8,
+                   max_clusters: int = 8) -> list[np.ndarray]:
+    """Groups of k-NN matches that agree on where the face is, by Lowe's Hough transform (IJCV 2004, 7.3).
+
+    Each match of a photo keypoint to a reference keypoint predicts, from their SIFT scales and
+    orientations (and the reference tilt it was detected at), the face's centre in the photo, its size and
+    its rotation; matches vote for the two nearest bins of each (location: a quarter of the predicted size,
+    size: an octave, rotation: 30 degrees). Returned: index arrays into ``_knn_matches(photo, ref, k)``, most
+    votes first, at least ``min_votes`` distinct photo keypoints each. A small face among thousands of photo
+    features, with a few per cent of its matches right, is found this way where RANSAC over all matches
+    needs more samples than it can draw.
+    """
+    if photo.frames is None or ref.frames is None:
+        return []
+    qi, ti = _knn_matches(photo, ref, k)
+    if len(qi) < min_votes:
+        return []
+    h, w = ref.image.shape[:2]
+    fr = ref.frames[ti]
+    s = photo.frames[qi, 0] / np.maximum(fr[:, 0], 1e-6)
+    theta = np.deg2rad(photo.frames[qi, 1] - fr[:, 1])
+    tx, ty = fr[:, 2], fr[:, 3]
+    centre = np.array([(w - 1) / 2, (h - 1) / 2])
+    dq = (centre - ref.keypoints[ti]) / np.column_stack([tx, ty])  # to the centre, in the tilted reference
+    c, sn = np.cos(theta), np.sin(theta)
+    pred = photo.keypoints[qi] + s[:, None] * np.column_stack([c * dq[:, 0] - sn * dq[:, 1],
+                                                               sn * dq[:, 0] + c * dq[:, 1]])
+    extent = s * np.maximum(w / tx, h / ty)  # predicted size of the face in the photo, px
+    ok = np.isfinite(pred).all(axis=1) & (extent > 8)
+    log_e = np.log2(np.maximum(extent, 1e-6))
+    votes = []
+    for db in (0, 1):
+        b = np.floor(log_e - 0.5).astype(int) + db
+        L = 0.25 * 2.0 ** (b + 0.5)
+        for dx in (0, 1):
+            ix = np.floor(pred[:, 0] / L - 0.5).astype(int) + dx
+            for dy in (0, 1):
+                iy = np.floor(pred[:, 1] / L - 0.5).astype(int) + dy
+                for dt in (0, 1):
+                    it = (np.floor(np.rad2deg(theta) / 30.0 - 0.5).astype(int) + dt) % 12
+                    votes.append(np.column_stack([b, ix, iy, it, np.arange(len(qi))])[ok])
+    V = np.vstack(votes)
+    keys, inv = np.unique(V[:, :4], axis=0, return_inverse=True)
+    inv = inv.ravel()
+    # a bin's strength: the distinct photo keypoints voting for it
+    order = np.argsort(inv, kind="stable")
+    starts = np.searchsorted(inv[order], np.arange(len(keys)))
+    ends = np.append(starts[1:], len(order))
+    pairs = np.unique(np.column_stack([inv, qi[V[:, 4]]]), axis=0)
+    counts = np.bincount(pairs[:, 0], minlength=len(keys))
+    out: list[np.ndarray] = []
+    taken: list[set] = []
+    for kk in np.argsort(-counts):
+        if counts[kk] < min_votes or len(out) >= max_clusters:
+            break
+        members = V[order[starts[kk]:ends[kk]], 4]
+        m = set(members.tolist())
+        if any(len(m & t) > 0.5 * len(m) for t in taken):
+            continue  # a neighbouring bin of a cluster already returned
+        taken.append(m)
+        out.append(np.array(sorted(m), dtype=int))
+    return out
+
+
+def hough_detections(photo: PhotoFeatures, ref: FaceReference, opts: MatchOptions) -> list[FaceDetection]:
+    """Face instances from the Hough clusters of ``ref``'s k-NN matches: a RANSAC homography per cluster,
+    then every k-NN match within ``ransac_px`` of it (distinct photo and reference keypoints counted)."""
+    qi, ti = _knn_matches(photo, ref, opts.hough_k)
+    if len(qi) == 0:
+        return []
+    P, R = photo.keypoints[qi], ref.keypoints[ti]
+    size = (photo.intrinsics.width, photo.intrinsics.height)
+    out: list[FaceDetection] = []
+    for members in hough_clusters(photo, ref, k=opts.hough_k, min_votes=opts.hough_min_votes):
+        if len(members) < 6:
+            continue
+        H, mask = cv2.findHomography(R[members], P[members], cv2.USAC_MAGSAC, opts.ransac_px, maxIters=5000,
+                                     confidence=0.999)
+        if H is None or not _plausible(H, ref, size):
+            continue
+        for _ in range(2):  # all matches that agree, and a refit on them
+            d = np.linalg.norm(_apply_h(H, R) - P, axis=1)
+            inl = np.nonzero(d < opts.ransac_px)[0]
+            # one photo keypoint, one reference keypoint: keep the closest pairing of each
+            inl = inl[np.argsort(d[inl])]
+            _, first_q = np.unique(qi[inl], return_index=True)
+            inl = inl[np.sort(first_q)]
+            _, first_t = np.unique(ti[inl], return_index=True)
+            inl = inl[np.sort(first_t)]
+            if len(inl) < 6:
+                break
+            H2, _ = cv2.findHomography(R[inl], P[inl], 0)
+            if H2 is None or not _plausible(H2, ref, size):
+                break
+            H = H2
+        if len(inl) < opts.min_inliers or not _plausible(H, ref, size):
+            continue
+        resid = np.linalg.norm(_apply_h(H, R[inl]) - P[inl], axis=1)
+        det = FaceDetection(ref, photo.name, H / H[2, 2], int(len(inl)), float(np.sqrt(np.mean(resid ** 2))),
+                            None, P[inl], R[inl], hough=True)
+        if any(_overlap_share(det.polygon(), o.polygon()) > 0.7 for o in out):
+            continue
+        out.append(det)
+    return out
+
+
+def _overlap_share(a: np.ndarray, b: np.ndarray) -> float:
+    """Intersection over the smaller area of two convex quads (4, 2)."""
+    a32, b32 = a.astype(np.float32), b.astype(np.float32)
+    inter, _ = cv2.intersectConvexConvex(a32, b32)
+    small = min(abs(cv2.contourArea(a32)), abs(cv2.contourArea(b32)))
+    return float(inter / small) if small > 0 else 0.0

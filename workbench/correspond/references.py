@@ -52,6 +52,7 @@ class FaceReference:
     axis_v_m: np.ndarray
     keypoints: np.ndarray | None = field(default=None, repr=False)  # (n, 2) reference px
     descriptors: np.ndarray | None = field(default=None, repr=False)  # (n, 128) float32
+    frames: np.ndarray | None = field(default=None, repr=False)  # (n, 4) size, angle, tilt (sift_features)
 
     @property
     def key(self) -> tuple[str, str]:
@@ -147,16 +148,18 @@ Tilt = tuple[float, float]
 
 
 def sift_features(image: np.ndarray, tilts: tuple[Tilt, ...] = ((1.0, 1.0),), *, contrast_threshold: float = 0.02,
-                  ) -> tuple[np.ndarray, np.ndarray]:
+                  frames: bool = False) -> tuple[np.ndarray, ...]:
     """SIFT keypoints (n, 2) px and descriptors (n, 128) of an RGB/grey image, pooled over tilts.
 
     A tilt ``(tx, ty)`` compresses the image by ``tx`` horizontally and ``ty`` vertically before detection
     (the foreshortening of a carriage side seen at an angle along it, or from above; as in ASIFT);
-    keypoints are mapped back to the untilted image.
+    keypoints are mapped back to the untilted image. With ``frames``, a third array (n, 4) gives each
+    keypoint's ``(size px, angle deg, tx, ty)``: its SIFT scale and orientation in the image it was detected
+    in (the tilted one; OpenCV's angle convention) and that image's tilt.
     """
     gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     sift = cv2.SIFT_create(contrastThreshold=contrast_threshold)
-    kps, descs = [], []
+    kps, descs, frs = [], [], []
     for tx, ty in tilts:
         w = max(8, int(round(gray.shape[1] / tx)))
         h = max(8, int(round(gray.shape[0] / ty)))
@@ -170,8 +173,13 @@ def sift_features(image: np.ndarray, tilts: tuple[Tilt, ...] = ((1.0, 1.0),), *,
         xy[:, 1] = (xy[:, 1] + 0.5) * gray.shape[0] / h - 0.5
         kps.append(xy)
         descs.append(d.astype(np.float32))
+        sx, sy = w / gray.shape[1], h / gray.shape[0]  # the exact compressions of the resized image
+        frs.append(np.array([[k.size, k.angle, 1.0 / sx, 1.0 / sy] for k in kp], dtype=np.float64))
     if not kps:
-        return np.zeros((0, 2)), np.zeros((0, 128), np.float32)
+        empty = (np.zeros((0, 2)), np.zeros((0, 128), np.float32))
+        return empty + (np.zeros((0, 4)),) if frames else empty
+    if frames:
+        return np.vstack(kps), np.vstack(descs), np.vstack(frs)
     return np.vstack(kps), np.vstack(descs)
 
 
@@ -185,7 +193,8 @@ def build_references(ct: CarriageType, car_number: str, *, px_per_m: float, tilt
     refs = []
     for face in faces:
         ref = face_reference(ct, car_number, face, px_per_m)
-        ref.keypoints, ref.descriptors = sift_features(ref.image, tilts if face in ("left", "right", "roof") else end_tilts)
+        ref.keypoints, ref.descriptors, ref.frames = sift_features(
+            ref.image, tilts if face in ("left", "right", "roof") else end_tilts, frames=True)
         log.debug("reference %s %s %s: %d keypoints", ct.id, car_number, face, len(ref.keypoints))
         refs.append(ref)
     return refs

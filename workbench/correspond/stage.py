@@ -177,19 +177,20 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
         photos = []  # nothing to match against
     per_view: dict = {}
     features: dict = {}  # kept only to carry points between the photos of a panorama set
+    ref_cache: dict = {}  # references of faces aligned only (the roof), shared by the photos
     carry_on = opts.carry_between_photos and len(photos) > 1 and s.camera.source.value != "sfm"
     for i, p in enumerate(photos):
         progress(0.05 + 0.9 * i / len(photos), p.name)
         t0 = time.perf_counter()
         pf = photo_features(p.name, _read_rgb(p), intrinsics[p.name], opts)
-        found = find_cars(pf, refs, consist, types, opts)
+        found = find_cars(pf, refs, consist, types, opts, ref_cache)
         per_view[p.name] = observations_of(found, pf, types)
         if carry_on:
             features[p.name] = pf
         per_photo[p.name] = {"keypoints": int(len(pf.keypoints)), "time_s": round(time.perf_counter() - t0, 2),
                              "faces": [{"carriage": c.number, "face": c.detection.ref.face,
                                         "inliers": c.detection.n_inliers, "support": c.support,
-                                        "rms_px": round(c.detection.rms_px, 2),
+                                        "rms_px": round(c.detection.rms_px, 2), "guided": c.detection.guided,
                                         "ecc": None if c.detection.ecc is None else round(c.detection.ecc, 3)}
                                        for c in found],
                              "points": len(per_view[p.name])}
