@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -216,6 +217,45 @@ def test_sample_panorama_calibrated(sample_small):
     A = align_rotation({s.name: s.cam_from_pano for s in r.model.sources}, d["cam_from_world"])  # pano_from_world
     down_in_pano = A @ np.array([0.0, 0.0, -1.0])
     assert np.degrees(np.arccos(np.clip(down_in_pano[1], -1, 1))) < 15.0
+
+
+@needs_data
+def test_same_photos_give_the_same_result(tmp_path):
+    """Deterministic: FLANN's randomised forests are seeded in the thread that builds them, RANSAC per pair, and
+    pairs are matched in whatever order the threads finish but sorted after; two runs give identical models
+    and identical panoramas (the photos kept from registration or read again for composition)."""
+    paths, _, _ = _cut_set(tmp_path, -0.1)
+    runs = [stitch_photos(paths, options=StitchOptions(seam_megapix=0.05, keep_full_max_megapix=k))
+            for k in (2.0, 2.0, 0.0)]
+    a = runs[0]
+    for b in runs[1:]:
+        assert a.stats["pairs"] == b.stats["pairs"]
+        for sa, sb in zip(a.model.sources, b.model.sources):
+            assert sa.intrinsics == sb.intrinsics
+            assert np.array_equal(sa.cam_from_pano, sb.cam_from_pano)
+        assert np.array_equal(a.image, b.image)
+
+
+@needs_data
+def test_per_photo_focal_model_when_the_zoom_changes(tmp_path):
+    """Views of one row whose focal changes by 6 % and 12 % from the first: one focal per photo is chosen (its robust
+    pass is tried, its final pass runs when chosen), with each focal within 1 %."""
+    src = cv2.imread(str(STITCHING / "skimage_pano_petra" / "DFM_4210.jpg"))
+    rots = grid_rotations([-12.0, 0.0, 12.0], [0.0], seed=2)
+    base = _view_intrinsics(0.0)
+    focals = {}
+    paths = []
+    for n, (R, z) in enumerate(zip(rots, (1.0, 1.06, 1.12))):
+        intr = replace(base, fx=base.fx * z, fy=base.fy * z)
+        v = cut_views(src, 2280.0, [R], intr)[0]
+        name = f"zoom_{n}.jpg"
+        cv2.imwrite(str(tmp_path / name), v.image, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        paths.append(tmp_path / name)
+        focals[name] = intr.fx
+    r = stitch_photos(paths, options=FAST)
+    assert r.stats["focal_model"] == "per_photo"
+    for s in r.model.sources:
+        assert abs(s.intrinsics.fx / focals[s.name] - 1.0) < 0.01, (s.name, s.intrinsics.fx, focals[s.name])
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -174,42 +174,45 @@ def refine_matches(gray_a: np.ndarray, gray_b: np.ndarray, xa: np.ndarray, xb: n
     Ainv = np.linalg.inv(np.where(ok[:, None, None], A, np.eye(2)))
     side = 2 * radius + 1
     g1 = np.arange(-radius, radius + 1, dtype=np.float64)
-    gy, gx = np.meshgrid(g1, g1, indexing="ij")
-    g = np.stack([gx.ravel(), gy.ravel()], axis=1)  # (P, 2) offsets in photo b
-    P = len(g)
+    gy, gx = (v.ravel() for v in np.meshgrid(g1, g1, indexing="ij"))  # (P,) offsets in photo b
+    P = len(gx)
 
-    def sample(img: np.ndarray, pts: np.ndarray) -> np.ndarray:  # pts (n, P, 2) -> (n, P)
-        m = pts.reshape(n * side, side, 2).astype(np.float32)
-        return cv2.remap(img, m[..., 0], m[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
-                         ).reshape(n, P).astype(np.float64)
+    def sample(img: np.ndarray, qx: np.ndarray, qy: np.ndarray) -> np.ndarray:  # (m, P) pixels -> (m, P) float32
+        m = len(qx)
+        return cv2.remap(img, qx.reshape(m * side, side).astype(np.float32), qy.reshape(m * side, side).astype(
+            np.float32), cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(m, P)
 
     def normalise(v: np.ndarray) -> np.ndarray:
         v = v - v.mean(axis=1, keepdims=True)
         return v / (np.sqrt(np.mean(v * v, axis=1, keepdims=True)) + 1e-6)
 
-    ia, ib = gray_a, gray_b
-    qa = pa[:, None, :] + np.einsum("nij,pj->npi", Ainv, g)
-    T = normalise(sample(ia, qa))
+    # the template: photo b's grid around xb seen in photo a through the local linear map
+    qax = pa[:, 0, None] + Ainv[:, 0, 0, None] * gx[None] + Ainv[:, 0, 1, None] * gy[None]
+    qay = pa[:, 1, None] + Ainv[:, 1, 0, None] * gx[None] + Ainv[:, 1, 1, None] * gy[None]
+    T = normalise(sample(gray_a, qax, qay))
     Ty, Tx = np.gradient(T.reshape(n, side, side), axis=(1, 2))
     Jx, Jy = Tx.reshape(n, P), Ty.reshape(n, P)
-    a11, a12, a22 = (Jx * Jx).sum(1), (Jx * Jy).sum(1), (Jy * Jy).sum(1)
+    a11, a12, a22 = ((u * v).sum(1, dtype=np.float64) for u, v in ((Jx, Jx), (Jx, Jy), (Jy, Jy)))
     det = a11 * a22 - a12 * a12
     ok &= det > 1e-3 * (a11 + a22) ** 2 + 1e-9  # an edge or a flat patch locates nothing along it
     det = np.where(ok, det, 1.0)
     d = np.zeros((n, 2))
+    act = np.flatnonzero(ok)  # Gauss-Newton on the matches that have not converged yet
     for _ in range(iterations):
-        e = normalise(sample(ib, pb[:, None, :] + d[:, None, :] + g[None])) - T
-        b1, b2 = (Jx * e).sum(1), (Jy * e).sum(1)
-        step = np.column_stack([(a22 * b1 - a12 * b2) / det, (a11 * b2 - a12 * b1) / det])
-        step[~ok] = 0.0
-        d -= np.clip(step, -1.0, 1.0)
-        if np.max(np.abs(step), initial=0.0) < 2e-3:
+        if len(act) == 0:
             break
-    q = pb[:, None, :] + d[:, None, :] + g[None]
-    ncc = np.mean(normalise(sample(ib, q)) * T, axis=1)
-    inside = ((q.min(axis=1) >= 0).all(1) & (q[..., 0].max(1) <= gray_b.shape[1] - 1)
-              & (q[..., 1].max(1) <= gray_b.shape[0] - 1) & (qa.min(axis=1) >= 0).all(1)
-              & (qa[..., 0].max(1) <= gray_a.shape[1] - 1) & (qa[..., 1].max(1) <= gray_a.shape[0] - 1))
+        e = normalise(sample(gray_b, pb[act, 0, None] + d[act, 0, None] + gx[None],
+                             pb[act, 1, None] + d[act, 1, None] + gy[None])) - T[act]
+        b1, b2 = (Jx[act] * e).sum(1, dtype=np.float64), (Jy[act] * e).sum(1, dtype=np.float64)
+        dt = det[act]
+        step = np.column_stack([(a22[act] * b1 - a12[act] * b2) / dt, (a11[act] * b2 - a12[act] * b1) / dt])
+        d[act] -= np.clip(step, -1.0, 1.0)
+        act = act[np.max(np.abs(step), axis=1) >= 2e-3]
+    qbx, qby = pb[:, 0, None] + d[:, 0, None] + gx[None], pb[:, 1, None] + d[:, 1, None] + gy[None]
+    ncc = np.mean(normalise(sample(gray_b, qbx, qby)) * T, axis=1)
+    inside = ((qbx.min(1) >= 0) & (qby.min(1) >= 0) & (qbx.max(1) <= gray_b.shape[1] - 1)
+              & (qby.max(1) <= gray_b.shape[0] - 1) & (qax.min(1) >= 0) & (qay.min(1) >= 0)
+              & (qax.max(1) <= gray_a.shape[1] - 1) & (qay.max(1) <= gray_a.shape[0] - 1))
     ok &= inside & (np.linalg.norm(d, axis=1) < max_shift_work_px) & (ncc > min_ncc)
     return (pb + d + 0.5) / sb - 0.5, ok
 
@@ -360,18 +363,21 @@ class BAResult:
 
 def _undistort_radial(xd: np.ndarray, k1: np.ndarray, k2: np.ndarray, iterations: int = 6) -> np.ndarray:
     """Undistorted normalised (n, 2) of distorted ``xd`` (n, 2) under ``x (1 + k1 r^2 + k2 r^4)``, by Newton."""
-    x = xd.copy()
-    for _ in range(iterations):
-        r2 = np.sum(x * x, axis=1)
-        s = 1.0 + r2 * (k1 + k2 * r2)
-        ds = k1 + 2.0 * k2 * r2
-        g = x * s[:, None] - xd
-        # A = s I + 2 ds x x^T; A^-1 g by Sherman-Morrison
-        xg = np.sum(x * g, axis=1)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            step = (g - x * (2.0 * ds * xg / (s + 2.0 * ds * r2))[:, None]) / s[:, None]
-        x = x - np.where(np.isfinite(step), step, 0.0)
-    return x
+    u, v = xd[:, 0], xd[:, 1]
+    x, y = u.copy(), v.copy()
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        for _ in range(iterations):
+            r2 = x * x + y * y
+            s = 1.0 + r2 * (k1 + k2 * r2)
+            ds = k1 + 2.0 * k2 * r2
+            gx, gy = x * s - u, y * s - v
+            # A = s I + 2 ds x x^T; A^-1 g by Sherman-Morrison
+            c = 2.0 * ds * (x * gx + y * gy) / (s + 2.0 * ds * r2)
+            sx, sy = (gx - x * c) / s, (gy - y * c) / s
+            ok = np.isfinite(sx) & np.isfinite(sy)
+            x = x - np.where(ok, sx, 0.0)
+            y = y - np.where(ok, sy, 0.0)
+    return np.column_stack([x, y])
 
 
 def _skew(v: np.ndarray) -> np.ndarray:
@@ -398,7 +404,8 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
                   estimate_k1: bool, focal_prior: dict[int, float] | None = None, focal_prior_sigma: float = 0.05,
                   k1_prior_sigma: float = 0.25, pp_prior_sigma: float = 0.05, k2_prior_sigma: float = 0.25,
                   loss_scale_work_px: float = 1.0, reject_work_px: float = 4.0, max_nfev: int = 60,
-                  robust_per_pair: int = 100) -> BAResult:
+                  robust_per_pair: int = 100, robust_pass: bool = True, final_pass: bool = True,
+                  used: np.ndarray | None = None, robust_tol: float = 1e-6) -> BAResult:
     """Refine rotations (and, unless ``fixed_intrinsics``, one focal, optionally k1, k2 and the principal
     point, per camera group).
 
@@ -410,6 +417,9 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
     Residuals: every observation transferred a -> b and b -> a (4 per observation, work pixels); the
     Jacobian is analytic (rotations through SO(3)'s left Jacobian, the lens by implicit differentiation of
     the undistortion), so each step costs one evaluation.
+    Two passes: ``robust_pass`` (soft L1 on at most ``robust_per_pair`` observations per pair, to tolerance
+    ``robust_tol``; its inliers are kept) and ``final_pass`` (least squares on the inliers: ``used`` (M,) bool when
+    there is no robust pass, else every observation).
     """
     kept = list(kept)
     pos = {k: n for n, k in enumerate(kept)}
@@ -494,7 +504,7 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
             rhs[:, :, 1] -= xu * r2[:, None]
             rhs[:, :, 2] -= xu * (r2 * r2)[:, None]
             # A^-1 rhs, A = s I + 2 ds xu xu^T (Sherman-Morrison)
-            xr = np.einsum("ni,nip->np", xu, rhs)
+            xr = xu[:, 0, None] * rhs[:, 0, :] + xu[:, 1, None] * rhs[:, 1, :]
             dxu = (rhs - xu[:, :, None] * (2.0 * ds / (s + 2.0 * ds * r2))[:, None, None] * xr[:, None, :]) \
                 / s[:, None, None]
         else:
@@ -516,12 +526,20 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
         if not jac:
             return p, None, None
         n = len(y)
-        dy_dd = np.zeros((n, 2, 3))
-        dy_dd[:, 0, 0] = dy_dd[:, 1, 1] = iz
-        dy_dd[:, :, 2] = -y * iz[:, None]
-        ds = (k1 + 2.0 * k2 * r2) if n_gp == 5 else np.zeros(n)
-        dyd_dy = s[:, None, None] * np.eye(2)[None] + 2.0 * ds[:, None, None] * y[:, :, None] * y[:, None, :]
-        dp_dd = f[:, None, None] * (dyd_dy @ dy_dd)
+        # d y / d d = iz [I | -y]; d yd / d y = s I + 2 ds y y^T, so d yd / d d = iz [s I + 2 ds y y^T | -(s + 2 ds r2) y]
+        fi = f * iz
+        dp_dd = np.empty((n, 2, 3))
+        if n_gp == 5:
+            ds = k1 + 2.0 * k2 * r2
+            c = (2.0 * fi * ds)[:, None, None] * y[:, :, None]
+            dp_dd[:, :, :2] = c * y[:, None, :]
+            dp_dd[:, 0, 0] += fi * s
+            dp_dd[:, 1, 1] += fi * s
+            dp_dd[:, :, 2] = -(fi * (s + 2.0 * ds * r2))[:, None] * y
+        else:
+            dp_dd[:, :, :2] = 0.0
+            dp_dd[:, 0, 0] = dp_dd[:, 1, 1] = fi
+            dp_dd[:, :, 2] = -fi[:, None] * y
         dp_dg = np.zeros((n, 2, n_gp))
         dp_dg[:, :, 0] = f[:, None] * yd
         if n_gp == 5:
@@ -549,15 +567,15 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
                         / (2.0 * h[:, None])
         return out, J
 
-    def one_way(Rs, Jl, gp, idx, src_pos, dst_pos, x_src, x_dst, ray_src, jac):
-        """Residuals (n, 2) (full-resolution px) of photo src's pixels transferred into photo dst, and the
-        Jacobian blocks: d res / d rot(src) (n, 2, 3), d res / d rot(dst), d res / d group(src), group(dst)."""
+    def one_way(Rs, gp, idx, M, src_pos, dst_pos, x_src, x_dst, ray_src, jac):
+        """Residuals (n, 2) (full-resolution px) of photo src's pixels transferred into photo dst (``M`` (n, 3, 3):
+        dst_from_src per observation) and, with ``jac``: A (n, 2, 3) with d res / d rot(dst) = -A J_l(dst) and
+        d res / d rot(src) = A M J_l(src); d res / d group(src) (n, 2, n_gp); d res / d group(dst)."""
         if fixed_intrinsics:
             r, dr = ray_src[idx], None
         else:
             r, dr = rays_est(x_src[idx], src_pos, gp, jac)
-        M = Rs[dst_pos] @ np.transpose(Rs[src_pos], (0, 2, 1))  # dst_from_src
-        d = np.einsum("nij,nj->ni", M, r)
+        d = M[:, :, 0] * r[:, 0, None] + M[:, :, 1] * r[:, 1, None] + M[:, :, 2] * r[:, 2, None]
         if fixed_intrinsics:
             p, dp_dd = project_fixed(d, dst_pos, jac)
             dp_dg = None
@@ -568,11 +586,15 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
         res[bad] = 1e3  # behind the other camera: a large, finite residual
         if not jac:
             return res, None
-        # d d / d (src rotation perturbation) = M [r]x; d d / d (dst) = -[d]x; then the left Jacobians
-        J_src = dp_dd @ M @ _skew(r) @ Jl[src_pos]
-        J_dst = -(dp_dd @ _skew(d)) @ Jl[dst_pos]
-        J_gs = dp_dd @ M @ dr if dr is not None else None
-        blocks = [J_src, J_dst, J_gs, dp_dg]
+        # d d / d (dst rotation perturbation) = -[d]x, d d / d (src) = M [r]x = [d]x M; rows of dp_dd [d]x are
+        # dp_dd[r] x d
+        A = np.cross(dp_dd, d[:, None, :])
+        J_gs = None
+        if dr is not None:  # dp_dd M dr, with dr's z row zero
+            DM = [dp_dd[:, :, 0, None] * M[:, 0, c, None, None] + dp_dd[:, :, 1, None] * M[:, 1, c, None, None]
+                  + dp_dd[:, :, 2, None] * M[:, 2, c, None, None] for c in range(2)]  # 2 x (n, 2, 1)
+            J_gs = DM[0] * dr[:, None, 0, :] + DM[1] * dr[:, None, 1, :]
+        blocks = [A, J_gs, dp_dg]
         for B in blocks:
             if B is not None:
                 B[bad] = 0.0
@@ -580,14 +602,24 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
 
     n_prior = ((sum(1 for g in gids if focal_prior and g in focal_prior) if n_gp else 0)
                + (4 * len(gids) if n_gp == 5 else 0))
+    single_group = len(gids) == 1
 
     def evaluate(x, idx, jac):
         Rs, Jl, gp = unpack(x)
         ap, bp = a_pos[idx], b_pos[idx]
+        # blocks of consecutive observations of one pair of photos (stacked pair by pair: one block per pair)
+        cut = np.flatnonzero((np.diff(ap) != 0) | (np.diff(bp) != 0)) + 1
+        starts = np.concatenate([[0], cut]).astype(int)
+        ends = np.concatenate([cut, [len(idx)]]).astype(int)
+        pa, pb = ap[starts], bp[starts]
+        M_ba = Rs[pb] @ np.transpose(Rs[pa], (0, 2, 1))  # per pair: b_from_a
+        M_ab = np.transpose(M_ba, (0, 2, 1))
+        lens_ = ends - starts
+        Mo_ba, Mo_ab = np.repeat(M_ba, lens_, axis=0), np.repeat(M_ab, lens_, axis=0)
         ra = ray_a if fixed_intrinsics else None
         rb = ray_b if fixed_intrinsics else None
-        res_ab, B_ab = one_way(Rs, Jl, gp, idx, ap, bp, obs.xa, obs.xb, ra, jac)
-        res_ba, B_ba = one_way(Rs, Jl, gp, idx, bp, ap, obs.xb, obs.xa, rb, jac)
+        res_ab, B_ab = one_way(Rs, gp, idx, Mo_ba, ap, bp, obs.xa, obs.xb, ra, jac)
+        res_ba, B_ba = one_way(Rs, gp, idx, Mo_ab, bp, ap, obs.xb, obs.xa, rb, jac)
         s = s_obs[idx]
         r = (np.stack([res_ab, res_ba], axis=1) * s[:, None, None]).reshape(-1)
         extra, Jx = [], []
@@ -607,23 +639,23 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
         if not jac:
             return r, None
         n = len(idx)
-        J = np.zeros((4 * n + len(extra), n_par))
-        rows = 4 * np.arange(n)
-        for w, (src, dst), B in ((0, (ap, bp), B_ab), (2, (bp, ap), B_ba)):
-            J_src, J_dst, J_gs, J_gd = (None if b_ is None else b_ * s[:, None, None] for b_ in B)
-            for c_row in range(2):
-                rr = rows + w + c_row
-                for pp_, Bk in ((src, J_src), (dst, J_dst)):
-                    m = rot_col[pp_] >= 0
-                    if m.any():
-                        cols = rot_col[pp_][m][:, None] + np.arange(3)[None]
-                        J[rr[m][:, None], cols] += Bk[m, c_row, :]
-                if n_gp:
-                    for pp_, Bk in ((src, J_gs), (dst, J_gd)):
-                        if Bk is None:
-                            continue
-                        cols = gp_col[pp_][:, None] + np.arange(n_gp)[None]
-                        np.add.at(J, (np.broadcast_to(rr[:, None], cols.shape), cols), Bk[:, c_row, :])
+        J = np.zeros((n + (len(extra) + 3) // 4, 2, 2, n_par))  # rows: observation, direction, x / y
+        for w, (src, dst, Mp, B) in enumerate(((pa, pb, M_ba, B_ab), (pb, pa, M_ab, B_ba))):
+            A, J_gs, J_gd = (None if b_ is None else b_ * s[:, None, None] for b_ in B)
+            for q, (s0, e0) in enumerate(zip(starts, ends)):
+                cs, cd = rot_col[src[q]], rot_col[dst[q]]
+                if cs >= 0:
+                    J[s0:e0, w, :, cs:cs + 3] = A[s0:e0] @ (Mp[q] @ Jl[src[q]])
+                if cd >= 0:
+                    J[s0:e0, w, :, cd:cd + 3] = -(A[s0:e0] @ Jl[dst[q]])
+                if n_gp and not single_group:
+                    gs, gd = gp_col[src[q]], gp_col[dst[q]]
+                    if J_gs is not None:
+                        J[s0:e0, w, :, gs:gs + n_gp] += J_gs[s0:e0]
+                    J[s0:e0, w, :, gd:gd + n_gp] += J_gd[s0:e0]
+            if n_gp and single_group:
+                J[:n, w, :, n_rot:] = J_gd if J_gs is None else J_gs + J_gd
+        J = J.reshape(-1, n_par)[:4 * n + len(extra)]
         for q, (c, v) in enumerate(Jx):
             J[4 * n + q, c] = v
         return r, J
@@ -652,7 +684,7 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
         return soft_l1(r, J, 4 * len(idx))[1] if robust else J
 
     x = np.zeros(n_par)
-    used = np.ones(len(obs.a), dtype=bool)
+    used = np.ones(len(obs.a), dtype=bool) if used is None else used.copy()
     nfev = 0
     cost = 0.0
     # the robust pass walks from the initial guess on at most ``robust_per_pair`` observations of each pair; the
@@ -666,11 +698,15 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
         idx = np.flatnonzero(sub if rnd == 0 else used)
         if len(x) == 0:
             break
+        if (rnd == 0 and not robust_pass) or (rnd == 1 and not final_pass):
+            continue
         # Levenberg-Marquardt (MINPACK) with the analytic Jacobian: a robust first pass (soft L1, by rescaling the
         # residuals: the loss is their sum of squares), then plain least squares on the inliers. LM walks the
         # focal / distortion valley far better than trf.
         robust = rnd == 0
-        sol = least_squares(fun, x, jac=jac, args=(idx, robust), method="lm", xtol=1e-10, ftol=1e-10,
+        # the robust pass only has to find the inliers and come near the minimum: a looser tolerance
+        tol = robust_tol if robust else 1e-10
+        sol = least_squares(fun, x, jac=jac, args=(idx, robust), method="lm", xtol=tol, ftol=tol,
                             max_nfev=max_nfev * 2)
         x, cost, n_ev, msg = sol.x, float(sol.cost), sol.nfev, sol.message
         nfev += n_ev

@@ -14,7 +14,7 @@ import logging
 import os
 import resource
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Literal
@@ -63,6 +63,9 @@ class StitchOptions:
     compose: bool = True
     refine_matches: bool = True  # sub-pixel Lucas-Kanade refinement of the inliers before the bundle adjustment
     max_refined_per_pair: int = 300  # inliers refined (and adjusted) per pair, at most
+    refine_megapix: float = 0.9  # matches refined on a copy of this size (at least the work copy's; full size when
+    # smaller): finer than the work copy, the single row's focal and rotations are better pinned (docs/stitching.md)
+    keep_full_max_megapix: float = 2.0  # photos up to this size are decoded once, at full size, and kept for composition
     seed: int = 0
 
     def __post_init__(self) -> None:
@@ -182,9 +185,22 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
     opts = options
     timings: dict[str, float] = {}
 
-    # -- read at work and seam resolution --------------------------------------------------------------------
-    t0 = time.perf_counter()
-    def read_and_detect(k: int) -> tuple:  # features, seam-size photo, full size, smoothed grey, FLANN index
+    # -- intrinsics route ---------------------------------------------------------------------------------------
+    calibrated = calibrated or {}
+    focal_priors_px = focal_priors_px or {}
+    init: dict[int, CameraIntrinsics] = {}
+    fixed = bool(calibrated)
+    if fixed:
+        for nm in names:
+            if nm not in calibrated:
+                raise InputError(f"no calibrated intrinsics for photo {nm}")
+        source = "calibrated"
+    else:
+        source = "exif" if focal_priors_px and all(focal_priors_px.get(nm) for nm in names) else "fallback"
+
+    # -- read at work and seam resolution, features ------------------------------------------------------------
+    def read_and_detect(k: int) -> tuple:
+        """features, seam-size photo, full size, smoothed grey, FLANN index, linearised keypoints, full photo"""
         p = photos[k]
         try:
             with Image.open(p) as im:
@@ -193,7 +209,16 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
             raise InputError(f"{p}: cannot read this photo ({exc}); replace it or remove it from the folder") from None
         s_work = min(1.0, np.sqrt(opts.work_megapix * 1e6 / (w * h)))
         s_seam = min(1.0, np.sqrt(opts.seam_megapix * 1e6 / (w * h)))
-        img, (w, h) = read_reduced(p, s_work)
+        full = None
+        if opts.compose and w * h <= opts.keep_full_max_megapix * 1e6:  # small photos: decoded once, kept
+            full = cv2.imread(str(p), cv2.IMREAD_COLOR)
+            if full is None:
+                raise InputError(f"{p}: OpenCV cannot decode this photo; convert it to JPEG or PNG")
+            h, w = full.shape[:2]
+            tw, th = max(1, int(round(w * s_work))), max(1, int(round(h * s_work)))
+            img = full if (tw, th) == (w, h) else cv2.resize(full, (tw, th), interpolation=cv2.INTER_AREA)
+        else:
+            img, (w, h) = read_reduced(p, s_work)
         sm = cv2.resize(img, (max(1, round(w * s_seam)), max(1, round(h * s_seam))), interpolation=cv2.INTER_AREA)
         gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
         # SIFT on a half-size copy only where that copy keeps enough pixels for features (small photos: full size)
@@ -203,52 +228,41 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
                 and w * h <= opts.sift_half_max_photo_megapix * 1e6)
         f = reg.detect_features(names[k], gray, (w, h), max_features=opts.max_features,
                                 contrast_threshold=opts.sift_contrast, half=half)
-        smooth = reg.smooth_for_refinement(gray) if opts.refine_matches else None
-        return f, sm, (w, h), smooth, reg.build_index(f)
+        smooth = None
+        if opts.refine_matches:
+            s_ref = min(1.0, np.sqrt(opts.refine_megapix * 1e6 / (w * h)))
+            if s_ref <= s_work * 1.05:
+                smooth = reg.smooth_for_refinement(gray)
+            else:  # matches refined on a finer copy than the work copy
+                if full is not None:
+                    g_ref = cv2.cvtColor(full, cv2.COLOR_BGR2GRAY)
+                    if s_ref < 1.0:
+                        g_ref = cv2.resize(g_ref, (max(1, round(w * s_ref)), max(1, round(h * s_ref))),
+                                           interpolation=cv2.INTER_AREA)
+                else:
+                    g_ref = read_reduced(p, s_ref, flags=cv2.IMREAD_GRAYSCALE)[0]
+                smooth = reg.smooth_for_refinement(g_ref)
+        # FLANN's randomised trees draw from OpenCV's (thread-local) generator: seeded here, the forest is the
+        # same whichever thread builds it, so the same photos give the same panorama
+        cv2.setRNGSeed(opts.seed + 7 * k + 1)
+        index = reg.build_index(f)
+        lin_k = f.keypoints  # linearised keypoints for matching: undistorted pixels when the lens is known
+        if fixed:
+            ci = calibrated[names[k]]
+            if (ci.width, ci.height) != (w, h):
+                raise InputError(f"{p}: {w}x{h} px, but the camera profile is for {ci.width}x{ci.height}; use "
+                                 f"photos at the profile's size or recalibrate")
+            if ci.has_distortion and len(f.keypoints):
+                lin_k = ci.pixels_from_normalized(ci.undistort(ci.normalized_from_pixels(f.keypoints)))
+        return f, sm, (w, h), smooth, index, lin_k, full
 
-    # OpenCV releases the GIL: photos are read and described in parallel threads
-    with ThreadPoolExecutor(max_workers=_workers()) as pool:
-        done = []
-        for k, r in enumerate(pool.map(read_and_detect, range(n))):
-            progress(0.02 + 0.18 * (k + 1) / n, f"features {photos[k].name}")
-            done.append(r)
-    feats = [d[0] for d in done]
-    small = [d[1] for d in done]
-    sizes = [d[2] for d in done]
-    grays = [d[3] for d in done]  # work resolution, for the sub-pixel refinement of the matches
-    indexes = [d[4] for d in done]  # FLANN forests of the descriptors
-    del done
-    timings["features_s"] = time.perf_counter() - t0
-
-    # -- intrinsics route ---------------------------------------------------------------------------------------
-    calibrated = calibrated or {}
-    focal_priors_px = focal_priors_px or {}
-    init: dict[int, CameraIntrinsics] = {}
-    fixed = bool(calibrated)
-    if fixed:
-        for k, nm in enumerate(names):
-            if nm not in calibrated:
-                raise InputError(f"no calibrated intrinsics for photo {nm}")
-            ci = calibrated[nm]
-            if (ci.width, ci.height) != sizes[k]:
-                raise InputError(f"{photos[k]}: {sizes[k][0]}x{sizes[k][1]} px, but the camera profile is for "
-                                 f"{ci.width}x{ci.height}; use photos at the profile's size or recalibrate")
-            init[k] = ci
-        source = "calibrated"
-    else:
-        source = "exif" if focal_priors_px and all(focal_priors_px.get(nm) for nm in names) else "fallback"
-    # linearised keypoints for matching: undistorted pixels when the lens is known
-    lin = []
-    for k, f in enumerate(feats):
-        if fixed and init[k].has_distortion and len(f.keypoints):
-            ci = init[k]
-            lin.append(ci.pixels_from_normalized(ci.undistort(ci.normalized_from_pixels(f.keypoints))))
-        else:
-            lin.append(f.keypoints)
-
-    # -- pairwise matching --------------------------------------------------------------------------------------
-    t0 = time.perf_counter()
-    ij = [(i, j) for i in range(n) for j in range(i + 1, n)]
+    feats: list = [None] * n
+    small: list = [None] * n
+    sizes: list = [None] * n
+    grays: list = [None] * n  # work resolution, for the sub-pixel refinement of the matches
+    indexes: list = [None] * n  # FLANN forests of the descriptors
+    lin: list = [None] * n
+    fulls: dict[int, np.ndarray] = {}  # full-resolution photos kept for composition (small photos only)
 
     def match(pair: tuple[int, int]) -> reg.PairMatch:
         i, j = pair
@@ -264,17 +278,40 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
                     len(sel), opts.max_refined_per_pair, replace=False))
             xi, xj = feats[i].keypoints[pm.idx_i[sel]], feats[j].keypoints[pm.idx_j[sel]]
             J = reg._homography_jacobian(pm.H, lin[i][pm.idx_i[sel]])
-            xj_ref, ok = reg.refine_matches(grays[i], grays[j], xi, xj, sizes[i], sizes[j], J)
+            # (a shift of at most 1.5 work pixels, in the refinement copy's pixels)
+            # (a patch of 13 x 13 work pixels and a shift of at most 1.5 work pixels, in the refinement copy's pixels)
+            r_ref = max(grays[j].shape[1] / sizes[j][0] / feats[j].work_scale, 1.0)
+            xj_ref, ok = reg.refine_matches(grays[i], grays[j], xi, xj, sizes[i], sizes[j], J,
+                                            radius=int(round(6 * r_ref)), max_shift_work_px=1.5 * r_ref)
             if ok.sum() >= max(opts.min_inliers, 0.3 * len(ok)):
                 pm.x_i, pm.x_j = xi[ok], xj_ref[ok]
         return pm
 
+    # OpenCV releases the GIL: photos are read and described in parallel threads, and each pair is matched as
+    # soon as both its photos are described (pipelined; the result does not depend on the order)
+    t0 = time.perf_counter()
+    n_pairs = n * (n - 1) // 2
     pairs: list[reg.PairMatch] = []
     with ThreadPoolExecutor(max_workers=_workers()) as pool:
-        for pm in pool.map(match, ij):
+        futs = {pool.submit(read_and_detect, k): k for k in range(n)}
+        match_futs = []
+        ready: list[int] = []
+        for fu in as_completed(futs):
+            k = futs[fu]
+            feats[k], small[k], sizes[k], grays[k], indexes[k], lin[k], full = fu.result()
+            if full is not None:
+                fulls[k] = full
+            progress(0.02 + 0.18 * (len(ready) + 1) / n, f"features {photos[k].name}")
+            match_futs += [pool.submit(match, (min(i, k), max(i, k))) for i in ready]
+            ready.append(k)
+        timings["features_s"] = time.perf_counter() - t0
+        t1 = time.perf_counter()
+        for mf in match_futs:
+            pm = mf.result()
             pairs.append(pm)
-            progress(0.2 + 0.2 * len(pairs) / max(len(ij), 1), f"matching {names[pm.i]} - {names[pm.j]}")
-    timings["matching_s"] = time.perf_counter() - t0
+            progress(0.2 + 0.2 * len(pairs) / max(n_pairs, 1), f"matching {names[pm.i]} - {names[pm.j]}")
+    pairs.sort(key=lambda p: (p.i, p.j))
+    timings["matching_s"] = time.perf_counter() - t1  # after the last photo's features (matching overlaps them)
     kept = reg.largest_component(n, pairs, opts.conf_thresh)
     rejected = []
     for k in range(n):
@@ -300,7 +337,9 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
 
     # -- initial intrinsics and rotations --------------------------------------------------------------------
     progress(0.42, "rotations and focal")
-    if not fixed:
+    if fixed:
+        init = {k: calibrated[names[k]] for k in range(n)}
+    else:
         centres = {k: ((sizes[k][0] - 1) / 2.0, (sizes[k][1] - 1) / 2.0) for k in range(n)}
         f_h = reg.focal_from_homographies(kept_pairs, centres)
         for k in kept:
@@ -330,7 +369,7 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
     # -- bundle adjustment ------------------------------------------------------------------------------------------
     t0 = time.perf_counter()
     progress(0.45, "bundle adjustment")
-    obs = reg.stack_observations(kept_pairs, feats, kept, seed=opts.seed)
+    obs = reg.stack_observations(kept_pairs, feats, kept, seed=opts.seed, max_per_pair=opts.max_refined_per_pair)
     wscale = {k: feats[k].work_scale for k in kept}
     prior = None
     if source == "exif":
@@ -347,13 +386,17 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
         own = {k: n_ for n_, k in enumerate(kept)}
         # from the shared fit's rotations and focal (the root keeps its rotation in both fits)
         init_own = {k: replace(init[k], fx=ba.intrinsics[k].fx, fy=ba.intrinsics[k].fx) for k in kept}
+        # (its robust pass only: the final pass runs when this model is chosen; the RMS after the robust pass is at
+        # least the final one's, so the comparison leans towards the shared camera)
         ba_own = reg.bundle_adjust(obs, root_first, own, init_own, ba.cam_from_pano, wscale, fixed_intrinsics=False,
-                                   estimate_k1=False)
+                                   estimate_k1=False, final_pass=False)
         rms_shared, rms_own = _rms_work(ba, obs, wscale), _rms_work(ba_own, obs, wscale)
         log.info("stitch: RMS %.3f (one camera: f %.1f, k1 %.4f) vs %.3f work px (one focal per photo)", rms_shared,
                  ba.intrinsics[kept[0]].fx, ba.intrinsics[kept[0]].k1, rms_own)
         if rms_shared > 1.3 * rms_own + 0.2:
-            ba, groups, focal_model = ba_own, own, "per_photo"
+            ba = reg.bundle_adjust(obs, root_first, own, ba_own.intrinsics, ba_own.cam_from_pano, wscale,
+                                   fixed_intrinsics=False, estimate_k1=False, robust_pass=False, used=ba_own.used)
+            groups, focal_model = own, "per_photo"
     timings["bundle_adjustment_s"] = time.perf_counter() - t0
 
     # -- residuals and the parallax check ------------------------------------------------------------------------
@@ -419,8 +462,16 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
         progress(0.55, "composing")
         # seam-resolution panorama: the photos' seam scale relative to the output panorama's scale
         seam_scale = float(np.median([small[k].shape[1] / sizes[k][0] for k in kept])) / out_scale
-        image, comp_stats = compose(model, [photos[k] for k in kept], [small[k] for k in kept],
-                                    seam_scale=seam_scale,
+        paths_kept = [photos[k] for k in kept]
+        kept_full = {str(photos[k]): fulls.pop(k) for k in kept if k in fulls}
+        fulls.clear()
+
+        def read_full(p: Path) -> np.ndarray:  # the photo decoded at registration, else read now
+            img = kept_full.pop(str(p), None)
+            return img if img is not None else cv2.imread(str(p), cv2.IMREAD_COLOR)
+
+        image, comp_stats = compose(model, paths_kept, [small[k] for k in kept], seam_scale=seam_scale,
+                                    read_full=read_full,
                                     progress=lambda f, m="": progress(0.55 + 0.43 * f, m))
         timings["compose_s"] = time.perf_counter() - t0
     progress(1.0, "done")
