@@ -39,6 +39,7 @@ class MatchOptions:
     refine: bool = True  # guided re-matching and ECC alignment of each accepted face
     max_instances: int = 2  # homographies tried per face reference and photo
     carry_between_photos: bool = True  # panorama sets: carry points into the other photos (rotation homography)
+    pose_points: bool = True  # also report the points off every found face's plane, projected from the car's pose
     # pose-guided completion (complete.py): a found car's other faces, aligned by ECC where its pose puts them
     guided: bool = True
     guided_min_cosine: float = 0.2  # the face turns at least this much to the camera (cosine of the angle)
@@ -49,6 +50,7 @@ class MatchOptions:
     hough: bool = True
     hough_k: int = 2  # nearest reference descriptors per photo keypoint
     hough_min_votes: int = 8  # distinct photo keypoints in a bin before it is verified by RANSAC
+    hough_max_clusters: int = 8  # bins verified per face reference and photo, strongest first
     hough_min_ecc: float = 0.85  # a Hough face is kept only if ECC aligns the whole face this well
 
     def __post_init__(self) -> None:
@@ -410,11 +412,25 @@ def hough_clusters(photo: PhotoFeatures, ref: FaceReference, *, k: int = 4, min_
     ends = np.append(starts[1:], len(order))
     pairs = np.unique(np.column_stack([inv, qi[V[:, 4]]]), axis=0)
     counts = np.bincount(pairs[:, 0], minlength=len(keys))
+    # rank bins by how far their votes stand above chance: a bin of a large predicted size covers much of
+    # the photo and collects many random votes; the chance count is the band's (size, rotation) votes
+    # spread over the band's location cells in the photo
+    W, Hh = photo.intrinsics.width, photo.intrinsics.height
+    band, band_inv = np.unique(keys[:, [0, 3]], axis=0, return_inverse=True)
+    band_inv = band_inv.ravel()
+    band_votes = np.bincount(band_inv, weights=counts, minlength=len(band))
+    L = 0.25 * 2.0 ** (keys[:, 0] + 0.5)
+    cells = np.maximum((W / L + 1) * (Hh / L + 1), 1.0)
+    # each match votes in 4 location bins of its band (2 x 2): the chance count of one bin
+    expected = 4.0 * band_votes[band_inv] / 16.0 / cells
+    score = (counts - expected) / np.sqrt(expected + 1.0)
     out: list[np.ndarray] = []
     taken: list[set] = []
-    for kk in np.argsort(-counts):
-        if counts[kk] < min_votes or len(out) >= max_clusters:
+    for kk in np.argsort(-score):
+        if len(out) >= max_clusters:
             break
+        if counts[kk] < min_votes:
+            continue
         members = V[order[starts[kk]:ends[kk]], 4]
         m = set(members.tolist())
         if any(len(m & t) > 0.5 * len(m) for t in taken):
@@ -433,7 +449,8 @@ def hough_detections(photo: PhotoFeatures, ref: FaceReference, opts: MatchOption
     P, R = photo.keypoints[qi], ref.keypoints[ti]
     size = (photo.intrinsics.width, photo.intrinsics.height)
     out: list[FaceDetection] = []
-    for members in hough_clusters(photo, ref, k=opts.hough_k, min_votes=opts.hough_min_votes):
+    for members in hough_clusters(photo, ref, k=opts.hough_k, min_votes=opts.hough_min_votes,
+                                  max_clusters=opts.hough_max_clusters):
         if len(members) < 6:
             continue
         H, mask = cv2.findHomography(R[members], P[members], cv2.USAC_MAGSAC, opts.ransac_px, maxIters=5000,

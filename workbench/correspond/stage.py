@@ -184,7 +184,7 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
         t0 = time.perf_counter()
         pf = photo_features(p.name, _read_rgb(p), intrinsics[p.name], opts)
         found = find_cars(pf, refs, consist, types, opts, ref_cache)
-        per_view[p.name] = observations_of(found, pf, types)
+        per_view[p.name] = observations_of(found, pf, types, pose_points=opts.pose_points)
         if carry_on:
             features[p.name] = pf
         per_photo[p.name] = {"keypoints": int(len(pf.keypoints)), "time_s": round(time.perf_counter() - t0, 2),
