@@ -108,6 +108,30 @@ def test_save_validates_and_writes_atomically(incident):
     assert not list(incident.glob(".correspondences*"))  # no temp files left behind
 
 
+def test_rejected_automatic_point_is_dropped_by_the_stage(incident):
+    """A rejection saved by the picker is validated (a point picked and rejected at once is refused) and the
+    stage's merge drops the automatic point."""
+    rej = {"carriage": "6100", "point": "body_top_front_left", "view": "p0.jpg"}
+    with PickerServer(incident) as srv:
+        status, res = _post(srv.url + "api/save", {"observations": [], "rejected": [rej]})
+        assert status == 200 and res["n_rejected"] == 1
+        doc = json.loads(_get(srv.url + "api/state")[2])
+        assert doc["rejected"] == [rej] and doc["automatic"][0]["point"] == "body_top_front_left"
+        both = {"observations": [{**rej, "uv": [61.0, 151.0]}], "rejected": [rej]}
+        status, res = _post(srv.url + "api/save", both)
+        assert status == 400 and "picked or rejected, not both" in res["error"], res
+        status, res = _post(srv.url + "api/save", {"rejected": [{**rej, "point": "no_such_point"}]})
+        assert status == 400 and "no marked point 'no_such_point'" in res["error"], res
+    from workbench.correspond.stage import load_manual
+    from workbench.project import Project
+
+    cf = load_manual(Project(incident))
+    assert [r.key for r in cf.rejected] == [("6100", "body_top_front_left", "p0.jpg")]
+    auto = mf.parse(json.loads((incident / "out" / "correspond" / mf.FILE_NAME).read_text()), "auto").observations
+    assert len(auto) == 1 and mf.merge(auto, cf.observations, cf.rejected) == []
+    assert mf.merge(auto, cf.observations) == auto  # without the rejection the point stays
+
+
 def _playwright_python() -> str | None:
     """An interpreter with Playwright: this one, or $WORKBENCH_PLAYWRIGHT_PYTHON."""
     try:
@@ -129,7 +153,7 @@ def test_driven_in_a_browser_like_a_person(incident, tmp_path):
         pytest.skip("needs Playwright (pip install playwright, or WORKBENCH_PLAYWRIGHT_PYTHON) and chromium")
     uv = [87.3, 161.6]  # a place inside the first drawn window
     plan = {"car": "6100", "point": "front_door_top_front_left", "face": "left", "view": "p0.jpg",
-            "first_uv": [uv[0] + 7, uv[1] + 5], "uv": uv}
+            "first_uv": [uv[0] + 7, uv[1] + 5], "uv": uv, "reject_point": "body_top_front_left"}
     (tmp_path / "plan.json").write_text(json.dumps(plan))
     shot = tmp_path / "picker.png"
     with PickerServer(incident) as srv:
@@ -140,7 +164,12 @@ def test_driven_in_a_browser_like_a_person(incident, tmp_path):
     assert log["point_selected"] == "front_door_top_front_left"
     assert log["scale"] > 4  # zoomed in
     assert np.allclose(log["after_undo"]["uv"], plan["first_uv"], atol=1.5)  # undo went back to the rough pick
-    saved = json.loads((incident / mf.FILE_NAME).read_text())["observations"]
+    doc = json.loads((incident / mf.FILE_NAME).read_text())
+    # the automatic point the person found wrong is rejected, and the stage will drop it
+    assert "rejected" in log["rejected"], log
+    assert doc["rejected"] == [{"carriage": "6100", "point": "body_top_front_left", "view": "p0.jpg",
+                                "reason": "rejected in the picker"}]
+    saved = doc["observations"]
     assert len(saved) == 1 and saved[0]["point"] == "front_door_top_front_left" and saved[0]["carriage"] == "6100"
     err = np.hypot(saved[0]["uv"][0] - uv[0], saved[0]["uv"][1] - uv[1])
     assert 0.0 <= err < 0.3, saved  # the careful pick at high zoom

@@ -4,7 +4,11 @@ The incident's hand-written file and the ``correspond`` stage's output share one
 
     {"observations": [{"carriage": "6100", "point": "front_left_cant", "view": "pano_01.jpg",
                        "uv": [812.4, 433.0], "source": "manual", "confidence": 1.0, "sigma_px": 1.0}],
-     "needs_manual": [{"carriage": "6227", "reason": "..."}]}
+     "needs_manual": [{"carriage": "6227", "reason": "..."}],
+     "rejected": [{"carriage": "6234", "point": "coupler_rear", "view": "pano_02.jpg", "reason": "..."}]}
+
+``rejected`` (hand-written file only): automatic points a person reviewed and found wrong; the stage drops
+them. A (carriage, point, view) may be picked or rejected, not both.
 
 Pixels follow docs/conventions.md: (0, 0) is the centre of the top-left pixel, so an image of width w spans
 u in [-0.5, w - 0.5]. ``view`` is a photo name of the photo set, or ``"panorama"``.
@@ -62,16 +66,34 @@ class NeedsManual(BaseModel):
     reason: str = ""
 
 
+class Rejection(BaseModel):
+    """An automatic point a person found wrong (in the picker): the stage drops it."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    carriage: str
+    point: str
+    view: str
+    reason: str = ""
+
+    @property
+    def key(self) -> tuple[str, str, str]:
+        return (self.carriage, self.point, self.view)
+
+
 class CorrespondenceFile(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     observations: list[Observation] = Field(default_factory=list)
     needs_manual: list[NeedsManual] = Field(default_factory=list)
+    rejected: list[Rejection] = Field(default_factory=list)
     note: str | None = None  # free text (who picked, how)
 
     def to_json(self) -> dict:
         d = {"observations": [o.to_json() for o in self.observations],
              "needs_manual": [n.model_dump() for n in self.needs_manual]}
+        if self.rejected:
+            d["rejected"] = [r.model_dump(exclude_defaults=True) for r in self.rejected]
         if self.note:
             d["note"] = self.note
         return d
@@ -130,6 +152,21 @@ def validate(cf: CorrespondenceFile, path: Path | str, *, points: dict[str, list
     for i, n in enumerate(cf.needs_manual):
         if n.carriage not in points:
             problems.append(f"needs_manual[{i}]: unknown carriage {n.carriage!r}")
+    rejected: dict[tuple[str, str, str], int] = {}
+    for i, r in enumerate(cf.rejected):
+        where = f"rejected[{i}]"
+        if r.carriage not in points:
+            problems.append(f"{where}: unknown carriage {r.carriage!r} (the consist has {', '.join(points)})")
+        elif r.point not in points[r.carriage]:
+            problems.append(f"{where}: carriage {r.carriage!r} has no marked point {r.point!r}")
+        if r.view not in image_sizes and r.view != PANORAMA:
+            problems.append(f"{where}: unknown view {r.view!r} (the photos are {', '.join(sorted(image_sizes))})")
+        if r.key in rejected:
+            problems.append(f"{where}: duplicate of rejected[{rejected[r.key]}]; keep one")
+        rejected.setdefault(r.key, i)
+        if r.key in seen:
+            problems.append(f"{where}: (carriage {r.carriage!r}, point {r.point!r}, view {r.view!r}) is also picked "
+                            f"in observations[{seen[r.key]}]; a point is picked or rejected, not both")
     if problems:
         more = f" (and {len(problems) - 8} more)" if len(problems) > 8 else ""
         raise InputError(f"{path}: " + "; ".join(problems[:8]) + more)
@@ -145,10 +182,12 @@ def load(path: Path, *, points: dict[str, list[str]], image_sizes: dict[str, tup
     return validate(parse(data, path), path, points=points, image_sizes=image_sizes)
 
 
-def merge(automatic: list[Observation], manual: list[Observation]) -> list[Observation]:
+def merge(automatic: list[Observation], manual: list[Observation],
+          rejected: list[Rejection] = ()) -> list[Observation]:
     """Automatic and manual observations; a manual one replaces the automatic one of the same
-    (carriage, point, view). Ordered by carriage, view, point."""
-    out = {o.key: o for o in automatic}
+    (carriage, point, view), and a rejected automatic one is dropped. Ordered by carriage, view, point."""
+    drop = {r.key for r in rejected}
+    out = {o.key: o for o in automatic if o.key not in drop}
     for o in manual:
         out[o.key] = o
     return sorted(out.values(), key=lambda o: (o.carriage, o.view, o.point))

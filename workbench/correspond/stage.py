@@ -217,7 +217,7 @@ def run_correspond(project: Project, progress: Progress, opts: MatchOptions | No
     intrinsics, intr_source = photo_intrinsics(project, photos)
     out_dir = project.stage_dir("correspond")
     auto, needs, stats = automatic(project, photos, intrinsics, opts, progress, reference_dir=out_dir / "references")
-    merged = mf.merge(auto, man.observations)
+    merged = mf.merge(auto, man.observations, man.rejected)
     manual_cars = {o.carriage for o in man.observations}
     needs = [n for n in needs if n["carriage"] not in manual_cars]
     known = {n["carriage"] for n in needs}
@@ -225,11 +225,13 @@ def run_correspond(project: Project, progress: Progress, opts: MatchOptions | No
     doc = mf.CorrespondenceFile(observations=merged, needs_manual=[mf.NeedsManual(**n) for n in needs])
     path = project.write_json(output_path(project), doc.to_json())
     overridden = len({o.key for o in auto} & {o.key for o in man.observations})
+    rejected = len({o.key for o in auto} & {r.key for r in man.rejected})
     by_car: dict[str, int] = {}
     for o in merged:
         by_car[o.carriage] = by_car.get(o.carriage, 0) + 1
     stats.update({"intrinsics": intr_source, "n_observations": len(merged), "n_sift": len(auto),
-                  "n_manual": len(man.observations), "n_overridden": overridden, "by_carriage": by_car,
+                  "n_manual": len(man.observations), "n_overridden": overridden,
+                  "n_rejected": rejected, "by_carriage": by_car,
                   "needs_manual": needs, "options": {k: getattr(opts, k) for k in opts.__dataclass_fields__}})
     for n in needs:
         log.warning("carriage %s needs manual points: %s", n["carriage"], n["reason"])

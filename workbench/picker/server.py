@@ -4,13 +4,14 @@
 carriage's faces (its livery, the model's textured sides and ends, with the marked points). The user picks a
 marked point on a face, then its place in the photo; zoom (mouse wheel), pan (drag), undo (Ctrl+Z) and save
 (Ctrl+S). The automatic points (``out/correspond/correspondences.json``) are shown for review: picking a
-point again overrides it (a manual point replaces an automatic one in the ``correspond`` stage).
+point again overrides it (a manual point replaces an automatic one in the ``correspond`` stage), and an
+automatic point found wrong is rejected (key R; the stage then drops it).
 
 Saving writes the incident's ``correspondences.json`` atomically, after the same validation as the stage
 (unknown carriage or point names, out-of-image coordinates, duplicates are refused with the message).
 
 Endpoints: ``GET /`` page; ``GET /api/state``; ``GET /photo/<name>``; ``GET /reference/<car>/<face>.png``;
-``POST /api/save`` with ``{"observations": [...]}``. Only local connections; no external resources.
+``POST /api/save`` with ``{"observations": [...], "rejected": [...]}``. Only local connections; no external resources.
 """
 
 from __future__ import annotations
@@ -73,26 +74,29 @@ class PickerState:
                             "points": {n: [round(float(v), 2) for v in p] for n, p in ref.points.items()}}
             cars.append({"number": c.number, "type": ct.id, "name": ct.name, "points": list(ct.marked_points),
                          "point_faces": {n: list(fs) for n, fs in ct.marked_point_faces.items()}, "faces": faces})
-        manual = []
+        manual, rejected = [], []
         mp = project.root / mf.FILE_NAME
         if mp.is_file():
-            manual = [o.to_json() for o in mf.parse(project.read_json(mp), mp).observations]
+            own = mf.parse(project.read_json(mp), mp)
+            manual = [o.to_json() for o in own.observations]
+            rejected = [r.model_dump(exclude_defaults=True) for r in own.rejected]
         auto = []
         ap = project.stage_dir("correspond") / mf.FILE_NAME
         if ap.is_file():
             auto = [o.to_json() for o in mf.parse(project.read_json(ap), ap).observations if o.source == "sift"]
         return {"incident": project.settings.incident.name, "root": str(project.root),
                 "photos": [{"name": n, "width": w, "height": h, "url": f"/photo/{n}"} for n, (w, h) in sizes.items()],
-                "cars": cars, "manual": manual, "automatic": auto}
+                "cars": cars, "manual": manual, "rejected": rejected, "automatic": auto}
 
     def save(self, payload: object) -> Path:
-        """Validate ``{"observations": [...]}`` (manual points) and write the incident's file atomically."""
+        """Validate ``{"observations": [...], "rejected": [...]}`` (manual points, automatic points found
+        wrong) and write the incident's file atomically."""
         project = self.project
         path = project.root / mf.FILE_NAME
         if not isinstance(payload, dict):
             raise InputError("the picker sent no JSON object")
         obs = [dict(o, source="manual") for o in payload.get("observations", []) if isinstance(o, dict)]
-        doc = {"observations": obs}
+        doc = {"observations": obs, "rejected": [r for r in payload.get("rejected", []) if isinstance(r, dict)]}
         old = None
         if path.is_file():
             try:
@@ -183,7 +187,8 @@ def _handler(state: PickerState):
                 return self._json(400, {"error": f"not JSON: {exc}"})
             except WorkbenchError as exc:
                 return self._json(400, {"error": str(exc)})
-            return self._json(200, {"saved": str(written), "n": len(payload.get("observations", []))})
+            return self._json(200, {"saved": str(written), "n": len(payload.get("observations", [])),
+                                    "n_rejected": len(payload.get("rejected", []))})
 
     return Handler
 

@@ -7,8 +7,8 @@ Standalone (standard library + ``playwright`` only), so it runs under any Python
 PLAN.json: ``{"car": "6223", "point": "front_door_top_front_left", "face": "left", "view": "pano_01.jpg",
 "first_uv": [u, v], "uv": [u, v]}``. The run: choose the photo and the carriage, click the point on the
 model's face, click ``first_uv`` in the photo (a rough pick), zoom in with the wheel at ``uv`` and click it
-(the careful pick), undo it (Ctrl+Z: back to the rough pick), pick ``uv`` again, save (Ctrl+S), take a
-screenshot. Prints a JSON summary (status line after each step) on stdout.
+(the careful pick), undo it (Ctrl+Z: back to the rough pick), pick ``uv`` again, optionally reject the
+automatic point of ``reject_point`` (R), save (Ctrl+S), take a screenshot. Prints a JSON summary (status line after each step) on stdout.
 """
 
 from __future__ import annotations
@@ -70,6 +70,10 @@ def drive(url: str, plan: dict, screenshot: str, chromium: str | None = None) ->
         log["after_undo"] = page.evaluate("window.pickerState.manual.slice(-1)[0]")
         x, y = _screen(page, plan["uv"])
         page.mouse.click(x, y)
+        if plan.get("reject_point"):  # review: an automatic point of this car found wrong, rejected (R)
+            page.click(f'#points li[data-point="{plan["reject_point"]}"]')
+            page.keyboard.press("r")
+            log["rejected"] = page.inner_text("#status")
         page.keyboard.press("Control+s")
         page.wait_for_function("document.getElementById('status').textContent.startsWith('saved')", timeout=10000)
         log["saved"] = page.inner_text("#status")

@@ -1,7 +1,7 @@
 // Workbench marked-point picker. Pixel convention (docs/conventions.md): pixel (0, 0) is the centre of the
 // top-left pixel, so image pixel i covers [i - 0.5, i + 0.5]; on screen: x = (u + 0.5) * scale + ox.
 "use strict";
-const S = { doc: null, photo: null, car: null, point: null, manual: [], undo: [], img: null,
+const S = { doc: null, photo: null, car: null, point: null, manual: [], rejected: [], undo: [], img: null,
             scale: 1, ox: 0, oy: 0, faceImgs: {}, dirty: false };
 const $ = (id) => document.getElementById(id);
 const cv = $("photo-canvas"), ctx = cv.getContext("2d");
@@ -15,13 +15,14 @@ async function load() {
   const doc = await r.json();
   if (!r.ok) { status(doc.error || "cannot load", true); return; }
   S.doc = doc; S.manual = doc.manual.map((o) => Object.assign({}, o));
+  S.rejected = (doc.rejected || []).map((o) => Object.assign({}, o));
   $("incident").textContent = doc.incident;
   $("photo-select").innerHTML = doc.photos.map((p) => `<option>${p.name}</option>`).join("");
   $("car-select").innerHTML = doc.cars.map((c) => `<option value="${c.number}">${c.number} (${c.type})</option>`).join("");
   S.car = doc.cars[0].number;
   await selectPhoto(doc.photos[0].name);
   selectCar(S.car);
-  status(`${doc.automatic.length} automatic, ${doc.manual.length} manual points`);
+  status(`${doc.automatic.length} automatic, ${doc.manual.length} manual points, ${S.rejected.length} rejected`);
 }
 
 function selectPhoto(name) {
@@ -62,7 +63,9 @@ function listPoints() {
   $("points").innerHTML = c.points.map((n) => {
     const m = S.manual.find((o) => o.carriage === c.number && o.point === n && o.view === view);
     const a = S.doc.automatic.find((o) => o.carriage === c.number && o.point === n && o.view === view);
-    const tag = m ? '<span class="tag manual">manual</span>' : a ? '<span class="tag auto">auto</span>' : "";
+    const x = S.rejected.find((o) => o.carriage === c.number && o.point === n && o.view === view);
+    const tag = m ? '<span class="tag manual">manual</span>' : x ? '<span class="tag rejected">rejected</span>'
+      : a ? '<span class="tag auto">auto</span>' : "";
     return `<li data-point="${n}" class="${n === S.point ? "selected" : ""}">${n} <small>(${c.point_faces[n].join(", ")})</small>${tag}</li>`;
   }).join("");
   for (const li of $("points").children) li.onclick = () => selectPoint(li.dataset.point);
@@ -94,11 +97,16 @@ function draw() {
   ctx.setTransform(1, 0, 0, 1, 0, 0); ctx.fillStyle = "#111"; ctx.fillRect(0, 0, cv.width, cv.height);
   ctx.imageSmoothingEnabled = S.scale < 2;
   ctx.drawImage(S.img, S.ox, S.oy, S.img.width * S.scale, S.img.height * S.scale);
-  const view = S.photo.name, man = new Set(S.manual.map(key));
+  const view = S.photo.name, man = new Set(S.manual.map(key)), rej = new Set(S.rejected.map(key));
   ctx.font = "11px sans-serif";
   for (const o of S.doc.automatic) {
     if (o.view !== view) continue;
     const [x, y] = toScreen(o.uv), over = man.has(key(o)), mine = o.carriage === S.car;
+    if (rej.has(key(o))) {  // rejected: a grey X
+      ctx.strokeStyle = "#9e9e9e"; ctx.lineWidth = 2; ctx.beginPath();
+      ctx.moveTo(x - 5, y - 5); ctx.lineTo(x + 5, y + 5); ctx.moveTo(x + 5, y - 5); ctx.lineTo(x - 5, y + 5); ctx.stroke();
+      continue;
+    }
     ctx.beginPath(); ctx.arc(x, y, 5, 0, 2 * Math.PI); ctx.lineWidth = 2;
     ctx.strokeStyle = over ? "#777" : "#2196f3"; ctx.stroke();
     if (mine && o.point === S.point) { ctx.beginPath(); ctx.arc(x, y, 9, 0, 2 * Math.PI); ctx.strokeStyle = "#ffd54f"; ctx.stroke(); }
@@ -113,7 +121,7 @@ function draw() {
   }
 }
 
-function pushUndo() { S.undo.push(JSON.stringify(S.manual)); S.dirty = true; }
+function pushUndo() { S.undo.push(JSON.stringify([S.manual, S.rejected])); S.dirty = true; }
 function pick(uv) {
   if (!S.point) { status("pick a marked point on the model first", true); return; }
   const w = S.photo.width, h = S.photo.height;
@@ -122,23 +130,37 @@ function pick(uv) {
   const o = { carriage: S.car, point: S.point, view: S.photo.name, uv: [+uv[0].toFixed(2), +uv[1].toFixed(2)],
               source: "manual", confidence: 1.0 };
   S.manual = S.manual.filter((m) => key(m) !== key(o)); S.manual.push(o);
+  S.rejected = S.rejected.filter((m) => key(m) !== key(o));  // picked now: no longer rejected
   listPoints(); draw(); status(`${o.carriage} ${o.point} at (${o.uv[0]}, ${o.uv[1]}) in ${o.view} — unsaved`);
 }
 function undo() {
   if (!S.undo.length) { status("nothing to undo"); return; }
-  S.manual = JSON.parse(S.undo.pop()); listPoints(); draw(); status("undone — unsaved");
+  [S.manual, S.rejected] = JSON.parse(S.undo.pop()); listPoints(); draw(); status("undone — unsaved");
 }
 function removePick() {
   const k = S.car + "|" + S.point + "|" + S.photo.name;
   if (!S.manual.some((m) => key(m) === k)) { status("no manual pick of this point in this photo"); return; }
   pushUndo(); S.manual = S.manual.filter((m) => key(m) !== k); listPoints(); draw(); status("removed — unsaved");
 }
+function toggleReject() {
+  if (!S.point) { status("select a point first", true); return; }
+  const k = S.car + "|" + S.point + "|" + S.photo.name;
+  const auto = S.doc.automatic.some((o) => key(o) === k);
+  if (S.rejected.some((o) => key(o) === k)) {
+    pushUndo(); S.rejected = S.rejected.filter((o) => key(o) !== k); listPoints(); draw();
+    status(`${S.car} ${S.point}: automatic point kept — unsaved`); return;
+  }
+  if (!auto) { status("no automatic point of this point in this photo to reject", true); return; }
+  if (S.manual.some((m) => key(m) === k)) { status("this point has a manual pick: remove it first (Del)", true); return; }
+  pushUndo(); S.rejected.push({ carriage: S.car, point: S.point, view: S.photo.name, reason: "rejected in the picker" });
+  listPoints(); draw(); status(`${S.car} ${S.point}: automatic point rejected — unsaved`);
+}
 async function save() {
   const r = await fetch("/api/save", { method: "POST", headers: { "Content-Type": "application/json" },
-                                      body: JSON.stringify({ observations: S.manual }) });
+                                      body: JSON.stringify({ observations: S.manual, rejected: S.rejected }) });
   const res = await r.json();
   if (!r.ok) { status(res.error, true); return; }
-  S.dirty = false; status(`saved ${res.n} manual points to ${res.saved}`);
+  S.dirty = false; status(`saved ${res.n} manual points and ${res.n_rejected} rejections to ${res.saved}`);
 }
 
 // mouse: click picks, drag pans, wheel zooms
@@ -159,13 +181,14 @@ window.addEventListener("keydown", (e) => {
   else if (e.key === "-") zoomAt(0.8, cv.width / 2, cv.height / 2);
   else if (e.key === "0") fit();
   else if (e.key === "Delete") removePick();
+  else if (e.key === "r" || e.key === "R") toggleReject();
 });
 window.addEventListener("resize", () => S.img && fit());
 window.addEventListener("beforeunload", (e) => { if (S.dirty) { e.preventDefault(); e.returnValue = ""; } });
 $("zoom-in").onclick = () => zoomAt(1.25, cv.width / 2, cv.height / 2);
 $("zoom-out").onclick = () => zoomAt(0.8, cv.width / 2, cv.height / 2);
 $("zoom-fit").onclick = fit;
-$("undo").onclick = undo; $("save").onclick = save; $("delete").onclick = removePick;
+$("undo").onclick = undo; $("save").onclick = save; $("delete").onclick = removePick; $("reject").onclick = toggleReject;
 $("photo-select").onchange = async (e) => { await selectPhoto(e.target.value); listPoints(); };
 $("car-select").onchange = (e) => selectCar(e.target.value);
 window.pickerState = S;  // for tests and debugging
