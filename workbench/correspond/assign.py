@@ -147,7 +147,15 @@ def find_cars(photo: PhotoFeatures, refs: dict[str, list[FaceReference]], consis
             Sg = S[rows_g]
             rows, cols = linear_sum_assignment(-Sg)
             for a, b in zip(rows, cols):
-                if Sg[a, b] < opts.min_inliers:
+                det = best.get((rows_g[a], b))
+                if det is None:
+                    continue
+                if det.hough:
+                    # the face's presence is its geometric inliers (and the ECC check after refinement); the
+                    # car's identity is its own distinctive matches, needed only among coaches of one type
+                    if det.n_inliers < opts.min_inliers or (len(cars) > 1 and Sg[a, b] < opts.min_support):
+                        continue
+                elif Sg[a, b] < opts.min_inliers:
                     continue
                 # the winner must stand out from the other cars (identical coaches differ by little)
                 others = np.delete(Sg[a], b)
@@ -155,7 +163,7 @@ def find_cars(photo: PhotoFeatures, refs: dict[str, list[FaceReference]], consis
                     log.info("%s: a %s face of type %s is ambiguous (%d vs %d inliers); left out", photo.name,
                              group, type_id, Sg[a, b], others.max())
                     continue
-                chosen.append((best[(rows_g[a], b)], cars[b], int(Sg[a, b])))
+                chosen.append((det, cars[b], int(Sg[a, b])))
     # 4. poses, and pairwise swaps of same-type assignments that shorten the held couplings
     found = [CarInPhoto(n, det, s, _pose(det, photo.intrinsics)) for det, n, s in chosen]
     found = _improve_by_chain(found, consist, types, photo, by_number, opts)

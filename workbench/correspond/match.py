@@ -50,7 +50,7 @@ class MatchOptions:
     hough: bool = True
     hough_k: int = 2  # nearest reference descriptors per photo keypoint
     hough_min_votes: int = 8  # distinct photo keypoints in a bin before it is verified by RANSAC
-    hough_max_clusters: int = 8  # bins verified per face reference and photo, strongest first
+    hough_max_clusters: int = 60  # bins verified per face reference and photo, strongest first
     hough_min_ecc: float = 0.85  # a Hough face is kept only if ECC aligns the whole face this well
 
     def __post_init__(self) -> None:
