@@ -199,7 +199,8 @@ def pick(path: Path = typer.Argument(..., help="incident folder"),
          no_browser: bool = typer.Option(False, "--no-browser", help="do not open a browser; print the address")
          ) -> None:
     """Pick marked points by hand (and review the automatic ones) in a local web page: the photo beside the
-    carriage model; saves the incident's correspondences.json (a manual point overrides an automatic one)."""
+    carriage model; saves the incident's correspondences.json (a manual point overrides an automatic one; a
+    rejected automatic one is dropped)."""
     from .picker import serve
 
     serve(path, host="127.0.0.1", port=port, open_browser=not no_browser)
