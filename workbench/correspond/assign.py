@@ -152,8 +152,10 @@ def find_cars(photo: PhotoFeatures, refs: dict[str, list[FaceReference]], consis
                     continue
                 if det.hough:
                     # the face's presence is its geometric inliers (and the ECC check after refinement); the
-                    # car's identity is its own distinctive matches, needed only among coaches of one type
-                    if det.n_inliers < opts.min_inliers or (len(cars) > 1 and Sg[a, b] < opts.min_support):
+                    # car's identity is its own distinctive matches, as many as a RANSAC face needs, and
+                    # needed only among coaches of one type (a few matches of a far car's number and grime
+                    # named the wrong coach on a 480 px photo)
+                    if det.n_inliers < opts.min_inliers or (len(cars) > 1 and Sg[a, b] < opts.min_inliers):
                         continue
                 elif Sg[a, b] < opts.min_inliers:
                     continue
