@@ -7,9 +7,9 @@ for the exact projection Jacobians, :mod:`.simulate` for synthetic problems).
 """
 
 from .chain import (CarriageInput, CarriageResult, ChainLink, Observation, SolveOptions, SolveResult, SolveWarning,
-                    StepStats, View, rest_on_terrain, solve_consist)
+                    StepStats, View, refine_from, rest_on_terrain, solve_consist)
 from .projection import project_with_jacobians
 from .uncertainty import crb
 
 __all__ = ["CarriageInput", "CarriageResult", "ChainLink", "Observation", "SolveOptions", "SolveResult",
-           "SolveWarning", "StepStats", "View", "crb", "project_with_jacobians", "rest_on_terrain", "solve_consist"]
+           "SolveWarning", "StepStats", "View", "crb", "project_with_jacobians", "refine_from", "rest_on_terrain", "solve_consist"]

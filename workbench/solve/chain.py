@@ -49,13 +49,23 @@ Method (one for every step and every size)
 
 The four steps (as the seed, plus an optional contact term)
     1. each carriage alone, constraints off (PnP start: SQPnP on undistorted normalised points, then one joint
-       refinement of all the independent poses (a block-diagonal problem) and, when estimated, the focal; with an unknown focal first a
-       sweep over the horizontal field of view picks the focal of least total PnP reprojection error);
+       refinement of all the independent poses (a block-diagonal problem) and, when estimated, the focal; with an
+       unknown focal first a sweep over the horizontal field of view picks the focal of least total PnP
+       reprojection error, and on a chained consist a profile of the *chained* cost over the focal
+       (:func:`_chained_focal_profile`) replaces it and the focal is held in this step: one carriage seen
+       from afar shows too little perspective for its PnP error to tell the focal, and its error falls towards
+       the affine limit (the longest focal), while the couplers tell it well);
     2. each carriage lowered (or raised) along gravity (scene -z) until its surface samples rest on the
        terrain without penetrating it (skipped, and recorded so, without a terrain);
     3. constraints on, rotations held from step 1, translations (and focal) optimised;
     4. everything optimised together; with a terrain and ``use_terrain_contact`` a soft contact residual
-       per carriage, ``min clearance / terrain_sigma_m`` (in units of the pixel sigma), joins the cost.
+       per carriage, ``min clearance / terrain_sigma_m`` (in units of the pixel sigma), joins the cost. After a
+       focal profile, a check: the solution (focal free) can cost no more than the profile's best fixed-focal
+       chained solve; if it does, step 4 ended in another basin and is restarted from that solve (kept if
+       cheaper; the step's note says so).
+
+:func:`refine_from` (step 4 alone, from given poses) is a diagnostic for benchmarks: started at the truth it
+finds the minimum in the truth's basin, which tells a solver failure from the estimator's own spread.
 """
 
 from __future__ import annotations
@@ -1162,12 +1172,14 @@ def _changes(cars, active, R0, t0, R1, t1) -> list[dict]:
 # ----------------------------------------------------------------------------------------------------------
 # Start: PnP and the focal sweep
 # ----------------------------------------------------------------------------------------------------------
-def _pnp(P: np.ndarray, uv: np.ndarray, intr: CameraIntrinsics, cam_from_world: np.ndarray):
+def _pnp(P: np.ndarray, uv: np.ndarray, intr: CameraIntrinsics, cam_from_world: np.ndarray,
+         xy: np.ndarray | None = None):
     """world_from_carriage (R, t) from SQPnP on undistorted normalised points; None on failure. Also the
-    reprojection sum of squares (px^2)."""
+    reprojection sum of squares (px^2). ``xy``: the pixels ``uv`` already undistorted and normalised."""
     import cv2
 
-    xy = intr.undistort(intr.normalized_from_pixels(uv))
+    if xy is None:
+        xy = intr.undistort(intr.normalized_from_pixels(uv))
     try:
         ok, rvec, tvec = cv2.solvePnP(P.astype(np.float64), xy.astype(np.float64).reshape(-1, 1, 2), np.eye(3),
                                       None, flags=cv2.SOLVEPNP_SQPNP)
@@ -1201,13 +1213,157 @@ def _focal_sweep(prob: _Problem, cars: list[_Car], solo: list[int], group: list[
     best = (np.inf, None)
     for fv in fs:
         tot = 0.0
+        xy = _undistorted(prob, cars, members, np.full(len(prob.views), fv))
         for k, v in members:
             sel = cars[k].views == v
-            r = _pnp(cars[k].P[sel], cars[k].uv[sel], prob.intrinsics(v, fv), prob.views[v].cam_from_world)
+            r = _pnp(cars[k].P[sel], cars[k].uv[sel], prob.intrinsics(v, fv), prob.views[v].cam_from_world,
+                     xy[(k, v)])
             tot += r[2] if r is not None else 1e12
         if tot < best[0]:
             best = (tot, fv)
     return best[1]
+
+
+def _undistorted(prob: _Problem, cars: list[_Car], members, f: np.ndarray) -> dict:
+    """(car, view) -> its pixels in that view undistorted and normalised at the focal ``f[view]``, computed one
+    view at a time (the iterative undistortion is vectorised; per carriage it would cost ~10x more)."""
+    out = {}
+    for v in sorted({v for _, v in members}):
+        mv = [(k, cars[k].views == v) for k, w in members if w == v]
+        uv = np.concatenate([cars[k].uv[sel] for k, sel in mv])
+        intr = prob.intrinsics(v, f[v])
+        xy = intr.undistort(intr.normalized_from_pixels(uv))
+        o = 0
+        for k, sel in mv:
+            n = int(sel.sum())
+            out[(k, v)] = xy[o:o + n]
+            o += n
+    return out
+
+
+def _pnp_start(prob: _Problem, cars: list[_Car], solo: list[int], f: np.ndarray, R: np.ndarray,
+               t: np.ndarray) -> None:
+    """Step 1's start (in place): every carriage of ``solo`` from SQPnP in the view where it has most points (at
+    the focal ``f``); one with no view of 4 points starts 30 m in front of its first camera."""
+    views = prob.views
+    members = [(k, v) for k in solo for v in range(len(views)) if np.sum(cars[k].views == v) >= 4]
+    xy = _undistorted(prob, cars, members, f) if members else {}
+    for k in solo:
+        c = cars[k]
+        best = None
+        for v in range(len(views)):
+            sel = c.views == v
+            if sel.sum() < 4:
+                continue
+            r = _pnp(c.P[sel], c.uv[sel], prob.intrinsics(v, f[v]), views[v].cam_from_world, xy[(k, v)])
+            if r is not None and (best is None or sel.sum() > best[3]):
+                best = (r[0], r[1], r[2], sel.sum())
+        if best is None:  # no single view with 4 points: start in front of the first camera
+            v = int(c.views[0])
+            cc = views[v].camera_centre
+            M = np.asarray(views[v].cam_from_world)
+            R[k] = np.eye(3)
+            t[k] = cc + M[2, :3] * 30.0
+        else:
+            R[k], t[k] = best[0], best[1]
+
+
+def _chain_cost(prob: _Problem, R, t, f, T_links, slacks, prior_px: float) -> float:
+    """The chained cost without the terrain term: weighted pixel residuals plus the couplers' offset prior."""
+    c = _pixel_cost(prob, R, t, f)
+    for Tl, sl in zip(T_links, slacks):
+        for T, s in zip(Tl, sl):
+            r = np.asarray(T) * (prior_px * SQRT5 / s)
+            c += 0.5 * float(r @ r)
+    return c
+
+
+def _full_cost(prob: _Problem, cars: list[_Car], chains, slacks, R, t, f, contact: _Contact | None,
+               options: SolveOptions) -> float:
+    """The cost step 4 minimises (pixels, coupler prior, terrain contact, robust loss) at the poses ``R, t``."""
+    lay = _Layout(chains, slacks, True, [], cars, R, t, f, None, options.pixel_sigma_px)
+    r, _ = _residuals_and_jac(prob, lay, lay.x0, contact, False)
+    if options.robust_loss == "linear":
+        return float(0.5 * np.sum(r**2))
+    from scipy.optimize._lsq.least_squares import construct_loss_function
+
+    lf = construct_loss_function(len(r), options.robust_loss, options.loss_scale_px)
+    return float(0.5 * np.sum(lf(r, cost_only=True)))
+
+
+def _chained_focal_profile(prob: _Problem, cars: list[_Car], chains, slacks, solo: list[int], focal_views,
+                           f0: np.ndarray, options: SolveOptions, n_grid: int = 9,
+                           max_evaluations: int = 10) -> dict:
+    """Start for an unknown focal on a chained consist: the chained cost (every pose optimised, couplers on, no
+    terrain) profiled over the focal of each focal group in turn.
+
+    The per-carriage sweep (:func:`_focal_sweep`) sums independent PnP errors; when each carriage spans a small
+    angle (a long consist photographed from ~1 train length) a carriage's PnP error barely depends on the focal
+    and falls towards the affine limit, so that sweep runs to the longest focal of the range. The couplers
+    carry the information: at a wrong focal every carriage's depth scales along its ray and the couplers
+    part by about (focal error) x (carriage length). For each group, ``n_grid`` focals log-spaced over the
+    field-of-view range plus the per-carriage sweep's, then the two log-midpoints beside the best: at each, PnP
+    poses refined carriage by carriage (as step 1 at a known focal), then ``max_evaluations`` evaluations of the chained solve with the focal held (a fixed-focal step 4
+    without terrain), a ranking; the best is then solved to convergence. Returns it: ``{"f", "R", "t", "cost",
+    "evaluations"}`` (cost as :func:`_chain_cost`)."""
+    f = f0.copy()
+    N = len(cars)
+    # a ranking, not a solve: a few LM evaluations per focal (near the right focal the cost is then within a few
+    # per cent of its fixed-focal minimum; far off it is an upper bound, far above)
+    opt = replace(options, max_iterations=min(int(options.max_iterations), max_evaluations))
+    best: dict | None = None
+    n_eval = 0
+
+    solo_prob = _Problem(cars, solo, prob.views, {k: float(prob.w_noise[prob.by_car[k][0]]) for k in solo})
+
+    def evaluate(fv: np.ndarray) -> dict:
+        R = np.tile(np.eye(3), (N, 1, 1))
+        t = np.zeros((N, 3))
+        _pnp_start(prob, cars, solo, fv, R, t)
+        # step 1's unchained refinement (as at a known focal): SQPnP's algebraic fit alone can leave a distant
+        # carriage in the mirrored-tilt basin, from which the chained solve does not return
+        lay = _Layout([[k] for k in solo], [[] for _ in solo], True, [], cars, R, t, fv)
+        x, *_ = _run_lsq(solo_prob, lay, None, opt)
+        R, t, *_ = lay.unpack(x, with_derivs=False)
+        _place_carried(R, t, cars, chains, solo)
+        R, t, fo, T_links, *_ = _solve_chained(prob, cars, chains, slacks, True, [], R, t, fv, None, opt)
+        return {"f": fo.copy(), "R": R, "t": t, "cost": _chain_cost(prob, R, t, fo, T_links, slacks,
+                                                                      options.pixel_sigma_px)}
+
+    lo_deg, hi_deg = options.hfov_range_deg
+    for grp in focal_views:
+        half_w = 0.5 * prob.views[grp[0]].intrinsics.width
+        lf = np.log(half_w / np.tan(np.deg2rad(np.array([hi_deg, lo_deg])) / 2.0))
+        grid = list(np.linspace(lf[0], lf[1], n_grid))
+        ls = math.log(f[grp[0]])
+        if min(abs(ls - g) for g in grid) > 0.01:
+            grid.append(ls)
+        tried: dict[float, dict] = {}
+        for lg in grid:
+            fv = f.copy()
+            fv[grp] = math.exp(lg)
+            tried[lg] = evaluate(fv)
+            n_eval += 1
+        srt = sorted(tried)
+        lb = min(tried, key=lambda k: tried[k]["cost"])
+        i = srt.index(lb)
+        for j in (i - 1, i + 1):
+            if 0 <= j < len(srt):
+                lm = 0.5 * (lb + srt[j])
+                fv = f.copy()
+                fv[grp] = math.exp(lm)
+                tried[lm] = evaluate(fv)
+                n_eval += 1
+        gbest = min(tried.values(), key=lambda e: e["cost"])
+        f = gbest["f"].copy()
+        best = gbest
+    assert best is not None
+    # the best focal's chained solve run to convergence: the reference of step 4's basin check
+    R, t, fo, T_links, *_ = _solve_chained(prob, cars, chains, slacks, True, [], best["R"], best["t"], best["f"],
+                                           None, options)
+    return {"f": fo.copy(), "R": R, "t": t, "cost": _chain_cost(prob, R, t, fo, T_links, slacks,
+                                                                  options.pixel_sigma_px),
+            "evaluations": n_eval + 1}
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -1392,24 +1548,16 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
                                          f"sweep kept the given focal {f[grp[0]]:.1f} px")
         note = "focal sweep: " + ", ".join(f"{'+'.join(views[v].name for v in grp)}={f[grp[0]]:.1f}px"
                                            for grp in focal_views)
-    for k in solo:
-        c = cars[k]
-        best = None
-        for v in range(V):
-            sel = c.views == v
-            if sel.sum() < 4:
-                continue
-            r = _pnp(c.P[sel], c.uv[sel], prob.intrinsics(v, f[v]), views[v].cam_from_world)
-            if r is not None and (best is None or sel.sum() > best[3]):
-                best = (r[0], r[1], r[2], sel.sum())
-        if best is None:  # no single view with 4 points: start in front of the first camera
-            v = int(c.views[0])
-            cc = views[v].camera_centre
-            M = np.asarray(views[v].cam_from_world)
-            R[k] = np.eye(3)
-            t[k] = cc + M[2, :3] * 30.0
-        else:
-            R[k], t[k] = best[0], best[1]
+    profile = None
+    if focal_views and any(len(ch) > 1 for ch in final_chains):
+        # the per-carriage sweep cannot tell the focal when each carriage shows little perspective (its PnP
+        # error falls towards the affine limit, the largest focal); the couplers can: profile the chained cost
+        profile = _chained_focal_profile(prob, cars, final_chains, chain_slacks, solo, focal_views, f, options)
+        f = profile["f"].copy()
+        note += "; chained focal profile: " + ", ".join(
+            f"{'+'.join(views[v].name for v in grp)}={f[grp[0]]:.1f}px" for grp in focal_views) + \
+            f" ({profile['evaluations']} fixed-focal chained solves)"
+    _pnp_start(prob, cars, solo, f, R, t)
     # carried: from the neighbours, forwards then backwards
     _place_carried(R, t, cars, final_chains, solo)
     R_init, t_init = R.copy(), t.copy()
@@ -1417,7 +1565,9 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
     # one joint refinement of every independent pose (a block-diagonal problem, one loop in the sparse solver);
     # with an unknown focal the focal ties the carriages together
     solo_prob = _Problem(cars, solo, views, weights)
-    lay = _Layout([[k] for k in solo], [[] for _ in solo], True, focal_views, cars, R, t, f)
+    # after a chained focal profile the focal is held here: unchained, the cost would pull it to the affine limit
+    lay = _Layout([[k] for k in solo], [[] for _ in solo], True, focal_views if profile is None else [], cars, R, t,
+                  f)
     x, nfev, msg, ok = _run_lsq(solo_prob, lay, None, options)
     total_nfev += nfev
     R, t, f, *_ = lay.unpack(x, with_derivs=False)
@@ -1474,10 +1624,26 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
     R, t, f, T_links, nfev, msg, ok, rounds, n_act = _solve_chained(prob, cars, final_chains, chain_slacks, True,
                                                                     focal_views, R, t, f, contact, options)
     total_nfev += nfev
+    restart_note = ""
+    if profile is not None:
+        # a proper check of the basin: the solution (focal free) can be no worse than the best fixed-focal chained
+        # solve of the profile; if it is, step 4 ended in another basin: restart it from the profile's best
+        c_sol = _chain_cost(prob, R, t, f, T_links, chain_slacks, options.pixel_sigma_px)
+        if c_sol > profile["cost"] * (1.0 + 1e-6) + 1e-9:
+            R2, t2, f2, T2, nfev2, msg2, ok2, rounds2, n_act2 = _solve_chained(
+                prob, cars, final_chains, chain_slacks, True, focal_views, profile["R"], profile["t"], profile["f"],
+                contact, options)
+            total_nfev += nfev2
+            c_old = _full_cost(prob, cars, final_chains, chain_slacks, R, t, f, contact, options)
+            c2 = _full_cost(prob, cars, final_chains, chain_slacks, R2, t2, f2, contact, options)
+            restart_note = (f"; ended at cost {c_sol:.1f} above the focal profile's best {profile['cost']:.1f}: "
+                            f"restarted from it, cost {c2:.1f} (was {c_old:.1f})")
+            if c2 < c_old:
+                R, t, f, T_links, msg, ok, rounds, n_act = R2, t2, f2, T2, msg2, ok2, rounds2, n_act2
     lay = _Layout(final_chains, chain_slacks, True, focal_views, cars, R, t, f, None, options.pixel_sigma_px)
     x = lay.x0
     steps.append(StepStats("4_all", True, f"everything optimised ({rounds} active-set round(s), {n_act} coupler(s) "
-                           f"at the slack)" + (
+                           f"at the slack)" + restart_note + (
         f"; soft terrain contact (sigma_z = {options.terrain_sigma_m} m)" if contact is not None else
         ("; no terrain contact term (no terrain)" if terrain is None else "; terrain contact term off")),
         c0, _pixel_cost(prob, R, t, f), nfev, msg, time.perf_counter() - t4,
@@ -1545,3 +1711,47 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
         attach_covariance(res, prob, R, t, f, focal_views, final_chains, chain_slacks, contact, options)
     res.time_s = time.perf_counter() - t_start
     return res
+
+
+def refine_from(carriages: Sequence[CarriageInput], links: Sequence[ChainLink], views: Sequence[View],
+                world_from_carriage: Sequence[np.ndarray], options: SolveOptions | None = None) -> dict:
+    """Diagnostic, not a solve: step 4 alone (every pose, and the focal when ``options.estimate_focal``, couplers
+    on, no terrain) started from the given poses (4, 4) and the views' focal — for a benchmark, the truth.
+
+    Started at the truth, it finds the minimum of the solver's cost in the truth's basin: if
+    :func:`solve_consist` (which starts without help) ends at a higher cost, the solver failed (a wrong basin,
+    an early stop); if it ends at the same point, any excess error over the Cramér-Rao bound is the estimator's
+    own. Every carriage must be observable alone and every link held (``slack_m`` set) or absent: a
+    simplification for synthetic consists. Returns ``{"world_from_carriage": [(4, 4)], "focal_px": {view:
+    f}, "cost": chained cost (pixels + coupler prior), "converged": bool}``."""
+    options = options or SolveOptions()
+    views = list(views)
+    cars = _prepare(carriages, views, options)
+    N = len(cars)
+    slack = {int(L.front): float(L.slack_m) for L in links if L.slack_m is not None}
+    chains, k = [], 0
+    while k < N:
+        ch = [k]
+        while k in slack and k + 1 < N:
+            ch.append(k + 1)
+            k += 1
+        chains.append(ch)
+        k += 1
+    slacks = [[slack[ch[j]] for j in range(len(ch) - 1)] for ch in chains]
+    active = list(range(N))
+    counts = {k: len(cars[k].P) for k in active}
+    nmean = float(np.mean(list(counts.values())))
+    prob = _Problem(cars, active, views, {k: math.sqrt(nmean / max(counts[k], 1)) for k in active})
+    R = np.array([np.asarray(M, float)[:3, :3] for M in world_from_carriage])
+    t = np.array([np.asarray(M, float)[:3, 3] for M in world_from_carriage])
+    f = np.array([v.intrinsics.fx for v in views], dtype=float)
+    fv = focal_groups(views, [v for v in range(len(views)) if len(prob.by_view[v]) > 0]) \
+        if options.estimate_focal else []
+    R, t, f, T_links, _, _, ok, _, _ = _solve_chained(prob, cars, chains, slacks, True, fv, R, t, f, None, options)
+    out = []
+    for k in range(N):
+        M = np.eye(4)
+        M[:3, :3], M[:3, 3] = R[k], t[k]
+        out.append(M)
+    return {"world_from_carriage": out, "focal_px": {v.name: float(f[i]) for i, v in enumerate(views)},
+            "cost": _chain_cost(prob, R, t, f, T_links, slacks, options.pixel_sigma_px), "converged": bool(ok)}
