@@ -399,3 +399,140 @@ def test_cli_runs_the_stitch_stage(sample_small, tmp_path):
     assert set(state["stitch"]["outputs"]) >= {"panorama_image", "panorama_model", "stats"}
     model = PanoramaModel.from_dict(json.loads((root / "out" / "stitch" / "panorama.json").read_text()))
     assert len(model.sources) == len(sample_small["paths"])
+
+
+# ----------------------------------------------------------------------------------------------------------
+# composition: the resampling maps and the gains
+# ----------------------------------------------------------------------------------------------------------
+def _compose_model(projection: str) -> PanoramaModel:
+    from scipy.spatial.transform import Rotation
+
+    from workbench.core.panorama import PanoramaSource
+
+    intr = CameraIntrinsics(width=900, height=600, fx=800.0, fy=800.0, cx=452.0, cy=297.5, k1=-0.12, k2=0.02,
+                            p1=0.0006, p2=-0.0004)
+    srcs = [PanoramaSource(name=f"p{i}.jpg", image=f"p{i}.jpg", intrinsics=intr,
+                           cam_from_pano=Rotation.from_euler("YXZ", [yaw, 4.0 * i, 2.0 - i], degrees=True).as_matrix().T)
+            for i, yaw in enumerate((-30.0, 0.0, 30.0))]
+    return PanoramaModel(projection=projection, scale=800.0, offset=(-1000.0, -400.0), width=2000, height=800,
+                         sources=tuple(srcs))
+
+
+@pytest.mark.parametrize("projection", ["planar", "cylindrical", "spherical"])
+def test_compose_maps_are_the_model(projection):
+    """The maps interpolated from every 8th pixel are within 0.02 px of the model's exact mapping (panorama pixel
+    -> ray -> cam_from_pano -> lens) wherever the photo sees; the mask is the photo's footprint."""
+    from workbench.stitch.compose import footprint, source_maps
+
+    m = _compose_model(projection)
+    for i, src in enumerate(m.sources):
+        box = footprint(m, i, src.intrinsics)
+        mx, my, mask = source_maps(m, i, src.intrinsics, box)
+        assert mx.shape == my.shape == mask.shape == (box[3] - box[1], box[2] - box[0])
+        v, u = np.mgrid[box[1]:box[3], box[0]:box[2]]
+        uv = np.column_stack([u.ravel(), v.ravel()]).astype(float)
+        exact = src.intrinsics.project(m.rays(uv) @ src.cam_from_pano.T)
+        inside = src.intrinsics.in_image(exact)
+        got = np.column_stack([mx.ravel(), my.ravel()])
+        err = np.abs(got[inside] - exact[inside]).max()
+        assert 0.0 < err < 0.02, err
+        assert inside.sum() > 0.3 * inside.size
+        # the mask is the photo: it differs from the exact footprint only on a few border pixels
+        assert np.count_nonzero((mask.ravel() > 0) != inside) < 0.002 * inside.size
+        # every pixel of the photo's border lands in the box
+        w, h = src.intrinsics.width, src.intrinsics.height
+        border = np.array([[-0.5, -0.5], [w - 0.5, -0.5], [-0.5, h - 0.5], [w - 0.5, h - 0.5], [w / 2, -0.5]])
+        p = m.from_source(i, border)
+        assert np.all((p >= [box[0], box[1]]) & (p <= [box[2] - 1, box[3] - 1]))
+
+
+def test_compose_source_pixels_do_not_fold_back():
+    """Strong barrel distortion folds rays far outside the photo back into it (OpenCV's model is not monotone);
+    the composition's projection continues it outward instead, and agrees with the model inside the photo."""
+    from workbench.stitch.compose import source_pixels
+
+    intr = CameraIntrinsics(width=800, height=600, fx=800.0, fy=800.0, cx=400.0, cy=300.0, k1=-0.25)
+    ang = np.radians(np.linspace(0.0, 89.0, 400))
+    cam = np.column_stack([np.sin(ang), np.zeros_like(ang), np.cos(ang)])
+    folded = intr.project(cam)
+    far = ang > np.radians(45.0)  # the photo spans 26.6 degrees from its axis
+    assert intr.in_image(folded[far]).any()  # the plain model folds back in
+    ours = source_pixels(intr, cam)
+    assert np.all(np.diff(ours[:, 0]) > 0)  # monotone outward
+    inside = intr.in_image(ours)
+    np.testing.assert_allclose(ours[inside], folded[inside], atol=1e-9)
+    assert inside[~far].any() and not inside[far].any()
+    # behind the camera: finite, and far outside except the backward axis itself (source_maps masks that)
+    back = source_pixels(intr, np.array([[0.3, 0.2, -1.0], [1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]))
+    assert np.all(np.isfinite(back)) and not intr.in_image(back[:2]).any()
+
+
+def test_compose_maps_photo_seeing_the_pole():
+    """A photo that sees the zenith spans every longitude of a spherical panorama, whose box then holds rays
+    behind the photo too (the backward axis among them): the mask is still exactly the photo's footprint."""
+    from workbench.core.panorama import PanoramaSource
+    from workbench.stitch.compose import footprint, source_maps
+
+    intr = CameraIntrinsics(width=400, height=300, fx=300.0, fy=300.0, cx=200.0, cy=150.0, k1=-0.05)
+    up = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])  # cam_from_pano: the camera looks along -y
+    m = PanoramaModel(projection="spherical", scale=100.0, offset=(-400.0, 0.0), width=629, height=315,
+                      sources=(PanoramaSource(name="up.jpg", image="up.jpg", intrinsics=intr, cam_from_pano=up),))
+    box = footprint(m, 0, intr)
+    assert box[2] - box[0] >= 2 * np.pi * 100.0 and box[1] <= 0  # every longitude, from the pole's row
+    box = (0, 0, m.width, m.height)  # the whole sphere: the nadir is this photo's backward axis
+    mx, my, mask = source_maps(m, 0, intr, box)
+    v, u = np.mgrid[box[1]:box[3], box[0]:box[2]]
+    uv = np.column_stack([u.ravel(), v.ravel()]).astype(float)
+    cam = m.rays(uv) @ up.T
+    assert (cam[:, 2] < -0.999).any()
+    src, exact = m.to_source(uv)  # the model's own choice: the photo sees the ray (no fold-back)
+    inside = src == 0
+    assert 0.05 * inside.size < inside.sum() < 0.6 * inside.size
+    assert np.count_nonzero((mask.ravel() > 0) != inside) < 0.002 * inside.sum()
+    # near the pole the mapping curves strongly (polar coordinates): a finer grid keeps it exact
+    err = np.abs(np.column_stack([mx.ravel(), my.ravel()])[inside] - exact[inside]).max()
+    assert err < 0.02, err
+
+
+def test_block_gains_as_opencv():
+    """The block gains applied by resize and multiply are OpenCV's BlocksGainCompensator.apply, bit for bit."""
+    from workbench.stitch.compose import apply_block_gains
+
+    rng = np.random.default_rng(3)
+    imgs = [cv2.GaussianBlur(rng.integers(0, 256, (120, 160, 3), dtype=np.uint8), (7, 7), 2) for _ in range(2)]
+    imgs[1] = cv2.convertScaleAbs(imgs[1], alpha=1.3)
+    masks = [np.full((120, 160), 255, np.uint8)] * 2
+    comp = cv2.detail_BlocksGainCompensator()
+    comp.feed(corners=[(0, 0), (60, 10)], images=imgs, masks=[cv2.UMat(x) for x in masks])
+    gains = comp.getMatGains()
+    big = rng.integers(0, 256, (517, 733, 3), dtype=np.uint8)
+    for k in range(2):
+        assert gains[k].ndim == 2 and np.ptp(gains[k]) >= 0
+        want = comp.apply(k, (0, 0), big.copy(), np.full(big.shape[:2], 255, np.uint8))
+        want = want.get() if isinstance(want, cv2.UMat) else want
+        assert np.array_equal(apply_block_gains(big, np.asarray(gains[k], np.float32)), want)
+    assert not np.allclose(gains[1], 1.0)  # (the second photo is brighter: the gains do something)
+
+
+def test_composed_panorama_is_the_photos_through_the_model(tmp_path):
+    """Each panorama pixel shows what the model says: the photo pixel ``to_source`` gives (up to gains and
+    blending), and black where no photo sees."""
+    paths, _, _ = _cut_set(tmp_path, -0.1, kind="row")
+    r = stitch_photos(paths, options=StitchOptions(seam_megapix=0.05))
+    m, pano = r.model, r.image
+    assert pano.shape[:2] == (m.height, m.width)
+    v, u = np.mgrid[0:m.height:3, 0:m.width:3]
+    uv = np.column_stack([u.ravel(), v.ravel()]).astype(float)
+    src, px = m.to_source(uv)
+    got = pano[v.ravel(), u.ravel()].astype(float)
+    # (a pixel whose centre is within a few hundredths of a pixel of a photo's edge may go either way)
+    assert np.count_nonzero(got[src < 0].max(axis=1)) <= 0.002 * np.count_nonzero(src < 0)
+    photos = {s.name: cv2.imread(str(p)) for s, p in zip(m.sources, paths)}
+    ok = src >= 0
+    for i, s in enumerate(m.sources):
+        sel = ok & (src == i) & s.intrinsics.in_image(np.nan_to_num(px), margin=3.0)
+        q = px[sel].astype(np.float32)
+        want = cv2.remap(photos[s.name], q[:, 0].reshape(-1, 1), q[:, 1].reshape(-1, 1), cv2.INTER_LINEAR)
+        diff = np.abs(got[sel] - want.reshape(-1, 3).astype(float))
+        assert sel.sum() > 1000
+        assert np.median(diff) < 4.0, (s.name, np.median(diff))  # misplaced by a pixel: tens of levels

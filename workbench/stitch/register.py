@@ -675,11 +675,20 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
             J[:n_obs] *= (sq - z * z / (sq * rho * (1.0 + rho) ** 2))[:, None]
         return r, J
 
+    # MINPACK asks for the Jacobian at almost every point whose residuals it has just asked for (each accepted step):
+    # both come from one evaluation, the Jacobian kept for that point (the same numbers as evaluating it again)
+    last: dict = {}
+
     def fun(x, idx, robust):
-        r = evaluate(x, idx, False)[0]
-        return soft_l1(r, None, 4 * len(idx))[0] if robust else r
+        r, J = evaluate(x, idx, True)
+        if robust:
+            r, J = soft_l1(r, J, 4 * len(idx))
+        last.update(x=x.copy(), idx=idx, J=J)
+        return r
 
     def jac(x, idx, robust):
+        if last.get("idx") is idx and np.array_equal(last["x"], x):
+            return last["J"]
         r, J = evaluate(x, idx, True)
         return soft_l1(r, J, 4 * len(idx))[1] if robust else J
 

@@ -93,11 +93,10 @@ def _peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: kilobytes
 
 
-def read_reduced(path: Path, scale: float, *, flags: int = cv2.IMREAD_COLOR) -> tuple[np.ndarray, tuple[int, int]]:
-    """The photo at ``path`` reduced by ``scale`` (<= 1), decoded at 1/2, 1/4 or 1/8 when that is enough.
-
-    Returns (image (round(h s), round(w s)[, 3]) uint8, full size (w, h)). :class:`InputError` if unreadable.
-    """
+def decode_reduced(path: Path, scale: float, *, flags: int = cv2.IMREAD_COLOR) -> tuple[np.ndarray, tuple[int, int]]:
+    """The photo at ``path`` decoded at 1/8, 1/4 or 1/2 (JPEG DCT scaling) when that still has ``scale`` (<= 1) of
+    its size, else at full size. Returns (image (h', w'[, 3]) uint8, full size (w, h)). :class:`InputError` if
+    unreadable."""
     try:
         with Image.open(path) as im:
             w, h = im.size
@@ -115,10 +114,25 @@ def read_reduced(path: Path, scale: float, *, flags: int = cv2.IMREAD_COLOR) -> 
         img = cv2.imread(str(path), flags)
     if img is None:
         raise InputError(f"{path}: OpenCV cannot decode this photo; convert it to JPEG or PNG")
-    tw, th = max(1, int(round(w * scale))), max(1, int(round(h * scale)))
-    if (img.shape[1], img.shape[0]) != (tw, th):
-        img = cv2.resize(img, (tw, th), interpolation=cv2.INTER_AREA)
     return img, (w, h)
+
+
+def resize_to(img: np.ndarray, full_size: tuple[int, int], scale: float) -> np.ndarray:
+    """``img`` (any size) of a photo of ``full_size`` (w, h), area-resampled to (round(w s), round(h s))."""
+    w, h = full_size
+    tw, th = max(1, int(round(w * scale))), max(1, int(round(h * scale)))
+    if (img.shape[1], img.shape[0]) == (tw, th):
+        return img
+    return cv2.resize(img, (tw, th), interpolation=cv2.INTER_AREA)
+
+
+def read_reduced(path: Path, scale: float, *, flags: int = cv2.IMREAD_COLOR) -> tuple[np.ndarray, tuple[int, int]]:
+    """The photo at ``path`` reduced by ``scale`` (<= 1), decoded at 1/2, 1/4 or 1/8 when that is enough.
+
+    Returns (image (round(h s), round(w s)[, 3]) uint8, full size (w, h)). :class:`InputError` if unreadable.
+    """
+    img, size = decode_reduced(path, scale, flags=flags)
+    return resize_to(img, size, scale), size
 
 
 def _choose_frame_and_projection(cam_from_pano: dict[int, np.ndarray], intr: dict[int, CameraIntrinsics],
@@ -209,16 +223,18 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
             raise InputError(f"{p}: cannot read this photo ({exc}); replace it or remove it from the folder") from None
         s_work = min(1.0, np.sqrt(opts.work_megapix * 1e6 / (w * h)))
         s_seam = min(1.0, np.sqrt(opts.seam_megapix * 1e6 / (w * h)))
-        full = None
+        s_ref = min(1.0, np.sqrt(opts.refine_megapix * 1e6 / (w * h)))
+        fine_ref = opts.refine_matches and s_ref > s_work * 1.05  # matches refined on a finer copy than the work copy
+        full = dec = None
         if opts.compose and w * h <= opts.keep_full_max_megapix * 1e6:  # small photos: decoded once, kept
             full = cv2.imread(str(p), cv2.IMREAD_COLOR)
             if full is None:
                 raise InputError(f"{p}: OpenCV cannot decode this photo; convert it to JPEG or PNG")
             h, w = full.shape[:2]
-            tw, th = max(1, int(round(w * s_work))), max(1, int(round(h * s_work)))
-            img = full if (tw, th) == (w, h) else cv2.resize(full, (tw, th), interpolation=cv2.INTER_AREA)
-        else:
-            img, (w, h) = read_reduced(p, s_work)
+            dec = full
+        else:  # decoded once, reduced by the JPEG decoder as far as the finer of the work and refinement copies allow
+            dec, (w, h) = decode_reduced(p, s_ref if fine_ref else s_work)
+        img = resize_to(dec, (w, h), s_work)
         sm = cv2.resize(img, (max(1, round(w * s_seam)), max(1, round(h * s_seam))), interpolation=cv2.INTER_AREA)
         gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
         # SIFT on a half-size copy only where that copy keeps enough pixels for features (small photos: full size)
@@ -230,18 +246,11 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
                                 contrast_threshold=opts.sift_contrast, half=half)
         smooth = None
         if opts.refine_matches:
-            s_ref = min(1.0, np.sqrt(opts.refine_megapix * 1e6 / (w * h)))
-            if s_ref <= s_work * 1.05:
+            if fine_ref:
+                smooth = reg.smooth_for_refinement(resize_to(cv2.cvtColor(dec, cv2.COLOR_BGR2GRAY), (w, h), s_ref))
+            else:
                 smooth = reg.smooth_for_refinement(gray)
-            else:  # matches refined on a finer copy than the work copy
-                if full is not None:
-                    g_ref = cv2.cvtColor(full, cv2.COLOR_BGR2GRAY)
-                    if s_ref < 1.0:
-                        g_ref = cv2.resize(g_ref, (max(1, round(w * s_ref)), max(1, round(h * s_ref))),
-                                           interpolation=cv2.INTER_AREA)
-                else:
-                    g_ref = read_reduced(p, s_ref, flags=cv2.IMREAD_GRAYSCALE)[0]
-                smooth = reg.smooth_for_refinement(g_ref)
+        del dec
         # FLANN's randomised trees draw from OpenCV's (thread-local) generator: seeded here, the forest is the
         # same whichever thread builds it, so the same photos give the same panorama
         cv2.setRNGSeed(opts.seed + 7 * k + 1)
