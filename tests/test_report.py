@@ -186,6 +186,7 @@ def test_panorama_figure_carries_every_point(incident):
 def test_html_links_exist(incident):
     out = incident.stage_dir("report")
     html = (out / "report.html").read_text()
+    assert "{&#39;" not in html and "{'" not in html  # warnings are shown as sentences, not as Python dicts
     srcs = re.findall(r'src="([^"]+)"', html)
     assert len(srcs) >= 8
     for s in srcs:
@@ -231,3 +232,13 @@ def test_nice_length_and_top_down_camera():
     uv, depth = project_world(intr, M, np.array([[50.0, 15.0, 2.0]]))
     assert np.allclose(uv[0], [249.5 + 200.0, 249.5 - 100.0], atol=1e-6)
     assert mpp == pytest.approx(0.2) and depth[0] > 0
+
+
+def test_solver_warnings_read_as_sentences():
+    """The solution lists warnings as {car, index, kind, message} records: the report shows the message."""
+    from workbench.report.report_stage import _warning_text
+
+    rec = {"car": "6240", "index": 5, "kind": "left_out", "message": "car 6240: 0 visible marked point(s); left out"}
+    assert _warning_text(rec) == "car 6240: 0 visible marked point(s); left out"
+    assert _warning_text({"car": "6240", "kind": "left_out"}) == "car: 6240; kind: left_out"
+    assert _warning_text("focal at the edge of the plausible range") == "focal at the edge of the plausible range"

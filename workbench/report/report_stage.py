@@ -481,7 +481,7 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
                      "crs_name": project.frame.crs.name, "height": _f(loc.height_m, 2),
                      "convergence": _f(project.frame.grid_convergence_deg(), 2)},
         "generated": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-        "summary": summary, "rows": rows, "warnings": list(solution.get("warnings", [])),
+        "summary": summary, "rows": rows, "warnings": [_warning_text(w) for w in solution.get("warnings", [])],
         "findings": findings(project, solution),
         "overview": (by_kind.get("overview") or [None])[0], "map": (by_kind.get("map") or [None])[0],
         "photos": by_kind.get("photo", []), "closeups": by_kind.get("closeup", []),
@@ -547,3 +547,10 @@ def run_report(project: Project, progress: Progress) -> StageResult:
 
 STAGE = StageSpec("report", "incident report (HTML and PDF) from the stages' statistics and renders", run_report,
                   inputs=_report_inputs, settings_sections=("incident", "location", "consist"), depends_on=("render",))
+
+
+def _warning_text(w: object) -> str:
+    """A solver warning as a reader sees it: its message (the solution lists {car, kind, message} records)."""
+    if isinstance(w, dict):
+        return str(w.get("message") or "; ".join(f"{k}: {v}" for k, v in w.items()))
+    return str(w)
