@@ -20,7 +20,7 @@ from scipy.optimize import linear_sum_assignment
 
 from ..rolling_stock import CarriageType
 from .complete import guided_face, joint_pose
-from .match import FaceDetection, MatchOptions, PhotoFeatures, detect_faces, refine_detection, support
+from .match import FaceDetection, MatchOptions, PhotoFeatures, _overlap, detect_faces, refine_detection, support
 from .references import FACES, FaceReference, face_reference
 
 log = logging.getLogger(__name__)
@@ -50,14 +50,6 @@ class PointObservation:
     sigma_px: float
     face: str
     how: str  # "homography" (on the face plane) or "pose" (off the plane, from the face's pose)
-
-
-def _overlap(a: np.ndarray, b: np.ndarray) -> float:
-    """Intersection over the smaller area of two convex quads (4, 2)."""
-    a32, b32 = a.astype(np.float32), b.astype(np.float32)
-    inter, _ = cv2.intersectConvexConvex(a32, b32)
-    small = min(abs(cv2.contourArea(a32)), abs(cv2.contourArea(b32)))
-    return float(inter / small) if small > 0 else 0.0
 
 
 def _pose(det: FaceDetection, K) -> np.ndarray | None:

@@ -298,7 +298,7 @@ def detect_faces(photo: PhotoFeatures, refs: list[FaceReference], opts: MatchOpt
                 # where RANSAC over the distinctive matches found the face, a Hough face overlapping it is
                 # the same face or an alias shifted by a window pitch
                 if det.n_inliers >= opts.min_inliers and \
-                        not any(_overlap_share(det.polygon(), o.polygon()) > 0.3 for o in out):
+                        not any(_overlap(det.polygon(), o.polygon()) > 0.3 for o in out):
                     out.append(det)
     out.sort(key=lambda d: -d.n_inliers)
     return out
@@ -477,13 +477,13 @@ def hough_detections(photo: PhotoFeatures, ref: FaceReference, opts: MatchOption
         resid = np.linalg.norm(_apply_h(H, R[inl]) - P[inl], axis=1)
         det = FaceDetection(ref, photo.name, H / H[2, 2], int(len(inl)), float(np.sqrt(np.mean(resid ** 2))),
                             None, P[inl], R[inl], hough=True)
-        if any(_overlap_share(det.polygon(), o.polygon()) > 0.7 for o in out):
+        if any(_overlap(det.polygon(), o.polygon()) > 0.7 for o in out):
             continue
         out.append(det)
     return out
 
 
-def _overlap_share(a: np.ndarray, b: np.ndarray) -> float:
+def _overlap(a: np.ndarray, b: np.ndarray) -> float:
     """Intersection over the smaller area of two convex quads (4, 2)."""
     a32, b32 = a.astype(np.float32), b.astype(np.float32)
     inter, _ = cv2.intersectConvexConvex(a32, b32)

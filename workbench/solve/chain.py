@@ -1713,6 +1713,21 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
     return res
 
 
+def held_chains(n: int, links) -> tuple[list[list[int]], list[list[float]]]:
+    """The consist's carriages 0..n-1 split into chains at every link without a slack (a broken coupling, or
+    none), and each chain's link slacks (metres), front to rear: a simplification for synthetic consists."""
+    slack = {int(L.front): float(L.slack_m) for L in links if L.slack_m is not None}
+    chains, k = [], 0
+    while k < n:
+        ch = [k]
+        while k in slack and k + 1 < n:
+            ch.append(k + 1)
+            k += 1
+        chains.append(ch)
+        k += 1
+    return chains, [[slack[ch[j]] for j in range(len(ch) - 1)] for ch in chains]
+
+
 def refine_from(carriages: Sequence[CarriageInput], links: Sequence[ChainLink], views: Sequence[View],
                 world_from_carriage: Sequence[np.ndarray], options: SolveOptions | None = None) -> dict:
     """Diagnostic, not a solve: step 4 alone (every pose, and the focal when ``options.estimate_focal``, couplers
@@ -1728,16 +1743,7 @@ def refine_from(carriages: Sequence[CarriageInput], links: Sequence[ChainLink], 
     views = list(views)
     cars = _prepare(carriages, views, options)
     N = len(cars)
-    slack = {int(L.front): float(L.slack_m) for L in links if L.slack_m is not None}
-    chains, k = [], 0
-    while k < N:
-        ch = [k]
-        while k in slack and k + 1 < N:
-            ch.append(k + 1)
-            k += 1
-        chains.append(ch)
-        k += 1
-    slacks = [[slack[ch[j]] for j in range(len(ch) - 1)] for ch in chains]
+    chains, slacks = held_chains(N, links)
     active = list(range(N))
     counts = {k: len(cars[k].P) for k in active}
     nmean = float(np.mean(list(counts.values())))

@@ -258,17 +258,9 @@ def crb(carriages: Sequence[Any], links: Sequence[Any], views: Sequence[Any], wo
     R = np.array([np.asarray(M, float)[:3, :3] for M in world_from_carriage])
     t = np.array([np.asarray(M, float)[:3, 3] for M in world_from_carriage])
     f = np.array([v.intrinsics.fx for v in views], dtype=float)
-    slack = {int(L.front): float(L.slack_m) for L in links if L.slack_m is not None}
-    chains, k = [], 0
-    while k < N:
-        ch = [k]
-        while k in slack and k + 1 < N:
-            ch.append(k + 1)
-            k += 1
-        chains.append(ch)
-        k += 1
-    slacks = [[slack[ch[j]] for j in range(len(ch) - 1)] for ch in chains]
-    from .chain import focal_groups
+    from .chain import focal_groups, held_chains
+
+    chains, slacks = held_chains(N, links)
 
     fv = focal_groups(views, list(range(len(views)))) if estimate_focal else []
     prob.uv = prob.project(R, t, f)[0]  # residuals zero at the truth
