@@ -166,9 +166,9 @@ def find_cars(photo: PhotoFeatures, refs: dict[str, list[FaceReference]], consis
         for c in found:
             c.detection = refine_detection(photo, c.detection, opts)
             c.cam_from_carriage = _pose(c.detection, photo.intrinsics) if c.cam_from_carriage is not None else None
-        # a face found only by Hough clustering (few distinctive matches) must be confirmed by the dense
-        # alignment of the whole face
-        found = [c for c in found if not c.detection.hough or (c.detection.ecc or 0.0) >= opts.hough_min_ecc]
+    # a face found only by Hough clustering (few distinctive matches) must be confirmed by the dense
+    # alignment of the whole face (without refinement there is none: the face is not kept)
+    found = [c for c in found if not c.detection.hough or (c.detection.ecc or 0.0) >= opts.hough_min_ecc]
     # 6. each found car's other faces where its pose predicts them, and one pose from all its faces
     if opts.guided:
         found = _complete(found, photo, types, by_number, opts, {} if ref_cache is None else ref_cache)
