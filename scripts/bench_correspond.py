@@ -7,9 +7,11 @@ finder of the ``correspond`` stage on the photo set and reports, against ``truth
 * wrong: share of the reported points more than 10 px from the truth (or on a carriage not there);
 * with ``--solve`` (needs workbench/solve/stage.py and workbench/synth/handpicks.py): carriage-centre
   position and heading errors of the solve from the automatic points, and from the true points plus 1 px
-  noise, on copies of the incidents with their true cameras.
+  noise, on copies of the incidents with their true cameras, and whether the truth lies inside the solve's
+  95 % intervals (east, north, up, heading, pitch, roll; share of the carriages solved).
 
-Usage: .venv/bin/python scripts/bench_correspond.py [--seeds 2 3] [--cars 4] [--solve] [--out bench_out/correspond]
+Usage: .venv/bin/python scripts/bench_correspond.py [--seeds 2 3] [--cars 4] [--solve] [--reuse-points]
+       [--out bench_out/correspond]
 Writes the figures to <out>/bench_correspond.json.
 """
 
@@ -71,16 +73,29 @@ def score(truth: dict, obs: list, photo_set: str = "panorama") -> dict:
             "p90_err_px": round(float(np.percentile(fin, 90)), 3) if len(fin) else None}
 
 
-def run_one(root: Path, opts: MatchOptions) -> tuple[dict, list]:
+def run_one(root: Path, opts: MatchOptions, cache: Path | None = None) -> tuple[dict, list]:
+    """Find the points (or, with ``cache`` an existing file, read those found by an earlier run) and score them."""
+    from workbench.correspond import manual as mf
+
     project = Project(root)
     truth = json.loads((root / "truth" / "ground_truth.json").read_text())
-    photos = project.photo_paths()
-    intr, _ = photo_intrinsics(project, photos)
     t0 = time.perf_counter()
-    obs, needs, stats = automatic(project, photos, intr, opts, lambda f, m="": None)
+    if cache is not None and cache.is_file():
+        doc = json.loads(cache.read_text())
+        obs, needs = mf.CorrespondenceFile(**doc).observations, doc.get("needs_manual", [])
+    else:
+        photos = project.photo_paths()
+        intr, _ = photo_intrinsics(project, photos)
+        obs, needs, stats = automatic(project, photos, intr, opts, lambda f, m="": None)
+        if cache is not None:
+            cache.parent.mkdir(parents=True, exist_ok=True)
+            cache.write_text(json.dumps(mf.CorrespondenceFile(observations=obs, needs_manual=needs).to_json()))
     res = score(truth, obs)
+    by_how: dict[str, int] = {}
+    for o in obs:
+        by_how[o.method or "manual"] = by_how.get(o.method or "manual", 0) + 1
     res.update({"incident": str(root), "time_s": round(time.perf_counter() - t0, 1), "needs_manual": needs,
-                "by_how": {}})
+                "by_how": by_how})
     return res, obs
 
 
@@ -139,17 +154,31 @@ def solve_errors(src: Path, work: Path, obs: list | None) -> dict:
     sol = json.loads((root / "out" / "solve" / "solution.json").read_text())
     truth = json.loads((root / "truth" / "ground_truth.json").read_text())
     tc = {c["number"]: c for c in truth["carriages"]}
-    pos, hdg, status = {}, {}, {}
+    pos, hdg, status, cover = {}, {}, {}, {}
     for c in sol["carriages"]:
         status[c["number"]] = c["status"]
         if c["status"] == "left_out" or c.get("body_centre_enu") is None:
             continue
         t = tc[c["number"]]
-        pos[c["number"]] = float(np.linalg.norm(np.subtract(c["body_centre_enu"], t["body_centre_enu"])))
-        hdg[c["number"]] = float(abs((c["heading_deg"] - t["heading_deg"] + 180.0) % 360.0 - 180.0))
+        d_pos = np.subtract(c["body_centre_enu"], t["body_centre_enu"])
+        d_hpr = np.array([(c[k] - t[k] + 180.0) % 360.0 - 180.0 for k in ("heading_deg", "pitch_deg", "roll_deg")])
+        pos[c["number"]] = float(np.linalg.norm(d_pos))
+        hdg[c["number"]] = float(abs(d_hpr[0]))
+        # is the truth inside the solve's 95 % interval? per component: east, north, up, heading, pitch, roll
+        if c.get("ci95_body_centre_m") is not None and c.get("ci95_hpr_deg") is not None:
+            err = np.abs(np.concatenate([d_pos, d_hpr]))
+            half = np.concatenate([c["ci95_body_centre_m"], c["ci95_hpr_deg"]])
+            cover[c["number"]] = {"error": [round(float(x), 3) for x in err],
+                                  "ci95": [round(float(x), 3) for x in half],
+                                  "inside": [bool(e <= h) for e, h in zip(err, half)]}
     p, h = np.array(list(pos.values())), np.array(list(hdg.values()))
+    inside = np.array([v["inside"] for v in cover.values()], dtype=bool).reshape(-1, 6)
     return {"status": status, "position_error_m": {k: round(v, 3) for k, v in pos.items()},
             "heading_error_deg": {k: round(v, 3) for k, v in hdg.items()},
+            "coverage": cover,
+            "coverage_share": {k: round(float(x), 3) for k, x in
+                               zip(("east", "north", "up", "heading", "pitch", "roll"), inside.mean(0))}
+            if len(inside) else None,
             "median_position_error_m": round(float(np.median(p)), 3) if len(p) else None,
             "max_position_error_m": round(float(np.max(p)), 3) if len(p) else None,
             "median_heading_error_deg": round(float(np.median(h)), 3) if len(h) else None,
@@ -168,6 +197,9 @@ def main(argv: list[str] | None = None) -> int:
                     help="a MatchOptions field, e.g. --option min_inliers=12 (value parsed as a Python literal)")
     ap.add_argument("--out", type=Path, default=REPO / "bench_out" / "correspond")
     ap.add_argument("--work", type=Path, default=Path("/tmp/bench_correspond"))
+    ap.add_argument("--reuse-points", action="store_true",
+                    help="read the points an earlier run found (under --work) instead of finding them again "
+                         "(to compare solve settings on the same points)")
     args = ap.parse_args(argv)
     logging.basicConfig(level=logging.WARNING)
     import ast
@@ -187,7 +219,10 @@ def main(argv: list[str] | None = None) -> int:
         roots.append(root)
     results = []
     for root in roots:
-        res, obs = run_one(root, opts)
+        cache = args.work / f"{root.name}_points.json"  # written by every run, read with --reuse-points
+        if not args.reuse_points:
+            cache.unlink(missing_ok=True)
+        res, obs = run_one(root, opts, cache)
         results.append(res)
         print(f"{root.name:24s} visible {res['n_visible']:4d}  reported {res['n_reported']:4d}  "
               f"found<=3px {res['found_share']:.1%}  wrong>10px {res['wrong_share']:.1%}  "
@@ -210,6 +245,8 @@ def main(argv: list[str] | None = None) -> int:
                 print(f"   {k}: {r.get('error') or ''}centre error median {r.get('median_position_error_m')} m, max "
                       f"{r.get('max_position_error_m')} m; heading error median {r.get('median_heading_error_deg')} "
                       f"deg, max {r.get('max_heading_error_deg')} deg; {r.get('status')}", flush=True)
+                print(f"   {k}: truth inside the 95 % intervals (share of carriages): {r.get('coverage_share')}",
+                      flush=True)
     tot_vis = sum(r["n_visible"] for r in results)
     tot_rep = sum(r["n_reported"] for r in results)
     summary = {"found_share": round(sum(r["n_found_3px"] for r in results) / max(tot_vis, 1), 4),

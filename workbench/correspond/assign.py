@@ -49,7 +49,7 @@ class PointObservation:
     confidence: float
     sigma_px: float
     face: str
-    how: str  # "homography" (on the face plane) or "pose" (off the plane, from the face's pose)
+    how: str  # "homography" (on the face plane), "pose" (off the plane, from the face's pose) or "carried"
 
 
 def _pose(det: FaceDetection, K) -> np.ndarray | None:

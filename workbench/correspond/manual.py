@@ -38,6 +38,10 @@ class Observation(BaseModel):
     source: Literal["manual", "sift"] = "manual"
     confidence: float = Field(1.0, ge=0.0, le=1.0)
     sigma_px: float | None = Field(None, gt=0.0)
+    # how a "sift" point was placed: on its face's plane by the face's homography; projected from the car's pose
+    # (off the plane); or carried from another photo of a panorama set. The last two are predictions: the
+    # solve lets them guide the fit but counts no information from them (docs/pipeline.md)
+    method: Literal["homography", "pose", "carried"] | None = None
 
     @field_validator("uv")
     @classmethod
@@ -56,6 +60,8 @@ class Observation(BaseModel):
              "confidence": round(float(self.confidence), 3)}
         if self.sigma_px is not None:
             d["sigma_px"] = round(float(self.sigma_px), 3)
+        if self.method is not None:
+            d["method"] = self.method
         return d
 
 

@@ -83,8 +83,7 @@ def carry(observations: dict[str, list[PointObservation]], photos: dict[str, Pho
                 if not np.all(np.isfinite(uv_b)) or not pb.intrinsics.in_image(uv_b[None], margin_px)[0]:
                     continue
                 c = PointObservation(o.carriage, o.point, b, (float(uv_b[0]), float(uv_b[1])),
-                                     round(0.9 * o.confidence, 3), round(o.sigma_px + 0.3, 2), o.face,
-                                     f"carried from {a}")
+                                     round(0.9 * o.confidence, 3), round(o.sigma_px + 0.3, 2), o.face, "carried")
                 if k not in best or c.confidence > best[k].confidence:
                     best[k] = c
         out[b].extend(best.values())

@@ -105,6 +105,9 @@ class Observation:
     v: float
     visible: bool = True
     sigma_px: float | None = None  # this point's pixel sigma (None: the solve's pixel_sigma_px)
+    # a prediction from other observations (a point projected from a face's pose, or carried from another
+    # photo): it guides the fit, but adds no information, so the covariance and the pixel sigma leave it out
+    derived: bool = False
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -279,24 +282,24 @@ class SolveResult:
 # Input checking and flattening
 # ----------------------------------------------------------------------------------------------------------
 def _iter_observations(car: CarriageInput, view_name: str, obs: Any):
-    """(point name, (u, v), sigma_px or None) of the visible observations of one view."""
+    """(point name, (u, v), sigma_px or None, derived) of the visible observations of one view."""
     if isinstance(obs, Mapping):
         for name, uv in obs.items():
             if uv is None:
                 continue
             if isinstance(uv, Observation):
                 if uv.visible:
-                    yield str(name), (uv.u, uv.v), uv.sigma_px
+                    yield str(name), (uv.u, uv.v), uv.sigma_px, uv.derived
                 continue
-            yield str(name), uv, None
+            yield str(name), uv, None, False
     else:
         for o in obs:
             if isinstance(o, Observation):
                 if o.visible:
-                    yield o.point, (o.u, o.v), o.sigma_px
+                    yield o.point, (o.u, o.v), o.sigma_px, o.derived
             else:
                 name, uv = o
-                yield str(name), uv, None
+                yield str(name), uv, None, False
 
 
 @dataclass
@@ -313,6 +316,7 @@ class _Car:
     c_rear: np.ndarray
     c_body: np.ndarray
     scale: np.ndarray | None = None  # (n,) each point's sigma / the solve's pixel sigma (None: all 1)
+    derived: np.ndarray | None = None  # (n,) bool: a prediction, not a measurement (see Observation.derived)
 
 
 def _prepare(carriages: Sequence[CarriageInput], views: Sequence[View], options: SolveOptions) -> list[_Car]:
@@ -333,14 +337,14 @@ def _prepare(carriages: Sequence[CarriageInput], views: Sequence[View], options:
     out = []
     for i, c in enumerate(carriages):
         ct = c.carriage_type
-        names, vi, P, uv, sc = [], [], [], [], []
+        names, vi, P, uv, sc, der = [], [], [], [], [], []
         for vname, obs in (c.observations or {}).items():
             if vname not in vindex:
                 raise InputError(f"car {c.number}: observations for view {vname!r}, which is not among the views "
                                  f"{vnames}")
             intr = views[vindex[vname]].intrinsics
             seen: set[str] = set()
-            for name, pix, sig in _iter_observations(c, vname, obs):
+            for name, pix, sig, derived in _iter_observations(c, vname, obs):
                 if name not in ct.marked_points:
                     raise InputError(f"car {c.number}, view {vname!r}: point {name!r} is not a marked point of type "
                                      f"{ct.id!r} (it has: {', '.join(ct.marked_points)})")
@@ -362,12 +366,13 @@ def _prepare(carriages: Sequence[CarriageInput], views: Sequence[View], options:
                 P.append(ct.marked_points[name])
                 uv.append(a)
                 sc.append(1.0 if sig is None else float(sig) / options.pixel_sigma_px)
+                der.append(bool(derived))
         distinct = sorted(set(names))
         body = np.array([0.0, 0.0, 0.5 * float(ct.height_m)])
         out.append(_Car(i, str(c.number), ct, names, np.asarray(vi, dtype=int),
                         np.asarray(P, dtype=float).reshape(-1, 3), np.asarray(uv, dtype=float).reshape(-1, 2),
                         distinct, np.asarray(ct.coupler_front, float), np.asarray(ct.coupler_rear, float), body,
-                        np.asarray(sc, dtype=float)))
+                        np.asarray(sc, dtype=float), np.asarray(der, dtype=bool)))
     return out
 
 
@@ -527,7 +532,7 @@ class _Problem:
     def __init__(self, cars: list[_Car], active: list[int], views: Sequence[View], weights: dict[int, float]):
         self.cars, self.views = cars, views
         self.active = active
-        rows_car, rows_view, P, uv, w, wv = [], [], [], [], [], []
+        rows_car, rows_view, P, uv, w, wv, meas = [], [], [], [], [], [], []
         for k in active:
             c = cars[k]
             rows_car.append(np.full(len(c.P), k))
@@ -539,12 +544,15 @@ class _Problem:
             # weight multiplies it (and is what the weighted rows' noise variance keeps: see .uncertainty)
             w.append(weights[k] / sc)
             wv.append(np.full(len(c.P), weights[k]))
+            der = c.derived if c.derived is not None and len(c.derived) == len(c.P) else np.zeros(len(c.P), bool)
+            meas.append(~der)
         self.car = np.concatenate(rows_car) if rows_car else np.zeros(0, int)
         self.view = np.concatenate(rows_view) if rows_view else np.zeros(0, int)
         self.P = np.vstack(P) if P else np.zeros((0, 3))
         self.uv = np.vstack(uv) if uv else np.zeros((0, 2))
         self.w = np.concatenate(w) if w else np.zeros(0)  # row weights (normalisation x whitening)
         self.w_noise = np.concatenate(wv) if wv else np.zeros(0)  # sd of a weighted row / pixel sigma
+        self.measured = np.concatenate(meas) if meas else np.zeros(0, bool)  # rows that carry information
         self.by_view = [np.nonzero(self.view == v)[0] for v in range(len(views))]
         self.by_car = {k: np.nonzero(self.car == k)[0] for k in active}
 

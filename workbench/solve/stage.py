@@ -138,6 +138,7 @@ def read_correspondences(project: Project, path: Path, views: list, panorama: An
     src: dict[tuple, str] = {}
     n_pano = 0
     sources: dict[str, int] = {}
+    n_derived = 0
     for i, o in enumerate(doc["observations"]):
         where = f"{path}: observations[{i}]"
         if not isinstance(o, dict):
@@ -182,6 +183,10 @@ def read_correspondences(project: Project, path: Path, views: list, panorama: An
             if not (math.isfinite(sig) and sig > 0):
                 raise InputError(f"{where} (car {car}, point {point}): sigma_px = {o.get('sigma_px')!r} must be a "
                                  f"positive number of pixels (or left out)")
+        method = o.get("method")
+        if method not in (None, "homography", "pose", "carried"):
+            raise InputError(f"{where} (car {car}, point {point}): method = {method!r} must be 'homography', "
+                             f"'pose' or 'carried' (or left out)")
         key = (car, view, point)
         if key in src:
             raise InputError(f"{where}: car {car}, point {point} in view {view} is given twice (also "
@@ -191,10 +196,12 @@ def read_correspondences(project: Project, path: Path, views: list, panorama: An
         # claims on one face are correlated through its homography, not independent evidence)
         sig_used = None if sig is None else max(sig, float(project.settings.solver.pixel_sigma_px))
         out.setdefault(car, {}).setdefault(view, {})[point] = Observation(point, float(a[0]), float(a[1]), True,
-                                                                          sig_used)
+                                                                          sig_used, method in ("pose", "carried"))
         s = str(o.get("source", "manual"))
         sources[s] = sources.get(s, 0) + 1
+        n_derived += method in ("pose", "carried")
     stats = {"file": project.relative(path), "n_observations": len(src), "by_source": sources,
+             "n_predicted": n_derived,
              "from_panorama_pixels": n_pano, "needs_manual": doc.get("needs_manual", [])}
     return out, stats
 

@@ -18,6 +18,12 @@ Weights (sandwich)
     ``G = sum w^2 J_w^T J_w / sigma^2 + priors`` give ``Cov = H^-1 G H^-1`` (equal to ``H^-1`` when all
     weights are 1). A robust loss enters through its IRLS weights rho'(z) at the solution, held fixed.
 
+Predictions
+    Rows of observations marked ``derived`` (a point projected from a face's pose, or carried into another
+    photo of a panorama set) are left out of ``H``, ``G`` and the pixel sigma: they are functions of measured
+    points, so they steer the fit but carry no information of their own. The covariance is then that of the
+    fit from the measured points alone, which the predictions only keep in the right basin.
+
 Pixel sigma
     ``sigma_hat^2 = sum r_w^2 / (sum w^2 (m - p_eff) / m)`` with ``m`` pixel coordinates and ``p_eff`` the
     effective number of parameters the pixels determine (``tr(H^-1 H_pixels)``; the priors take the rest).
@@ -128,8 +134,17 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
                      sigma_fixed: float | None = None) -> dict:
     """Covariance in free-pose parameters (see the module doc). ``sigma_fixed``: use that pixel sigma (CRB)."""
     J, r, col, P = _rows(prob, R, t, f, focal_views)
-    M = len(prob.P)
-    w2 = np.repeat(prob.w_noise**2, 2)  # variance factor of the weighted rows (whitened points keep w_i^2)
+    # predictions (points projected from a face's pose, points carried from another photo) guide the fit but
+    # are functions of the measured points: counting them would claim information twice
+    meas = getattr(prob, "measured", None)
+    if meas is not None and len(meas) == len(prob.P) and not meas.all():
+        keep = np.repeat(meas, 2)
+        J, r = J[keep], r[keep]
+        w2 = np.repeat(prob.w_noise[meas] ** 2, 2)
+        M = int(meas.sum())
+    else:
+        w2 = np.repeat(prob.w_noise**2, 2)  # variance factor of the weighted rows (whitened points keep w_i^2)
+        M = len(prob.P)
     r2pt = (r.reshape(-1, 2) ** 2).sum(1)
     rho = np.repeat(_robust_weights(r2pt, loss, loss_scale), 2)
     Hp_unit = (J * rho[:, None]).T @ J
