@@ -94,6 +94,9 @@ class RobustLoss(str, Enum):
     cauchy = "cauchy"
 
 
+FACE_SIGMA_PX = 0.15  # chosen from the coverage on the samples' automatic points: see docs/correspondences.md
+
+
 class Solver(_Strict):
     pixel_sigma_px: Annotated[float, Field(gt=0.0)] = 1.0
     robust_loss: RobustLoss = RobustLoss.linear
@@ -106,6 +109,9 @@ class Solver(_Strict):
     # point of each carriage per round, at most `max_rejection_rounds`); 0 turns the rejection off
     reject_outliers_sigma: Annotated[float, Field(ge=0.0)] = 5.0
     max_rejection_rounds: Annotated[int, Field(ge=0, le=50)] = 5
+    # pixels of misfit shared by the points one homography placed on one face (automatic points): modelled in
+    # the covariance as a common affine displacement of each face's points (docs/solver.md); 0: none
+    face_sigma_px: Annotated[float, Field(ge=0.0, le=10.0)] = FACE_SIGMA_PX
 
 
 class ProjectSettings(_Strict):
@@ -239,4 +245,5 @@ slack_held_m = 0.05           # coupler slack of a coupling that held, metres
 estimate_focal = false
 max_iterations = 200
 reject_outliers_sigma = 5.0    # drop a marked point farther than this many pixel sigmas from the fit (0: off)
+face_sigma_px = 0.15          # misfit shared by one face's automatic points, pixels (covariance only; 0: none)
 """

@@ -42,6 +42,9 @@ class Observation(BaseModel):
     # (off the plane); or carried from another photo of a panorama set. The last two are predictions: the
     # solve lets them guide the fit but counts no information from them (docs/pipeline.md)
     method: Literal["homography", "pose", "carried"] | None = None
+    # the carriage face whose homography or pose placed a "sift" point (left, right, front, rear, roof): the
+    # points of one face share its small misfit, which the solve's covariance models (solver.face_sigma_px)
+    face: str | None = None
 
     @field_validator("uv")
     @classmethod
@@ -62,6 +65,8 @@ class Observation(BaseModel):
             d["sigma_px"] = round(float(self.sigma_px), 3)
         if self.method is not None:
             d["method"] = self.method
+        if self.face is not None:
+            d["face"] = self.face
         return d
 
 

@@ -201,7 +201,8 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
     for name, pts in per_view.items():
         for o in pts:
             obs.append(mf.Observation(carriage=o.carriage, point=o.point, view=o.view, uv=o.uv, source="sift",
-                                      confidence=o.confidence, sigma_px=o.sigma_px, method=o.how))
+                                      confidence=o.confidence, sigma_px=o.sigma_px, method=o.how,
+                                      face=o.face))
     needs = [{"carriage": n, "reason": "reference has no texture (too few features on every face); pick its "
                                        "points by hand"} for n in untextured]
     seen = {o.carriage for o in obs}

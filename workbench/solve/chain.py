@@ -108,6 +108,9 @@ class Observation:
     # a prediction from other observations (a point projected from a face's pose, or carried from another
     # photo): it guides the fit, but adds no information, so the covariance and the pixel sigma leave it out
     derived: bool = False
+    # points that share one systematic misfit (those the homographies placed on one face of the carriage, in
+    # every view): their covariance adds ``SolveOptions.face_sigma_px`` of a common affine displacement
+    group: str | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -165,6 +168,9 @@ class SolveOptions:
     check_image_bounds: bool = True
     compute_covariance: bool = True
     prior_dof: float = 5.0
+    # pixels of a systematic misfit shared by the points of one group (one face of a carriage, all views): a
+    # common affine displacement of that size, modelled in the covariance only (see .uncertainty); 0: none
+    face_sigma_px: float = 0.0
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> None:
@@ -189,6 +195,8 @@ class SolveOptions:
             bad("terrain_samples", "must be at least 8")
         if not (self.tolerance > 0):
             bad("tolerance", "must be positive")
+        if not (np.isfinite(self.face_sigma_px) and self.face_sigma_px >= 0):
+            bad("face_sigma_px", "must be a non-negative number of pixels")
 
 
 @dataclass
@@ -282,24 +290,24 @@ class SolveResult:
 # Input checking and flattening
 # ----------------------------------------------------------------------------------------------------------
 def _iter_observations(car: CarriageInput, view_name: str, obs: Any):
-    """(point name, (u, v), sigma_px or None, derived) of the visible observations of one view."""
+    """(point name, (u, v), sigma_px or None, derived, group or None) of the visible observations of one view."""
     if isinstance(obs, Mapping):
         for name, uv in obs.items():
             if uv is None:
                 continue
             if isinstance(uv, Observation):
                 if uv.visible:
-                    yield str(name), (uv.u, uv.v), uv.sigma_px, uv.derived
+                    yield str(name), (uv.u, uv.v), uv.sigma_px, uv.derived, uv.group
                 continue
-            yield str(name), uv, None, False
+            yield str(name), uv, None, False, None
     else:
         for o in obs:
             if isinstance(o, Observation):
                 if o.visible:
-                    yield o.point, (o.u, o.v), o.sigma_px, o.derived
+                    yield o.point, (o.u, o.v), o.sigma_px, o.derived, o.group
             else:
                 name, uv = o
-                yield str(name), uv, None, False
+                yield str(name), uv, None, False, None
 
 
 @dataclass
@@ -317,6 +325,7 @@ class _Car:
     c_body: np.ndarray
     scale: np.ndarray | None = None  # (n,) each point's sigma / the solve's pixel sigma (None: all 1)
     derived: np.ndarray | None = None  # (n,) bool: a prediction, not a measurement (see Observation.derived)
+    groups: list | None = None  # (n,) the observation's group (see Observation.group) or None
 
 
 def _prepare(carriages: Sequence[CarriageInput], views: Sequence[View], options: SolveOptions) -> list[_Car]:
@@ -337,14 +346,14 @@ def _prepare(carriages: Sequence[CarriageInput], views: Sequence[View], options:
     out = []
     for i, c in enumerate(carriages):
         ct = c.carriage_type
-        names, vi, P, uv, sc, der = [], [], [], [], [], []
+        names, vi, P, uv, sc, der, grp = [], [], [], [], [], [], []
         for vname, obs in (c.observations or {}).items():
             if vname not in vindex:
                 raise InputError(f"car {c.number}: observations for view {vname!r}, which is not among the views "
                                  f"{vnames}")
             intr = views[vindex[vname]].intrinsics
             seen: set[str] = set()
-            for name, pix, sig, derived in _iter_observations(c, vname, obs):
+            for name, pix, sig, derived, group in _iter_observations(c, vname, obs):
                 if name not in ct.marked_points:
                     raise InputError(f"car {c.number}, view {vname!r}: point {name!r} is not a marked point of type "
                                      f"{ct.id!r} (it has: {', '.join(ct.marked_points)})")
@@ -367,12 +376,13 @@ def _prepare(carriages: Sequence[CarriageInput], views: Sequence[View], options:
                 uv.append(a)
                 sc.append(1.0 if sig is None else float(sig) / options.pixel_sigma_px)
                 der.append(bool(derived))
+                grp.append(None if group is None else str(group))
         distinct = sorted(set(names))
         body = np.array([0.0, 0.0, 0.5 * float(ct.height_m)])
         out.append(_Car(i, str(c.number), ct, names, np.asarray(vi, dtype=int),
                         np.asarray(P, dtype=float).reshape(-1, 3), np.asarray(uv, dtype=float).reshape(-1, 2),
                         distinct, np.asarray(ct.coupler_front, float), np.asarray(ct.coupler_rear, float), body,
-                        np.asarray(sc, dtype=float), np.asarray(der, dtype=bool)))
+                        np.asarray(sc, dtype=float), np.asarray(der, dtype=bool), grp))
     return out
 
 
@@ -532,7 +542,8 @@ class _Problem:
     def __init__(self, cars: list[_Car], active: list[int], views: Sequence[View], weights: dict[int, float]):
         self.cars, self.views = cars, views
         self.active = active
-        rows_car, rows_view, P, uv, w, wv, meas = [], [], [], [], [], [], []
+        rows_car, rows_view, P, uv, w, wv, meas, grp = [], [], [], [], [], [], [], []
+        codes: dict[tuple, int] = {}
         for k in active:
             c = cars[k]
             rows_car.append(np.full(len(c.P), k))
@@ -546,6 +557,8 @@ class _Problem:
             wv.append(np.full(len(c.P), weights[k]))
             der = c.derived if c.derived is not None and len(c.derived) == len(c.P) else np.zeros(len(c.P), bool)
             meas.append(~der)
+            gs = c.groups if c.groups is not None and len(c.groups) == len(c.P) else [None] * len(c.P)
+            grp.append(np.array([-1 if g is None else codes.setdefault((k, g), len(codes)) for g in gs], dtype=int))
         self.car = np.concatenate(rows_car) if rows_car else np.zeros(0, int)
         self.view = np.concatenate(rows_view) if rows_view else np.zeros(0, int)
         self.P = np.vstack(P) if P else np.zeros((0, 3))
@@ -553,6 +566,7 @@ class _Problem:
         self.w = np.concatenate(w) if w else np.zeros(0)  # row weights (normalisation x whitening)
         self.w_noise = np.concatenate(wv) if wv else np.zeros(0)  # sd of a weighted row / pixel sigma
         self.measured = np.concatenate(meas) if meas else np.zeros(0, bool)  # rows that carry information
+        self.group = np.concatenate(grp) if grp else np.zeros(0, int)  # shared-misfit group per row, -1: none
         self.by_view = [np.nonzero(self.view == v)[0] for v in range(len(views))]
         self.by_car = {k: np.nonzero(self.car == k)[0] for k in active}
 

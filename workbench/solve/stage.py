@@ -124,6 +124,16 @@ def read_views(project: Project, path: Path) -> tuple[list, dict]:
     return views, doc
 
 
+def _group(o: dict, method: str | None, where: str) -> str | None:
+    """The shared-misfit group of a measured automatic point: the face its homography placed it on."""
+    face = o.get("face")
+    if method != "homography" or face is None:
+        return None
+    if not isinstance(face, str):
+        raise InputError(f"{where}: face = {face!r} must be a face name (left, right, front, rear, roof)")
+    return face
+
+
 def read_correspondences(project: Project, path: Path, views: list, panorama: Any = None) -> tuple[dict, dict]:
     """``({car number: {view name: {point: Observation}}}, stats)``; every bad item is an :class:`InputError`
     naming it. ``view == "panorama"`` pixels are mapped into their source photo with the panorama model."""
@@ -196,7 +206,8 @@ def read_correspondences(project: Project, path: Path, views: list, panorama: An
         # claims on one face are correlated through its homography, not independent evidence)
         sig_used = None if sig is None else max(sig, float(project.settings.solver.pixel_sigma_px))
         out.setdefault(car, {}).setdefault(view, {})[point] = Observation(point, float(a[0]), float(a[1]), True,
-                                                                          sig_used, method in ("pose", "carried"))
+                                                                          sig_used, method in ("pose", "carried"),
+                                                                          _group(o, method, where))
         s = str(o.get("source", "manual"))
         sources[s] = sources.get(s, 0) + 1
         n_derived += method in ("pose", "carried")
@@ -248,7 +259,8 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
                         if hasattr(s.solver.robust_loss, "value") else str(s.solver.robust_loss),
                         loss_scale_px=s.solver.loss_scale_px, max_iterations=s.solver.max_iterations,
                         estimate_focal=bool(s.solver.estimate_focal or focal_unknown),
-                        terrain_sigma_m=s.terrain.dem_vertical_accuracy_m)
+                        terrain_sigma_m=s.terrain.dem_vertical_accuracy_m,
+                        face_sigma_px=s.solver.face_sigma_px)
     terrain = None
     if s.terrain.dem:
         from ..terrain.stage import terrain_model_for

@@ -24,6 +24,15 @@ Predictions
     points, so they steer the fit but carry no information of their own. The covariance is then that of the
     fit from the measured points alone, which the predictions only keep in the right basin.
 
+Shared misfit of a face
+    The points the homographies place on one face of a carriage (``Observation.group``) share its misfit: a
+    sub-pixel offset or stretch of the whole face (a livery not quite where the model has it) moves them
+    together, in every photo, so they do not average out as independent noise does. With
+    ``face_sigma_px = tau`` each group's pixels get a common affine displacement ``B_g a_g``,
+    ``a_g ~ N(0, tau^2 I_6)`` (:func:`_shared_misfit`); the fit is unchanged and the gradient's covariance
+    gains ``tau^2 sum_g J_g^T W_g B_g B_g^T W_g J_g`` (a sandwich: the estimator ignores the correlation, its
+    covariance does not).
+
 Pixel sigma
     ``sigma_hat^2 = sum r_w^2 / (sum w^2 (m - p_eff) / m)`` with ``m`` pixel coordinates and ``p_eff`` the
     effective number of parameters the pixels determine (``tr(H^-1 H_pixels)``; the priors take the rest).
@@ -131,15 +140,21 @@ def _inv(H: np.ndarray) -> np.ndarray:
 
 def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_cfg: float,
                      loss: str = "linear", loss_scale: float = 1.0, prior_dof: float = 5.0,
-                     sigma_fixed: float | None = None) -> dict:
-    """Covariance in free-pose parameters (see the module doc). ``sigma_fixed``: use that pixel sigma (CRB)."""
+                     sigma_fixed: float | None = None, face_sigma: float = 0.0) -> dict:
+    """Covariance in free-pose parameters (see the module doc). ``sigma_fixed``: use that pixel sigma (CRB);
+    ``face_sigma``: pixels of the misfit shared by each group of points (see the module doc)."""
     J, r, col, P = _rows(prob, R, t, f, focal_views)
+    groups = getattr(prob, "group", None)
+    if groups is None or len(groups) != len(prob.P):
+        groups = np.full(len(prob.P), -1)
+    uv_obs, w_row, views = prob.uv, prob.w, prob.view
     # predictions (points projected from a face's pose, points carried from another photo) guide the fit but
     # are functions of the measured points: counting them would claim information twice
     meas = getattr(prob, "measured", None)
     if meas is not None and len(meas) == len(prob.P) and not meas.all():
         keep = np.repeat(meas, 2)
         J, r = J[keep], r[keep]
+        groups, uv_obs, w_row, views = groups[meas], uv_obs[meas], w_row[meas], views[meas]
         w2 = np.repeat(prob.w_noise[meas] ** 2, 2)
         M = int(meas.sum())
     else:
@@ -176,9 +191,44 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         q = float(stats.t.ppf(0.975, dof + prior_dof)) if dof + prior_dof > 0 else 1.959963984540054
     H, Hi = assemble(sigma)
     G = Gp_unit / sigma**2 + Hprior
+    if face_sigma > 0:
+        G = G + face_sigma**2 / sigma**4 * _shared_misfit(J * rho[:, None], groups, views, uv_obs, w_row)
     cov = Hi @ G @ Hi
     cov = 0.5 * (cov + cov.T)
     return {"cov": cov, "col": col, "sigma": sigma, "sigma_hat": sigma_hat, "dof": dof, "q": q, "P": P}
+
+
+def _shared_misfit(J: np.ndarray, groups: np.ndarray, views: np.ndarray, uv: np.ndarray,
+                   w: np.ndarray) -> np.ndarray:
+    """``sum_g (J_g^T W_g B_g)(J_g^T W_g B_g)^T`` (P, P): the gradient covariance, per pixel^2 of shared misfit,
+    of each group's common affine displacement. ``J``: weighted rows (2M, P); ``groups`` (M,) with -1 for none;
+    ``views`` (M,) view index; ``uv`` (M, 2) observed pixels; ``w`` (M,) row weights.
+
+    Six modes, their coefficients shared by the group's points in every view (a face's misfit is in the face,
+    so it repeats from photo to photo): a shift in u and in v, and the four affine terms ``(u - u_c) / s_u``,
+    ``(v - v_c) / s_v`` in u and in v, with the centroid and the RMS spreads ``s_u``, ``s_v`` of the group's
+    points in that view (each mode of unit RMS size there; only the shifts where a view has fewer than 3)."""
+    P = J.shape[1]
+    out = np.zeros((P, P))
+    for g in np.unique(groups[groups >= 0]):
+        A = np.zeros((P, 6))
+        for v in np.unique(views[groups == g]):
+            idx = np.nonzero((groups == g) & (views == v))[0]
+            n = len(idx)
+            d = uv[idx] - uv[idx].mean(0)
+            s = np.sqrt(np.mean(d**2, axis=0))
+            B = np.zeros((2 * n, 6))
+            B[0::2, 0] = 1.0
+            B[1::2, 1] = 1.0
+            if n >= 3:
+                for j in range(2):
+                    if s[j] > 1e-6:
+                        B[0::2, 2 + j] = d[:, j] / s[j]
+                        B[1::2, 4 + j] = d[:, j] / s[j]
+            rows = np.stack([2 * idx, 2 * idx + 1], axis=1).reshape(-1)
+            A += J[rows].T @ (B * np.repeat(w[idx], 2)[:, None])
+        out += A @ A.T
+    return out
 
 
 def _hpr_jac(Rk: np.ndarray, eps: float = 1e-6) -> np.ndarray:
@@ -206,7 +256,8 @@ def body_centre_cov(model: dict, cars, R, k: int) -> np.ndarray:
 def attach_covariance(res, prob, R, t, f, focal_views, chains, slacks, contact, options) -> None:
     """Fill the covariance fields of a :class:`SolveResult` in place."""
     model = covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, options.pixel_sigma_px,
-                             options.robust_loss, options.loss_scale_px, options.prior_dof)
+                             options.robust_loss, options.loss_scale_px, options.prior_dof,
+                             face_sigma=options.face_sigma_px)
     cov, col, q = model["cov"], model["col"], model["q"]
     res.sigma_px = model["sigma"]
     res.sigma_px_estimated = model["sigma_hat"]

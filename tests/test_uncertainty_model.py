@@ -1,0 +1,102 @@
+"""The solve's error model for automatic points: predictions carry no information, and a face's shared misfit
+widens the intervals as much as it moves the poses (coverage checked by Monte Carlo)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from workbench.errors import SettingsError
+from workbench.solve.chain import Observation, SolveOptions, solve_consist
+from workbench.solve.simulate import simulate_consist
+
+
+def _with(sim, car: int, make) -> None:
+    """Replace car ``car``'s observations of every view by ``make(view, {point: (u, v)}, clean)``."""
+    c = sim.carriages[car]
+    c.observations = {v: make(v, dict(obs), sim.clean_pixels[car]) for v, obs in c.observations.items()}
+
+
+def _sigma_position(sim, opts: SolveOptions) -> np.ndarray:
+    res = solve_consist(sim.carriages, sim.links, sim.views, opts, terrain=None)
+    assert res.status == "converged"
+    return np.array([np.asarray(c.sigma_body_centre_m, float) for c in res.carriages])
+
+
+def test_predictions_add_no_information():
+    """Points flagged ``derived`` (projected from a pose, carried from another photo) leave the covariance as
+    it is without them; the same points as measurements would shrink it."""
+    opts = SolveOptions(pixel_sigma_px=0.5)
+    names = sorted(next(iter(simulate_consist(3, seed=4).carriages[1].observations.values())))
+
+    def measured_only(v, obs, clean):
+        return [Observation(n, *obs[n]) for n in names[:5]]
+
+    def plus_predictions(v, obs, clean):  # the others exactly where the pose puts them: no new evidence
+        return [Observation(n, *obs[n]) for n in names[:5]] + \
+               [Observation(n, *clean[n], derived=True) for n in names[5:]]
+
+    def plus_measurements(v, obs, clean):
+        return [Observation(n, *obs[n]) for n in names[:5]] + [Observation(n, *clean[n]) for n in names[5:]]
+
+    sig = {}
+    for label, make in (("measured", measured_only), ("predicted", plus_predictions), ("as_measured", plus_measurements)):
+        sim = simulate_consist(3, seed=4, pixel_sigma_px=0.5)
+        _with(sim, 1, make)
+        sig[label] = _sigma_position(sim, opts)[1]
+    assert len(names) >= 7
+    np.testing.assert_allclose(sig["predicted"], sig["measured"], rtol=0.1)
+    assert np.all(sig["as_measured"] < 0.97 * sig["predicted"])
+
+
+def test_shared_misfit_only_widens_grouped_points():
+    opts0, opts = SolveOptions(pixel_sigma_px=0.5), SolveOptions(pixel_sigma_px=0.5, face_sigma_px=0.5)
+
+    def grouped(v, obs, clean):
+        return [Observation(n, *uv, group="right") for n, uv in obs.items()]
+
+    sim = simulate_consist(3, seed=6, pixel_sigma_px=0.5)
+    plain0, plain = _sigma_position(sim, opts0), _sigma_position(sim, opts)
+    np.testing.assert_allclose(plain, plain0, rtol=1e-9)  # no groups: the misfit term has nothing to act on
+    for k in range(3):
+        _with(sim, k, grouped)
+    wide = _sigma_position(sim, opts)
+    assert np.all(wide > 1.05 * plain0)
+    with pytest.raises(SettingsError, match="face_sigma_px"):
+        SolveOptions(face_sigma_px=-1.0)
+
+
+def test_intervals_cover_a_shared_affine_misfit():
+    """Monte Carlo: every carriage's points get one common affine displacement (tau = 0.6 px per mode) plus
+    0.3 px of independent noise. Solved with face_sigma_px = tau the body-centre errors, divided by their
+    sigmas, have an RMS near 1 (two-sided: neither too narrow nor too wide); without the term they are too
+    narrow."""
+    tau, sig = 0.6, 0.3
+    z_with, z_without = [], []
+    for trial in range(12):
+        sim = simulate_consist(3, seed=500 + trial, pixel_sigma_px=0.0)
+        rng = np.random.default_rng(trial)
+        for k in range(3):
+            a = rng.normal(0.0, tau, 6)
+
+            def misfit(v, obs, clean, a=a):
+                uv = np.array([clean[n] for n in obs])
+                d = uv - uv.mean(0)
+                s = np.sqrt(np.mean(d**2, axis=0))
+                shift = a[:2] + np.column_stack([d @ (a[2:4] / s), d @ (a[4:6] / s)])
+                noisy = uv + shift + rng.normal(0.0, sig, uv.shape)
+                return [Observation(n, *p, group="side") for n, p in zip(obs, noisy)]
+
+            _with(sim, k, misfit)
+        for face_sigma, out in ((tau, z_with), (0.0, z_without)):
+            res = solve_consist(sim.carriages, sim.links, sim.views,
+                                SolveOptions(pixel_sigma_px=sig, face_sigma_px=face_sigma, prior_dof=1e6),
+                                terrain=None)
+            for c, ci, M in zip(res.carriages, sim.carriages, sim.truth):
+                truth = M[:3, :3] @ [0.0, 0.0, ci.carriage_type.height_m / 2] + M[:3, 3]
+                out.extend((np.asarray(c.body_centre_m) - truth) / np.asarray(c.sigma_body_centre_m))
+    z_with, z_without = np.array(z_with), np.array(z_without)
+    assert len(z_with) == 12 * 3 * 3
+    rms_with, rms_without = float(np.sqrt(np.mean(z_with**2))), float(np.sqrt(np.mean(z_without**2)))
+    assert 0.7 < rms_with < 1.35, rms_with
+    assert rms_without > 1.5 * rms_with
