@@ -173,6 +173,8 @@ def test_bundle_adjust_jacobian_is_exact(monkeypatch):
         return real(fun, x0, jac=jac, args=args, **kw)
 
     monkeypatch.setattr(reg, "least_squares", checking)
+    # the residuals and Jacobian as evaluated (the solver gets their compressed form, which has no Jacobian)
+    monkeypatch.setattr(reg, "_compress_least_squares", lambda r, J: (r, J))
     for fixed, k1 in ((False, True), (False, False), (True, False)):
         init = {k: lens if fixed else start for k in range(3)}
         out = reg.bundle_adjust(obs, [0, 1, 2], {0: 0, 1: 0, 2: 0}, init, R0, {k: 1.0 for k in range(3)},
@@ -181,6 +183,54 @@ def test_bundle_adjust_jacobian_is_exact(monkeypatch):
             errs = rotation_errors_deg(out.cam_from_pano, R)
             assert all(0.0 < e < 0.05 for e in errs.values()), errs
     assert len(checked) == 6 and all(0.0 < c < 1e-5 for c in checked), checked
+
+
+def test_compressed_least_squares_takes_the_same_steps(monkeypatch):
+    """Levenberg-Marquardt on the (n + 1)-row compressed residuals and Jacobian: the same linearised costs and column
+    norms as on the m rows, and the same adjustment as without the compression."""
+    from scipy.spatial.transform import Rotation
+
+    from workbench.stitch import register as reg
+
+    rng = np.random.default_rng(3)
+    J, r = rng.normal(size=(500, 7)) * np.array([1.0, 10.0, 0.1, 1.0, 3.0, 1e3, 1e-2]), rng.normal(size=500)
+    rc, Jc = reg._compress_least_squares(r, J)
+    assert rc.shape == (8,) and Jc.shape == (8, 7)
+    for _ in range(5):
+        p = rng.normal(size=7)
+        assert np.linalg.norm(Jc @ p + rc) == pytest.approx(np.linalg.norm(J @ p + r), rel=1e-9)
+    assert np.allclose(np.linalg.norm(Jc, axis=0), np.linalg.norm(J, axis=0), rtol=1e-9)
+    # a bundle adjustment with and without it
+    lens = CameraIntrinsics(width=640, height=480, fx=700.0, fy=700.0, cx=319.5, cy=239.5, k1=-0.1)
+    R = {k: Rotation.from_euler("YXZ", [12.0 * k - 12.0, 2.0 * (k % 2), 0.5 * k], degrees=True).as_matrix().T
+         for k in range(3)}
+    a, b, xa, xb, pid = [], [], [], [], []
+    for q, (i, j) in enumerate(((0, 1), (1, 2), (0, 2))):
+        d = rng.normal(size=(600, 3))
+        d[:, 2] = np.abs(d[:, 2]) * 3
+        d = d @ R[i]
+        pi, pj = lens.project(d @ R[i].T), lens.project(d @ R[j].T)
+        m = lens.in_image(pi) & lens.in_image(pj)
+        a.append(np.full(m.sum(), i))
+        b.append(np.full(m.sum(), j))
+        xa.append(pi[m] + rng.normal(0, 0.2, (m.sum(), 2)))
+        xb.append(pj[m])
+        pid.append(np.full(m.sum(), q))
+    obs = reg.Observations(*(np.concatenate(v) for v in (a, b, xa, xb, pid)))
+    R0 = {k: Rotation.from_rotvec(rng.normal(0, 0.01, 3)).as_matrix() @ R[k] for k in range(3)}
+    start = {k: CameraIntrinsics(width=640, height=480, fx=680.0, fy=680.0, cx=319.5, cy=239.5) for k in range(3)}
+
+    def run():
+        return reg.bundle_adjust(obs, [0, 1, 2], {0: 0, 1: 0, 2: 0}, start, R0, {k: 1.0 for k in range(3)},
+                                 fixed_intrinsics=False, estimate_k1=True)
+
+    out = run()
+    monkeypatch.setattr(reg, "_compress_least_squares", lambda r, J: (r, J))
+    plain = run()
+    assert out.intrinsics[0].fx == pytest.approx(plain.intrinsics[0].fx, rel=1e-7)
+    assert out.intrinsics[0].k1 == pytest.approx(plain.intrinsics[0].k1, abs=1e-7)
+    assert max(rotation_errors_deg(out.cam_from_pano, plain.cam_from_pano).values()) < 1e-6
+    assert np.array_equal(out.used, plain.used)
 
 
 @needs_data

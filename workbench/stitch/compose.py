@@ -216,7 +216,7 @@ def _clip(img: np.ndarray, mask: np.ndarray, corner: tuple[int, int], width: int
     if cx1 <= cx0 or cy1 <= cy0:
         return None
     sl = (slice(cy0 - y0, cy1 - y0), slice(cx0 - x0, cx1 - x0))
-    return np.ascontiguousarray(img[sl]), np.ascontiguousarray(mask[sl]), (cx0, cy0)
+    return img[sl], mask[sl], (cx0, cy0)  # views: the blender takes strided rows (no copy of the warped photo)
 
 
 def compose(model: PanoramaModel, paths: list[Path], small: list[np.ndarray], *, seam_scale: float,

@@ -22,7 +22,8 @@ from typing import Callable, Literal
 import cv2
 import numpy as np
 from PIL import Image
-from PIL import JpegImagePlugin, PngImagePlugin  # noqa: F401 - loaded with the module, not in the first stitch
+# loaded with the module, not in the first stitch (a JPEG's EXIF, read by Image.open, loads TiffImagePlugin)
+from PIL import JpegImagePlugin, PngImagePlugin, TiffImagePlugin  # noqa: F401
 
 from ..core.camera import CameraIntrinsics
 from ..core.panorama import PanoramaModel, PanoramaSource
@@ -41,13 +42,15 @@ class StitchOptions:
 
     work_megapix: float = 0.6  # registration resolution per photo, megapixels
     seam_megapix: float = 0.1  # gains and seams, megapixels per photo
-    max_features: int = 2500  # SIFT keypoints per photo
+    max_features: int = 1200  # SIFT keypoints per photo (the strongest)
     sift_half: bool = True  # SIFT on a half-size copy (no doubled first octave at work scale): 3x faster; the
     # matches are then refined to sub-pixel precision at the work scale (refine_matches)
     sift_half_min_megapix: float = 0.3  # ... when the photo at work scale has at least this many megapixels
     sift_half_max_photo_megapix: float = 1.2  # ... and the photo itself at most this many
     sift_contrast: float = 0.02  # SIFT contrast threshold (lower: more keypoints on low-contrast scenes)
     match_ratio: float = 0.75  # Lowe's ratio test
+    flann_trees: int = 2  # randomised k-d trees of each photo's FLANN index
+    flann_checks: int = 16  # leaves visited per nearest-neighbour search
     ransac_work_px: float = 3.0  # RANSAC homography threshold, work pixels
     conf_thresh: float = 1.0  # Brown and Lowe's confidence: n_inliers / (8 + 0.3 n_matches) must exceed it
     min_inliers: int = 15
@@ -234,9 +237,10 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
             dec = full
         else:  # decoded once, reduced by the JPEG decoder as far as the finer of the work and refinement copies allow
             dec, (w, h) = decode_reduced(p, s_ref if fine_ref else s_work)
-        img = resize_to(dec, (w, h), s_work)
-        sm = cv2.resize(img, (max(1, round(w * s_seam)), max(1, round(h * s_seam))), interpolation=cv2.INTER_AREA)
-        gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY)
+        # grey once, at the decoded size; the work and seam copies straight from the decoded photo
+        gray_dec = cv2.cvtColor(dec, cv2.COLOR_BGR2GRAY)
+        gray = resize_to(gray_dec, (w, h), s_work)
+        sm = resize_to(dec, (w, h), s_seam)
         # SIFT on a half-size copy only where that copy keeps enough pixels for features (small photos: full size)
         # and for photos that are themselves small: reduced from larger photos, the full SIFT's extra matches
         # constrain the focal of a single row better (docs/stitching.md)
@@ -246,15 +250,15 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
                                 contrast_threshold=opts.sift_contrast, half=half)
         smooth = None
         if opts.refine_matches:
-            if fine_ref:
-                smooth = reg.smooth_for_refinement(resize_to(cv2.cvtColor(dec, cv2.COLOR_BGR2GRAY), (w, h), s_ref))
+            if fine_ref:  # (a photo within 5 % of the refinement size: refined at full size, not resampled)
+                smooth = reg.smooth_for_refinement(resize_to(gray_dec, (w, h), 1.0 if s_ref > 0.95 else s_ref))
             else:
                 smooth = reg.smooth_for_refinement(gray)
-        del dec
+        del dec, gray_dec
         # FLANN's randomised trees draw from OpenCV's (thread-local) generator: seeded here, the forest is the
         # same whichever thread builds it, so the same photos give the same panorama
         cv2.setRNGSeed(opts.seed + 7 * k + 1)
-        index = reg.build_index(f)
+        index = reg.build_index(f, opts.flann_trees)
         lin_k = f.keypoints  # linearised keypoints for matching: undistorted pixels when the lens is known
         if fixed:
             ci = calibrated[names[k]]
@@ -277,7 +281,7 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
         i, j = pair
         pm = reg.match_pair(i, j, feats[i], feats[j], lin[i], lin[j], ratio=opts.match_ratio,
                             ransac_work_px=opts.ransac_work_px, seed=opts.seed, index_i=indexes[i],
-                            index_j=indexes[j])
+                            index_j=indexes[j], checks=opts.flann_checks)
         if pm.n_inliers < opts.min_inliers:
             pm.confidence = min(pm.confidence, opts.conf_thresh)  # too few to trust
         if opts.refine_matches and pm.confidence > opts.conf_thresh:
