@@ -167,3 +167,35 @@ def test_a_wrong_point_is_rejected(incident, tmp_path):
     assert len(rej) <= 2  # the honest points stay
     car = next(c for c in sol["carriages"] if c["number"] == first["carriage"])
     assert first["point"] not in car["residuals_px"].get(first["view"], {})
+
+
+def test_predictions_are_recorded_apart(incident, tmp_path):
+    """Points marked as predictions (method "pose" / "carried") are solved as guides: solution.json lists them per
+    carriage and view, and gives their RMS residual apart from the measured points'."""
+    root = tmp_path / "inc"
+    shutil.copytree(incident, root)
+    doc = json.loads((root / "correspondences.json").read_text())
+    car = doc["observations"][0]["carriage"]
+    mine = [o for o in doc["observations"] if o["carriage"] == car]
+    for o in mine[:2]:
+        o.update(source="sift", method="pose", face="left")
+    (root / "correspondences.json").write_text(json.dumps(doc))
+    Runner(Project(root), STAGES).run(until="solve")
+    sol = json.loads((root / "out" / "solve" / "solution.json").read_text())
+    rec = next(c for c in sol["carriages"] if c["number"] == car)
+    listed = sorted(p for ps in rec["predicted"].values() for p in ps)
+    assert listed == sorted(o["point"] for o in mine[:2])
+    rms = sol["residual_rms_px"]
+    assert rms["n_predicted"] == 2 and rms["n_measured"] == len(doc["observations"]) - 2
+    assert 0.3 < rms["measured"] < 3.0  # the fixture's picks carry 1 px of noise
+    assert all(not c.get("predicted") for c in sol["carriages"] if c["number"] != car)
+
+
+def test_unknown_point_method_is_named(incident, tmp_path):
+    from workbench.solve.stage import read_correspondences, read_views
+
+    root = _copy_with_corr(incident, tmp_path, lambda o: o[0].update(method="guess"))
+    p = Project(root)
+    views, _ = read_views(p, root / "cameras.json")
+    with pytest.raises(InputError, match=r"observations\[0\].*method = 'guess'"):
+        read_correspondences(p, root / "correspondences.json", views)

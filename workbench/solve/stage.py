@@ -383,7 +383,18 @@ def solution_document(project: Project, res: Any, views: list, cam_doc: dict, ob
         sig = {v: {p: o.sigma_px for p, o in pts.items() if o.sigma_px is not None}
                for v, pts in obs.get(car.number, {}).items()}
         rec["sigma_px"] = {v: d for v, d in sig.items() if d}
+        pred = {v: sorted(p for p, o in pts.items() if o.derived) for v, pts in obs.get(car.number, {}).items()}
+        rec["predicted"] = {v: ps for v, ps in pred.items() if ps}  # points that guide but add no information
         cars_out.append(rec)
+    # reprojection residuals of the measured points and of the predictions, apart (predictions are not fitted
+    # as measurements: their residuals say how far the one-face poses they came from were off)
+    sq = {True: [], False: []}
+    for rec in cars_out:
+        for v, pts in (rec.get("residuals_px") or {}).items():
+            for p, e in pts.items():
+                if e is not None and np.all(np.isfinite(e)):
+                    sq[p in rec["predicted"].get(v, [])].append(float(np.sum(np.square(e))))
+    rms = {k: (float(np.sqrt(np.mean(x))) if x else None) for k, x in sq.items()}
     # coupler gaps along the consist
     types = project.carriage_types()
     for i in range(len(cars_out) - 1):
@@ -409,6 +420,8 @@ def solution_document(project: Project, res: Any, views: list, cam_doc: dict, ob
         "final_cost": d.get("final_cost"), "carriages": cars_out, "links": d.get("links", []),
         "neighbour_correlation": d.get("neighbour_correlation", []), "steps": d.get("steps", []),
         "warnings": d.get("warnings", []),
+        "residual_rms_px": {"measured": rms[False], "predicted": rms[True], "n_measured": len(sq[False]),
+                            "n_predicted": len(sq[True])},
     }
 
 
