@@ -47,7 +47,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 import cv2  # noqa: E402
 
 from workbench.solve import SolveOptions, SolveWarning, crb, refine_from, solve_consist  # noqa: E402
-from workbench.solve.simulate import simulate_consist  # noqa: E402
+from workbench.solve.simulate import redraw, simulate_consist  # noqa: E402
 
 cv2.setNumThreads(1)
 
@@ -77,24 +77,86 @@ def pnp_baseline(sim):
     return out
 
 
-def run_config(n, sigma, est_focal, trials, seed0):
-    e_s, e_p, r_s, r_p, b2, cover, times, bad = [], [], [], [], [], [], [], 0
-    ef2, fb2, e_ml, worse, depth = [], [], [], 0, []
+def ml_bound(sim, sigma, est_focal):
+    """The Cramér-Rao bound of the chained problem with every point weighted 1 / sigma^2 (the ML information),
+    in the same form as ``crb``. ``crb`` weights each carriage's rows as the solver's default per-carriage
+    normalisation does and returns that estimator's (sandwich) covariance, which exceeds the bound when the
+    carriages show different numbers of points (equal counts: identical)."""
+    from workbench.solve.chain import _prepare, _Problem, carriage_weights, focal_groups, held_chains
+    from workbench.solve.uncertainty import body_centre_cov, covariance_model
+
+    cars = _prepare(sim.carriages, sim.views, SolveOptions(check_image_bounds=False))
+    active = list(range(len(cars)))
+    prob = _Problem(cars, active, sim.views, carriage_weights(cars, active, "per_point"))
+    R = np.array([M[:3, :3] for M in sim.truth])
+    t = np.array([M[:3, 3] for M in sim.truth])
+    f = np.array([v.intrinsics.fx for v in sim.views], dtype=float)
+    chains, slacks = held_chains(len(cars), sim.links)
+    fv = focal_groups(sim.views, list(range(len(sim.views)))) if est_focal else []
+    prob.uv = prob.project(R, t, f)[0]
+    model = covariance_model(prob, R, t, f, fv, chains, slacks, None, sigma, sigma_fixed=sigma)
+    return {"body_centre_cov": [body_centre_cov(model, cars, R, k) for k in active],
+            "focal_sigma": [float(np.sqrt(model["cov"][6 * len(cars) + i, 6 * len(cars) + i]))
+                            for i in range(len(fv))]}
+
+
+def body_centres(sim, poses):
+    return np.array([body_centre(c.carriage_type, M[:3, :3], M[:3, 3]) for c, M in zip(sim.carriages, poses)])
+
+
+def split_bias(n, sigma, est_focal, trials, seed0, draws, weighting, points):
+    """Bias / spread of the estimator itself: for each of the cell's geometries, ``draws`` new draws of the
+    coupler offsets and the pixel noise (``simulate.redraw``), each minimised from the truth (``refine_from``,
+    the solver's own minimum where it finds it). Per geometry the mean error is its bias; returns the cell's
+    MSE, squared bias (less its own sampling variance, MSE / draws) and covariance, each over the mean CRB
+    trace, and the mean error along the optical axis."""
+    mse, bias2, crbt, depth = [], [], [], []
+    opts = SolveOptions(pixel_sigma_px=sigma, estimate_focal=est_focal, weighting=weighting, check_image_bounds=False)
     for k in range(trials):
-        sim = simulate_consist(n, seed=seed0 + k, pixel_sigma_px=sigma)
+        base = simulate_consist(n, seed=seed0 + k, pixel_sigma_px=sigma, n_points=points)
+        cam_R = base.views[0].cam_from_world[:3, :3]
+        E, tr = [], []
+        for j in range(draws):
+            sim = redraw(base, (seed0 + k) * 1000 + j)
+            ml = refine_from(sim.carriages, sim.links, sim.views, sim.truth, opts)
+            E.append(body_centres(sim, ml["world_from_carriage"]) - body_centres(sim, sim.truth))
+            tr.append(np.mean([np.trace(C) for C in ml_bound(sim, sigma, est_focal)["body_centre_cov"]]))
+        E = np.array(E)
+        m = float(np.mean(np.sum(E**2, axis=2)))
+        mse.append(m)
+        bias2.append(float(np.mean(np.sum(E.mean(0) ** 2, axis=1))) - m / draws)
+        crbt.append(float(np.mean(tr)))
+        depth.append(float(np.mean((E @ cam_R.T)[..., 2])))
+    c = float(np.mean(crbt))
+    return {"draws": draws, "mse_over_crb": float(np.mean(mse)) / c, "bias2_over_crb": float(np.mean(bias2)) / c,
+            "cov_over_crb": (float(np.mean(mse)) - float(np.mean(bias2))) / c,
+            "ratio_if_unbiased": float(np.sqrt((np.mean(mse) - np.mean(bias2)) / c)),
+            "mean_depth_error_m": float(np.mean(depth))}
+
+
+def run_config(n, sigma, est_focal, trials, seed0, weighting="per_carriage", points=7):
+    e_s, e_p, r_s, r_p, b2, cover, times, bad = [], [], [], [], [], [], [], 0
+    ef2, fb2, e_ml, worse, depth, at_slack, b2w = [], [], [], 0, [], 0, []
+    opts = SolveOptions(pixel_sigma_px=sigma, estimate_focal=est_focal, weighting=weighting)
+    for k in range(trials):
+        sim = simulate_consist(n, seed=seed0 + k, pixel_sigma_px=sigma, n_points=points)
         t0 = time.perf_counter()
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", SolveWarning)
-            res = solve_consist(sim.carriages, sim.links, sim.views,
-                                SolveOptions(pixel_sigma_px=sigma, estimate_focal=est_focal))
+            res = solve_consist(sim.carriages, sim.links, sim.views, opts)
         times.append(time.perf_counter() - t0)
         bad += res.status != "converged"
+        at_slack += sum(L["offset_norm_m"] >= L["slack_m"] * (1 - 1e-6) for L in res.links)
         # the same cost minimised from the truth: tells a solver failure (it ends higher) from the estimator's own
         # spread (it ends at the same point)
-        ml = refine_from(sim.carriages, sim.links, sim.views, sim.truth,
-                         SolveOptions(pixel_sigma_px=sigma, estimate_focal=est_focal))
+        ml = refine_from(sim.carriages, sim.links, sim.views, sim.truth, opts)
         worse += res.final_cost > ml["cost"] * (1 + 1e-6) + 1e-6
-        bound = crb(sim.carriages, sim.links, sim.views, sim.truth, sigma, est_focal)
+        # the bound: the ML information (every point 1 / sigma^2); crb() (per-carriage weights) is the same
+        # when every carriage shows the same number of points, and is kept as "crb_weighted" otherwise
+        bound = ml_bound(sim, sigma, est_focal)
+        if np.ndim(points) > 0:
+            bw = crb(sim.carriages, sim.links, sim.views, sim.truth, sigma, est_focal)
+            b2w += [np.trace(C) for C in bw["body_centre_cov"]]
         cam_R = sim.views[0].cam_from_world[:3, :3]
         pnp = pnp_baseline(sim)
         for i, (c, M) in enumerate(zip(res.carriages, sim.truth)):
@@ -138,8 +200,11 @@ def run_config(n, sigma, est_focal, trials, seed0):
            "ratio_ci95": np.percentile(ratio_bs, [2.5, 97.5]).tolist(),
            "pnp_over_solver_ci95": np.percentile(pnp_bs, [2.5, 97.5]).tolist(),
            "coverage95_enu": np.mean(cover, axis=0).tolist(), "coverage95_enu_ci95": cov_ci,
-           "not_converged": int(bad),
+           "not_converged": int(bad), "links_at_slack": int(at_slack),
+           "weighting": weighting, "points": points if np.ndim(points) == 0 else list(points),
            "mean_time_s": float(np.mean(times))}
+    if b2w:
+        row["crb_weighted_rms_m"] = float(np.sqrt(np.mean(b2w)))
     if est_focal:
         row["focal_rms_px"] = float(np.sqrt(np.mean(ef2)))
         row["focal_crb_px"] = float(np.sqrt(np.mean(fb2)))
@@ -207,7 +272,27 @@ def main(argv=None) -> int:
                     help="trials per configuration (default: 150; --quick: 6)")
     ap.add_argument("--out", default="bench_out/solver.json")
     ap.add_argument("--timing-only", action="store_true", help="only the timing part (no Monte Carlo)")
+    ap.add_argument("--cells", default=None,
+                    help="only these cells, comma-separated CARS:PX:FOCAL, e.g. 12:2:known,12:2:unknown")
+    ap.add_argument("--weighting", default="per_carriage", choices=("per_carriage", "per_point"),
+                    help="the solver's residual weighting (SolveOptions.weighting; identical when every carriage "
+                         "shows the same number of points)")
+    ap.add_argument("--points", default="7",
+                    help="visible points per carriage, one count or a comma-separated cycle (e.g. 4,10,6,10,5,8: "
+                         "unequal counts, where the weightings differ)")
+    ap.add_argument("--split", type=int, default=0, metavar="DRAWS",
+                    help="also split each cell's error into bias and spread: DRAWS new draws of offsets and noise "
+                         "per geometry, minimised from the truth (slow: trials x DRAWS fits)")
+    ap.add_argument("--no-timing", action="store_true", help="skip the timing part")
     args = ap.parse_args(argv)
+    points = [int(p) for p in args.points.split(",")]
+    points = points[0] if len(points) == 1 else tuple(points)
+    cells = None
+    if args.cells:
+        cells = set()
+        for c in args.cells.split(","):
+            a, b, fo = c.split(":")
+            cells.add((int(a), float(b), fo == "unknown"))
     def n_trials(n):
         if args.trials:
             return args.trials
@@ -222,7 +307,10 @@ def main(argv=None) -> int:
             for sigma in (0.5, 1.0, 2.0):
                 if args.quick and sigma != 1.0 and n != 6:
                     continue
-                r = run_config(n, sigma, est, n_trials(n), seed0=10_000 * n + int(100 * sigma) + (5000 if est else 0))
+                if cells is not None and (n, sigma, est) not in cells:
+                    continue
+                seed0 = 10_000 * n + int(100 * sigma) + (5000 if est else 0)
+                r = run_config(n, sigma, est, n_trials(n), seed0, args.weighting, points)
                 rows.append(r)
                 cv = "/".join(f"{c * 100:.0f}" for c in r["coverage95_enu"])
                 lo, hi = r["ratio_ci95"]
@@ -238,16 +326,28 @@ def main(argv=None) -> int:
                     f"[{a * 100:.1f},{b * 100:.1f}]" for a, b in r["coverage95_enu_ci95"])
                       + f"; started at the truth: ratio {r['truth_start_ratio_to_crb']:.3f}, solver worse in "
                         f"{r['trials_worse_than_truth_start']}/{r['trials']}; mean depth error "
-                        f"{r['mean_depth_error_m']:+.3f} m (se {r['mean_depth_error_se_m']:.3f})", flush=True)
+                        f"{r['mean_depth_error_m']:+.3f} m (se {r['mean_depth_error_se_m']:.3f}); couplers at the "
+                        f"slack {r['links_at_slack']}" + (f"; crb() (per-carriage weights) {r['crb_weighted_rms_m']:.4f} m"
+                                                          if "crb_weighted_rms_m" in r else ""), flush=True)
+                if args.split:
+                    sp = split_bias(n, sigma, est, n_trials(n), seed0, args.split, args.weighting, points)
+                    r["split"] = sp
+                    print(f"      bias/spread ({sp['draws']} draws per geometry, from the truth): MSE/CRB "
+                          f"{sp['mse_over_crb']:.3f} = bias^2 {sp['bias2_over_crb']:.3f} + covariance "
+                          f"{sp['cov_over_crb']:.3f}; ratio without the bias {sp['ratio_if_unbiased']:.3f}; mean "
+                          f"depth error {sp['mean_depth_error_m']:+.3f} m", flush=True)
     allcov = np.concatenate([[c for c in r["coverage95_enu"]] for r in rows]) if rows else np.array([np.nan])
     ns = (3, 10, 30) if args.quick else (3, 5, 10, 20, 50, 100)
     reps = 2 if args.quick else 5
-    tim = timing(ns, reps, max_distance_m=400.0)
-    print_timing(tim, "time (all four steps, plane terrain + contact term, covariance included; median of repeats);\n"
-                 "camera at most 400 m away, turning (a panorama of photos) when the consist does not fit one photo:")
-    tim_far = timing(ns, reps)
-    print_timing(tim_far, "the same with one photo from 1.1 train lengths away (a 100-car train is ~2.6 km long: "
-                          "its cars are ~27 px long in a 4000 px photo):")
+    tim, tim_far = [], []
+    if not args.no_timing:
+        tim = timing(ns, reps, max_distance_m=400.0)
+        print_timing(tim, "time (all four steps, plane terrain + contact term, covariance included; median of "
+                     "repeats);\ncamera at most 400 m away, turning (a panorama of photos) when the consist does not "
+                     "fit one photo:")
+        tim_far = timing(ns, reps)
+        print_timing(tim_far, "the same with one photo from 1.1 train lengths away (a 100-car train is ~2.6 km long: "
+                              "its cars are ~27 px long in a 4000 px photo):")
     summary = {
         "worst_ratio_known_focal": max((r["ratio_to_crb"] for r in rows if r["focal"] == "known"), default=None),
         "worst_ratio_unknown_focal": max((r["ratio_to_crb"] for r in rows if r["focal"] == "unknown"),

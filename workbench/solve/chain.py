@@ -10,12 +10,16 @@ Observations
     per view (known ``cam_from_world`` and intrinsics), per carriage, per marked point: a pixel (u, v); the
     point's presence (or ``Observation.visible``) is the visibility indicator I_ij.
 Residuals
-    reprojection errors (px) of the visible points; carriage i's rows carry the weight
-    ``w_i = sqrt(n_mean / n_i)`` (``n_i`` its visible points, ``n_mean`` the mean over the solved
-    carriages): the seed's per-carriage normalisation 1/sqrt(n_i), rescaled by a constant so that with
-    equal counts the weights are 1 and the cost is the plain sum of squares. The covariance accounts for
-    the weighting with the sandwich form (see :mod:`.uncertainty`). An optional robust loss (scipy's
-    ``huber``, ``soft_l1``, ``cauchy``) with a scale in px.
+    reprojection errors (px) of the visible points. ``SolveOptions.weighting``: ``"per_carriage"`` (the
+    default, as the issue states it) gives carriage i's rows the weight ``w_i = sqrt(n_mean / n_i)`` (``n_i``
+    its visible points, ``n_mean`` the mean over the solved carriages): the seed's per-carriage normalisation
+    1/sqrt(n_i), rescaled by a constant so that with equal counts the weights are 1 and the cost is the plain
+    sum of squares; ``"per_point"`` weights every point alike (1 / sigma^2): the maximum-likelihood estimate
+    for independent pixel noise, whose covariance is the Cramér-Rao bound's (the per-carriage weighting
+    discounts the points of well-observed carriages; with unequal counts its error is larger, see
+    docs/solver.md). Equal counts: the same estimator. The covariance accounts for the weighting with the
+    sandwich form (see :mod:`.uncertainty`). An optional robust loss (scipy's ``huber``, ``soft_l1``,
+    ``cauchy``) with a scale in px.
 Chain
     carriage i+1's front coupler sits at carriage i's rear coupler plus an offset T, |T| <= slack. A link with
     ``slack_m=None`` is no link: the consist falls into independent chains.
@@ -62,7 +66,12 @@ The four steps (as the seed, plus an optional contact term)
        per carriage, ``min clearance / terrain_sigma_m`` (in units of the pixel sigma), joins the cost. After a
        focal profile, a check: the solution (focal free) can cost no more than the profile's best fixed-focal
        chained solve; if it does, step 4 ended in another basin and is restarted from that solve (kept if
-       cheaper; the step's note says so).
+       cheaper; the step's note says so). Then a check of every chained carriage's fit
+       (:func:`_retry_branches`): one whose pixel residuals are far beyond their chi-square (and the other
+       carriages') may sit on the wrong branch of its own PnP (an end face seen alone, or 4 points, fit two
+       poses ~90 degrees apart, and SQPnP may pick the wrong one); steps 3 and 4 are re-run from its other
+       branches (:func:`_pnp_branches`) and the cheapest solution kept (the step's note says so). The focal
+       profile makes the same check at each focal.
 
 :func:`refine_from` (step 4 alone, from given poses) is a diagnostic for benchmarks: started at the truth it
 finds the minimum in the truth's basin, which tells a solver failure from the estimator's own spread.
@@ -150,6 +159,7 @@ class ChainLink:
 
 
 _LOSSES = ("linear", "huber", "soft_l1", "cauchy")
+_WEIGHTINGS = ("per_carriage", "per_point")
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -171,6 +181,11 @@ class SolveOptions:
     # pixels of a systematic misfit shared by the points of one group (one face of a carriage, all views): a
     # common affine displacement of that size, modelled in the covariance only (see .uncertainty); 0: none
     face_sigma_px: float = 0.0
+    # residual weighting (see the module doc, "Residuals"): "per_carriage", carriage i's term normalised by its
+    # n_i visible points (w_i = sqrt(n_mean / n_i)); or "per_point", every point weighted 1 / sigma^2 — the
+    # maximum-likelihood estimate for independent pixel noise, the estimator whose Cramér-Rao bound is the ML
+    # information. The two are identical when every carriage shows the same number of points.
+    weighting: str = "per_carriage"
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> None:
@@ -197,6 +212,8 @@ class SolveOptions:
             bad("tolerance", "must be positive")
         if not (np.isfinite(self.face_sigma_px) and self.face_sigma_px >= 0):
             bad("face_sigma_px", "must be a non-negative number of pixels")
+        if self.weighting not in _WEIGHTINGS:
+            bad("weighting", f"must be one of {', '.join(_WEIGHTINGS)}")
 
 
 @dataclass
@@ -538,6 +555,19 @@ class _Layout:
 # ----------------------------------------------------------------------------------------------------------
 # Residuals
 # ----------------------------------------------------------------------------------------------------------
+def carriage_weights(cars: Sequence[_Car], active: Sequence[int], weighting: str = "per_carriage") -> dict[int, float]:
+    """Row weight of each carriage of ``active`` (see :class:`SolveOptions.weighting`): ``"per_carriage"``
+    ``sqrt(n_mean / n_i)`` (n_i its observation rows, n_mean their mean over ``active``: 1 for all when the
+    counts are equal), ``"per_point"`` 1 (maximum likelihood for independent pixel noise)."""
+    if weighting == "per_point":
+        return {k: 1.0 for k in active}
+    if weighting != "per_carriage":
+        raise SettingsError(f"solve options: weighting = {weighting!r}: must be one of {', '.join(_WEIGHTINGS)}")
+    counts = {k: len(cars[k].P) for k in active}
+    nmean = float(np.mean(list(counts.values()))) if counts else 1.0
+    return {k: math.sqrt(nmean / max(counts[k], 1)) for k in active}
+
+
 class _Problem:
     def __init__(self, cars: list[_Car], active: list[int], views: Sequence[View], weights: dict[int, float]):
         self.cars, self.views = cars, views
@@ -1290,6 +1320,200 @@ def _pnp_start(prob: _Problem, cars: list[_Car], solo: list[int], f: np.ndarray,
             R[k], t[k] = best[0], best[1]
 
 
+def _car_chi2(prob: _Problem, R, t, f, sigma: float) -> dict[int, tuple[float, int]]:
+    """Per carriage of ``prob``: (sum of its whitened squared pixel residuals at sigma, its number of rows)."""
+    uv, *_ = prob.project(R, t, f)
+    e = (uv - prob.uv) * (prob.w / np.where(prob.w_noise > 0, prob.w_noise, 1.0))[:, None] / sigma
+    e2 = np.sum(e * e, axis=1)
+    return {k: (float(np.sum(e2[idx])), 2 * len(idx)) for k, idx in prob.by_car.items()}
+
+
+def _misfit_cars(prob: _Problem, R, t, f, sigma: float, cands: Sequence[int], p_value: float = 1e-4,
+                 relative: float = 4.0) -> list[int]:
+    """The carriages of ``cands`` whose pixels the solution does not fit: chi-square of their residuals beyond its
+    (1 - ``p_value``) quantile with 2 n - 6 degrees of freedom, *and* more than ``relative`` times the median
+    carriage's per-row misfit (so that a wrongly configured pixel sigma does not flag every carriage); worst
+    first."""
+    from scipy.stats import chi2 as _chi2
+
+    c2 = _car_chi2(prob, R, t, f, sigma)
+    per = [c2[k][0] / max(c2[k][1], 1) for k in c2]
+    med = float(np.median(per)) if per else 0.0
+    out = []
+    for k in cands:
+        x, m = c2[k]
+        if x > float(_chi2.ppf(1.0 - p_value, max(m - 6, 1))) and x / m > relative * med:
+            out.append(k)
+    return sorted(out, key=lambda k: -c2[k][0] / c2[k][1])
+
+
+def _pnp_branches(prob: _Problem, cars: list[_Car], k: int, f: np.ndarray, R: np.ndarray, t: np.ndarray,
+                  options: SolveOptions, max_iterations: int = 30) -> list[tuple[np.ndarray, np.ndarray, float]]:
+    """Other poses of carriage ``k`` that fit its own pixels (its PnP's other branches): from its view with most
+    points, OpenCV's EPnP and iterative PnP, IPPE on the best-fit plane of its points (the two poses of a
+    near-planar set: an end face seen alone), and the pose ``R[k]`` mirrored in the line of sight (the normal
+    of that plane reflected about the viewing ray: the weak-perspective ambiguity). Each is refined alone (as
+    in step 1) and kept when it fits about as well as the best of them (chi-square) and differs from the others
+    and from ``R[k]`` by more than 5 degrees. Returns ``[(R, t, sum of squared weighted residuals)]``."""
+    import cv2
+
+    c = cars[k]
+    vs = [v for v in range(len(prob.views)) if np.sum(c.views == v) >= 4]
+    if not vs:
+        return []
+    v = max(vs, key=lambda v: int(np.sum(c.views == v)))
+    sel = c.views == v
+    P, uv = c.P[sel].astype(np.float64), c.uv[sel]
+    intr = prob.intrinsics(v, f[v])
+    xy = intr.undistort(intr.normalized_from_pixels(uv)).astype(np.float64).reshape(-1, 1, 2)
+    Mv = np.asarray(prob.views[v].cam_from_world, float)
+    Rcw, tcw = Mv[:3, :3], Mv[:3, 3]
+    starts: list[tuple[np.ndarray, np.ndarray]] = []  # camera-frame (R, t) of the carriage
+
+    def add(rvec, tvec):
+        Rc = cv2.Rodrigues(np.asarray(rvec, np.float64))[0]
+        tc = np.asarray(tvec, np.float64).reshape(3)
+        if np.all((P @ Rc.T + tc)[:, 2] > 0):
+            starts.append((Rc, tc))
+
+    for flag in (cv2.SOLVEPNP_EPNP, cv2.SOLVEPNP_ITERATIVE):
+        try:
+            n, rv, tv, _ = cv2.solvePnPGeneric(P, xy, np.eye(3), None, flags=flag)
+            for r_, t_ in zip(rv, tv):
+                add(r_, t_)
+        except cv2.error:
+            pass
+    mu = P.mean(0)
+    _, sv, Vt = np.linalg.svd(P - mu)
+    if np.linalg.det(Vt) < 0:
+        Vt[2] *= -1
+    if sv[0] > 0 and sv[2] / sv[0] < 0.3:  # near planar: the two poses of the plane
+        Q = (P - mu) @ Vt.T
+        Q[:, 2] = 0.0
+        try:
+            n, rv, tv, _ = cv2.solvePnPGeneric(Q, xy, np.eye(3), None, flags=cv2.SOLVEPNP_IPPE)
+            for r_, t_ in zip(rv, tv):
+                Rp = cv2.Rodrigues(r_)[0]
+                Rc = Rp @ Vt
+                tc = t_.reshape(3) - Rc @ mu
+                add(cv2.Rodrigues(Rc)[0], tc)
+        except cv2.error:
+            pass
+    # the current pose mirrored in the line of sight: the best-fit plane's normal reflected about the viewing ray
+    Rc0 = Rcw @ R[k]
+    tc0 = Rcw @ t[k] + tcw
+    cen = Rc0 @ mu + tc0
+    ray = cen / np.linalg.norm(cen)
+    nrm = Rc0 @ Vt[2]
+    nm = 2.0 * float(nrm @ ray) * ray - nrm
+    ax = np.cross(nrm, nm)
+    sa, ca = float(np.linalg.norm(ax)), float(nrm @ nm)
+    if sa > 1e-9:
+        Rm = exp_so3(ax / sa * math.atan2(sa, ca))
+        Rc = Rm @ Rc0
+        add(cv2.Rodrigues(Rc)[0], cen - Rc @ mu)
+    if not starts:
+        return []
+    Rw, tw = Rcw.T, -Rcw.T @ tcw
+    w = float(prob.w_noise[prob.by_car[k][0]]) if len(prob.by_car.get(k, [])) else 1.0
+    one = _Problem(cars, [k], prob.views, {k: w})
+    opt = replace(options, max_iterations=max_iterations, robust_loss="linear")
+    out: list[tuple[np.ndarray, np.ndarray, float]] = []
+    for Rc, tc in starts:
+        R2, t2 = R.copy(), t.copy()
+        R2[k], t2[k] = Rw @ Rc, Rw @ tc + tw
+        lay = _Layout([[k]], [[]], True, [], cars, R2, t2, f)
+        x, *_ = _run_lsq(one, lay, None, opt)
+        R2, t2, *_ = lay.unpack(x, with_derivs=False)
+        out.append((R2[k].copy(), t2[k].copy(), _pixel_cost(one, R2, t2, f)))
+    best = min(c_ for _, _, c_ in out)
+    # about as good as the best: within its chi-square spread (sse / sigma^2 within 3 sqrt(2 dof) + 9)
+    sig2 = options.pixel_sigma_px ** 2
+    dof = max(2 * int(np.sum(sel)) - 6, 1)
+    keep: list[tuple[np.ndarray, np.ndarray, float]] = []
+    for Rk, tk, c_ in sorted(out, key=lambda e: e[2]):
+        if 2.0 * (c_ - best) / sig2 > 3.0 * math.sqrt(2.0 * dof) + 9.0:
+            continue
+        if _rot_angle_deg(Rk, R[k]) < 5.0 or any(_rot_angle_deg(Rk, o[0]) < 5.0 for o in keep):
+            continue
+        keep.append((Rk, tk, c_))
+    return keep
+
+
+def _retry_branches(prob: _Problem, cars: list[_Car], chains, slacks, solo: Sequence[int], R1, t1, f1, R, t, f,
+                    focal_views, contact: _Contact | None, options: SolveOptions, terrain: Any = None,
+                    max_cars: int = 3, two_stage: bool = True, max_nfev: int = 10**9):
+    """After a chained solve (poses ``R, t``, focal ``f``) started from the poses ``R1, t1`` and focal ``f1``
+    (step 3's start): every carriage whose pixels the solution does not fit (:func:`_misfit_cars`; worst first,
+    at most ``max_cars``) is restarted from its other PnP branches (:func:`_pnp_branches`): the chained solve
+    (``two_stage``: step 3 then step 4 from ``R1, t1, f1``; else step 4 alone from the solution ``R, t, f``) is
+    re-run with that carriage's pose replaced (rested on the ``terrain`` when given, as step 2 does), and the
+    cheapest solution is kept. Each branch is ranked by a step 4 capped at 40 evaluations, the cheapest then
+    converged; no new branch is tried once ``max_nfev`` evaluations are spent.
+    Returns ``(result, nfev, notes)``: ``result`` None when nothing was cheaper, else ``(R, t, f, T_links, msg,
+    ok, rounds, n_active)`` as :func:`_solve_chained`."""
+    solo_set = set(solo)
+    chained = [k for ch in chains if len(ch) > 1 for k in ch if k in solo_set]
+    sig = options.pixel_sigma_px
+    flagged = _misfit_cars(prob, R, t, f, sig, chained)
+    if not flagged:
+        return None, 0, []
+    cost = _full_cost(prob, cars, chains, slacks, R, t, f, contact, options)
+    nfev, notes, best, tried = 0, [], None, set()
+    opt3 = replace(options, max_iterations=min(int(options.max_iterations), 40))
+    R1, t1 = R1.copy(), t1.copy()
+    while len(tried) < max_cars and nfev < max_nfev:
+        k = next((i for i in flagged if i not in tried), None)
+        if k is None:
+            break
+        tried.add(k)
+        alts = _pnp_branches(prob, cars, k, f1, R1, t1, options)
+        best_k, best_cost, best_sol = None, cost, None
+        for Rk, tk, _ in alts:
+            if two_stage:
+                R2, t2, f2 = R1.copy(), t1.copy(), f1.copy()
+            else:  # from the solution: the others' poses (and the focal) as found, this carriage on its branch
+                R2, t2, f2 = R.copy(), t.copy(), f.copy()
+            R2[k], t2[k] = Rk, tk
+            if terrain is not None:
+                M = np.eye(4)
+                M[:3, :3], M[:3, 3] = Rk, tk
+                M, dz = rest_on_terrain(M, cars[k].ctype, terrain, options.terrain_samples)
+                if np.isfinite(dz):
+                    t2[k] = M[:3, 3]
+            if two_stage:
+                R2, t2, f2, _, n3, *_ = _solve_chained(prob, cars, chains, slacks, False, focal_views, R2, t2, f2,
+                                                       None, opt3)
+                nfev += n3
+            # a ranking: a capped step 4 per branch; the cheapest, if cheaper than the solution, is then converged
+            sol = _solve_chained(prob, cars, chains, slacks, True, focal_views, R2, t2, f2, contact, opt3)
+            nfev += sol[4]
+            c2 = _full_cost(prob, cars, chains, slacks, sol[0], sol[1], sol[2], contact, options)
+            if c2 < best_cost * (1.0 - 1e-9):
+                best_cost = c2
+                best_sol = (sol[0], sol[1], sol[2], sol[3], sol[5], sol[6], sol[7], sol[8])
+                best_k = (Rk, t2[k].copy())
+            if nfev >= max_nfev:
+                break
+        if best_k is not None:
+            if not best_sol[5] or opt3.max_iterations < options.max_iterations:
+                sol = _solve_chained(prob, cars, chains, slacks, True, focal_views, best_sol[0], best_sol[1],
+                                     best_sol[2], contact, options)
+                nfev += sol[4]
+                c2 = _full_cost(prob, cars, chains, slacks, sol[0], sol[1], sol[2], contact, options)
+                if c2 <= best_cost:
+                    best_cost = c2
+                    best_sol = (sol[0], sol[1], sol[2], sol[3], sol[5], sol[6], sol[7], sol[8])
+            notes.append(f"car {cars[k].number} restarted from another PnP branch "
+                         f"({_rot_angle_deg(best_k[0], R1[k]):.0f} deg from its own): cost {cost:.1f} -> "
+                         f"{best_cost:.1f}")
+            cost, best = best_cost, best_sol
+            R, t, f = best[0], best[1], best[2]
+            R1[k], t1[k] = best_k
+            flagged = _misfit_cars(prob, R, t, f, sig, chained)
+    return best, nfev, notes
+
+
 def _chain_cost(prob: _Problem, R, t, f, T_links, slacks, prior_px: float) -> float:
     """The chained cost without the terrain term: weighted pixel residuals plus the couplers' offset prior."""
     c = _pixel_cost(prob, R, t, f)
@@ -1348,7 +1572,13 @@ def _chained_focal_profile(prob: _Problem, cars: list[_Car], chains, slacks, sol
         x, *_ = _run_lsq(solo_prob, lay, None, opt)
         R, t, *_ = lay.unpack(x, with_derivs=False)
         _place_carried(R, t, cars, chains, solo)
+        R1, t1 = R.copy(), t.copy()
         R, t, fo, T_links, *_ = _solve_chained(prob, cars, chains, slacks, True, [], R, t, fv, None, opt)
+        # a carriage on the wrong branch of its PnP would spoil this focal's cost: its other branches are tried
+        sol, *_ = _retry_branches(prob, cars, chains, slacks, solo, R1, t1, fv, R, t, fo, [], None, opt,
+                                  max_cars=1, two_stage=False)
+        if sol is not None:
+            R, t, fo, T_links = sol[:4]
         return {"f": fo.copy(), "R": R, "t": t, "cost": _chain_cost(prob, R, t, fo, T_links, slacks,
                                                                       options.pixel_sigma_px)}
 
@@ -1540,9 +1770,7 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
     chain_slacks = [[link_slack[ch[j]] for j in range(len(ch) - 1)] for ch in final_chains]
 
     # -- weights -----------------------------------------------------------------------------------------
-    counts = {k: len(cars[k].P) for k in active}
-    nmean = float(np.mean(list(counts.values()))) if counts else 1.0
-    weights = {k: math.sqrt(nmean / max(counts[k], 1)) for k in active}
+    weights = carriage_weights(cars, active, options.weighting)
     prob = _Problem(cars, active, views, weights)
     V = len(views)
     f = np.array([v.intrinsics.fx for v in views], dtype=float)
@@ -1624,6 +1852,7 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
     # -- step 3: constraints on, rotations held --------------------------------------------------------------
     t3 = time.perf_counter()
     R0, tt0 = R.copy(), t.copy()
+    R_s3, t_s3, f_s3 = R.copy(), t.copy(), f.copy()  # step 3's start: the branch check below restarts from it
     c0 = _pixel_cost(prob, R, t, f)
     # step 3 only starts step 4: with rotations held (noisy), offsets often sit on the sphere with large
     # multipliers where Gauss-Newton converges slowly, so its iterations are capped (not an overall failure)
@@ -1631,6 +1860,7 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
     R, t, f, T_links, nfev, msg, ok, rounds, n_act = _solve_chained(prob, cars, final_chains, chain_slacks, False,
                                                                     focal_views, R, t, f, None, opt3)
     total_nfev += nfev
+    nfev_3 = nfev
     steps.append(StepStats("3_chain_translations", True, "couplers on, rotations held, translations"
                            + (" and focal" if focal_views else "") + f" optimised ({rounds} active-set round(s), "
                            f"{n_act} coupler(s) at the slack)", c0, _pixel_cost(prob, R, t, f),
@@ -1646,6 +1876,7 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
     R, t, f, T_links, nfev, msg, ok, rounds, n_act = _solve_chained(prob, cars, final_chains, chain_slacks, True,
                                                                     focal_views, R, t, f, contact, options)
     total_nfev += nfev
+    nfev_34 = nfev_3 + nfev
     restart_note = ""
     if profile is not None:
         # a proper check of the basin: the solution (focal free) can be no worse than the best fixed-focal chained
@@ -1662,6 +1893,18 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
                             f"restarted from it, cost {c2:.1f} (was {c_old:.1f})")
             if c2 < c_old:
                 R, t, f, T_links, msg, ok, rounds, n_act = R2, t2, f2, T2, msg2, ok2, rounds2, n_act2
+    # a carriage whose pixels the chained solution does not fit (chi-square) may sit on the wrong branch of its
+    # own PnP (an end face seen alone fits two poses ~90 deg apart): steps 3 and 4 are re-run from its other
+    # branches and the cheapest solution kept
+    sol_b, nfev_b, notes_b = _retry_branches(prob, cars, final_chains, chain_slacks, solo, R_s3, t_s3, f_s3, R, t,
+                                             f, focal_views, contact, options, terrain, two_stage=False,
+                                             max_nfev=max(200, nfev_34))
+    total_nfev += nfev_b
+    nfev += nfev_b
+    if sol_b is not None:
+        R, t, f, T_links, msg, ok, rounds, n_act = sol_b
+    if notes_b:
+        restart_note += "; " + "; ".join(notes_b)
     lay = _Layout(final_chains, chain_slacks, True, focal_views, cars, R, t, f, None, options.pixel_sigma_px)
     x = lay.x0
     steps.append(StepStats("4_all", True, f"everything optimised ({rounds} active-set round(s), {n_act} coupler(s) "
@@ -1767,9 +2010,7 @@ def refine_from(carriages: Sequence[CarriageInput], links: Sequence[ChainLink], 
     N = len(cars)
     chains, slacks = held_chains(N, links)
     active = list(range(N))
-    counts = {k: len(cars[k].P) for k in active}
-    nmean = float(np.mean(list(counts.values())))
-    prob = _Problem(cars, active, views, {k: math.sqrt(nmean / max(counts[k], 1)) for k in active})
+    prob = _Problem(cars, active, views, carriage_weights(cars, active, options.weighting))
     R = np.array([np.asarray(M, float)[:3, :3] for M in world_from_carriage])
     t = np.array([np.asarray(M, float)[:3, 3] for M in world_from_carriage])
     f = np.array([v.intrinsics.fx for v in views], dtype=float)

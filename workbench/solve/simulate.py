@@ -8,13 +8,19 @@ wider than the prior, and bias the solver at low noise); broken ones are
 pulled apart by 1-3 m and carry no link. One camera about 1.1 train lengths from the consist's centre, ~10 m
 above the plane, looking at the consist, 4000x3000 px, f ~ 3000 px, small radial distortion. Each carriage
 shows the 7 marked points "as a photo shows them": those on the faces most turned towards the camera (the
-side facing it and the nearer end). Pixel noise is Gaussian with ``pixel_sigma_px`` per coordinate. All
-randomness comes from ``seed``.
+side facing it and the nearer end); ``n_points`` may also be a sequence (one count per carriage, cycled), for
+consists whose carriages show different numbers of points. Pixel noise is Gaussian with ``pixel_sigma_px`` per
+coordinate. All randomness comes from ``seed``.
+
+:func:`redraw` keeps a problem's geometry (camera, rotations, the first carriage, the visible points) and draws
+new held-coupling offsets and new pixel noise: many noise draws of one geometry separate an estimator's bias
+from its spread.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
+from typing import Sequence
 
 import numpy as np
 
@@ -68,7 +74,7 @@ def _plane_rotation(terrain: PlaneTerrain) -> np.ndarray:
 
 
 def simulate_consist(n_cars: int = 6, *, seed: int = 0, pixel_sigma_px: float = 1.0, slack_m: float = 0.03,
-                     broken: tuple[int, ...] = (), slope_deg: float = 2.0, n_points: int = 7,
+                     broken: tuple[int, ...] = (), slope_deg: float = 2.0, n_points: int | Sequence[int] = 7,
                      width: int = 4000, height: int = 3000, focal_px: float = 3000.0,
                      distortion: tuple[float, float] = (-0.02, 0.004), jackknife_deg: tuple[float, float] = (4.0, 25.0),
                      distance_factor: float = 1.1, camera_height_m: float = 10.0,
@@ -151,6 +157,8 @@ def simulate_consist(n_cars: int = 6, *, seed: int = 0, pixel_sigma_px: float = 
             tgt = centre + n * 1.5
         views.append(View(name="photo" if n_views == 1 else f"photo_{j + 1:02d}", intrinsics=intr,
                           cam_from_world=look_at(eye, tgt)))
+    counts = [int(n_points)] * n_cars if np.ndim(n_points) == 0 else \
+        [int(list(n_points)[i % len(n_points)]) for i in range(n_cars)]
     carriages, clean = [], []
     for i, (ct, M) in enumerate(zip(types, truth)):
         R, t = M[:3, :3], M[:3, 3]
@@ -163,7 +171,7 @@ def simulate_consist(n_cars: int = 6, *, seed: int = 0, pixel_sigma_px: float = 
         for nm in names:
             s = max(float((R @ ct.face_normal(fc)) @ vc) for fc in ct.marked_point_faces[nm])
             score.append(s)
-        order = np.argsort(-np.array(score), kind="stable")[:n_points]
+        order = np.argsort(-np.array(score), kind="stable")[:counts[i]]
         chosen = [names[j] for j in order]
         P = np.array([ct.marked_points[nm] for nm in chosen])
         uv, depth = project_world(intr, cam_from_world, P @ R.T + t)
@@ -176,3 +184,45 @@ def simulate_consist(n_cars: int = 6, *, seed: int = 0, pixel_sigma_px: float = 
                                                                  for j, nm in enumerate(chosen)}}))
     links = [ChainLink(i, i + 1, None if i in broken else slack_m) for i in range(n_cars - 1)]
     return SimProblem(carriages, links, views, truth, offsets, terrain, pixel_sigma_px, clean)
+
+
+def redraw(sim: SimProblem, seed: int, pixel_sigma_px: float | None = None, offsets: bool = True) -> SimProblem:
+    """The same geometry (camera, carriage rotations, first carriage's pose, the visible points of each carriage)
+    with new held-coupling offsets (uniform in the ball |T| <= slack, as :func:`simulate_consist` draws them;
+    ``offsets=False`` keeps them) and new pixel noise (``pixel_sigma_px``, default the problem's). Broken links
+    keep their offsets. All randomness comes from ``seed``."""
+    rng = np.random.default_rng(seed)
+    sigma = sim.pixel_sigma_px if pixel_sigma_px is None else float(pixel_sigma_px)
+    types = [c.carriage_type for c in sim.carriages]
+    slack = {L.front: L.slack_m for L in sim.links}
+    truth = [sim.truth[0].copy()]
+    new_off = []
+    for i in range(1, len(types)):
+        Ra, ta = truth[-1][:3, :3], truth[-1][:3, 3]
+        Rb = sim.truth[i][:3, :3]
+        T = sim.offsets[i - 1]
+        if offsets and slack.get(i - 1) is not None:
+            u = rng.normal(size=3)
+            T = slack[i - 1] * rng.uniform() ** (1.0 / 3.0) * u / np.linalg.norm(u)
+        M = np.eye(4)
+        M[:3, :3] = Rb
+        M[:3, 3] = ta + Ra @ types[i - 1].coupler_rear + T - Rb @ types[i].coupler_front
+        truth.append(M)
+        new_off.append(np.asarray(T, float))
+    vidx = {v.name: v for v in sim.views}
+    carriages, clean = [], []
+    for car, M in zip(sim.carriages, truth):
+        ct = car.carriage_type
+        obs = {}
+        cl = {}
+        for vname, pts in car.observations.items():
+            view = vidx[vname]
+            names = list(pts)
+            P = np.array([ct.marked_points[nm] for nm in names])
+            uv, _ = project_world(view.intrinsics, view.cam_from_world, P @ M[:3, :3].T + M[:3, 3])
+            noisy = uv + rng.normal(0.0, sigma, uv.shape)
+            obs[vname] = {nm: tuple(map(float, noisy[j])) for j, nm in enumerate(names)}
+            cl.update({nm: tuple(map(float, uv[j])) for j, nm in enumerate(names)})
+        carriages.append(CarriageInput(number=car.number, carriage_type=ct, observations=obs))
+        clean.append(cl)
+    return replace(sim, carriages=carriages, truth=truth, offsets=new_off, pixel_sigma_px=sigma, clean_pixels=clean)
