@@ -135,6 +135,25 @@ def test_refine_matches_subpixel(tmp_path):
     assert np.percentile(after, 90) < 0.3
 
 
+def _rotation_matches(reg, lens, R, rng, *, n: int, noise_px: float, one_point_id: bool = False):
+    """Matches between three photos of one lens turned by ``R`` (photo k's rotation), for bundle adjustment:
+    ``n`` random directions per pair (0, 1), (1, 2), (0, 2), the first photo's pixels with ``noise_px`` of noise.
+    Point ids per pair (or all 0 with ``one_point_id``)."""
+    a, b, xa, xb, pid = [], [], [], [], []
+    for q, (i, j) in enumerate(((0, 1), (1, 2), (0, 2))):
+        d = rng.normal(size=(n, 3))
+        d[:, 2] = np.abs(d[:, 2]) * 3
+        d = d @ R[i]
+        pi, pj = lens.project(d @ R[i].T), lens.project(d @ R[j].T)
+        m = lens.in_image(pi) & lens.in_image(pj)
+        a.append(np.full(m.sum(), i))
+        b.append(np.full(m.sum(), j))
+        xa.append(pi[m] + rng.normal(0, noise_px, (m.sum(), 2)))
+        xb.append(pj[m])
+        pid.append(np.full(m.sum(), 0 if one_point_id else q))
+    return reg.Observations(*(np.concatenate(v) for v in (a, b, xa, xb, pid)))
+
+
 def test_bundle_adjust_jacobian_is_exact(monkeypatch):
     """The analytic Jacobian of the rotation-only bundle adjustment equals central differences (estimated lens
     with k1, k2 and principal point, focal only, and a fixed calibrated lens with tangential terms)."""
@@ -148,18 +167,7 @@ def test_bundle_adjust_jacobian_is_exact(monkeypatch):
                             p1=0.0005, p2=-0.0003)
     R = {k: Rotation.from_euler("YXZ", [15.0 * k - 15.0, 3.0 * (k % 2), 1.0 * k], degrees=True).as_matrix().T
          for k in range(3)}
-    a, b, xa, xb = [], [], [], []
-    for i, j in ((0, 1), (1, 2), (0, 2)):
-        d = rng.normal(size=(400, 3))
-        d[:, 2] = np.abs(d[:, 2]) * 3
-        d = d @ R[i]
-        pi, pj = lens.project(d @ R[i].T), lens.project(d @ R[j].T)
-        m = lens.in_image(pi) & lens.in_image(pj)
-        a.append(np.full(m.sum(), i))
-        b.append(np.full(m.sum(), j))
-        xa.append(pi[m] + rng.normal(0, 0.3, (m.sum(), 2)))
-        xb.append(pj[m])
-    obs = reg.Observations(*(np.concatenate(v) for v in (a, b, xa, xb)), np.zeros(sum(len(v) for v in a), int))
+    obs = _rotation_matches(reg, lens, R, rng, n=400, noise_px=0.3, one_point_id=True)
     assert len(obs.a) > 100
     R0 = {k: Rotation.from_rotvec(rng.normal(0, 0.01, 3)).as_matrix() @ R[k] for k in range(3)}
     start = CameraIntrinsics(width=640, height=480, fx=680.0, fy=680.0, cx=319.5, cy=239.5)
@@ -204,19 +212,7 @@ def test_compressed_least_squares_takes_the_same_steps(monkeypatch):
     lens = CameraIntrinsics(width=640, height=480, fx=700.0, fy=700.0, cx=319.5, cy=239.5, k1=-0.1)
     R = {k: Rotation.from_euler("YXZ", [12.0 * k - 12.0, 2.0 * (k % 2), 0.5 * k], degrees=True).as_matrix().T
          for k in range(3)}
-    a, b, xa, xb, pid = [], [], [], [], []
-    for q, (i, j) in enumerate(((0, 1), (1, 2), (0, 2))):
-        d = rng.normal(size=(600, 3))
-        d[:, 2] = np.abs(d[:, 2]) * 3
-        d = d @ R[i]
-        pi, pj = lens.project(d @ R[i].T), lens.project(d @ R[j].T)
-        m = lens.in_image(pi) & lens.in_image(pj)
-        a.append(np.full(m.sum(), i))
-        b.append(np.full(m.sum(), j))
-        xa.append(pi[m] + rng.normal(0, 0.2, (m.sum(), 2)))
-        xb.append(pj[m])
-        pid.append(np.full(m.sum(), q))
-    obs = reg.Observations(*(np.concatenate(v) for v in (a, b, xa, xb, pid)))
+    obs = _rotation_matches(reg, lens, R, rng, n=600, noise_px=0.2)
     R0 = {k: Rotation.from_rotvec(rng.normal(0, 0.01, 3)).as_matrix() @ R[k] for k in range(3)}
     start = {k: CameraIntrinsics(width=640, height=480, fx=680.0, fy=680.0, cx=319.5, cy=239.5) for k in range(3)}
 
