@@ -22,7 +22,9 @@ async function load() {
   S.car = doc.cars[0].number;
   await selectPhoto(doc.photos[0].name);
   selectCar(S.car);
-  status(`${doc.automatic.length} automatic, ${doc.manual.length} manual points, ${S.rejected.length} rejected`);
+  const npred = doc.automatic.filter(predicted).length;
+  status(`${doc.automatic.length} automatic (${npred} predicted from a pose or another photo), ` +
+         `${doc.manual.length} manual points, ${S.rejected.length} rejected`);
 }
 
 function selectPhoto(name) {
@@ -58,6 +60,9 @@ function selectCar(number) {
 
 function selectPoint(name) { S.point = name; listPoints(); redrawFaces(); draw(); status(`point ${name}: click its place in the photo`); }
 
+// an automatic point placed from its car's pose or carried from another photo, not found on a face
+function predicted(o) { return o.method === "pose" || o.method === "carried"; }
+
 function listPoints() {
   const c = car(), view = S.photo.name;
   $("points").innerHTML = c.points.map((n) => {
@@ -65,7 +70,8 @@ function listPoints() {
     const a = S.doc.automatic.find((o) => o.carriage === c.number && o.point === n && o.view === view);
     const x = S.rejected.find((o) => o.carriage === c.number && o.point === n && o.view === view);
     const tag = m ? '<span class="tag manual">manual</span>' : x ? '<span class="tag rejected">rejected</span>'
-      : a ? '<span class="tag auto">auto</span>' : "";
+      : a ? (predicted(a) ? '<span class="tag predicted" title="predicted from the car\'s pose or another photo: check it">predicted</span>'
+                          : '<span class="tag auto">auto</span>') : "";
     return `<li data-point="${n}" class="${n === S.point ? "selected" : ""}">${n} <small>(${c.point_faces[n].join(", ")})</small>${tag}</li>`;
   }).join("");
   for (const li of $("points").children) li.onclick = () => selectPoint(li.dataset.point);
@@ -107,8 +113,11 @@ function draw() {
       ctx.moveTo(x - 5, y - 5); ctx.lineTo(x + 5, y + 5); ctx.moveTo(x + 5, y - 5); ctx.lineTo(x - 5, y + 5); ctx.stroke();
       continue;
     }
-    ctx.beginPath(); ctx.arc(x, y, 5, 0, 2 * Math.PI); ctx.lineWidth = 2;
-    ctx.strokeStyle = over ? "#777" : "#2196f3"; ctx.stroke();
+    // measured (on a face, by its homography): a blue circle; predicted (from a pose, or carried from another
+    // photo): a dashed amber one, the points most worth checking
+    const pr = predicted(o);
+    ctx.beginPath(); ctx.arc(x, y, 5, 0, 2 * Math.PI); ctx.lineWidth = 2; ctx.setLineDash(pr ? [3, 2] : []);
+    ctx.strokeStyle = over ? "#777" : pr ? "#ffb74d" : "#2196f3"; ctx.stroke(); ctx.setLineDash([]);
     if (mine && o.point === S.point) { ctx.beginPath(); ctx.arc(x, y, 9, 0, 2 * Math.PI); ctx.strokeStyle = "#ffd54f"; ctx.stroke(); }
     if (mine) { ctx.fillStyle = "#90caf9"; ctx.fillText(o.point, x + 7, y - 6); }
   }
