@@ -79,6 +79,7 @@ finds the minimum in the truth's basin, which tells a solver failure from the es
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 import warnings
@@ -92,6 +93,8 @@ from ..core.camera import CameraIntrinsics
 from ..core.frames import hpr_from_rotation
 from ..errors import InputError, SettingsError, WorkbenchWarning
 from .projection import exp_so3, left_jacobian_so3, project_world_points_with_jacobians, skew
+
+log = logging.getLogger(__name__)
 
 
 SQRT5 = math.sqrt(5.0)  # slack / sigma_T: an offset uniform in the ball |T| <= s has per-axis sd s / sqrt(5)
@@ -1381,8 +1384,8 @@ def _pnp_branches(prob: _Problem, cars: list[_Car], k: int, f: np.ndarray, R: np
             n, rv, tv, _ = cv2.solvePnPGeneric(P, xy, np.eye(3), None, flags=flag)
             for r_, t_ in zip(rv, tv):
                 add(r_, t_)
-        except cv2.error:
-            pass
+        except cv2.error as exc:  # that solver gives no branch here; the others may
+            log.debug("car %s: PnP flag %d failed: %s", c.number, flag, exc)
     mu = P.mean(0)
     _, sv, Vt = np.linalg.svd(P - mu)
     if np.linalg.det(Vt) < 0:
@@ -1397,8 +1400,8 @@ def _pnp_branches(prob: _Problem, cars: list[_Car], k: int, f: np.ndarray, R: np
                 Rc = Rp @ Vt
                 tc = t_.reshape(3) - Rc @ mu
                 add(cv2.Rodrigues(Rc)[0], tc)
-        except cv2.error:
-            pass
+        except cv2.error as exc:  # no planar branches here; the others may still be tried
+            log.debug("car %s: IPPE on its best-fit plane failed: %s", c.number, exc)
     # the current pose mirrored in the line of sight: the best-fit plane's normal reflected about the viewing ray
     Rc0 = Rcw @ R[k]
     tc0 = Rcw @ t[k] + tcw
@@ -1442,12 +1445,11 @@ def _pnp_branches(prob: _Problem, cars: list[_Car], k: int, f: np.ndarray, R: np
 
 def _retry_branches(prob: _Problem, cars: list[_Car], chains, slacks, solo: Sequence[int], R1, t1, f1, R, t, f,
                     focal_views, contact: _Contact | None, options: SolveOptions, terrain: Any = None,
-                    max_cars: int = 3, two_stage: bool = True, max_nfev: int = 10**9):
+                    max_cars: int = 3, max_nfev: int = 10**9):
     """After a chained solve (poses ``R, t``, focal ``f``) started from the poses ``R1, t1`` and focal ``f1``
     (step 3's start): every carriage whose pixels the solution does not fit (:func:`_misfit_cars`; worst first,
-    at most ``max_cars``) is restarted from its other PnP branches (:func:`_pnp_branches`): the chained solve
-    (``two_stage``: step 3 then step 4 from ``R1, t1, f1``; else step 4 alone from the solution ``R, t, f``) is
-    re-run with that carriage's pose replaced (rested on the ``terrain`` when given, as step 2 does), and the
+    at most ``max_cars``) is restarted from its other PnP branches (:func:`_pnp_branches`, from ``R1, t1, f1``):
+    step 4 is re-run from the solution ``R, t, f`` with that carriage's pose replaced (rested on the ``terrain`` when given, as step 2 does), and the
     cheapest solution is kept. Each branch is ranked by a step 4 capped at 40 evaluations, the cheapest then
     converged; no new branch is tried once ``max_nfev`` evaluations are spent.
     Returns ``(result, nfev, notes)``: ``result`` None when nothing was cheaper, else ``(R, t, f, T_links, msg,
@@ -1470,10 +1472,8 @@ def _retry_branches(prob: _Problem, cars: list[_Car], chains, slacks, solo: Sequ
         alts = _pnp_branches(prob, cars, k, f1, R1, t1, options)
         best_k, best_cost, best_sol = None, cost, None
         for Rk, tk, _ in alts:
-            if two_stage:
-                R2, t2, f2 = R1.copy(), t1.copy(), f1.copy()
-            else:  # from the solution: the others' poses (and the focal) as found, this carriage on its branch
-                R2, t2, f2 = R.copy(), t.copy(), f.copy()
+            # from the solution: the others' poses (and the focal) as found, this carriage on its branch
+            R2, t2, f2 = R.copy(), t.copy(), f.copy()
             R2[k], t2[k] = Rk, tk
             if terrain is not None:
                 M = np.eye(4)
@@ -1481,10 +1481,6 @@ def _retry_branches(prob: _Problem, cars: list[_Car], chains, slacks, solo: Sequ
                 M, dz = rest_on_terrain(M, cars[k].ctype, terrain, options.terrain_samples)
                 if np.isfinite(dz):
                     t2[k] = M[:3, 3]
-            if two_stage:
-                R2, t2, f2, _, n3, *_ = _solve_chained(prob, cars, chains, slacks, False, focal_views, R2, t2, f2,
-                                                       None, opt3)
-                nfev += n3
             # a ranking: a capped step 4 per branch; the cheapest, if cheaper than the solution, is then converged
             sol = _solve_chained(prob, cars, chains, slacks, True, focal_views, R2, t2, f2, contact, opt3)
             nfev += sol[4]
@@ -1576,7 +1572,7 @@ def _chained_focal_profile(prob: _Problem, cars: list[_Car], chains, slacks, sol
         R, t, fo, T_links, *_ = _solve_chained(prob, cars, chains, slacks, True, [], R, t, fv, None, opt)
         # a carriage on the wrong branch of its PnP would spoil this focal's cost: its other branches are tried
         sol, *_ = _retry_branches(prob, cars, chains, slacks, solo, R1, t1, fv, R, t, fo, [], None, opt,
-                                  max_cars=1, two_stage=False)
+                                  max_cars=1)
         if sol is not None:
             R, t, fo, T_links = sol[:4]
         return {"f": fo.copy(), "R": R, "t": t, "cost": _chain_cost(prob, R, t, fo, T_links, slacks,
@@ -1897,7 +1893,7 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
     # own PnP (an end face seen alone fits two poses ~90 deg apart): steps 3 and 4 are re-run from its other
     # branches and the cheapest solution kept
     sol_b, nfev_b, notes_b = _retry_branches(prob, cars, final_chains, chain_slacks, solo, R_s3, t_s3, f_s3, R, t,
-                                             f, focal_views, contact, options, terrain, two_stage=False,
+                                             f, focal_views, contact, options, terrain,
                                              max_nfev=max(200, nfev_34))
     total_nfev += nfev_b
     nfev += nfev_b
