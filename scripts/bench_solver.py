@@ -22,6 +22,10 @@ bias towards the camera grows as sigma^2). Timing: all four steps (with a
 plane terrain, so step 2 and the contact term run) for 10 carriages, and how time grows up to 100 carriages,
 for a camera at most 400 m away (a panorama of photos for long consists) and for one photo from 1.1 train
 lengths away, each with the centre error against the truth and the CRB.
+``--bias-correction`` runs the solver (and the truth-started fit) with ``SolveOptions.bias_correction`` (the
+second-order bias removed, workbench/solve/bias.py; not applied with an unknown focal) and prints, per cell, the
+same trials at the uncorrected truth-started minimum, paired. The bound is ``crb(weighting="per_point")`` (the
+ML information); with unequal point counts ``crb(weighting=<the solver's>)`` is printed too.
 Set OMP_NUM_THREADS=1 for one core (the script sets it when unset).
 """
 
@@ -77,41 +81,19 @@ def pnp_baseline(sim):
     return out
 
 
-def ml_bound(sim, sigma, est_focal):
-    """The Cramér-Rao bound of the chained problem with every point weighted 1 / sigma^2 (the ML information),
-    in the same form as ``crb``. ``crb`` weights each carriage's rows as the solver's default per-carriage
-    normalisation does and returns that estimator's (sandwich) covariance, which exceeds the bound when the
-    carriages show different numbers of points (equal counts: identical)."""
-    from workbench.solve.chain import _prepare, _Problem, carriage_weights, focal_groups, held_chains
-    from workbench.solve.uncertainty import body_centre_cov, covariance_model
-
-    cars = _prepare(sim.carriages, sim.views, SolveOptions(check_image_bounds=False))
-    active = list(range(len(cars)))
-    prob = _Problem(cars, active, sim.views, carriage_weights(cars, active, "per_point"))
-    R = np.array([M[:3, :3] for M in sim.truth])
-    t = np.array([M[:3, 3] for M in sim.truth])
-    f = np.array([v.intrinsics.fx for v in sim.views], dtype=float)
-    chains, slacks = held_chains(len(cars), sim.links)
-    fv = focal_groups(sim.views, list(range(len(sim.views)))) if est_focal else []
-    prob.uv = prob.project(R, t, f)[0]
-    model = covariance_model(prob, R, t, f, fv, chains, slacks, None, sigma, sigma_fixed=sigma)
-    return {"body_centre_cov": [body_centre_cov(model, cars, R, k) for k in active],
-            "focal_sigma": [float(np.sqrt(model["cov"][6 * len(cars) + i, 6 * len(cars) + i]))
-                            for i in range(len(fv))]}
-
-
 def body_centres(sim, poses):
     return np.array([body_centre(c.carriage_type, M[:3, :3], M[:3, 3]) for c, M in zip(sim.carriages, poses)])
 
 
-def split_bias(n, sigma, est_focal, trials, seed0, draws, weighting, points):
+def split_bias(n, sigma, est_focal, trials, seed0, draws, weighting, points, bias_correction=False):
     """Bias / spread of the estimator itself: for each of the cell's geometries, ``draws`` new draws of the
     coupler offsets and the pixel noise (``simulate.redraw``), each minimised from the truth (``refine_from``,
     the solver's own minimum where it finds it). Per geometry the mean error is its bias; returns the cell's
     MSE, squared bias (less its own sampling variance, MSE / draws) and covariance, each over the mean CRB
     trace, and the mean error along the optical axis."""
     mse, bias2, crbt, depth = [], [], [], []
-    opts = SolveOptions(pixel_sigma_px=sigma, estimate_focal=est_focal, weighting=weighting, check_image_bounds=False)
+    opts = SolveOptions(pixel_sigma_px=sigma, estimate_focal=est_focal, weighting=weighting, check_image_bounds=False,
+                        bias_correction=bias_correction)
     for k in range(trials):
         base = simulate_consist(n, seed=seed0 + k, pixel_sigma_px=sigma, n_points=points)
         cam_R = base.views[0].cam_from_world[:3, :3]
@@ -120,7 +102,8 @@ def split_bias(n, sigma, est_focal, trials, seed0, draws, weighting, points):
             sim = redraw(base, (seed0 + k) * 1000 + j)
             ml = refine_from(sim.carriages, sim.links, sim.views, sim.truth, opts)
             E.append(body_centres(sim, ml["world_from_carriage"]) - body_centres(sim, sim.truth))
-            tr.append(np.mean([np.trace(C) for C in ml_bound(sim, sigma, est_focal)["body_centre_cov"]]))
+            tr.append(np.mean([np.trace(C) for C in crb(sim.carriages, sim.links, sim.views, sim.truth, sigma,
+                                                           est_focal, weighting="per_point")["body_centre_cov"]]))
         E = np.array(E)
         m = float(np.mean(np.sum(E**2, axis=2)))
         mse.append(m)
@@ -134,10 +117,12 @@ def split_bias(n, sigma, est_focal, trials, seed0, draws, weighting, points):
             "mean_depth_error_m": float(np.mean(depth))}
 
 
-def run_config(n, sigma, est_focal, trials, seed0, weighting="per_carriage", points=7):
+def run_config(n, sigma, est_focal, trials, seed0, weighting="per_carriage", points=7, bias_correction=False):
     e_s, e_p, r_s, r_p, b2, cover, times, bad = [], [], [], [], [], [], [], 0
     ef2, fb2, e_ml, worse, depth, at_slack, b2w = [], [], [], 0, [], 0, []
-    opts = SolveOptions(pixel_sigma_px=sigma, estimate_focal=est_focal, weighting=weighting)
+    e_min, cover_min, depth_min, shift = [], [], [], []
+    opts = SolveOptions(pixel_sigma_px=sigma, estimate_focal=est_focal, weighting=weighting,
+                        bias_correction=bias_correction)
     for k in range(trials):
         sim = simulate_consist(n, seed=seed0 + k, pixel_sigma_px=sigma, n_points=points)
         t0 = time.perf_counter()
@@ -150,12 +135,17 @@ def run_config(n, sigma, est_focal, trials, seed0, weighting="per_carriage", poi
         # the same cost minimised from the truth: tells a solver failure (it ends higher) from the estimator's own
         # spread (it ends at the same point)
         ml = refine_from(sim.carriages, sim.links, sim.views, sim.truth, opts)
-        worse += res.final_cost > ml["cost"] * (1 + 1e-6) + 1e-6
-        # the bound: the ML information (every point 1 / sigma^2); crb() (per-carriage weights) is the same
-        # when every carriage shows the same number of points, and is kept as "crb_weighted" otherwise
-        bound = ml_bound(sim, sigma, est_focal)
+        # the solver's minimum against the truth-started one (with the bias correction the reported poses are
+        # moved off the minimum: compare the costs at the minima)
+        worse += res.cost_at_minimum > ml["cost"] * (1 + 1e-6) + 1e-6
+        if bias_correction:
+            shift.append(res.bias_correction.get("max_shift_m", 0.0))
+        # the bound: the ML information (every point 1 / sigma^2); the estimator's own covariance with its
+        # weighting (crb(weighting=...)) is the same when every carriage shows the same number of points, and is
+        # kept as "crb_weighted" otherwise
+        bound = crb(sim.carriages, sim.links, sim.views, sim.truth, sigma, est_focal, weighting="per_point")
         if np.ndim(points) > 0:
-            bw = crb(sim.carriages, sim.links, sim.views, sim.truth, sigma, est_focal)
+            bw = crb(sim.carriages, sim.links, sim.views, sim.truth, sigma, est_focal, weighting=weighting)
             b2w += [np.trace(C) for C in bw["body_centre_cov"]]
         cam_R = sim.views[0].cam_from_world[:3, :3]
         pnp = pnp_baseline(sim)
@@ -167,6 +157,14 @@ def run_config(n, sigma, est_focal, trials, seed0, weighting="per_carriage", poi
             Mm = ml["world_from_carriage"][i]
             em = body_centre(ct, Mm[:3, :3], Mm[:3, 3]) - bt
             e_ml.append(em @ em)
+            if bias_correction:
+                # the truth-started minimum before the correction (= the solver's, where it reaches it): the same
+                # trial without the correction, and the solver's intervals centred there
+                M0 = ml.get("world_from_carriage_minimum", ml["world_from_carriage"])[i]  # not applied: the same
+                e0 = body_centre(ct, M0[:3, :3], M0[:3, 3]) - bt
+                e_min.append(e0 @ e0)
+                cover_min.append(np.abs(e0) <= c.ci95_body_centre_m)
+                depth_min.append(float((cam_R @ e0)[2]))
             depth.append(float((cam_R @ e)[2]))  # along the first photo's optical axis (+: farther)
             r_s.append(rot_err_deg(c.world_from_carriage[:3, :3], M[:3, :3]) ** 2)
             ep = body_centre(ct, *pnp[i]) - bt
@@ -205,6 +203,22 @@ def run_config(n, sigma, est_focal, trials, seed0, weighting="per_carriage", poi
            "mean_time_s": float(np.mean(times))}
     if b2w:
         row["crb_weighted_rms_m"] = float(np.sqrt(np.mean(b2w)))
+    row["bias_correction"] = bool(bias_correction)
+    if bias_correction:
+        # the same trials at the (truth-started) minimum, uncorrected: paired with the corrected figures
+        em_t = np.asarray(e_min).reshape(trials, n).sum(1)
+        eml_t = np.asarray(e_ml).reshape(trials, n).sum(1)
+        row["uncorrected_min_rms_m"] = float(np.sqrt(np.mean(e_min)))
+        row["uncorrected_min_ratio_to_crb"] = float(np.sqrt(np.mean(e_min))) / crb_rms
+        r_bs = np.sqrt(em_t[bi].sum(1) / b2_t[bi].sum(1))
+        row["uncorrected_min_ratio_ci95"] = np.percentile(r_bs, [2.5, 97.5]).tolist()
+        dd = eml_t - em_t  # corrected minus uncorrected summed squared error per trial (truth start)
+        row["paired_sq_err_diff_m2"] = float(dd.mean())
+        row["paired_sq_err_diff_se_m2"] = float(dd.std(ddof=1) / np.sqrt(trials))
+        row["uncorrected_coverage95_enu"] = np.mean(cover_min, axis=0).tolist()
+        row["uncorrected_mean_depth_error_m"] = float(np.mean(depth_min))
+        row["correction_max_shift_m_median"] = float(np.nanmedian(shift))
+        row["correction_max_shift_m_max"] = float(np.nanmax(shift))
     if est_focal:
         row["focal_rms_px"] = float(np.sqrt(np.mean(ef2)))
         row["focal_crb_px"] = float(np.sqrt(np.mean(fb2)))
@@ -221,22 +235,23 @@ def wilson(k, n, z=1.959963984540054):
     return [float(c - h), float(c + h)]
 
 
-def timing(ns, repeats, max_distance_m=None):
+def timing(ns, repeats, max_distance_m=None, bias_correction=False):
     """Time of all four steps per consist size; also the median centre error against the truth and the CRB,
     so that a fast wrong answer shows. ``max_distance_m``: the camera stands at most that far and turns (a
     panorama of several photos) instead of one photo from 1.1 train lengths away."""
     out = []
     for n in ns:
         sim = simulate_consist(n, seed=7, pixel_sigma_px=1.0, max_distance_m=max_distance_m)
-        opts = SolveOptions(pixel_sigma_px=1.0)
+        opts = SolveOptions(pixel_sigma_px=1.0, bias_correction=bias_correction)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", SolveWarning)
             solve_consist(sim.carriages, sim.links, sim.views, opts, terrain=sim.terrain)  # warm caches
-            ts, steps = [], None
+            ts, cpu, steps = [], [], None
             for _ in range(repeats):
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 res = solve_consist(sim.carriages, sim.links, sim.views, opts, terrain=sim.terrain)
                 ts.append(time.perf_counter() - t0)
+                cpu.append(time.process_time() - c0)
                 steps = {s.name: round(s.time_s, 4) for s in res.steps}
         errs = [float(np.linalg.norm(c.body_centre_m - body_centre(sim.carriages[i].carriage_type, M[:3, :3],
                                                                         M[:3, 3])))
@@ -245,7 +260,8 @@ def timing(ns, repeats, max_distance_m=None):
         b = np.sqrt([np.trace(c) for c in bound["body_centre_cov"]])
         cam = sim.views[0].camera_centre
         dist = [float(np.linalg.norm(M[:3, 3] - cam)) for M in sim.truth]
-        out.append({"n_cars": n, "median_s": float(np.median(ts)), "min_s": float(np.min(ts)), "status": res.status,
+        out.append({"n_cars": n, "median_s": float(np.median(ts)), "min_s": float(np.min(ts)),
+                    "median_cpu_s": float(np.median(cpu)), "status": res.status,
                     "steps_s": steps, "iterations": res.iterations, "n_views": len(sim.views),
                     "distance_m": [min(dist), max(dist)], "median_err_m": float(np.median(errs)),
                     "max_err_m": float(np.max(errs)), "median_crb_m": float(np.median(b))})
@@ -260,7 +276,8 @@ def print_timing(tim, title):
             p = np.log(t["median_s"] / tim[i - 1]["median_s"]) / np.log(t["n_cars"] / tim[i - 1]["n_cars"])
             grow = f"  (x{t['median_s'] / tim[i - 1]['median_s']:.2f} vs {tim[i - 1]['n_cars']} cars: ~N^{p:.2f})"
         print(f"  {t['n_cars']:>4} cars, {t['n_views']} photo(s) at {t['distance_m'][0]:.0f}-{t['distance_m'][1]:.0f} m: "
-              f"{t['median_s']:.3f} s{grow}  ({t['status']}, {t['iterations']} evaluations; centre error median "
+              f"{t['median_s']:.3f} s{grow} (CPU {t['median_cpu_s']:.3f} s)  ({t['status']}, {t['iterations']} "
+              f"evaluations; centre error median "
               f"{t['median_err_m']:.2f} m, max {t['max_err_m']:.2f} m; CRB median {t['median_crb_m']:.2f} m; "
               f"steps {t['steps_s']})", flush=True)
 
@@ -284,6 +301,12 @@ def main(argv=None) -> int:
                     help="also split each cell's error into bias and spread: DRAWS new draws of offsets and noise "
                          "per geometry, minimised from the truth (slow: trials x DRAWS fits)")
     ap.add_argument("--no-timing", action="store_true", help="skip the timing part")
+    ap.add_argument("--timing-sizes", default=None,
+                    help="consist sizes of the timing part, comma-separated (default 3,5,10,20,50,100)")
+    ap.add_argument("--bias-correction", action="store_true",
+                    help="SolveOptions.bias_correction: the solver (and the truth-started fit) report the "
+                         "second-order bias-corrected poses; each cell also prints the same trials at the "
+                         "uncorrected minimum (paired), and the timing runs with it")
     args = ap.parse_args(argv)
     points = [int(p) for p in args.points.split(",")]
     points = points[0] if len(points) == 1 else tuple(points)
@@ -310,7 +333,7 @@ def main(argv=None) -> int:
                 if cells is not None and (n, sigma, est) not in cells:
                     continue
                 seed0 = 10_000 * n + int(100 * sigma) + (5000 if est else 0)
-                r = run_config(n, sigma, est, n_trials(n), seed0, args.weighting, points)
+                r = run_config(n, sigma, est, n_trials(n), seed0, args.weighting, points, args.bias_correction)
                 rows.append(r)
                 cv = "/".join(f"{c * 100:.0f}" for c in r["coverage95_enu"])
                 lo, hi = r["ratio_ci95"]
@@ -329,8 +352,19 @@ def main(argv=None) -> int:
                         f"{r['mean_depth_error_m']:+.3f} m (se {r['mean_depth_error_se_m']:.3f}); couplers at the "
                         f"slack {r['links_at_slack']}" + (f"; crb() (per-carriage weights) {r['crb_weighted_rms_m']:.4f} m"
                                                           if "crb_weighted_rms_m" in r else ""), flush=True)
+                if args.bias_correction:
+                    a_, b_ = r["uncorrected_min_ratio_ci95"]
+                    print(f"      bias correction: uncorrected minimum (truth start) ratio "
+                          f"{r['uncorrected_min_ratio_to_crb']:.3f} [{a_:.2f},{b_:.2f}] -> corrected (truth start) "
+                          f"{r['truth_start_ratio_to_crb']:.3f}; paired summed sq. error corrected - uncorrected "
+                          f"{r['paired_sq_err_diff_m2']:+.4f} m^2 (se {r['paired_sq_err_diff_se_m2']:.4f}); coverage "
+                          f"uncorrected " + "/".join(f"{c * 100:.1f}" for c in r["uncorrected_coverage95_enu"])
+                          + f"; mean depth error uncorrected {r['uncorrected_mean_depth_error_m']:+.3f} m; largest "
+                            f"shift per solve median {r['correction_max_shift_m_median']:.3f} m, max "
+                            f"{r['correction_max_shift_m_max']:.3f} m", flush=True)
                 if args.split:
-                    sp = split_bias(n, sigma, est, n_trials(n), seed0, args.split, args.weighting, points)
+                    sp = split_bias(n, sigma, est, n_trials(n), seed0, args.split, args.weighting, points,
+                                    args.bias_correction)
                     r["split"] = sp
                     print(f"      bias/spread ({sp['draws']} draws per geometry, from the truth): MSE/CRB "
                           f"{sp['mse_over_crb']:.3f} = bias^2 {sp['bias2_over_crb']:.3f} + covariance "
@@ -338,14 +372,16 @@ def main(argv=None) -> int:
                           f"depth error {sp['mean_depth_error_m']:+.3f} m", flush=True)
     allcov = np.concatenate([[c for c in r["coverage95_enu"]] for r in rows]) if rows else np.array([np.nan])
     ns = (3, 10, 30) if args.quick else (3, 5, 10, 20, 50, 100)
+    if args.timing_sizes:
+        ns = tuple(int(v) for v in args.timing_sizes.split(","))
     reps = 2 if args.quick else 5
     tim, tim_far = [], []
     if not args.no_timing:
-        tim = timing(ns, reps, max_distance_m=400.0)
+        tim = timing(ns, reps, max_distance_m=400.0, bias_correction=args.bias_correction)
         print_timing(tim, "time (all four steps, plane terrain + contact term, covariance included; median of "
                      "repeats);\ncamera at most 400 m away, turning (a panorama of photos) when the consist does not "
                      "fit one photo:")
-        tim_far = timing(ns, reps)
+        tim_far = timing(ns, reps, bias_correction=args.bias_correction)
         print_timing(tim_far, "the same with one photo from 1.1 train lengths away (a 100-car train is ~2.6 km long: "
                               "its cars are ~27 px long in a 4000 px photo):")
     summary = {
@@ -360,7 +396,7 @@ def main(argv=None) -> int:
         "status_100_cars": next((t["status"] for t in tim if t["n_cars"] == 100), None),
         "time_100_cars_one_far_photo_s": next((t["median_s"] for t in tim_far if t["n_cars"] == 100), None),
         "status_100_cars_one_far_photo": next((t["status"] for t in tim_far if t["n_cars"] == 100), None),
-        "omp_num_threads": os.environ.get("OMP_NUM_THREADS"),
+        "omp_num_threads": os.environ.get("OMP_NUM_THREADS"), "bias_correction": bool(args.bias_correction),
         "total_time_s": time.perf_counter() - t_all,
     }
     print("\nsummary:", json.dumps(summary, indent=1))

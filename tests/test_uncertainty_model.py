@@ -100,3 +100,30 @@ def test_intervals_cover_a_shared_affine_misfit():
     rms_with, rms_without = float(np.sqrt(np.mean(z_with**2))), float(np.sqrt(np.mean(z_without**2)))
     assert 0.7 < rms_with < 1.35, rms_with
     assert rms_without > 1.5 * rms_with
+
+
+def test_crb_takes_the_estimators_weighting():
+    """``crb(weighting=...)``: with equal point counts both weightings give the same (the bound); with unequal
+    counts the per-point bound (maximum likelihood) lies below the per-carriage estimator's sandwich covariance,
+    carriage by carriage (a PSD difference), and strictly somewhere; an unknown weighting is refused."""
+    from workbench.solve import crb
+
+    sim = simulate_consist(4, seed=21, pixel_sigma_px=1.0)
+    a = crb(sim.carriages, sim.links, sim.views, sim.truth, 1.0, weighting="per_carriage")
+    b = crb(sim.carriages, sim.links, sim.views, sim.truth, 1.0, weighting="per_point")
+    for Ca, Cb in zip(a["body_centre_cov"], b["body_centre_cov"]):
+        np.testing.assert_allclose(Ca, Cb, rtol=1e-10, atol=1e-14)
+    sim = simulate_consist(6, seed=50003, pixel_sigma_px=1.0, n_points=(4, 10, 6, 10, 5, 8))
+    for est in (False, True):
+        a = crb(sim.carriages, sim.links, sim.views, sim.truth, 1.0, est, weighting="per_carriage")
+        b = crb(sim.carriages, sim.links, sim.views, sim.truth, 1.0, est, weighting="per_point")
+        excess = []
+        for Ca, Cb in zip(a["body_centre_cov"], b["body_centre_cov"]):
+            lam = np.linalg.eigvalsh(Ca - Cb)
+            assert lam.min() > -1e-9 * np.trace(Cb), lam
+            excess.append(np.trace(Ca) / np.trace(Cb))
+        assert max(excess) > 1.005, excess
+        if est:
+            assert b["focal_sigma"][0] <= a["focal_sigma"][0] * (1 + 1e-9)
+    with pytest.raises(SettingsError, match="weighting"):
+        crb(sim.carriages, sim.links, sim.views, sim.truth, 1.0, weighting="per_face")

@@ -73,6 +73,13 @@ The four steps (as the seed, plus an optional contact term)
        branches (:func:`_pnp_branches`) and the cheapest solution kept (the step's note says so). The focal
        profile makes the same check at each focal.
 
+Optional step 5 (``SolveOptions.bias_correction``, off by default; not with a robust loss or an estimated focal)
+    the second-order bias of the least-squares estimate (Box 1971; Cook, Tsai & Wei 1986) is estimated at the
+    solution and subtracted (:mod:`.bias`): sigma-point differences of the residuals give each row's curvature
+    along the covariance, no analytic Hessian; the corrected poses are put back on the chain (offsets clipped to
+    the slack); the covariance is the minimum's, centred on the corrected poses; ``SolveResult.cost_at_minimum``
+    keeps the minimum's cost and ``SolveResult.bias_correction`` / the step's stats what moved.
+
 :func:`refine_from` (step 4 alone, from given poses) is a diagnostic for benchmarks: started at the truth it
 finds the minimum in the truth's basin, which tells a solver failure from the estimator's own spread.
 """
@@ -189,6 +196,11 @@ class SolveOptions:
     # maximum-likelihood estimate for independent pixel noise, the estimator whose Cramér-Rao bound is the ML
     # information. The two are identical when every carriage shows the same number of points.
     weighting: str = "per_carriage"
+    # subtract the second-order bias of the least-squares estimate (Box 1971; see .bias) from the solution: the
+    # reported poses are the corrected ones, the intervals are centred on them, and the step
+    # "5_bias_correction" records what moved. Off by default, and not applied with a robust loss or an estimated
+    # focal (see docs/solver.md for what it changes).
+    bias_correction: bool = False
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> None:
@@ -217,6 +229,8 @@ class SolveOptions:
             bad("face_sigma_px", "must be a non-negative number of pixels")
         if self.weighting not in _WEIGHTINGS:
             bad("weighting", f"must be one of {', '.join(_WEIGHTINGS)}")
+        if not isinstance(self.bias_correction, (bool, np.bool_)):
+            bad("bias_correction", "must be true or false")
 
 
 @dataclass
@@ -274,6 +288,11 @@ class SolveResult:
     links: list[dict] = field(default_factory=list)
     covariance: np.ndarray | None = None  # full (6 n_solved [+ n_focal]) in the order of `covariance_order`
     covariance_order: list[str] = field(default_factory=list)
+    # the cost at the least-squares minimum (= final_cost unless the bias correction moved the poses off it)
+    cost_at_minimum: float = float("nan")
+    # SolveOptions.bias_correction: what it did ({"applied", "note", "max_shift_m", "max_rotation_deg",
+    # "focal_shift_px", "links_clipped", "max_bias_over_sd"}); empty when off
+    bias_correction: dict = field(default_factory=dict)
 
     @property
     def converged(self) -> bool:
@@ -1901,8 +1920,6 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
         R, t, f, T_links, msg, ok, rounds, n_act = sol_b
     if notes_b:
         restart_note += "; " + "; ".join(notes_b)
-    lay = _Layout(final_chains, chain_slacks, True, focal_views, cars, R, t, f, None, options.pixel_sigma_px)
-    x = lay.x0
     steps.append(StepStats("4_all", True, f"everything optimised ({rounds} active-set round(s), {n_act} coupler(s) "
                            f"at the slack)" + restart_note + (
         f"; soft terrain contact (sigma_z = {options.terrain_sigma_m} m)" if contact is not None else
@@ -1912,14 +1929,33 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
     if not ok:
         all_ok = False
         messages.append(f"step 4: {msg}")
-    final_res, _ = _residuals_and_jac(prob, lay, x, contact, False)
-    if options.robust_loss == "linear":
-        final_cost = float(0.5 * np.sum(final_res**2))
-    else:
-        final_cost = float(np.nan)
-        from scipy.optimize._lsq.least_squares import construct_loss_function
-        lf = construct_loss_function(len(final_res), options.robust_loss, options.loss_scale_px)
-        final_cost = float(0.5 * np.sum(lf(final_res, cost_only=True))) if lf is not None else final_cost
+    final_cost = _full_cost(prob, cars, final_chains, chain_slacks, R, t, f, contact, options)
+    cost_at_minimum = final_cost
+
+    # -- optional: the second-order bias removed ------------------------------------------------------------
+    model = None
+    bc_summary: dict = {}
+    if options.bias_correction and active:
+        t5 = time.perf_counter()
+        skip = _bias_skip_reason(options, focal_views)
+        if skip:
+            bc_summary = {"applied": False, "note": skip}
+            steps.append(StepStats("5_bias_correction", False, skip))
+        else:
+            from .bias import correct
+            from .uncertainty import solution_model
+
+            model = solution_model(prob, R, t, f, focal_views, final_chains, chain_slacks, contact, options)
+            bc = correct(prob, cars, R, t, f, focal_views, final_chains, chain_slacks, contact, model,
+                         options.pixel_sigma_px, views)
+            bc_summary = bc.summary()
+            if bc.applied:
+                R, t, f = bc.R, bc.t, bc.f
+                T_links = [[t[b] + R[b] @ cars[b].c_front - t[a] - R[a] @ cars[a].c_rear
+                            for a, b in zip(ch[:-1], ch[1:])] for ch in final_chains]
+                final_cost = _full_cost(prob, cars, final_chains, chain_slacks, R, t, f, contact, options)
+            steps.append(StepStats("5_bias_correction", bc.applied, bc.note, cost_at_minimum, final_cost, 0,
+                                   "done" if bc.applied else "skipped", time.perf_counter() - t5, bc.per_carriage))
 
     # -- results -------------------------------------------------------------------------------------------
     uv_all, *_ = prob.project(R, t, f)
@@ -1965,13 +2001,28 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
         _warn(wl, None, "not_converged", "solve did not converge: " + "; ".join(messages))
     res = SolveResult(carriages=results, status=status, message="; ".join(messages) or "converged", warnings=wl,
                       steps=steps, iterations=total_nfev, time_s=0.0, final_cost=final_cost,
-                      focal_px={views[v].name: float(f[v]) for v in range(V)}, sigma_focal_px={}, links=link_info)
+                      focal_px={views[v].name: float(f[v]) for v in range(V)}, sigma_focal_px={}, links=link_info,
+                      cost_at_minimum=cost_at_minimum, bias_correction=bc_summary)
     if options.compute_covariance and active:
         from .uncertainty import attach_covariance
 
-        attach_covariance(res, prob, R, t, f, focal_views, final_chains, chain_slacks, contact, options)
+        # with the bias correction: the covariance (and the pixel sigma) of the minimum, centred on the corrected
+        # poses
+        attach_covariance(res, prob, R, t, f, focal_views, final_chains, chain_slacks, contact, options, model=model)
     res.time_s = time.perf_counter() - t_start
     return res
+
+
+def _bias_skip_reason(options: SolveOptions, focal_views) -> str:
+    """Why the bias correction is not applied ("" when it is): a robust loss (its IRLS weights are not a fixed
+    noise model); an estimated focal (the benchmark shows the second-order expansion failing there: on 12 cars
+    at 2 px the correction made 86 of 150 trials worse and moved one solution 98 m, docs/solver.md)."""
+    if options.robust_loss != "linear":
+        return "not applied: a robust loss is not a fixed noise model"
+    if focal_views:
+        return ("not applied: with the focal estimated the second-order expansion does not hold (positions along "
+                "the line of sight scale with the focal; see docs/solver.md)")
+    return ""
 
 
 def held_chains(n: int, links) -> tuple[list[list[int]], list[list[float]]]:
@@ -1999,7 +2050,9 @@ def refine_from(carriages: Sequence[CarriageInput], links: Sequence[ChainLink], 
     an early stop); if it ends at the same point, any excess error over the Cramér-Rao bound is the estimator's
     own. Every carriage must be observable alone and every link held (``slack_m`` set) or absent: a
     simplification for synthetic consists. Returns ``{"world_from_carriage": [(4, 4)], "focal_px": {view:
-    f}, "cost": chained cost (pixels + coupler prior), "converged": bool}``."""
+    f}, "cost": chained cost (pixels + coupler prior) at the minimum, "converged": bool}``; with
+    ``options.bias_correction`` the poses and focal are the bias-corrected ones (as :func:`solve_consist` reports
+    them), and ``"world_from_carriage_minimum"`` / ``"focal_px_minimum"`` those of the minimum."""
     options = options or SolveOptions()
     views = list(views)
     cars = _prepare(carriages, views, options)
@@ -2013,10 +2066,29 @@ def refine_from(carriages: Sequence[CarriageInput], links: Sequence[ChainLink], 
     fv = focal_groups(views, [v for v in range(len(views)) if len(prob.by_view[v]) > 0]) \
         if options.estimate_focal else []
     R, t, f, T_links, _, _, ok, _, _ = _solve_chained(prob, cars, chains, slacks, True, fv, R, t, f, None, options)
-    out = []
-    for k in range(N):
-        M = np.eye(4)
-        M[:3, :3], M[:3, 3] = R[k], t[k]
-        out.append(M)
-    return {"world_from_carriage": out, "focal_px": {v.name: float(f[i]) for i, v in enumerate(views)},
-            "cost": _chain_cost(prob, R, t, f, T_links, slacks, options.pixel_sigma_px), "converged": bool(ok)}
+
+    def poses(R, t):
+        out = []
+        for k in range(N):
+            M = np.eye(4)
+            M[:3, :3], M[:3, 3] = R[k], t[k]
+            out.append(M)
+        return out
+
+    res = {"world_from_carriage": poses(R, t), "focal_px": {v.name: float(f[i]) for i, v in enumerate(views)},
+           "cost": _chain_cost(prob, R, t, f, T_links, slacks, options.pixel_sigma_px), "converged": bool(ok)}
+    skip = _bias_skip_reason(options, fv) if options.bias_correction else "off"
+    if options.bias_correction and skip:
+        res["bias_correction"] = {"applied": False, "note": skip}
+    elif options.bias_correction:
+        from .bias import correct
+        from .uncertainty import solution_model
+
+        model = solution_model(prob, R, t, f, fv, chains, slacks, None, options)
+        bc = correct(prob, cars, R, t, f, fv, chains, slacks, None, model, options.pixel_sigma_px, views)
+        if bc.applied:
+            res["world_from_carriage_minimum"], res["focal_px_minimum"] = res["world_from_carriage"], res["focal_px"]
+            res["world_from_carriage"] = poses(bc.R, bc.t)
+            res["focal_px"] = {v.name: float(bc.f[i]) for i, v in enumerate(views)}
+        res["bias_correction"] = bc.summary()
+    return res

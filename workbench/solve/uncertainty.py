@@ -80,8 +80,10 @@ def _rows(prob, R, t, f, focal_views):
     return J, r, col, P
 
 
-def _prior_info(cars, R, t, chains, slacks, col, P):
-    H = np.zeros((P, P))
+def _prior_rows(cars, R, t, chains, slacks, col, P) -> np.ndarray:
+    """Whitened Jacobian rows (3 per held link, ``T / sigma_T``) of the couplers' offset prior in free-pose
+    parameters; ``T = t_b + R_b c_front - t_a - R_a c_rear``."""
+    rows = []
     for ch, sl in zip(chains, slacks):
         for j in range(len(ch) - 1):
             a, b = ch[j], ch[j + 1]
@@ -93,14 +95,21 @@ def _prior_info(cars, R, t, chains, slacks, col, P):
             JT[:, ca + 3:ca + 6] = -np.eye(3)
             JT[:, cb:cb + 3] = -skew(rb)
             JT[:, cb + 3:cb + 6] = np.eye(3)
-            H += JT.T @ JT / sT**2
-    return H
+            rows.append(JT / sT)
+    return np.vstack(rows) if rows else np.zeros((0, P))
 
 
-def _contact_info(contact, R, t, col, P, sigma_cfg):
-    H = np.zeros((P, P))
+def _prior_info(cars, R, t, chains, slacks, col, P):
+    Jp = _prior_rows(cars, R, t, chains, slacks, col, P)
+    return Jp.T @ Jp
+
+
+def _contact_rows(contact, R, t, col, P, sigma_cfg) -> tuple[np.ndarray, list[int]]:
+    """Whitened Jacobian rows (one per carriage in contact, ``clearance / sigma_z``) of the terrain contact term,
+    and the carriages they belong to (a carriage off the terrain has none)."""
+    rows, ks = [], []
     if contact is None:
-        return H
+        return np.zeros((0, P)), ks
     for k in contact.samples:
         cl = contact.clearance(R, t, k)
         if cl is None:
@@ -112,8 +121,14 @@ def _contact_info(contact, R, t, col, P, sigma_cfg):
         c = col[k]
         row[c:c + 3] = -(a @ skew(q))
         row[c + 3:c + 6] = a
-        H += np.outer(row, row) / sigma_cfg**2
-    return H
+        rows.append(row / sigma_cfg)
+        ks.append(k)
+    return (np.vstack(rows) if rows else np.zeros((0, P))), ks
+
+
+def _contact_info(contact, R, t, col, P, sigma_cfg):
+    Jc, _ = _contact_rows(contact, R, t, col, P, sigma_cfg)
+    return Jc.T @ Jc
 
 
 def _robust_weights(r2: np.ndarray, loss: str, scale: float) -> np.ndarray:
@@ -195,7 +210,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         G = G + face_sigma**2 / sigma**4 * _shared_misfit(J * rho[:, None], groups, views, uv_obs, w_row)
     cov = Hi @ G @ Hi
     cov = 0.5 * (cov + cov.T)
-    return {"cov": cov, "col": col, "sigma": sigma, "sigma_hat": sigma_hat, "dof": dof, "q": q, "P": P}
+    return {"cov": cov, "col": col, "sigma": sigma, "sigma_hat": sigma_hat, "dof": dof, "q": q, "P": P, "H_inv": Hi}
 
 
 def _shared_misfit(J: np.ndarray, groups: np.ndarray, views: np.ndarray, uv: np.ndarray,
@@ -253,11 +268,20 @@ def body_centre_cov(model: dict, cars, R, k: int) -> np.ndarray:
     return Jb @ C @ Jb.T
 
 
-def attach_covariance(res, prob, R, t, f, focal_views, chains, slacks, contact, options) -> None:
-    """Fill the covariance fields of a :class:`SolveResult` in place."""
-    model = covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, options.pixel_sigma_px,
-                             options.robust_loss, options.loss_scale_px, options.prior_dof,
-                             face_sigma=options.face_sigma_px)
+def solution_model(prob, R, t, f, focal_views, chains, slacks, contact, options) -> dict:
+    """:func:`covariance_model` at a solution with the solve's options."""
+    return covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, options.pixel_sigma_px,
+                            options.robust_loss, options.loss_scale_px, options.prior_dof,
+                            face_sigma=options.face_sigma_px)
+
+
+def attach_covariance(res, prob, R, t, f, focal_views, chains, slacks, contact, options,
+                      model: dict | None = None) -> None:
+    """Fill the covariance fields of a :class:`SolveResult` in place. ``model``: a :func:`solution_model` already
+    computed (at the least-squares minimum, when the reported poses ``R, t`` are bias-corrected: the pixel sigma
+    is estimated from the minimum's residuals and the intervals are centred on the reported poses)."""
+    if model is None:
+        model = solution_model(prob, R, t, f, focal_views, chains, slacks, contact, options)
     cov, col, q = model["cov"], model["col"], model["q"]
     res.sigma_px = model["sigma"]
     res.sigma_px_estimated = model["sigma_hat"]
@@ -304,34 +328,38 @@ def attach_covariance(res, prob, R, t, f, focal_views, chains, slacks, contact, 
 
 
 def crb(carriages: Sequence[Any], links: Sequence[Any], views: Sequence[Any], world_from_carriage: Sequence[np.ndarray],
-        sigma_px: float, estimate_focal: bool = False) -> dict:
+        sigma_px: float, estimate_focal: bool = False, weighting: str = "per_carriage") -> dict:
     """Cramér-Rao bound of the chained problem at the truth (noise-free pixels are not needed: only the
     Jacobian is used). Held couplings (links with a slack) are modelled as in the covariance (soft prior,
     sigma_T = slack/sqrt(5)); ``estimate_focal`` adds one focal per view as a parameter.
 
-    Returns ``{"body_centre_cov": [(3, 3)] per carriage, "rotation_cov": [(3, 3)], "focal_sigma": [...]}``.
-    """
-    from .chain import SolveOptions, _Problem, _prepare
+    ``weighting`` (as :attr:`SolveOptions.weighting`): ``"per_point"`` gives the bound proper (every point
+    1 / sigma^2: the maximum-likelihood information, the least covariance any unbiased estimator can have);
+    ``"per_carriage"`` weights each carriage's rows as the solver's per-carriage normalisation does
+    (``w_i = sqrt(n_mean / n_i)``) and returns *that estimator's* asymptotic (sandwich) covariance
+    ``H^-1 G H^-1``, which is the bound when every carriage shows the same number of points (all weights 1) and
+    exceeds it otherwise. Compare an estimator with the covariance of its own weighting, and both with the
+    ``"per_point"`` bound.
 
-    opts = SolveOptions(check_image_bounds=False)
+    Returns ``{"body_centre_cov": [(3, 3)] per carriage, "rotation_cov": [(3, 3)], "origin_cov": [(3, 3)],
+    "focal_sigma": [...], "weighting": weighting}``.
+    """
+    from .chain import SolveOptions, _Problem, _prepare, carriage_weights, focal_groups, held_chains
+
+    opts = SolveOptions(check_image_bounds=False, weighting=weighting)  # validates ``weighting``
     cars = _prepare(carriages, views, opts)
     N = len(cars)
     active = list(range(N))
-    counts = {k: len(cars[k].P) for k in active}
-    nmean = float(np.mean(list(counts.values())))
-    weights = {k: math.sqrt(nmean / max(counts[k], 1)) for k in active}
-    prob = _Problem(cars, active, views, weights)
+    prob = _Problem(cars, active, views, carriage_weights(cars, active, opts.weighting))
     R = np.array([np.asarray(M, float)[:3, :3] for M in world_from_carriage])
     t = np.array([np.asarray(M, float)[:3, 3] for M in world_from_carriage])
     f = np.array([v.intrinsics.fx for v in views], dtype=float)
-    from .chain import focal_groups, held_chains
-
     chains, slacks = held_chains(N, links)
 
     fv = focal_groups(views, list(range(len(views)))) if estimate_focal else []
     prob.uv = prob.project(R, t, f)[0]  # residuals zero at the truth
     model = covariance_model(prob, R, t, f, fv, chains, slacks, None, sigma_px, sigma_fixed=sigma_px)
-    out = {"body_centre_cov": [], "rotation_cov": [], "origin_cov": [], "focal_sigma": []}
+    out = {"body_centre_cov": [], "rotation_cov": [], "origin_cov": [], "focal_sigma": [], "weighting": weighting}
     for k in active:
         c = model["col"][k]
         out["body_centre_cov"].append(body_centre_cov(model, cars, R, k))
