@@ -14,7 +14,11 @@ Sets (``--sets``, comma separated):
 
 Reports per run: photos registered, focal (px) and its error against the truth (%), k1/k2, camera-position RMS
 after a similarity (Umeyama) alignment to the truth (metres; for Lund against GPS), rotation error, points,
-mean reprojection error, time. Prints a table and writes bench_out/sfm.json.
+mean reprojection error, time, the separate models. With --georef (incident sets), the georef stage is run on
+the result from the incident's control_points.json three times: the main model only with every photo it has
+(the stage before separate models were kept), every SfM model (photos that disagree with their control points
+left out), and every model then each photo left placed on its own (resection): photos placed, camera-position and rotation errors against the truth
+in the scene frame (no alignment). Prints a table and writes bench_out/sfm.json.
 
 Run it niced on a shared machine:  OMP_NUM_THREADS=2 nice -n 10 .venv/bin/python scripts/bench_sfm.py
 """
@@ -54,6 +58,7 @@ def evaluate(result, truth_centres: dict | None, truth_R: dict | None, true_intr
     row = {"n_images": result.stats["n_images"], "n_registered": len(result.views), "focal_px": v0.fx,
            "k1": v0.k1, "k2": v0.k2, "n_points": result.n_points_total,
            "reproj_px": result.stats["mean_reprojection_error_px"], "time_s": result.stats["time_s"],
+           "timings_s": result.stats["timings_s"], "n_models": result.stats.get("n_models"),
            "retried_forward_motion": result.stats["retried_forward_motion"],
            "unregistered": result.unregistered, "warnings": result.stats["warnings"]}
     if true_intr is not None:
@@ -140,7 +145,70 @@ def _label(root: Path) -> str:
     return f"{g['scenario']} seed {g['seed']}"
 
 
-def bench_incident(root: Path, label: str, variants) -> list[dict]:
+def georef_eval(root: Path, res, work: Path, centres: dict, rots: dict) -> dict:
+    """The ``georef`` stage on an SfM result, in a scratch incident beside ``work`` (``camera.source = "sfm"``,
+    the incident's control points): photos placed and their errors against the truth in the scene frame (no
+    alignment), with every model (``after``) and with the main model only (``before``: the stage before the
+    separate models were kept)."""
+    import os
+    import shutil
+    import warnings
+
+    from workbench.georef.stage import run_georef
+    from workbench.project import Project
+
+    from workbench.georef.solvers import GeorefOptions
+
+    out = {}
+    for variant in ("before", "models", "after"):
+        dst = work / f"georef_{root.name}_{variant}"
+        if dst.exists():
+            shutil.rmtree(dst)
+        dst.mkdir(parents=True)
+        for entry in root.iterdir():  # the incident by links; its settings edited in a copy
+            if entry.name not in ("project.toml", "out"):
+                os.symlink(entry.resolve(), dst / entry.name)
+        toml = (root / "project.toml").read_text()
+        toml = toml.replace('source = "calibrated"', 'source = "sfm"').replace('source = "exif"', 'source = "sfm"')
+        toml = toml.replace('photos = "photos/panorama"', 'photos = "photos/multiview"')
+        (dst / "project.toml").write_text(toml)
+        project = Project(dst)
+        rec = res.to_json(project.relative)
+        if variant == "before":
+            rec["models"] = []
+        atomic_write_json(dst / "out" / "sfm" / "reconstruction.json", rec)
+        t0 = time.perf_counter()
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                stage = run_georef(project, lambda f, m="": None,
+                                   GeorefOptions(resect_unplaced=variant == "after",
+                                                 reject_disagreeing_views=variant != "before"))
+        except Exception as exc:  # noqa: BLE001 - a failed georegistration is a result
+            out[variant] = {"n_placed": 0, "error": f"{type(exc).__name__}: {exc}"[:300]}
+            continue
+        doc = json.loads(stage.outputs["cameras"].read_text())
+        errs = {v["name"]: float(np.linalg.norm(np.asarray(v["center_enu"]) - centres[v["name"]]))
+                for v in doc["views"]}
+        rerr = {v["name"]: _rot_err_deg(np.asarray(v["cam_from_world"])[:3, :3], rots[v["name"]])
+                for v in doc["views"]}
+        e = np.array(list(errs.values()))
+        g = doc["georegistration"]
+        out[variant] = {"n_placed": len(doc["views"]), "placed": sorted(errs),
+                        "position_rms_m": float(np.sqrt(np.mean(e ** 2))), "position_max_m": float(e.max()),
+                        "rotation_err_deg_max": float(max(rerr.values())), "georef_s": time.perf_counter() - t0,
+                        "per_view_position_err_m": errs, "per_view_rotation_err_deg": rerr,
+                        "models": [{k: m.get(k) for k in ("model", "status", "reason", "views", "placed",
+                                                          "n_fitting_triangulated", "spread_m", "rms_px",
+                                                          "sigma_centre_max_m", "overlap")}
+                                   for m in g.get("models", [])],
+                        "unregistered": g.get("unregistered", []),
+                        "resected": [{k: r.get(k) for k in ("name", "n_points", "rms_px", "sigma_centre_max_m",
+                                                            "intrinsics_from")} for r in g.get("resected", [])]}
+    return out
+
+
+def bench_incident(root: Path, label: str, variants, georef_work: Path | None = None) -> list[dict]:
     photos = sorted((root / "photos" / "multiview").glob("*.jpg"))
     if not photos or not (root / "truth" / "ground_truth.json").is_file():
         raise FileNotFoundError(f"{root}: no generated multi-view photos or truth; run `workbench synth` on it first")
@@ -149,7 +217,11 @@ def bench_incident(root: Path, label: str, variants) -> list[dict]:
     for vlabel, opts, use_prior in variants:
         try:
             res = run_sfm(photos, options=opts, prior=_exif_prior(photos) if use_prior else None)
-            rows.append({"set": label, "variant": vlabel, **evaluate(res, centres, rots, intr)})
+            row = {"set": label, "variant": vlabel, **evaluate(res, centres, rots, intr)}
+            row["separate_models"] = [[v.name for v in m.views] for m in res.models]
+            if georef_work is not None and (root / "control_points.json").is_file():
+                row["georef"] = georef_eval(root, res, georef_work, centres, rots)
+            rows.append(row)
         except Exception as exc:  # noqa: BLE001 - a failed run is a result
             rows.append({"set": label, "variant": vlabel, "n_images": len(photos), "n_registered": 0,
                          "error": str(exc)[:200]})
@@ -240,6 +312,12 @@ def main() -> None:
     ap.add_argument("--spuyten", default=str(ROOT / "projects" / "spuyten-duyvil"), help="generated incident folder")
     ap.add_argument("--frankford", default=str(ROOT / "projects" / "frankford-junction"), help="generated incident folder")
     ap.add_argument("--extra", action="append", default=[], help="more generated incident folders (set 'extra')")
+    ap.add_argument("--georef", action="store_true",
+                    help="incident sets: also run the georef stage on the SfM result (every model, and the main model "
+                         "only) from the incident's control points, and compare the cameras with the truth in the "
+                         "scene frame")
+    ap.add_argument("--variants", default="all", choices=("all", "stage"),
+                    help="incident sets: 'stage' runs only the stage's options (not COLMAP's SIFT defaults too)")
     args = ap.parse_args()
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     work = Path(args.work)
@@ -250,13 +328,19 @@ def main() -> None:
     rows: list[dict] = []
     if out.is_file():
         rows = [r for r in json.loads(out.read_text()).get("rows", []) if r.get("group") not in sets]
+    gw = work if args.georef else None
+
+    def variants():
+        v = incident_variants()
+        return v[:1] if args.variants == "stage" else v
+
     runs = {
         "render": lambda: bench_render(work, 8) + bench_render(work, 16),
         "synth": lambda: bench_synth(work),
-        "spuyten": lambda: bench_incident(Path(args.spuyten), "spuyten-duyvil seed 1", incident_variants()),
-        "frankford": lambda: bench_incident(Path(args.frankford), "frankford-junction seed 1", incident_variants()),
+        "spuyten": lambda: bench_incident(Path(args.spuyten), "spuyten-duyvil seed 1", variants(), gw),
+        "frankford": lambda: bench_incident(Path(args.frankford), "frankford-junction seed 1", variants(), gw),
         "extra": lambda: [r for p in args.extra for r in bench_incident(Path(p), f"{_label(Path(p))}",
-                                                                        incident_variants())],
+                                                                        variants(), gw)],
         "lund": bench_lund,
         "berlin": bench_berlin,
     }
@@ -291,6 +375,30 @@ def main() -> None:
             print(f"{r['set']} / {r['variant']}: outlier views (left out of the inlier RMS): {r['outlier_views']}")
         if r.get("warnings"):
             print(f"{r['set']} / {r['variant']}: warnings: {'; '.join(r['warnings'])}")
+        if r.get("separate_models"):
+            print(f"{r['set']} / {r['variant']}: separate SfM models: {r['separate_models']}")
+        for gv, g in (r.get("georef") or {}).items():
+            if g.get("error"):
+                print(f"{r['set']} / {r['variant']}: georef {gv}: {g['error']}")
+                continue
+            what = {"before": "main model only, no check of single photos", "models": "every SfM model",
+                    "after": "every SfM model, then resection of the photos left"}[gv]
+            print(f"{r['set']} / {r['variant']}: georef {gv} ({what})", end="")
+            print(f": {g['n_placed']}/{r['n_images']} photos placed, position error RMS {g['position_rms_m']:.3f} / "
+                  f"max {g['position_max_m']:.3f} m, rotation max {g['rotation_err_deg_max']:.3f} deg, "
+                  f"{g['georef_s']:.1f} s")
+            print("    per photo (m / deg): " + " ".join(
+                f"{k}:{v:.3f}/{g['per_view_rotation_err_deg'][k]:.2f}"
+                for k, v in g["per_view_position_err_m"].items()))
+            for m in g["models"]:
+                print(f"    {m['model']} {m['views']}: {m['status']}" + (f" ({m['reason']})" if m.get("reason") else
+                      f", {m.get('n_fitting_triangulated')} points, spread {m.get('spread_m') or 0:.1f} m, "
+                      f"sigma {m.get('sigma_centre_max_m') or 0:.3f} m, rms {m.get('rms_px') or 0:.2f} px"))
+            for m in g.get("resected", []):
+                print(f"    resected {m['name']}: {m['n_points']} points, rms {m['rms_px']:.2f} px, "
+                      f"sigma {m['sigma_centre_max_m']:.3f} m, intrinsics: {m['intrinsics_from']}")
+            for u in g.get("unregistered", []):
+                print(f"    unplaced {u['name']}: {u['reason'][:300]}")
     print(f"wrote {out}")
 
 

@@ -19,7 +19,7 @@ from workbench.core.io import atomic_write_json
 from workbench.errors import InputError, StageError
 from workbench.georef.control_points import load_control_points, parse_control_points
 from workbench.georef.solvers import GeorefOptions, GeorefResidualsLarge, SfmView, solve_similarity, umeyama
-from workbench.georef.stage import STAGE, georef_route, run_georef
+from workbench.georef.stage import STAGE, georef_route, run_georef, validate_cameras_doc
 from workbench.project import Project
 from workbench.synth.control_points import true_panorama_model, true_reconstruction, write_control_points
 
@@ -413,3 +413,207 @@ def test_berlin_gcps_real_data(capsys):
     assert 0.5 < s["scale"] < 2.0
     warned = [w for w in caught if issubclass(w.category, GeorefResidualsLarge)]
     assert (s["rms_px"] > GeorefOptions().warn_rms_px) == any("RMS" in str(w.message) for w in warned)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# Multiview with separate SfM models (issue 4): each model placed by its own control points
+# ----------------------------------------------------------------------------------------------------------
+def _split_reconstruction(dst: Path, groups: list[list[str]], frames: list[np.ndarray]) -> dict:
+    """A reconstruction.json whose main model holds the photos of groups[0] and whose separate models hold
+    groups[1:], each expressed in its own model frame (world_from_model = frames[i])."""
+    docs = [true_reconstruction(dst, S) for S in frames]
+    pick = [[im for im in d["images"] if im["name"] in g] for d, g in zip(docs, groups)]
+    assert all(len(p) == len(g) for p, g in zip(pick, groups))
+    unreg = [{"name": im["name"], "reason": "registered only in a separate model", "model": k}
+             for k, p in enumerate(pick[1:]) for im in p]
+    return {"images": pick[0], "unregistered": unreg, "points": {"xyz": []}, "intrinsics_source": "sfm",
+            "models": [{"images": p, "points": {"xyz": []}, "stats": {}} for p in pick[1:]]}
+
+
+def _similarity(scale: float, euler_deg, t) -> np.ndarray:
+    S = np.eye(4)
+    S[:3, :3] = scale * Rotation.from_euler("zyx", euler_deg, degrees=True).as_matrix()
+    S[:3, 3] = t
+    return S
+
+
+def _mv_project(sample, tmp_path, name: str) -> tuple[Path, dict, list[str]]:
+    root, truth = sample
+    dst = _fresh(sample, tmp_path, name, lambda t: t.replace('source = "calibrated"', 'source = "sfm"')
+                 .replace('photos = "photos/panorama"', 'photos = "photos/multiview"'))
+    names = sorted(Path(p["photo"]).name for p in truth["photos"] if p["set"] == "multiview")
+    return dst, truth, names
+
+
+def _picks_per_photo(dst: Path) -> dict[str, int]:
+    cp = json.loads((dst / "control_points.json").read_text())
+    n: dict[str, int] = {}
+    for p in cp["points"]:
+        for k in p["pixels"]:
+            n[k] = n.get(k, 0) + 1
+    return n
+
+
+def test_multiview_separate_models_are_placed(sample, tmp_path):
+    dst, truth, names = _mv_project(sample, tmp_path, "mv_two_models")
+    half = len(names) // 2
+    groups = [names[:half], names[half:]]
+    frames = [_similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0]),
+              _similarity(2.9, [-70.0, 35.0, 160.0], [-300.0, 80.0, 12.0])]
+    atomic_write_json(dst / "out" / "sfm" / "reconstruction.json", _split_reconstruction(dst, groups, frames))
+    doc = json.loads(run_georef(Project(dst), _no_progress).outputs["cameras"].read_text())
+    validate_cameras_doc(doc, "cameras.json")
+    g = doc["georegistration"]
+    assert [m["model"] for m in g["models"]] == ["main", "models[0]"]
+    assert [m["status"] for m in g["models"]] == ["georegistered", "georegistered"], g["models"]
+    assert sorted(v["name"] for v in doc["views"]) == names and g["unregistered"] == []
+    # each model's own similarity is recovered (the main one stays in world_from_model)
+    for m, S in zip(g["models"], frames):
+        W = np.asarray(m["world_from_model"])
+        s = np.cbrt(np.linalg.det(W[:3, :3]))
+        assert 0.0 < abs(s / np.cbrt(np.linalg.det(S[:3, :3])) - 1) < 2e-3, (m["model"], s)
+    assert np.allclose(g["world_from_model"], g["models"][0]["world_from_model"])
+    truth_by = {Path(p["photo"]).name: p for p in truth["photos"]}
+    for v in doc["views"]:
+        c_err = np.linalg.norm(np.asarray(v["center_enu"]) - truth_by[v["name"]]["center_enu"])
+        r_err = _rot_err_deg(v["cam_from_world"], truth_by[v["name"]]["cam_from_world"])
+        assert 0.0005 < c_err < 0.15, (v["name"], c_err)
+        assert 0.0002 < r_err < 0.15, (v["name"], r_err)
+    sub = g["models"][1]
+    assert sub["n_fitting_triangulated"] >= 3 and sub["spread_m"] > 1.0 and 0.0 < sub["sigma_centre_max_m"] < 0.5
+    assert sorted(sub["placed"]) == groups[1]
+
+
+def test_multiview_separate_model_without_control_points_stays_unregistered(sample, tmp_path):
+    dst, truth, names = _mv_project(sample, tmp_path, "mv_sub_no_cps")
+    picks = _picks_per_photo(dst)
+    # the separate model: the two photos with the fewest picks; their picks removed but one point's
+    lone = sorted(names, key=lambda n: (picks.get(n, 0), n))[:2]
+    cp = json.loads((dst / "control_points.json").read_text())
+    kept = 0
+    for p in cp["points"]:
+        if all(k in p["pixels"] for k in lone) and kept == 0:
+            kept += 1
+            continue
+        for k in lone:
+            p["pixels"].pop(k, None)
+    cp["points"] = [p for p in cp["points"] if p["pixels"]]
+    (dst / "control_points.json").write_text(json.dumps(cp))
+    groups = [[n for n in names if n not in lone], lone]
+    frames = [_similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0]),
+              _similarity(1.7, [10.0, -5.0, 90.0], [3.0, 4.0, 5.0])]
+    atomic_write_json(dst / "out" / "sfm" / "reconstruction.json", _split_reconstruction(dst, groups, frames))
+    doc = json.loads(run_georef(Project(dst), _no_progress).outputs["cameras"].read_text())
+    g = doc["georegistration"]
+    assert [m["status"] for m in g["models"]] == ["georegistered", "unregistered"]
+    assert "control point" in g["models"][1]["reason"] and "needs at least 3" in g["models"][1]["reason"] \
+        or "are needed" in g["models"][1]["reason"], g["models"][1]["reason"]
+    assert sorted(v["name"] for v in doc["views"]) == groups[0]
+    assert sorted(u["name"] for u in g["unregistered"]) == sorted(lone)
+    assert all("could not be placed" in u["reason"] for u in g["unregistered"])
+
+
+def test_multiview_wrong_separate_model_is_rejected(sample, tmp_path):
+    """A separate model whose shape disagrees with its control points (a photo placed wrongly by look-alike
+    matches) is refused by the residual check, not placed."""
+    dst, truth, names = _mv_project(sample, tmp_path, "mv_sub_wrong")
+    half = len(names) // 2
+    groups = [names[:half], names[half:]]
+    frames = [_similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0]),
+              _similarity(2.9, [-70.0, 35.0, 160.0], [-300.0, 80.0, 12.0])]
+    rec = _split_reconstruction(dst, groups, frames)
+    # turn the separate model's photo with the most picks by 20 degrees about its own centre: its rays go elsewhere
+    picks = _picks_per_photo(dst)
+    im = max(rec["models"][0]["images"], key=lambda i: (picks.get(i["name"], 0), i["name"]))
+    M = np.asarray(im["cam_from_model"])
+    c = -M[:3, :3].T @ M[:3, 3]
+    R = Rotation.from_euler("y", 20.0, degrees=True).as_matrix() @ M[:3, :3]
+    M[:3, :3], M[:3, 3] = R, -R @ c
+    im["cam_from_model"] = M.tolist()
+    atomic_write_json(dst / "out" / "sfm" / "reconstruction.json", rec)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        doc = json.loads(run_georef(Project(dst), _no_progress).outputs["cameras"].read_text())
+    g = doc["georegistration"]
+    assert g["models"][0]["status"] == "georegistered"
+    sub = g["models"][1]
+    # either the whole model is refused, or the turned photo is left out of it; its wrong pose never reaches
+    # cameras.json (placed, it was placed on its own, by resection, within centimetres)
+    assert sub["status"] == "unregistered" or im["name"] in sub.get("rejected_views", {}), sub
+    truth_by = {Path(p["photo"]).name: p for p in truth["photos"]}
+    for v in doc["views"]:
+        assert np.linalg.norm(np.asarray(v["center_enu"]) - truth_by[v["name"]]["center_enu"]) < 0.3, v["name"]
+        assert _rot_err_deg(v["cam_from_world"], truth_by[v["name"]]["cam_from_world"]) < 0.3, v["name"]
+    assert set(groups[0]) <= {v["name"] for v in doc["views"]}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        doc = json.loads(run_georef(Project(dst), _no_progress, GeorefOptions(resect_unplaced=False))
+                         .outputs["cameras"].read_text())
+    assert im["name"] not in {v["name"] for v in doc["views"]}
+    assert im["name"] in {u["name"] for u in doc["georegistration"]["unregistered"]}
+
+
+def test_multiview_photo_left_out_by_sfm_is_resected(sample, tmp_path):
+    """A photo SfM did not register, with picks of enough control points, is placed on its own (resection) with
+    the main model's shared camera; with resection off it stays unregistered."""
+    dst, truth, names = _mv_project(sample, tmp_path, "mv_resect")
+    picks = _picks_per_photo(dst)
+    lone = max(names, key=lambda n: (picks.get(n, 0), n))
+    assert picks[lone] >= 4
+    rec = _split_reconstruction(dst, [[n for n in names if n != lone]],
+                                [_similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0])])
+    rec["unregistered"] = [{"name": lone, "reason": "too few verified matches with the registered photos"}]
+    atomic_write_json(dst / "out" / "sfm" / "reconstruction.json", rec)
+    doc = json.loads(run_georef(Project(dst), _no_progress).outputs["cameras"].read_text())
+    g = doc["georegistration"]
+    assert sorted(v["name"] for v in doc["views"]) == names and g["unregistered"] == []
+    (r,) = g["resected"]
+    assert r["name"] == lone and r["intrinsics_from"].startswith("main model") and r["rms_px"] < 3.0
+    truth_by = {Path(p["photo"]).name: p for p in truth["photos"]}
+    v = next(v for v in doc["views"] if v["name"] == lone)
+    assert 0.001 < np.linalg.norm(np.asarray(v["center_enu"]) - truth_by[lone]["center_enu"]) < 0.3
+    assert 0.0005 < _rot_err_deg(v["cam_from_world"], truth_by[lone]["cam_from_world"]) < 0.2
+    doc = json.loads(run_georef(Project(dst), _no_progress, GeorefOptions(resect_unplaced=False))
+                     .outputs["cameras"].read_text())
+    assert lone not in [v["name"] for v in doc["views"]]
+    assert [u["name"] for u in doc["georegistration"]["unregistered"]] == [lone]
+
+
+def test_multiview_resection_checks_a_wrong_sfm_focal(sample, tmp_path):
+    """SfM's focal 8 % off (a weak model): a photo resected with it lands metres off with small residuals; its
+    control points disagree with that focal, so the resection refines the focal, and the photo is placed only
+    if they then fix its position (else it stays unplaced, with the reason): never metres off."""
+    dst, truth, names = _mv_project(sample, tmp_path, "mv_resect_focal")
+    picks = _picks_per_photo(dst)
+    lone = max(names, key=lambda n: (picks.get(n, 0), n))
+    rec = _split_reconstruction(dst, [[n for n in names if n != lone]],
+                                [_similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0])])
+    for im in rec["images"]:
+        im["intrinsics"] = {**im["intrinsics"], "fx": im["intrinsics"]["fx"] * 0.92,
+                            "fy": im["intrinsics"]["fy"] * 0.92}
+    rec["unregistered"] = [{"name": lone, "reason": "too few verified matches with the registered photos"}]
+    atomic_write_json(dst / "out" / "sfm" / "reconstruction.json", rec)
+    truth_by = {Path(p["photo"]).name: p for p in truth["photos"]}
+
+    def run(opts):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return json.loads(run_georef(Project(dst), _no_progress, opts).outputs["cameras"].read_text())
+
+    # without the focal check (never refined): placed, but metres off
+    doc = run(GeorefOptions(resect_focal_disagree_sigma=1e9))
+    v = next(v for v in doc["views"] if v["name"] == lone)
+    err_fixed = np.linalg.norm(np.asarray(v["center_enu"]) - truth_by[lone]["center_enu"])
+    assert 0.5 < err_fixed < 20.0, err_fixed
+    # with it: the refined focal is near the truth, and the photo is within 0.5 m or not placed
+    doc = run(GeorefOptions())
+    placed = [v for v in doc["views"] if v["name"] == lone]
+    if placed:
+        r = next(r for r in doc["georegistration"]["resected"] if r["name"] == lone)
+        true_f = truth_by[lone]["intrinsics"]["fx"]
+        assert 0.0 < abs(r["focal_check"]["refined_focal_px"] / true_f - 1) < 0.03, r["focal_check"]
+        assert "focal refined" in r["intrinsics_from"]
+        assert 0.001 < np.linalg.norm(np.asarray(placed[0]["center_enu"]) - truth_by[lone]["center_enu"]) < 0.5
+    else:
+        (u,) = [u for u in doc["georegistration"]["unregistered"] if u["name"] == lone]
+        assert "fix it only to" in u["reason"], u

@@ -213,3 +213,47 @@ def test_sfm_stage_writes_reconstruction(tmp_path, mv_set):
     # the route and intrinsics a later stage sees
     choice = resolve_intrinsics(project)
     assert choice.source == "sfm" and choice.focal_known["mv_00.jpg"] and not choice.focal_known["zz_blank.jpg"]
+
+
+def test_separate_models_are_kept(tmp_path, mv_set):
+    """Two scenes that share nothing, photographed in one folder: the larger set is the main model, the other
+    is kept as a separate model in its own frame (its cameras right up to a similarity), its photos listed as
+    unregistered in the main model with the index of their model. (Plain SIFT to keep the test fast.)"""
+    folder, truth = mv_set
+    both = tmp_path / "both"
+    shutil.copytree(folder, both)
+    other = tmp_path / "other"
+    truth_b = write_multiview_set(other, 6, seed=3)
+    for p in sorted(other.glob("*.jpg")):
+        shutil.copy(p, both / p.name.replace("mv_", "zz_"))
+    res = run_sfm(sorted(both.glob("*.jpg")),
+                  options=SfmOptions(seed=0, sift_affine_shape=False, sift_domain_size_pooling=False))
+    assert [v.name for v in res.views] == [f"mv_{i:02d}.jpg" for i in range(8)]
+    # COLMAP also built a model overlapping the main one: dropped, it adds no photo
+    assert len(res.models) == 1, [[v.name for v in m.views] for m in res.models]
+    sub = res.models[0]
+    names = [v.name for v in sub.views]
+    assert len(names) >= 3 and all(n.startswith("zz_") for n in names), names
+    assert sorted(u["name"] for u in res.unregistered) == [f"zz_{i:02d}.jpg" for i in range(6)]
+    for u in res.unregistered:
+        if u["name"] in names:
+            assert u["model"] == 0 and f"separate model of {len(names)} photos" in u["reason"]
+        else:
+            assert "model" not in u and "too few verified matches" in u["reason"]
+    assert res.stats["n_models"] == 2 and res.stats["separate_models"] == [len(names)]
+    assert res.stats["n_in_separate_models"] == len(names)
+    tp = {p["name"].replace("mv_", "zz_"): p for p in truth_b["photos"]}
+    src = np.array([v.center_model for v in sub.views])
+    dst = np.array([tp[v.name]["center"] for v in sub.views])
+    s, R, t, err = similarity_align(src, dst)
+    assert 0.0 < float(np.sqrt(np.mean(err ** 2))) < 0.5, err
+    for v in sub.views:
+        Rt = np.asarray(tp[v.name]["cam_from_world"])[:3, :3]
+        ang = np.degrees(np.arccos(np.clip((np.trace(v.cam_from_model[:3, :3] @ R.T @ Rt.T) - 1) / 2, -1, 1)))
+        assert ang < 1.5, (v.name, ang)
+    assert sub.n_points_total > 50 and len(sub.points_xyz) == sub.n_points_total
+    doc = res.to_json()
+    assert [im["name"] for im in doc["models"][0]["images"]] == names
+    assert doc["models"][0]["points"]["n"] == sub.n_points_total
+    assert doc["models"][0]["stats"]["n_registered"] == len(names)
+    json.dumps(doc)  # serialisable

@@ -37,7 +37,7 @@ from .control_points import ControlPoint
 log = logging.getLogger(__name__)
 
 __all__ = ["GeorefOptions", "RigView", "SfmView", "CentralResult", "SimilarityResult", "GeorefResidualsLarge",
-           "solve_central", "solve_similarity", "umeyama", "triangulate_rays"]
+           "solve_central", "solve_similarity", "umeyama", "triangulate_rays", "refine_resection_focal"]
 
 _LOSSES = ("linear", "huber", "soft_l1", "cauchy")
 
@@ -62,12 +62,39 @@ class GeorefOptions:
     warn_point_m: float = 0.5
     min_triangulation_angle_deg: float = 2.0
     seed: int = 0
+    # a separate SfM model (photos SfM could not join to the main model) is placed only when its own control
+    # points fix it: this many triangulated in it and fitting (all their picks inliers), spread this far from
+    # the line through them (RMS, metres), an RMS pick residual within ``warn_rms_px``, at most this fraction of
+    # its picks outliers, and every camera centre within this 1-sigma (from the fit's covariance, metres)
+    model_min_points: int = 3
+    # a photo in no placed model (SfM left it out, or its model could not be placed) is placed on its own from
+    # its control points (resection, as the single-photo route) when ``resect_unplaced``, it has picks of this
+    # many points, and the same residual and 1-sigma checks pass; intrinsics: SfM's for that photo, else the
+    # main model's camera when all photos share one (``single_camera``) and the photo has its size
+    resect_unplaced: bool = True
+    # leave out of a placed SfM model every photo whose own picks mostly disagree with it (2 or more, and more
+    # than half, beyond ``ransac_threshold_px``): SfM placed it wrongly
+    reject_disagreeing_views: bool = True
+    resect_min_points: int = 4
+    # with 6 or more fitting picks the photo's focal is refined too (fx, fy scaled together): when it differs
+    # from SfM's by more than this many sigma, the photo takes the refined focal (and the 1-sigma check then
+    # counts the focal's uncertainty)
+    resect_focal_disagree_sigma: float = 2.0
+    model_min_spread_m: float = 1.0
+    model_max_outlier_fraction: float = 0.25
+    model_max_sigma_centre_m: float = 0.5
 
     def __post_init__(self) -> None:
         if self.loss not in _LOSSES:
             raise ValueError(f"loss={self.loss!r}; choose one of {_LOSSES}")
+        if not (isinstance(self.model_min_points, int) and self.model_min_points >= 3):
+            raise ValueError(f"model_min_points={self.model_min_points} must be an integer >= 3")
+        if not (isinstance(self.resect_min_points, int) and self.resect_min_points >= 3):
+            raise ValueError(f"resect_min_points={self.resect_min_points} must be an integer >= 3")
+        if not (0.0 <= self.model_max_outlier_fraction < 1.0):
+            raise ValueError(f"model_max_outlier_fraction={self.model_max_outlier_fraction} must be in [0, 1)")
         for name in ("sigma_px", "loss_scale", "ransac_threshold_px", "prior_sigma_m", "warn_rms_px",
-                     "warn_point_px", "warn_point_m"):
+                     "warn_point_px", "warn_point_m", "model_min_spread_m", "model_max_sigma_centre_m"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}={getattr(self, name)} must be positive")
 
@@ -446,6 +473,20 @@ class SimilarityResult:
     residuals: list[dict]
     stats: dict
     warnings: list[str]
+    # (7, 7) covariance of (log scale, rotation vector applied on the left in the scene frame, translation),
+    # scaled by the reduced chi-square when above 1; None when the fit leaves it undetermined
+    covariance: np.ndarray | None = None
+    triangulated: dict[str, np.ndarray] = field(default_factory=dict)  # control point -> (3,) model frame
+
+    def centre_sigma_m(self, cam_from_model: np.ndarray) -> float | None:
+        """1-sigma (square root of the largest eigenvalue, metres) of an SfM camera's centre in the scene, from
+        the similarity's covariance (the model's own uncertainty not included)."""
+        if self.covariance is None:
+            return None
+        q = self.scale * self.rotation @ _model_centre_m(cam_from_model)  # world centre minus translation
+        J = np.hstack([q[:, None], -_skew(q), np.eye(3)])
+        C = J @ self.covariance @ J.T
+        return float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (C + C.T)).max(), 0.0)))
 
     @property
     def matrix(self) -> np.ndarray:
@@ -469,9 +510,17 @@ class SimilarityResult:
         return out
 
 
-def _model_centre(v: SfmView) -> np.ndarray:
-    M = np.asarray(v.cam_from_model, float)
+def _model_centre_m(cam_from_model: np.ndarray) -> np.ndarray:
+    M = np.asarray(cam_from_model, float)
     return -M[:3, :3].T @ M[:3, 3]
+
+
+def _model_centre(v: SfmView) -> np.ndarray:
+    return _model_centre_m(v.cam_from_model)
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def solve_similarity(views: Sequence[SfmView], cps: Sequence[ControlPoint], *,
@@ -499,7 +548,24 @@ def solve_similarity(views: Sequence[SfmView], cps: Sequence[ControlPoint], *,
             M = np.asarray(v.cam_from_model, float)
             cs.append(_model_centre(v))
             ds.append(M[:3, :3].T @ v.intrinsics.rays(o.uv[None])[0])
-        Xm, angle = triangulate_rays(np.array(cs), np.array(ds))
+        cs_a, ds_a = np.array(cs), np.array(ds)
+        use = list(range(len(lst)))
+        while True:  # a ray from a wrongly posed photo (or a wrong pick) is dropped while 3 or more remain
+            Xm, angle = triangulate_rays(cs_a[use], ds_a[use])
+            errs = []
+            for i in use:
+                M = np.asarray(views[lst[i].view].cam_from_model, float)
+                q = M[:3, :3] @ Xm + M[:3, 3]
+                errs.append(float(np.hypot(*(views[lst[i].view].intrinsics.project(q[None])[0] - lst[i].uv)))
+                            if q[2] > 1e-9 else np.inf)
+            worst = int(np.argmax(errs))
+            if errs[worst] <= opts.ransac_threshold_px or len(use) <= 2:
+                break
+            use.pop(worst)
+        if errs[worst] > opts.ransac_threshold_px:
+            log.info("%s: control point %s: its rays do not meet (%.1f px apart); not triangulated", where,
+                     cps[k].name, errs[worst])
+            continue
         if angle < opts.min_triangulation_angle_deg:
             log.info("%s: control point %s: rays meet at %.2f deg; not triangulated", where, cps[k].name, angle)
             continue
@@ -579,7 +645,21 @@ def solve_similarity(views: Sequence[SfmView], cps: Sequence[ControlPoint], *,
     sol = least_squares(fun, np.zeros(7), loss=opts.loss, f_scale=opts.loss_scale, x_scale="jac", max_nfev=300)
     s, R, t = sim_from(sol.x)
     R = _orthonormal(R)
-    result = SimilarityResult(s, R, t, [], {}, [])
+    cov = None
+    dof = len(sol.fun) - 7
+    try:
+        J = np.asarray(sol.jac, float)
+        cov = np.linalg.inv(J.T @ J)
+        if dof > 0:
+            cov *= max(1.0, 2.0 * float(sol.cost) / dof)
+        if not np.all(np.isfinite(cov)):
+            cov = None
+    except np.linalg.LinAlgError:
+        cov = None
+    if cov is not None:  # d(log s), d(rotvec), d(t) of the parametrisation at the solution
+        cov = cov.copy()
+    result = SimilarityResult(s, R, t, [], {}, [], covariance=cov,
+                              triangulated={cps[k].name: Xm for k, Xm in tri_model.items()})
     residuals = []
     for o in obs:
         v = views[o.view]
@@ -607,3 +687,60 @@ def solve_similarity(views: Sequence[SfmView], cps: Sequence[ControlPoint], *,
     warns = _warnings(residuals, stats, opts, where) if residuals else []
     result.residuals, result.stats, result.warnings = residuals, stats, warns
     return result
+
+
+def refine_resection_focal(intr: CameraIntrinsics, res: CentralResult, cps: Sequence[ControlPoint], name: str,
+                           opts: GeorefOptions = GeorefOptions()) -> dict | None:
+    """One photo's pose *and focal* (fx, fy scaled together; principal point and distortion kept) refined from
+    its inlier control-point picks, starting from a fixed-focal resection ``res`` of that photo alone.
+
+    Returns ``{"intrinsics", "cam_from_world" (4, 4), "focal_px", "sigma_focal_px", "sigma_centre_max_m",
+    "rms_px", "n_observations"}`` or None (fewer than 6 inlier picks: the focal is not determined)."""
+    obs = [(cps[k], np.asarray(cp_uv, float)) for k in range(len(cps)) for ph, cp_uv in cps[k].pixels.items()
+           if ph == name]
+    inl = {(r["point"], r["view"]) for r in res.residuals if r.get("inlier")}
+    obs = [(cp, uv) for cp, uv in obs if (cp.name, name) in inl]
+    if len(obs) < 6:
+        return None
+    X = np.array([cp.enu for cp, _ in obs])
+    UV = np.array([uv for _, uv in obs])
+    R0, c0 = res.rig_from_world, res.centre_enu
+    depth = np.maximum((X - c0) @ R0.T, 1e-3)[:, 2]
+    sig = np.array([_robust_sigma(intr, opts.sigma_px, cp.sigma_m, d) for (cp, _), d in zip(obs, depth)])
+    base = intr.to_dict()
+
+    def intr_of(logf):
+        k = math.exp(logf)
+        return CameraIntrinsics.from_dict({**base, "fx": intr.fx * k, "fy": intr.fy * k})
+
+    def fun(p):
+        R = Rotation.from_rotvec(p[:3]).as_matrix() @ R0
+        q = (X - p[3:6]) @ R.T
+        z = np.maximum(q[:, 2], 1e-6)
+        it = intr_of(p[6])
+        uv = it.pixels_from_normalized(it.distort(q[:, :2] / z[:, None]))
+        return ((uv - UV) / sig[:, None]).ravel()
+
+    sol = least_squares(fun, np.concatenate([np.zeros(3), c0, [0.0]]), loss=opts.loss, f_scale=opts.loss_scale,
+                        x_scale="jac", max_nfev=300)
+    try:
+        cov = np.linalg.inv(sol.jac.T @ sol.jac)
+    except np.linalg.LinAlgError:
+        return None
+    dof = len(sol.fun) - 7
+    if dof > 0:
+        cov *= max(1.0, 2.0 * float(sol.cost) / dof)
+    if not np.all(np.isfinite(cov)):
+        return None
+    R = _orthonormal(Rotation.from_rotvec(sol.x[:3]).as_matrix() @ R0)
+    c = sol.x[3:6]
+    it = intr_of(sol.x[6])
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = R, -R @ c
+    q = (X - c) @ R.T
+    e = np.hypot(*(it.project(q) - UV).T)
+    Cc = cov[3:6, 3:6]
+    return {"intrinsics": it, "cam_from_world": M, "focal_px": float(it.fx),
+            "sigma_focal_px": float(it.fx * math.sqrt(max(cov[6, 6], 0.0))),
+            "sigma_centre_max_m": float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (Cc + Cc.T)).max(), 0.0))),
+            "rms_px": float(np.sqrt(np.mean(e ** 2))), "n_observations": len(obs)}

@@ -32,7 +32,8 @@ from ..project import Project
 from ..runner import Progress, StageResult, StageSpec
 from .control_points import CONTROL_POINTS_FILE, ControlPoint, load_control_points
 from .gps import read_gps
-from .solvers import GeorefOptions, GeorefResidualsLarge, RigView, SfmView, solve_central, solve_similarity
+from .solvers import (GeorefOptions, GeorefResidualsLarge, RigView, SfmView, refine_resection_focal, solve_central,
+                      solve_similarity)
 
 log = logging.getLogger(__name__)
 
@@ -139,21 +140,43 @@ def read_panorama_model(project: Project, path: Path) -> tuple[list[RigView], di
     return views, doc
 
 
-def read_reconstruction(project: Project, path: Path) -> tuple[list[SfmView], dict]:
-    """The images of an SfM reconstruction (``out/sfm/reconstruction.json``) and the document."""
-    doc = project.read_json(path)
-    if not isinstance(doc, dict) or not isinstance(doc.get("images"), list) or not doc["images"]:
-        raise StageError(f"{path}: no 'images' list; run the sfm stage again")
+def _sfm_views(images: Any, where: str) -> list[SfmView]:
+    if not isinstance(images, list) or not images:
+        raise StageError(f"{where}: no 'images' list; run the sfm stage again")
     views = []
-    for i, s in enumerate(doc["images"]):
-        where = f"{path}: images[{i}]"
+    for i, s in enumerate(images):
+        w = f"{where}[{i}]"
         if not isinstance(s, dict) or not isinstance(s.get("name"), str):
-            raise StageError(f"{where}: needs 'name'")
-        intr = _intrinsics(s.get("intrinsics"), f"{where}.intrinsics")
-        M = _matrix(s.get("cam_from_model"), (4, 4), f"{where}.cam_from_model")
-        _rotation(M[:3, :3], f"{where}.cam_from_model")
+            raise StageError(f"{w}: needs 'name'")
+        intr = _intrinsics(s.get("intrinsics"), f"{w}.intrinsics")
+        M = _matrix(s.get("cam_from_model"), (4, 4), f"{w}.cam_from_model")
+        _rotation(M[:3, :3], f"{w}.cam_from_model")
         views.append(SfmView(s["name"], intr, M))
-    return views, doc
+    return views
+
+
+def read_reconstruction(project: Project, path: Path) -> tuple[list[SfmView], dict]:
+    """The images of an SfM reconstruction's main model (``out/sfm/reconstruction.json``) and the document."""
+    doc = project.read_json(path)
+    if not isinstance(doc, dict):
+        raise StageError(f"{path}: not a reconstruction; run the sfm stage again")
+    return _sfm_views(doc.get("images"), f"{path}: images"), doc
+
+
+def read_reconstruction_models(project: Project, path: Path) -> tuple[list[tuple[str, list[SfmView]]], dict]:
+    """Every model of an SfM reconstruction, each in its own frame: ``[("main", views), ("models[0]", views),
+    ...]`` (the separate models in the file's order, largest first), and the document. A file written before
+    separate models were kept has the main model only."""
+    views, doc = read_reconstruction(project, path)
+    models = doc.get("models", [])
+    if not isinstance(models, list):
+        raise StageError(f"{path}: 'models' must be a list; run the sfm stage again")
+    out = [("main", views)]
+    for k, m in enumerate(models):
+        if not isinstance(m, dict):
+            raise StageError(f"{path}: models[{k}] must be an object; run the sfm stage again")
+        out.append((f"models[{k}]", _sfm_views(m.get("images"), f"{path}: models[{k}].images")))
+    return out, doc
 
 
 def validate_cameras_doc(doc: Any, where: str) -> list[dict]:
@@ -372,27 +395,345 @@ def _panorama_pixels_to_sources(cps: list[ControlPoint], pdoc: dict, pano_path: 
     return out
 
 
+def _rot_deg(A: np.ndarray, B: np.ndarray) -> float:
+    c = (np.trace(np.asarray(A)[:3, :3] @ np.asarray(B)[:3, :3].T) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def _separate_model_verdict(res, views: list[SfmView], opts: GeorefOptions) -> tuple[str | None, dict]:
+    """Why a separate SfM model's similarity cannot be trusted (None: it can), and the figures checked.
+
+    A surveyor's test: enough of the model's own control points triangulated in it and fitting, spread out (not
+    on a line), small residuals, and the fit fixing every camera centre to ``model_max_sigma_centre_m``."""
+    by_point: dict[str, list[dict]] = {}
+    for r in res.residuals:
+        by_point.setdefault(r["point"], []).append(r)
+    good = [name for name, X in res.triangulated.items()
+            if by_point.get(name) and all(r["inlier"] for r in by_point[name])]
+    X = np.array([res.apply(res.triangulated[n]) for n in good]).reshape(-1, 3)
+    spread = float(np.linalg.svd(X - X.mean(axis=0), compute_uv=False)[1] / np.sqrt(len(X))) if len(X) >= 3 else 0.0
+    n_obs = len(res.residuals)
+    n_out = sum(1 for r in res.residuals if not r["inlier"])
+    sig = [res.centre_sigma_m(v.cam_from_model) for v in views]
+    sig_max = None if any(x is None for x in sig) else float(max(sig))
+    figures = {"n_fitting_triangulated": len(good), "spread_m": spread, "n_observations": n_obs,
+               "n_outliers": n_out, "rms_px": res.stats.get("rms_px"), "sigma_centre_max_m": sig_max}
+    if len(good) < opts.model_min_points:
+        return (f"{len(good)} control point(s) triangulated in this model fit it (all picks within "
+                f"{opts.ransac_threshold_px:g} px); {opts.model_min_points} are needed: pick more control points in "
+                f"two or more of its photos ({', '.join(v.name for v in views)})"), figures
+    if spread < opts.model_min_spread_m:
+        return (f"its {len(good)} fitting control points lie {spread:.2f} m (RMS) from one line; "
+                f"{opts.model_min_spread_m:g} m is needed to fix the rotation: add a point off that line"), figures
+    if res.stats.get("rms_px") is None or res.stats["rms_px"] > opts.warn_rms_px:
+        return (f"control-point RMS residual {res.stats.get('rms_px')} px exceeds {opts.warn_rms_px:g} px: the "
+                f"model or a point is wrong"), figures
+    if n_out > opts.model_max_outlier_fraction * n_obs:
+        return (f"{n_out} of {n_obs} control-point picks are outliers (more than "
+                f"{100 * opts.model_max_outlier_fraction:.0f} %): the model or the points disagree"), figures
+    if sig_max is None or sig_max > opts.model_max_sigma_centre_m:
+        return (f"the control points fix its cameras only to {sig_max if sig_max is None else round(sig_max, 2)} m "
+                f"(1-sigma; {opts.model_max_sigma_centre_m:g} m allowed): add control points spread over its "
+                f"photos"), figures
+    return None, figures
+
+
+def _resect_unplaced(project: Project, rdoc: dict, models, placed: dict, cps: list[ControlPoint], gps: dict,
+                     opts: GeorefOptions, where: str) -> tuple[dict[str, dict], dict[str, str]]:
+    """Photos of the SfM set in no placed model, each placed on its own from its control points (resection:
+    P3P RANSAC + refinement, as the single-photo route), when the fit passes the checks of a separate model.
+
+    Returns (photo -> {"entry": cameras.json view, "report": figures}, photo -> why it was not placed)."""
+    from PIL import Image
+
+    try:
+        photo_paths = {p.name: p for p in project.photo_paths()}
+    except InputError:
+        photo_paths = {}
+    sfm_intr: dict[str, CameraIntrinsics] = {}
+    for _, vs in models:
+        for v in vs:
+            sfm_intr.setdefault(v.name, v.intrinsics)
+    shared = bool(rdoc.get("stats", {}).get("single_camera", True))
+    main_cam = models[0][1][0].intrinsics if models and models[0][1] else None
+    picks: dict[str, int] = {}
+    for cp in cps:
+        for k in cp.pixels:
+            picks[k] = picks.get(k, 0) + 1
+    out, why = {}, {}
+    for name in sorted(set(photo_paths) | set(sfm_intr)):
+        if name in placed:
+            continue
+        n = picks.get(name, 0)
+        if n < opts.resect_min_points:
+            why[name] = (f"{n} control point(s) picked in it; {opts.resect_min_points} are needed to place a photo "
+                         f"on its own")
+            continue
+        intr = sfm_intr.get(name)
+        if intr is None:
+            size = None
+            if name in photo_paths:
+                with Image.open(photo_paths[name]) as im:
+                    size = im.size
+            if not (shared and main_cam is not None and size == (main_cam.width, main_cam.height)):
+                why[name] = "no SfM intrinsics for it (not in any model, and the photos do not share one camera)"
+                continue
+            intr = main_cam
+        import warnings as _w
+
+        try:
+            with _w.catch_warnings(record=True) as caught:
+                _w.simplefilter("always", GeorefResidualsLarge)
+                g = gps.get(name)
+                res = solve_central([RigView(name, intr, np.eye(3))], cps, prior_centre=g,
+                                    prior_sigma_m=None if g is None else np.asarray(opts.gps_sigma_m, float),
+                                    opts=opts, where=f"{where} (photo {name} on its own)")
+        except InputError as exc:
+            why[name] = str(exc)
+            continue
+        s = res.stats
+        n_out = int(s.get("n_outliers") or 0)
+        sig = s.get("sigma_centre_m")
+        sig_max = float(max(sig)) if sig else None
+        rms = s.get("rms_px")
+        report = {"name": name, "placed_by": "resection", "n_points": s.get("n_points"),
+                  "n_observations": s.get("n_observations"), "n_outliers": n_out, "rms_px": rms,
+                  "max_px": s.get("max_px"), "rms_m": s.get("rms_m"), "sigma_centre_max_m": sig_max,
+                  "intrinsics_from": "sfm" if name in sfm_intr else "main model's camera (shared)",
+                  "residuals": res.residuals}
+        cam_from_world = res.cam_from_world(np.eye(3))
+        ff = refine_resection_focal(intr, res, cps, name, opts)
+        if ff is not None:
+            report["focal_check"] = {"sfm_focal_px": intr.fx, "refined_focal_px": ff["focal_px"],
+                                     "sigma_focal_px": ff["sigma_focal_px"], "rms_px": ff["rms_px"]}
+            if abs(ff["focal_px"] - intr.fx) > opts.resect_focal_disagree_sigma * ff["sigma_focal_px"]:
+                intr, cam_from_world = ff["intrinsics"], ff["cam_from_world"]
+                rms, sig_max = ff["rms_px"], ff["sigma_centre_max_m"]
+                report.update({"intrinsics_from": report["intrinsics_from"] + ", focal refined in the resection "
+                               "(SfM's disagrees with this photo's control points)", "rms_px": rms,
+                               "sigma_centre_max_m": sig_max})
+        reason = None
+        if rms is None or rms > opts.warn_rms_px:
+            reason = f"control-point RMS residual {rms} px exceeds {opts.warn_rms_px:g} px"
+        elif int(s.get("n_points") or 0) - n_out < opts.resect_min_points:
+            reason = f"only {int(s.get('n_points') or 0) - n_out} of its control points fit"
+        elif n_out > opts.model_max_outlier_fraction * max(int(s.get("n_observations") or 0), 1):
+            reason = f"{n_out} of its {s.get('n_observations')} picks are outliers"
+        elif sig_max is None or sig_max > opts.model_max_sigma_centre_m:
+            reason = (f"its control points fix it only to {sig_max if sig_max is None else round(sig_max, 2)} m "
+                      f"(1-sigma; {opts.model_max_sigma_centre_m:g} m allowed)")
+        if reason is not None:
+            why[name] = f"placing it on its own failed the checks: {reason}"
+            continue
+        for wmsg in caught:
+            _w.warn(wmsg.message, wmsg.category, stacklevel=2)
+        image = rdoc_image(rdoc, name) or (project.relative(photo_paths[name]) if name in photo_paths else name)
+        out[name] = {"entry": _view_entry(name, image, intr, cam_from_world, True), "report": report}
+    return out, why
+
+
+def rdoc_image(rdoc: dict, name: str) -> str | None:
+    for images in [rdoc.get("images", [])] + [m.get("images", []) for m in rdoc.get("models", [])]:
+        for s_ in images:
+            if s_.get("name") == name:
+                return s_.get("image")
+    return None
+
+
+def _resected_only_doc(project: Project, rec_path: Path, src: str, resected: dict, reports: list,
+                       unreg: list) -> tuple[dict, dict]:
+    """cameras.json when no SfM model could be placed but some photos were, each on its own."""
+    views = [r["entry"] for _, r in sorted(resected.items())]
+    reps = [r["report"] for _, r in sorted(resected.items())]
+    px = [r["rms_px"] for r in reps if r.get("rms_px") is not None]
+    block = {"method": "control_points", "model": None, "world_from_model": None,
+             "rms_px": float(np.sqrt(np.mean(np.square(px)))) if px else None,
+             "reconstruction": project.relative(rec_path), "control_points": CONTROL_POINTS_FILE,
+             "models": [{k: v for k, v in r.items()} for r in reports], "n_views_placed": len(views),
+             "unregistered": unreg, "resected": reps, "residuals": [], "warnings": []}
+    doc = {"route": "multiview", "intrinsics_source": src, "georegistration": block, "views": views, "panorama": None}
+    stats = {"model": None, "n_views_placed": len(views), "rms_px": block["rms_px"],
+             "models": [{k: v for k, v in r.items() if k not in ("residuals", "world_from_model")} for r in reports],
+             "resected": [{k: v for k, v in r.items() if k != "residuals"} for r in reps], "unregistered": unreg}
+    return doc, stats
+
+
 def _multiview(project: Project, opts: GeorefOptions, where: str) -> tuple[dict, dict]:
+    """Every SfM model placed by its own similarity (docs/gis.md): the main model as before, each separate model
+    from the control points triangulated in it, when they fix it (:func:`_separate_model_verdict`)."""
+    import warnings as _w
+
     rec_path = project.stage_dir(RECONSTRUCTION[0]) / RECONSTRUCTION[1]
     if not rec_path.is_file():
         raise StageError(f"{rec_path}: not found; the multiview route needs the sfm stage's reconstruction: run "
                          f"`workbench run {project.root} --only sfm` first (or write a {CAMERAS_FILE} by hand)")
-    views, rdoc = read_reconstruction(project, rec_path)
+    models, rdoc = read_reconstruction_models(project, rec_path)
     cp_path = _control_points_path(project)
     cps = load_control_points(cp_path, project.frame) if cp_path.is_file() else []
     photos = _photo_by_name(project)
-    gps = {v.name: g for v in views if (g := _gps_enu(project, photos.get(v.name))) is not None}
-    res = solve_similarity(views, cps, gps_centres=gps, opts=opts, where=where)
+    all_views = {v.name: v for _, vs in models for v in vs}
+    gps = {n: g for n, v in all_views.items() if (g := _gps_enu(project, photos.get(n))) is not None}
+    if cps:  # a pick outside its photo is bad input, whichever model the photo is in
+        from .solvers import _observations
+
+        _observations(cps, list(all_views.values()), where)
     src = str(rdoc.get("intrinsics_source", "sfm"))
     images = {s["name"]: s.get("image", "") for s in rdoc["images"]}
-    out_views = [_view_entry(v.name, images.get(v.name) or v.name, v.intrinsics, res.cam_from_world(v.cam_from_model),
-                             src in ("calibrated", "sfm")) for v in views]
-    doc = {"route": "multiview", "intrinsics_source": src,
-           "georegistration": _georeg_block("control_points" if cps else "gps", res,
-                                            {"world_from_model": res.matrix.tolist(),
-                                             "reconstruction": project.relative(rec_path)}),
-           "views": out_views, "panorama": None}
-    return doc, {**_short_stats(res), "world_from_model": res.matrix.tolist()}
+    for m in rdoc.get("models", []):
+        for s_ in m.get("images", []):
+            images.setdefault(s_["name"], s_.get("image", ""))
+
+    placed: dict[str, tuple[str, Any, SfmView]] = {}  # photo -> (model label, similarity, view)
+    reports, main_res, main_error, first_res = [], None, None, None
+    for label, views in models:
+        report: dict[str, Any] = {"model": label, "views": [v.name for v in views]}
+        try:
+            with _w.catch_warnings(record=True) as caught:
+                _w.simplefilter("always", GeorefResidualsLarge)
+                res = solve_similarity(views, cps, gps_centres={v.name: gps[v.name] for v in views if v.name in gps},
+                                       opts=opts,
+                                       where=where if label == "main" else f"{where} ({label} of the SfM models)")
+        except InputError as exc:
+            report.update({"status": "unregistered", "reason": str(exc)})
+            if label == "main":
+                main_error = exc
+            reports.append(report)
+            continue
+        where_m = where if label == "main" else f"{where} ({label} of the SfM models)"
+        # a photo whose own picks mostly disagree with the fitted model was placed wrongly by SfM (look-alike
+        # matches): it is left out of this model (and may be placed on its own below), and the model fitted again
+        # without it (its rays also went into the triangulated points)
+        rejected = {}
+        for v in views:
+            mine = [r for r in res.residuals if r["view"] == v.name]
+            bad = [r for r in mine if not r["inlier"]]
+            if opts.reject_disagreeing_views and len(bad) >= 2 and 2 * len(bad) > len(mine):
+                med = np.median([r["error_px"] if r["error_px"] is not None else np.inf for r in mine])
+                rejected[v.name] = (f"{len(bad)} of its {len(mine)} control-point picks are more than "
+                                    f"{opts.ransac_threshold_px:g} px from where SfM's pose puts them (median "
+                                    f"{med:.0f} px): its SfM pose disagrees with the control points")
+        fitted_views = views
+        if rejected and len(rejected) < len(views):
+            keep = [v for v in views if v.name not in rejected]
+            try:
+                with _w.catch_warnings(record=True) as caught2:
+                    _w.simplefilter("always", GeorefResidualsLarge)
+                    res2 = solve_similarity(keep, cps, gps_centres={v.name: gps[v.name] for v in keep if v.name in gps},
+                                            opts=opts, where=where_m)
+                res, caught, fitted_views = res2, caught2, keep
+            except InputError as exc:
+                report["refit_failed"] = str(exc)
+        if rejected:
+            report["rejected_views"] = rejected
+        reason, figures = (None, {}) if label == "main" else _separate_model_verdict(res, fitted_views, opts)
+        report.update(figures)
+        report.update({"world_from_model": res.matrix.tolist(), "scale": res.scale,
+                       "n_triangulated": res.stats.get("n_triangulated"), "rms_px": res.stats.get("rms_px"),
+                       "max_px": res.stats.get("max_px"), "rms_m": res.stats.get("rms_m"),
+                       "n_gps_centres": res.stats.get("n_gps_centres")})
+        if reason is None and len(rejected) == len(views):
+            reason = "every photo of it disagrees with the control points"
+        if reason is not None:
+            report.update({"status": "unregistered", "reason": reason, "residuals": res.residuals})
+            report.pop("rejected_views", None)
+            reports.append(report)
+            continue
+        for wmsg in caught:  # the residual warnings of a model that is used
+            _w.warn(wmsg.message, wmsg.category, stacklevel=2)
+        report["status"] = "georegistered"
+        if label != "main":
+            report["residuals"] = res.residuals
+            report["warnings"] = res.warnings
+        overlap = {}
+        for v in views:
+            if v.name in rejected:
+                continue
+            if v.name in placed:  # already placed by a larger model: compare, keep that one
+                _, other, ov = placed[v.name]
+                A, B = other.cam_from_world(ov.cam_from_model), res.cam_from_world(v.cam_from_model)
+                overlap[v.name] = {"placed_by": placed[v.name][0],
+                                   "centre_difference_m": float(np.linalg.norm(
+                                       (-A[:3, :3].T @ A[:3, 3]) - (-B[:3, :3].T @ B[:3, 3]))),
+                                   "rotation_difference_deg": _rot_deg(A, B)}
+            else:
+                placed[v.name] = (label, res, v)
+        if overlap:
+            report["overlap"] = overlap
+        report["placed"] = sorted(n for n in report["views"] if n in placed and placed[n][0] == label)
+        if label == "main":
+            main_res = res
+        first_res = first_res or res
+        reports.append(report)
+
+    resected: dict[str, dict] = {}  # photo -> {"entry": view entry, "report": ...}
+    resect_reasons: dict[str, str] = {}
+    if opts.resect_unplaced and cps:
+        resected, resect_reasons = _resect_unplaced(project, rdoc, models, placed, cps, gps, opts, where)
+    if not placed and not resected:
+        if len(models) == 1 and main_error is not None:
+            raise main_error
+        raise InputError(f"{where}: no SfM model could be placed in the scene: "
+                         + "; ".join(f"{r['model']} ({len(r['views'])} photos): {r['reason']}" for r in reports)
+                         + ("; and no photo could be placed on its own: "
+                            + "; ".join(f"{n}: {why}" for n, why in sorted(resect_reasons.items()))
+                            if resect_reasons else ""))
+    out_views = []
+    for name in sorted(set(placed) | set(resected)):
+        if name in resected:
+            out_views.append(resected[name]["entry"])
+            continue
+        label, res, v = placed[name]
+        out_views.append(_view_entry(name, images.get(name) or name, v.intrinsics, res.cam_from_world(v.cam_from_model),
+                                     src in ("calibrated", "sfm")))
+
+    done = set(placed) | set(resected)
+    unreg = [{"name": u["name"], "reason": u.get("reason", "")} for u in rdoc.get("unregistered", [])
+             if u.get("name") not in done]
+    for r in reports:
+        if r["status"] == "unregistered":
+            for n in r["views"]:
+                if n not in done and not any(u["name"] == n for u in unreg):
+                    unreg.append({"name": n,
+                                  "reason": f"in SfM {r['model']}, which could not be placed: {r['reason']}"})
+    for r in reports:
+        for n, why in r.get("rejected_views", {}).items():
+            if n not in done and not any(u["name"] == n for u in unreg):
+                unreg.append({"name": n, "reason": f"left out of SfM {r['model']}: {why}"})
+    for u in unreg:
+        for r in reports:
+            why = r.get("rejected_views", {}).get(u["name"])
+            if why is not None and not u["reason"].startswith("left out of"):
+                u["reason"] = f"{u['reason']}; left out of SfM {r['model']}: {why}"
+        m = next((r for r in reports if u["name"] in r["views"] and r["status"] == "unregistered"), None)
+        if m is not None and not u["reason"].startswith("in SfM"):
+            u["reason"] = f"{u['reason']}; that model could not be placed: {m['reason']}"
+        if u["name"] in resect_reasons:
+            u["reason"] = f"{u['reason']}; not placed on its own either: {resect_reasons[u['name']]}"
+    res0 = main_res or first_res
+    if res0 is None:  # only resected photos
+        return _resected_only_doc(project, rec_path, src, resected, reports, unreg)
+    block_label = ("main" if main_res is not None
+                   else next(r["model"] for r in reports if r["status"] == "georegistered"))
+    block = _georeg_block("control_points" if cps else "gps", res0,
+                          {"world_from_model": res0.matrix.tolist(), "model": block_label,
+                           "reconstruction": project.relative(rec_path),
+                           "models": [{k: v for k, v in r.items() if k != "residuals"} | (
+                               {"residuals": r["residuals"]} if r["model"] != block_label and "residuals" in r else {})
+                               for r in reports],
+                           "n_views_placed": len(done), "unregistered": unreg,
+                           "resected": [r["report"] for _, r in sorted(resected.items())]})
+    if main_res is None:
+        block["main_model_error"] = str(main_error)
+    doc = {"route": "multiview", "intrinsics_source": src, "georegistration": block, "views": out_views,
+           "panorama": None}
+    n_sfm = len(rdoc["images"]) + len(rdoc.get("unregistered", []))
+    stats = {**_short_stats(res0), "world_from_model": res0.matrix.tolist(), "model": block_label,
+             "n_views_placed": len(done), "n_photos": n_sfm,
+             "resected": [{k: v for k, v in r["report"].items() if k != "residuals"}
+                          for _, r in sorted(resected.items())],
+             "models": [{k: v for k, v in r.items() if k not in ("residuals", "world_from_model")} for r in reports],
+             "unregistered": unreg}
+    return doc, stats
 
 
 def _single(project: Project, opts: GeorefOptions, where: str) -> tuple[dict, dict]:

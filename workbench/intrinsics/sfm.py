@@ -1,15 +1,17 @@
 """Multi-view structure from motion with pycolmap: intrinsics, distortion and every camera's pose.
 
 Feature extraction (SIFT), matching (exhaustive for small sets, sequential for long ordered sequences),
-geometric verification and incremental mapping run in a temporary folder; the largest model is converted to
-the workbench's conventions (``docs/conventions.md``):
+geometric verification and incremental mapping run in a temporary folder; the largest model (the main one) and
+every separate, smaller model COLMAP built from the photos it could not join to it are converted to the
+workbench's conventions (``docs/conventions.md``):
 
 * COLMAP's ``SIMPLE_PINHOLE``, ``PINHOLE``, ``SIMPLE_RADIAL``, ``RADIAL`` and ``OPENCV`` cameras map exactly
   to our Brown :class:`~workbench.core.camera.CameraIntrinsics` (same distortion polynomial, OpenCV's
   coefficient order); COLMAP puts the centre of the top-left pixel at (0.5, 0.5), we put it at (0, 0), so
   ``cx_ours = cx_colmap - 0.5`` (and the same for cy).
 * Image poses become ``cam_from_model`` 4x4 row-major matrices (``p_cam = R p_model + t``); the model frame is
-  COLMAP's arbitrary similarity frame (georegistration places it in the scene).
+  COLMAP's arbitrary similarity frame (georegistration places it in the scene); each separate model has a frame
+  of its own (georegistration places each one from the control points its photos see).
 
 The result is written by the ``sfm`` stage as ``out/sfm/reconstruction.json`` (``docs/intrinsics.md``).
 """
@@ -58,6 +60,9 @@ class SfmOptions:
     placed wrongly (on the synthetic Spuyten Duyvil set, a photo from the far side came out turned by
     150-175 degrees). Stricter thresholds make this rarer, not impossible: fewer photos placed right is better
     than more placed wrong.
+    ``min_model_size``: a separate model (photos COLMAP registered together but could not join to the main
+    model) is kept from this many photos (COLMAP: 10); every one kept is written (``reconstruction.json``'s
+    ``models``) for georegistration to place from the control points its photos see.
     ``forward_motion_retry``: if fewer than half the photos register, map again with the forward-motion
     initial-pair thresholds, and keep that model if it registers clearly more photos (1.5 times, 2 or more).
     ``num_threads``: CPU threads, unless ``deterministic`` (the default), which runs everything on one thread
@@ -234,24 +239,52 @@ class SfmView:
         return -M[:3, :3].T @ M[:3, 3]
 
 
+def _images_json(views: list[SfmView], relative: Callable[[Path], str]) -> list[dict]:
+    return [{"name": v.name, "image": relative(v.path), "intrinsics": v.intrinsics.to_dict(),
+             "cam_from_model": np.asarray(v.cam_from_model).tolist(), "n_points": v.n_points} for v in views]
+
+
+def _points_json(xyz: np.ndarray, rgb: np.ndarray, n_total: int) -> dict:
+    return {"xyz": np.round(xyz, 5).tolist(), "rgb": rgb.astype(int).tolist(), "n": int(len(xyz)),
+            "n_total": int(n_total)}
+
+
+@dataclass
+class SfmModel:
+    """A separate, smaller model: photos COLMAP registered together but could not join to the main model.
+
+    Its frame is a similarity frame of its own (not the main model's): ``cam_from_model`` of its views and its
+    points are in it. A photo may be in the main model and in a separate one (COLMAP lets models overlap).
+    """
+
+    views: list[SfmView]
+    points_xyz: np.ndarray
+    points_rgb: np.ndarray
+    n_points_total: int
+    stats: dict = field(default_factory=dict)
+
+    def to_json(self, relative: Callable[[Path], str] = lambda p: str(p)) -> dict:
+        return {"images": _images_json(self.views, relative),
+                "points": _points_json(self.points_xyz, self.points_rgb, self.n_points_total), "stats": self.stats}
+
+
 @dataclass
 class SfmResult:
-    views: list[SfmView]
-    unregistered: list[dict]  # {"name", "reason"}
+    views: list[SfmView]  # the main (largest) model
+    unregistered: list[dict]  # {"name", "reason"[, "model"]}: every photo not in the main model
     points_xyz: np.ndarray  # (n, 3) model frame
     points_rgb: np.ndarray  # (n, 3) uint8
     n_points_total: int
     stats: dict = field(default_factory=dict)
+    models: list[SfmModel] = field(default_factory=list)  # the separate models, largest first
 
     def to_json(self, relative: Callable[[Path], str] = lambda p: str(p), *, prior: dict | None = None) -> dict:
         """The ``reconstruction.json`` object (``docs/intrinsics.md``)."""
         return {
-            "images": [{"name": v.name, "image": relative(v.path), "intrinsics": v.intrinsics.to_dict(),
-                        "cam_from_model": np.asarray(v.cam_from_model).tolist(), "n_points": v.n_points}
-                       for v in self.views],
+            "images": _images_json(self.views, relative),
             "unregistered": self.unregistered,
-            "points": {"xyz": np.round(self.points_xyz, 5).tolist(), "rgb": self.points_rgb.astype(int).tolist(),
-                       "n": int(len(self.points_xyz)), "n_total": int(self.n_points_total)},
+            "points": _points_json(self.points_xyz, self.points_rgb, self.n_points_total),
+            "models": [m.to_json(relative) for m in self.models],
             "intrinsics_source": "sfm",
             "prior": prior,
             "stats": self.stats,
@@ -460,10 +493,9 @@ def run_sfm(images: list[Path], *, options: SfmOptions | None = None, prior: Cam
     return result
 
 
-def _convert(rec, others, db_path: Path, images: list[Path], opts: SfmOptions) -> SfmResult:
-    import pycolmap
-
-    by_name = {p.name: p for p in images}
+def _model_parts(rec, by_name: dict[str, Path], opts: SfmOptions):
+    """Views (sorted by name), points (a fixed-seed subsample of at most ``opts.max_points``), their total and
+    the model's statistics, of one COLMAP reconstruction."""
     views = []
     for image_id in sorted(rec.reg_image_ids()):
         im = rec.image(image_id)
@@ -474,13 +506,51 @@ def _convert(rec, others, db_path: Path, images: list[Path], opts: SfmOptions) -
         views.append(SfmView(name=im.name, path=by_name[im.name], intrinsics=intr, cam_from_model=M,
                              n_points=int(im.num_points3D)))
     views.sort(key=lambda v: v.name)
+    ids = np.array(sorted(rec.point3D_ids()), dtype=np.int64)
+    xyz = np.array([rec.point3D(int(i)).xyz for i in ids]).reshape(-1, 3)
+    rgb = np.array([rec.point3D(int(i)).color for i in ids], dtype=np.uint8).reshape(-1, 3)
+    track = np.array([rec.point3D(int(i)).track.length() for i in ids]) if len(ids) else np.zeros(0)
+    err = np.array([rec.point3D(int(i)).error for i in ids]) if len(ids) else np.zeros(0)
+    n_total = len(ids)
+    if n_total > opts.max_points:
+        keep = np.sort(np.random.default_rng(opts.seed).choice(n_total, opts.max_points, replace=False))
+        xyz, rgb = xyz[keep], rgb[keep]
+    stats = {
+        "n_registered": len(views),
+        "n_points": int(n_total), "n_points_written": int(len(xyz)),
+        "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()) if n_total else 0.0,
+        "median_point_error_px": float(np.median(err)) if n_total else 0.0,
+        "mean_track_length": float(track.mean()) if n_total else 0.0,
+        "mean_observations_per_image": float(rec.compute_mean_observations_per_reg_image()),
+    }
+    return views, xyz, rgb, n_total, stats
+
+
+def _convert(rec, others, db_path: Path, images: list[Path], opts: SfmOptions) -> SfmResult:
+    """The main model ``rec`` and the separate ``others`` (largest first) as an :class:`SfmResult`, with the
+    reason every photo is not in the main model."""
+    import pycolmap
+
+    by_name = {p.name: p for p in images}
+    views, xyz, rgb, n_total, model_stats = _model_parts(rec, by_name, opts)
     registered = {v.name for v in views}
+    models = []
+    covered = set(registered)
+    n_dropped = 0
+    for r in others:  # largest first; COLMAP lets models overlap: one that adds no photo is of no use
+        names_r = {r.image(i).name for i in r.reg_image_ids()}
+        if names_r <= covered:
+            n_dropped += 1
+            continue
+        covered |= names_r
+        v2, xyz2, rgb2, n2, st2 = _model_parts(r, by_name, opts)
+        models.append(SfmModel(views=v2, points_xyz=xyz2, points_rgb=rgb2, n_points_total=n2, stats=st2))
 
     # why were the others left out?
-    in_other = {}
-    for r in others:
-        for i in r.reg_image_ids():
-            in_other[r.image(i).name] = r.num_reg_images()
+    in_other: dict[str, int] = {}  # photo -> index of the largest separate model that has it
+    for k, m in enumerate(models):
+        for v in m.views:
+            in_other.setdefault(v.name, k)
     db = pycolmap.Database.open(db_path)
     try:
         id_of = {im.name: im.image_id for im in db.read_all_images()}
@@ -503,35 +573,27 @@ def _convert(rec, others, db_path: Path, images: list[Path], opts: SfmOptions) -
     for p in images:
         if p.name in registered:
             continue
+        entry = {"name": p.name}
         if n_kp.get(p.name, 0) == 0:
             reason = "no features found (blank, blurred or tiny photo)"
         elif p.name in in_other:
-            reason = f"registered only in a separate model of {in_other[p.name]} photos (no overlap with the main one)"
+            k = in_other[p.name]
+            reason = (f"registered only in a separate model of {len(models[k].views)} photos (models[{k}]; no "
+                      f"overlap with the main one: too few points seen in 3 or more photos across them)")
+            entry["model"] = k
         else:
             reason = (f"too few verified matches with the registered photos ({inl_to_model.get(p.name, 0)} inlier "
                       f"matches in all; {n_kp.get(p.name, 0)} features)")
-        unregistered.append({"name": p.name, "reason": reason})
+        entry["reason"] = reason
+        unregistered.append(entry)
 
-    ids = np.array(sorted(rec.point3D_ids()), dtype=np.int64)
-    xyz = np.array([rec.point3D(int(i)).xyz for i in ids]).reshape(-1, 3)
-    rgb = np.array([rec.point3D(int(i)).color for i in ids], dtype=np.uint8).reshape(-1, 3)
-    track = np.array([rec.point3D(int(i)).track.length() for i in ids]) if len(ids) else np.zeros(0)
-    err = np.array([rec.point3D(int(i)).error for i in ids]) if len(ids) else np.zeros(0)
-    n_total = len(ids)
-    if n_total > opts.max_points:
-        keep = np.sort(np.random.default_rng(opts.seed).choice(n_total, opts.max_points, replace=False))
-        xyz, rgb = xyz[keep], rgb[keep]
     cams = {}
     for cid, cam in rec.cameras.items():
         cams[str(cid)] = {"model": cam.model.name, "params_colmap": [float(x) for x in cam.params],
                           "width": int(cam.width), "height": int(cam.height)}
-    stats = {
-        "n_points": int(n_total), "n_points_written": int(len(xyz)),
-        "mean_reprojection_error_px": float(rec.compute_mean_reprojection_error()) if n_total else 0.0,
-        "median_point_error_px": float(np.median(err)) if n_total else 0.0,
-        "mean_track_length": float(track.mean()) if n_total else 0.0,
-        "mean_observations_per_image": float(rec.compute_mean_observations_per_reg_image()),
-        "n_models": 1 + len(others), "colmap_cameras": cams,
-    }
+    stats = {k: v for k, v in model_stats.items() if k != "n_registered"}
+    stats.update({"n_models": 1 + len(models), "n_in_separate_models": len(set(in_other) - registered),
+                  "n_models_dropped_as_contained": n_dropped,
+                  "separate_models": [m.stats["n_registered"] for m in models], "colmap_cameras": cams})
     return SfmResult(views=views, unregistered=unregistered, points_xyz=xyz, points_rgb=rgb, n_points_total=n_total,
-                     stats=stats)
+                     stats=stats, models=models)

@@ -2,9 +2,10 @@
 
 ``sfm`` (route ``multiview``, ``camera.source = "sfm"``) runs pycolmap on the photos of ``camera.photos`` and
 writes ``out/sfm/reconstruction.json`` (format in ``docs/intrinsics.md``): every registered photo's Brown
-intrinsics and ``cam_from_model`` pose in COLMAP's arbitrary similarity frame, the photos left out (with the
-reason), a subsample of the 3-D points, ``intrinsics_source = "sfm"`` and the statistics. The camera profile
-(``camera.profile``) or else the photos' EXIF focal is the initial camera.
+intrinsics and ``cam_from_model`` pose in COLMAP's arbitrary similarity frame, the photos left out of it (with
+the reason), the separate smaller models (``models``, each in its own frame), a subsample of the 3-D points,
+``intrinsics_source = "sfm"`` and the statistics. The camera profile (``camera.profile``) or else the photos'
+EXIF focal is the initial camera.
 
 :func:`resolve_intrinsics` gives the other routes' intrinsics per photo and says which route was taken.
 """
@@ -79,7 +80,8 @@ def resolve_intrinsics(project: Project, photos: list[Path] | None = None) -> In
     * ``calibrated``: the camera profile (scaled to the photo's size if it was resized);
     * ``exif``: each photo's EXIF focal prior (principal point at the centre, no distortion); photos without
       a usable prior fall back (``focal_known`` False) and the route is ``exif`` only if at least one had one;
-    * ``sfm``: the ``sfm`` stage's intrinsics where available (``out/sfm/reconstruction.json``);
+    * ``sfm``: the ``sfm`` stage's intrinsics where available (``out/sfm/reconstruction.json``: the main model's,
+      then the separate models');
     * ``unknown`` -> ``fallback``: a simplified pinhole (focal for a 55 degree field of view, centred principal
       point, no distortion) whose focal the pose solver estimates.
     """
@@ -103,12 +105,15 @@ def resolve_intrinsics(project: Project, photos: list[Path] | None = None) -> In
         rec_path = project.stage_dir("sfm") / "reconstruction.json"
         if rec_path.is_file():
             rec = project.read_json(rec_path)
-            for im in rec.get("images", []):
-                if im["name"] in sizes:
-                    per[im["name"]] = CameraIntrinsics.from_dict(im["intrinsics"])
-                    known[im["name"]] = True
+            # the main model first, then the separate models (a photo in several keeps the main model's camera)
+            for images in [rec.get("images", [])] + [m.get("images", []) for m in rec.get("models", [])]:
+                for im in images:
+                    if im["name"] in sizes and im["name"] not in per:
+                        per[im["name"]] = CameraIntrinsics.from_dict(im["intrinsics"])
+                        known[im["name"]] = True
             detail = {"reconstruction": project.relative(rec_path),
-                      "unregistered": [u["name"] for u in rec.get("unregistered", [])]}
+                      "unregistered": [u["name"] for u in rec.get("unregistered", [])],
+                      "in_separate_models": sorted({u["name"] for u in rec.get("unregistered", []) if "model" in u})}
             if per:
                 for n, (w, h) in sizes.items():  # unregistered photos: fall back
                     if n not in per:
@@ -200,6 +205,8 @@ def run_sfm_stage(project: Project, progress: Progress) -> StageResult:
         "initial_camera": (prior_info or {}).get("source", "none") if prior is not None else "none",
         "n_images": st["n_images"], "n_registered": st["n_registered"],
         "unregistered": result.unregistered, "n_points": st["n_points"],
+        "n_models": st["n_models"], "separate_models": st["separate_models"],
+        "n_in_separate_models": st["n_in_separate_models"],
         "mean_reprojection_error_px": st["mean_reprojection_error_px"],
         "mean_track_length": st["mean_track_length"], "focal_px": v0.fx, "k1": v0.k1, "k2": v0.k2,
         "hfov_deg": float(np.degrees(2 * np.arctan(v0.width / 2.0 / v0.fx))),
