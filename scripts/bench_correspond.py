@@ -11,7 +11,10 @@ finder of the ``correspond`` stage on the photo set and reports, against ``truth
   95 % intervals (east, north, up, heading, pitch, roll; share of the carriages solved).
 
 Usage: .venv/bin/python scripts/bench_correspond.py [--seeds 2 3] [--cars 4] [--solve] [--reuse-points]
-       [--out bench_out/correspond]
+       [--known-cameras] [--incident PATH ...] [--out bench_out/correspond]
+
+``--known-cameras`` gives the finder the photos' true cameras (cameras.json), which the chain/terrain pose
+search needs (in a pipeline run the georef stage provides them); without it the search does not run.
 Writes the figures to <out>/bench_correspond.json.
 """
 
@@ -55,22 +58,35 @@ def score(truth: dict, obs: list, photo_set: str = "panorama") -> dict:
         e = float(np.hypot(o.uv[0] - t["uv"][0], o.uv[1] - t["uv"][1]))
         errs.append(e)
         wrong += e > 10.0
+    by_car: dict[str, dict[str, int]] = {}
+
+    def car(c):
+        return by_car.setdefault(c, {"visible": 0, "found": 0, "reported": 0, "wrong": 0})
+
+    for o in obs:
+        car(o.carriage)["reported"] += 1
+        t = by_photo[o.view]["observations"].get(o.carriage, {}).get(o.point)
+        if t is None or t.get("uv") is None or np.hypot(o.uv[0] - t["uv"][0], o.uv[1] - t["uv"][1]) > 10.0:
+            car(o.carriage)["wrong"] += 1
     for name, ph in by_photo.items():
-        for car, pts in ph["observations"].items():
+        for c, pts in ph["observations"].items():
             for pt, t in pts.items():
                 if not t.get("visible"):
                     continue
                 n_visible += 1
-                o = got.get((car, pt, name))
+                car(c)["visible"] += 1
+                o = got.get((c, pt, name))
                 if o is not None and np.hypot(o.uv[0] - t["uv"][0], o.uv[1] - t["uv"][1]) <= 3.0:
                     found += 1
+                    car(c)["found"] += 1
     e = np.array(errs)
     fin = e[np.isfinite(e)]
     return {"n_visible": n_visible, "n_reported": len(obs), "n_found_3px": found,
             "found_share": round(found / max(n_visible, 1), 4), "n_wrong_10px": int(wrong),
             "wrong_share": round(wrong / max(len(obs), 1), 4),
             "median_err_px": round(float(np.median(fin)), 3) if len(fin) else None,
-            "p90_err_px": round(float(np.percentile(fin, 90)), 3) if len(fin) else None}
+            "p90_err_px": round(float(np.percentile(fin, 90)), 3) if len(fin) else None,
+            "by_carriage": by_car}
 
 
 def run_one(root: Path, opts: MatchOptions, cache: Path | None = None) -> tuple[dict, list]:
@@ -192,6 +208,13 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--width", type=int, default=1600)
     ap.add_argument("--height", type=int, default=1200)
     ap.add_argument("--no-samples", action="store_true")
+    ap.add_argument("--incident", type=Path, action="append", default=[],
+                    help="an incident folder with truth to use in place of the samples (repeatable; e.g. a copy "
+                         "generated with `workbench synth /tmp/sd --scenario spuyten-duyvil --seed 1 ...`)")
+    ap.add_argument("--known-cameras", action="store_true",
+                    help="find the points on copies of the incidents (under --work) with their true cameras "
+                         "written as cameras.json: the camera poses the chain/terrain pose search needs, as "
+                         "the georef stage gives them in a pipeline run")
     ap.add_argument("--solve", action="store_true", help="also solve poses from the automatic and the true points")
     ap.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
                     help="a MatchOptions field, e.g. --option min_inliers=12 (value parsed as a Python literal)")
@@ -209,7 +232,8 @@ def main(argv: list[str] | None = None) -> int:
         k, _, v = kv.partition("=")
         overrides[k.strip()] = ast.literal_eval(v.strip())
     opts = MatchOptions(**overrides)
-    roots = [] if args.no_samples else [s for s in SAMPLES if (s / "truth" / "ground_truth.json").is_file()]
+    samples = args.incident or SAMPLES
+    roots = [] if args.no_samples else [s for s in samples if (s / "truth" / "ground_truth.json").is_file()]
     for seed in args.seeds:
         root = args.work / f"seed{seed}"
         if not (root / "truth" / "ground_truth.json").is_file():
@@ -222,11 +246,21 @@ def main(argv: list[str] | None = None) -> int:
         cache = args.work / f"{root.name}_points.json"  # written by every run, read with --reuse-points
         if not args.reuse_points:
             cache.unlink(missing_ok=True)
-        res, obs = run_one(root, opts, cache)
+        if args.known_cameras:
+            from workbench.synth.handpicks import write_known_cameras
+
+            find_root = _copy_incident(root, args.work / f"{root.name}_known")
+            write_known_cameras(find_root, "panorama")
+        else:
+            find_root = root
+        res, obs = run_one(find_root, opts, cache)
         results.append(res)
         print(f"{root.name:24s} visible {res['n_visible']:4d}  reported {res['n_reported']:4d}  "
               f"found<=3px {res['found_share']:.1%}  wrong>10px {res['wrong_share']:.1%}  "
               f"median {res['median_err_px']} px  time {res['time_s']} s", flush=True)
+        print("   per carriage (visible/found/reported/wrong): " + ", ".join(
+            f"{c} {v['visible']}/{v['found']}/{v['reported']}/{v['wrong']}" for c, v in res["by_carriage"].items()),
+            flush=True)
         if args.solve:
             res["solve_auto"] = solve_errors(root, args.work / f"{root.name}_solve_auto", obs)
             res["solve_true"] = solve_errors(root, args.work / f"{root.name}_solve_true", None)

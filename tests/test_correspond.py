@@ -229,13 +229,22 @@ def test_points_found_against_truth(incident):
 
 
 def test_identical_coaches_are_not_confused(incident):
-    """Every reported point is nearest to the true point of its own carriage (of any carriage's points)."""
+    """No reported point belongs to another carriage: each lies nearer its own true point than any other
+    carriage's point, unless it is within 5 px of its own truth (a mix-up of identical coaches puts a point a
+    window pitch or a car length away; the touching ends of two coupled coaches lie 2-3 px apart in this
+    640 px photo, so a point 3 px off its own corner can be nearer the neighbour's, and that is accuracy,
+    which test_points_found_against_truth checks, not identity)."""
     _, truth, doc = incident
+    n_checked = 0
     for o in doc["observations"]:
         tv = _truth_uv(truth, o["view"])
-        near = min((np.hypot(*(np.asarray(o["uv"]) - t["uv"])), car, name)
-                   for car, pts in tv.items() for name, t in pts.items() if t["uv"] is not None)
-        assert near[1] == o["carriage"], (o, near)
+        uv = np.asarray(o["uv"])
+        own = float(np.hypot(*(uv - tv[o["carriage"]][o["point"]]["uv"])))
+        other = min((float(np.hypot(*(uv - t["uv"]))), car, name) for car, pts in tv.items()
+                    if car != o["carriage"] for name, t in pts.items() if t["uv"] is not None)
+        assert own <= 5.0 or own < other[0], (o, own, other)
+        n_checked += 1
+    assert n_checked > 0
 
 
 def test_stage_statistics_and_references(incident):
@@ -349,3 +358,104 @@ def test_intrinsics_from_profile_or_known_cameras(incident):
     finally:
         cams.unlink()
     assert src2 == "cameras.json" and all(K.fx == 555.0 for K in intr2.values())
+
+
+class _FlatGround:
+    """A terrain stand-in: the plane z = 0 (``height_at`` as TerrainModel's)."""
+
+    def height_at(self, xy):
+        return np.zeros(len(np.asarray(xy).reshape(-1, 2)))
+
+
+def _on_its_side_scene():
+    """A coach (6223) lying on its left side behind an upright one (6100), coupled (held), on flat ground,
+    seen from 70 m and 12 m up: the photo, its PhotoFeatures, the camera and the true poses (world_from_carriage)."""
+    from workbench.core.camera import look_at
+    from workbench.correspond import search as se
+    from workbench.correspond.complete import facing_cosine, predicted_homography
+    from workbench.correspond.match import PhotoFeatures, undistorted_image
+
+    ct = get_type("shoreliner")
+    opts = MatchOptions()
+    K = CameraIntrinsics(width=1280, height=960, fx=1500.0, fy=1500.0, cx=639.5, cy=479.5)
+    ground = _FlatGround()
+    corners = se._corners(ct)
+    yaw = np.deg2rad(20.0)
+    Wb = np.eye(4)
+    Wb[:3, :3] = se._rot(yaw, 0.0, np.deg2rad(-90.0))  # on its left side
+    Wb = se._rest(Wb, corners, ground)
+    front_b = Wb[:3, :3] @ ct.coupler_front + Wb[:3, 3]
+    Wa = np.eye(4)
+    Wa[:3, :3] = se._rot(yaw + np.deg2rad(12.0), 0.0, 0.0)
+    Wa[:3, 3] = front_b - Wa[:3, :3] @ ct.coupler_rear  # held: 6100's rear coupler on 6223's front one
+    Wa = se._rest(Wa, corners, ground)
+    cam_from_world = look_at(np.array([-8.0, 68.0, 12.0]), np.array([0.0, 0.0, 1.0]))
+    rng = np.random.default_rng(3)
+    photo = (rng.integers(70, 150, (960, 1280, 1)) * np.ones((1, 1, 3))).astype(np.uint8)
+    photo = cv2.GaussianBlur(photo, (0, 0), 4)
+    clean = photo.copy()
+    for number, W in (("6100", Wa), ("6223", Wb)):
+        M = cam_from_world @ W
+        for f in FACES:
+            ref = face_reference(ct, number, f, opts.px_per_m)
+            if facing_cosine(M, ct, ref) > 0.05:
+                photo = _warp_into(photo, ref.image, predicted_homography(M, ref, K))
+        if number == "6100":
+            clean = photo.copy()  # the same photo without the coach on its side
+
+    def features(img, name):
+        gray = cv2.cvtColor(img, cv2.COLOR_RGB2GRAY)
+        return PhotoFeatures(name, K, undistorted_image(gray, K), np.zeros((0, 2)), np.zeros((0, 128), np.float32))
+
+    return ct, K, cam_from_world, Wa, Wb, features(photo, "side.png"), features(clean, "clean.png"), ground
+
+
+def test_pose_search_finds_a_coach_on_its_side():
+    """The chain/terrain pose search (search.py) finds a coach lying on its side (roof to the camera, SIFT's
+    blind spot) from its neighbour's rear coupler, 0.6 m off as a neighbour's pose from one face can be:
+    its marked points within 1.5 px of their true pixels (on aligned faces) and 6 px (projected from its pose),
+    at least four within 3 px; on the same
+    photo without that coach it reports nothing."""
+    from workbench.correspond import search as se
+    from workbench.correspond.assign import observations_of
+
+    ct, K, cam_from_world, Wa, Wb, pf, pf_clean, ground = _on_its_side_scene()
+    opts = MatchOptions(search_yaw_span_deg=20.0)  # headings within 20 deg of the neighbour's (12 deg off): faster
+    refs = {f: face_reference(ct, "6223", f, opts.px_per_m) for f in FACES}
+    anchor_at = Wa[:3, :3] @ ct.coupler_rear + Wa[:3, 3] + np.array([0.4, -0.3, 0.3])
+    anchor = se.Anchor("front", anchor_at, "6100", "held", float(np.arctan2(Wa[1, 0], Wa[0, 0])))
+    # the neighbour's faces, as the stage passes them: a face there is not the coach searched for
+    from workbench.correspond.complete import facing_cosine, predicted_homography
+    from workbench.correspond.match import _apply_h
+
+    Ma = cam_from_world @ Wa
+    taken = []
+    for f in FACES:
+        ref = face_reference(ct, "6100", f, opts.px_per_m)
+        if facing_cosine(Ma, ct, ref) > 0.05:
+            taken.append(_apply_h(predicted_homography(Ma, ref, K), ref.corners()))
+    t0 = time.perf_counter()
+    found = se.search_car(pf, "6223", ct, refs, [anchor], cam_from_world, ground, opts, taken)
+    print(f"pose search {time.perf_counter() - t0:.1f} s")
+    assert found, "the coach on its side was not found"
+    assert "roof" in {c.detection.ref.face for c in found}
+    M = found[0].cam_from_carriage
+    W = np.linalg.inv(cam_from_world) @ M
+    roll = np.degrees(np.arctan2(W[2, 1], W[2, 2]))
+    assert abs(roll - (-90.0)) < 3.0, roll
+    assert np.linalg.norm(W[:3, 3] - Wb[:3, 3]) < 0.3, W[:3, 3] - Wb[:3, 3]
+    obs = observations_of(found, pf, {"6223": ct})
+    assert len(obs) >= 4
+    Mt = cam_from_world @ Wb
+    errs = []
+    for o in obs:
+        X = ct.marked_points[o.point]
+        truth = K.project((Mt[:3, :3] @ X + Mt[:3, 3])[None])[0]
+        err = float(np.hypot(*(np.asarray(o.uv) - truth)))
+        errs.append(err)
+        # on an aligned face: its homography; elsewhere (the coach's marked points are on its sides' edges and
+        # couplers, off the roof's and the end's planes): a prediction from the pose, sigma 2 px
+        assert 0.0 <= err < (1.5 if o.how == "homography" else 6.0), (o, err)
+    assert sum(e <= 3.0 for e in errs) >= 4, errs
+    # the same photo without the coach: nothing
+    assert se.search_car(pf_clean, "6223", ct, refs, [anchor], cam_from_world, ground, opts, taken) == []

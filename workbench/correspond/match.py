@@ -52,6 +52,18 @@ class MatchOptions:
     hough_min_votes: int = 8  # distinct photo keypoints in a bin before it is verified by RANSAC
     hough_max_clusters: int = 60  # bins verified per face reference and photo, strongest first
     hough_min_ecc: float = 0.85  # a Hough face is kept only if ECC aligns the whole face this well
+    # chain- and terrain-guided pose search (search.py) for cars not found, next to found neighbours over a
+    # held coupling; needs the photo's camera in the scene frame (cameras.json)
+    search: bool = True
+    search_seeds: int = 12  # best distinct hypotheses verified by ECC
+    search_min_ecc: float = 0.8  # ECC correlation needed for a face aligned from a hypothesis
+    search_min_faces: int = 2  # faces that must align (non-coplanar: the pose is then fixed) ...
+    search_single_face_ecc: float = 0.9  # ... or one face with this correlation ...
+    search_single_face_px: float = 400.0  # ... covering this many photo pixels
+    search_broken: bool = True  # also from neighbours over a broken coupling (its coupler within a few metres)
+    search_held_radius_m: float = 2.0  # a held coupling's coupler within this of the neighbour's (its pose error)
+    search_broken_radius_m: float = 5.0  # a broken coupling's coupler within this of the neighbour's
+    search_yaw_span_deg: float = 90.0  # the car's heading within this of its neighbour's (a consist folds)
 
     def __post_init__(self) -> None:
         if not self.px_per_m > 0 or not self.photo_upsample > 0 or not 0 < self.ratio < 1:
@@ -231,16 +243,17 @@ def _ecc_refine(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray) -> tupl
     The photo is warped into the reference frame (scaled to about the photo's resolution there) and the
     warp is refined; the correlation coefficient is returned with the refined photo_from_ref.
     """
+    from .references import resize_linear_light
+
     poly = _apply_h(H, ref.corners())
     h_ref, w_ref = ref.image.shape[:2]
     # photo pixels per reference pixel along the face (mean edge ratio)
     e = np.linalg.norm(np.roll(poly, -1, axis=0) - poly, axis=1)
     s = float(np.clip(np.mean([e[0] / w_ref, e[2] / w_ref, e[1] / h_ref, e[3] / h_ref]), 0.25, 1.0))
-    S = np.diag([s, s, 1.0])  # reference px -> working px (about photo resolution)
-    S[0, 2] = S[1, 2] = 0.5 * s - 0.5
     Wk, Hk = max(16, int(round(w_ref * s))), max(16, int(round(h_ref * s)))
-    tmpl = cv2.resize(cv2.cvtColor(ref.image, cv2.COLOR_RGB2GRAY), (Wk, Hk), interpolation=cv2.INTER_AREA)
-    tmpl = tmpl.astype(np.float32)
+    sx, sy = Wk / w_ref, Hk / h_ref  # the template's exact scales (rounding its size changes them)
+    S = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])  # ref px -> working px
+    tmpl = cv2.cvtColor(resize_linear_light(ref.image, (Wk, Hk)), cv2.COLOR_RGB2GRAY).astype(np.float32)
     photo_from_work = H @ np.linalg.inv(S)
     warp = photo_from_work.astype(np.float32) / np.float32(photo_from_work[2, 2])
     img = photo.gray_undistorted.astype(np.float32)
@@ -249,6 +262,15 @@ def _ecc_refine(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray) -> tupl
                                         (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-5), None, 3)
     except cv2.error:
         return None
+    # then without the 3 x 3 blur: blurred, the photo's pixels along the face's outline mix in what lies
+    # beyond the face (the template's do not), which pulls the outline inwards (a vertical compression of
+    # 1-3 % on a side 25 px high)
+    try:
+        cc2, warp2 = cv2.findTransformECC(tmpl, img, warp.copy(), cv2.MOTION_HOMOGRAPHY,
+                                          (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-5), None, 1)
+        warp = warp2  # the correlation reported stays the blurred one (the thresholds are set on it)
+    except cv2.error:
+        pass
     Hn = warp.astype(float) @ S
     return Hn / Hn[2, 2], float(cc)
 

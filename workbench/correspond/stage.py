@@ -28,6 +28,7 @@ from ..runner import Progress, StageResult, StageSpec
 from . import manual as mf
 from .assign import find_cars, observations_of
 from .match import MatchOptions, photo_features
+from .search import chain_search
 from .references import FACES, build_references
 from .transfer import carry
 
@@ -68,6 +69,10 @@ def _inputs(project: Project) -> dict[str, Path]:
     pano = project.stage_dir("stitch") / "panorama.jpg"
     if pano.is_file():
         files["panorama"] = pano
+    if project.settings.terrain.dem:  # the pose search's ground
+        from ..terrain.stage import _files as terrain_files
+
+        files.update({k: v for k, v in terrain_files(project).items() if k.startswith("dem")})
     return files
 
 
@@ -129,6 +134,37 @@ def photo_intrinsics(project: Project, photos: list[Path]) -> tuple[dict[str, Ca
     return out, "exif-or-default"
 
 
+def camera_poses(project: Project, photos: list[Path]) -> dict[str, np.ndarray]:
+    """cam_from_world (4, 4) of each photo listed in ``cameras.json`` (the incident's or georef's); {} without."""
+    cams = cameras_file(project)
+    if cams is None:
+        return {}
+    doc = project.read_json(cams)
+    names = {p.name for p in photos}
+    out = {}
+    for v in doc.get("views", []):
+        if not isinstance(v, dict) or v.get("name") not in names or v.get("cam_from_world") is None:
+            continue
+        M = np.asarray(v["cam_from_world"], dtype=float)
+        if M.shape != (4, 4) or not np.all(np.isfinite(M)):
+            raise InputError(f"{cams}: views[{v.get('name')!r}].cam_from_world is not a finite 4 x 4 matrix")
+        out[v["name"]] = M
+    return out
+
+
+def _terrain(project: Project):
+    """The incident's terrain model (None without a DEM)."""
+    if not project.settings.terrain.dem:
+        return None
+    from ..terrain.stage import terrain_model_for
+
+    try:
+        return terrain_model_for(project)
+    except InputError as exc:
+        log.warning("correspond: no terrain for the pose search (%s)", exc)
+        return None
+
+
 def load_manual(project: Project, photos: list[Path] | None = None) -> mf.CorrespondenceFile:
     """The incident's manual correspondences (empty if there is no file), validated against the incident."""
     path = manual_path(project)
@@ -179,11 +215,20 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
     features: dict = {}  # kept only to carry points between the photos of a panorama set
     ref_cache: dict = {}  # references of faces aligned only (the roof), shared by the photos
     carry_on = opts.carry_between_photos and len(photos) > 1 and s.camera.source.value != "sfm"
+    # the chain/terrain pose search needs each photo's camera in the scene frame, and uses the terrain
+    poses = camera_poses(project, photos) if opts.search else {}
+    terrain = _terrain(project) if poses else None
+    searched: dict[str, int] = {}
     for i, p in enumerate(photos):
         progress(0.05 + 0.9 * i / len(photos), p.name)
         t0 = time.perf_counter()
         pf = photo_features(p.name, _read_rgb(p), intrinsics[p.name], opts)
         found = find_cars(pf, refs, consist, types, opts, ref_cache)
+        if opts.search and p.name in poses:
+            by_number = {n: {r.face: r for r in rs} for n, rs in refs.items()}
+            before = {c.number for c in found}
+            found = chain_search(pf, found, consist, types, by_number, poses[p.name], terrain, opts, ref_cache)
+            searched[p.name] = sorted({c.number for c in found} - before)
         per_view[p.name] = observations_of(found, pf, types, pose_points=opts.pose_points)
         if carry_on:
             features[p.name] = pf
@@ -193,7 +238,8 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
                                         "rms_px": round(c.detection.rms_px, 2), "guided": c.detection.guided,
                                         "ecc": None if c.detection.ecc is None else round(c.detection.ecc, 3)}
                                        for c in found],
-                             "points": len(per_view[p.name])}
+                             "points": len(per_view[p.name]),
+                             "cars_by_pose_search": searched.get(p.name)}
     carried_stats = None
     if carry_on:
         progress(0.95, "carrying points between the photos of the panorama")
@@ -241,7 +287,7 @@ def run_correspond(project: Project, progress: Progress, opts: MatchOptions | No
 
 
 STAGE = StageSpec("correspond", "marked points in the photos: SIFT against each car's livery, plus manual picks",
-                  run_correspond, inputs=_inputs, settings_sections=("consist", "camera"),
+                  run_correspond, inputs=_inputs, settings_sections=("consist", "camera", "terrain"),
                   depends_on=("inputs",))
 
 __all__ = ["STAGE", "run_correspond", "load_manual", "photo_intrinsics", "automatic", "FACES"]

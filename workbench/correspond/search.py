@@ -1,0 +1,545 @@
+"""Chain- and terrain-guided pose search for carriages that SIFT did not find in a photo.
+
+A carriage lying on its side shows the camera its roof (few features) and its small, alike ends, so SIFT
+does not find it; yet its neighbours often are found, and the chain and the ground leave it few places to
+be. With the photo's camera in the scene frame (``cameras.json``: ``cam_from_world``) and the terrain
+(``terrain.stage.terrain_model_for``), per photo, for every car not found next to one that is:
+
+* **anchors**: the neighbour's coupler (its pose from its found faces, ``CarInPhoto.cam_from_carriage``,
+  used only when it rests on two faces or on one matched over 70 % of its length). A held coupling puts the
+  car's coupler there within centimetres, but a neighbour's pose from one face can be a metre or two off at
+  its far coupler: the coupler is searched within ``search_held_radius_m`` (2 m); a broken coupling within
+  ``search_broken_radius_m`` (5 m; the samples' broken couplings are 3.0-3.2 m apart);
+* **hypotheses**: heading every 2 deg within ``search_yaw_span_deg`` (90) of the neighbour's, roll every
+  45 deg (upright, on either side, upside down and between), pitch from the terrain (the other coupler as high
+  above the ground as the anchored one), the coupler at the anchor, the car lowered or raised until its
+  lowest collision-box corner touches the terrain;
+* **scoring**: each hypothesis predicts every face turned to the camera (``complete.predicted_homography``);
+  they are painted from the car's own references into a template (a photo down-sampled so that the car is
+  about 150 px long, blurred), and the template is matched over the image shifts that keep the coupler
+  within the anchor's radius. Long faces (sides, roof) are scored in thirds: the score is the sum over the
+  tiles of their positive zero-mean normalised correlation times the square root of their area, so a third
+  hidden by a building adds nothing instead of diluting the rest. The best shift moves the pose across
+  the line of sight. The best hypotheses of every roll class are refined (heading +-1 deg, roll +-10 deg at
+  full resolution) and moved along the coupler's line of sight to where the car touches the terrain;
+* **verification**: every facing face is aligned by ECC from the hypothesis as the pose-guided completion
+  does (``complete.guided_face``: correlation of at least ``search_min_ecc``, corners moved by at most
+  ``guided_max_shift_px`` or a quarter of an edge); a long face that does not align whole is tried in part
+  (the largest of ``CROPS`` that aligns: a face partly hidden). The pose is re-estimated from the aligned
+  faces (``complete.joint_pose``: PnP on their lattices, 3 px RMS). A hypothesis is kept only if
+  ``search_min_faces`` (2) faces align (or one face of ``search_single_face_px`` pixels with a correlation
+  of ``search_single_face_ecc``), none of them lies on a face of another car found in the photo, the
+  refined pose keeps a coupler within the anchor's radius, and every aligned face agrees with it to 3 px.
+  When two verified hypotheses disagree (an aligned face 4 px apart, or a marked point 10 px apart), the
+  car is left out as ambiguous.
+
+The faces found this way are reported as the completion's are: points on an aligned face's plane by its
+homography (``sigma_px`` 0.5 after ECC), the car's other points projected from the refined pose
+(``method = "pose"``, predictions). Pixels are undistorted photo pixels (``match.PhotoFeatures``).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from ..rolling_stock import CarriageType
+from .assign import CarInPhoto, _reference
+from .complete import facing_cosine, guided_face, joint_pose, predicted_homography
+from .match import MatchOptions, PhotoFeatures, _apply_h, _overlap, _plausible
+from .references import FACES, FaceReference
+
+log = logging.getLogger(__name__)
+
+COARSE_HEADING_DEG = 2.0
+FINE_HEADING_DEG = 1.0
+SEEDS_PER_ROLL = 4  # coarse hypotheses refined per roll class
+COARSE_ROLL_DEG = 45.0
+TILES = 3  # a long face (side, roof) is scored in thirds along its length
+PAD_PX = 128  # working image padding
+CROPS = ((0.0, 0.8), (0.2, 1.0), (0.0, 0.6), (0.4, 1.0))  # parts of a face tried where the whole does not align
+DISTINCT_PX = 4.0  # two verified poses that put a marked point this far apart in the photo are different answers
+BLUR_PX = 2.0  # photo blur (sigma, px) for the scoring: a basin wider than the hypothesis grid
+
+
+def _rot(yaw: float, pitch: float, roll: float) -> np.ndarray:
+    """world_from_carriage rotation: Rz(yaw) Ry(-pitch) Rx(roll), radians (docs/conventions.md; yaw = 90 deg -
+    heading)."""
+    cz, sz = np.cos(yaw), np.sin(yaw)
+    cy, sy = np.cos(-pitch), np.sin(-pitch)
+    cx, sx = np.cos(roll), np.sin(roll)
+    Rz = np.array([[cz, -sz, 0], [sz, cz, 0], [0, 0, 1]])
+    Ry = np.array([[cy, 0, sy], [0, 1, 0], [-sy, 0, cy]])
+    Rx = np.array([[1, 0, 0], [0, cx, -sx], [0, sx, cx]])
+    return Rz @ Ry @ Rx
+
+
+@dataclass
+class Anchor:
+    """Where the chain puts one of the car's couplers: ``end`` ("front" / "rear"), the point in the scene
+    frame (3,), the neighbour it comes from and the coupling (``held``: within centimetres, but the
+    neighbour's pose from its faces can be a metre or two off there; ``broken``: within a few metres)."""
+
+    end: str
+    world: np.ndarray
+    neighbour: str
+    coupling: str = "held"
+    yaw: float | None = None  # the neighbour's yaw (rad, scene frame): the car's is within ``MatchOptions.search_yaw_span_deg`` of it
+
+
+def anchors_of(k: int, consist: list[tuple[str, str, str | None]], types: dict[str, CarriageType],
+               poses_world: dict[str, np.ndarray], broken: bool = True) -> list[Anchor]:
+    """The anchors of car ``k`` from its neighbours with a pose (world_from_carriage, 4 x 4), held couplings
+    first."""
+    out = []
+    if k > 0 and consist[k - 1][0] in poses_world and consist[k - 1][2] in (("held", "broken") if broken else ("held",)):
+        prev = consist[k - 1][0]
+        P = poses_world[prev]
+        out.append(Anchor("front", P[:3, :3] @ types[prev].coupler_rear + P[:3, 3], prev, consist[k - 1][2],
+                          float(np.arctan2(P[1, 0], P[0, 0]))))
+    if k + 1 < len(consist) and consist[k + 1][0] in poses_world and \
+            consist[k][2] in (("held", "broken") if broken else ("held",)):
+        nxt = consist[k + 1][0]
+        P = poses_world[nxt]
+        out.append(Anchor("rear", P[:3, :3] @ types[nxt].coupler_front + P[:3, 3], nxt, consist[k][2],
+                          float(np.arctan2(P[1, 0], P[0, 0]))))
+    return sorted(out, key=lambda a: a.coupling != "held")
+
+
+def _pitch_on_terrain(a: Anchor, yaw: float, L: float, terrain) -> float:
+    """Pitch (rad) at which the other coupler stands as high above the terrain as the anchored one."""
+    if terrain is None:
+        return 0.0
+    h_a = terrain.height_at(a.world[None, :2])[0]
+    if not np.isfinite(h_a):
+        return 0.0
+    clear = a.world[2] - h_a
+    sign = -1.0 if a.end == "front" else 1.0  # the other coupler lies behind the front one, ahead of the rear one
+    p = 0.0
+    for _ in range(4):
+        other = a.world + sign * L * np.array([np.cos(p) * np.cos(yaw), np.cos(p) * np.sin(yaw), np.sin(p)])
+        h = terrain.height_at(other[None, :2])[0]
+        if not np.isfinite(h):
+            return p
+        s = np.clip(sign * (h + clear - a.world[2]) / L, -0.5, 0.5)
+        p = float(np.arcsin(s))
+    return p
+
+
+def _pose_at(ct: CarriageType, a: Anchor, yaw: float, pitch: float, roll: float) -> np.ndarray:
+    R = _rot(yaw, pitch, roll)
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = a.world - R @ (ct.coupler_front if a.end == "front" else ct.coupler_rear)
+    return T
+
+
+def _corners(ct: CarriageType) -> np.ndarray:
+    """(n, 3) carriage-frame corners of the car's collision boxes (body, bogies, equipment)."""
+    out = []
+    for c, h in ct.collision_boxes():
+        for sx in (-1, 1):
+            for sy in (-1, 1):
+                for sz in (-1, 1):
+                    out.append(c + h * [sx, sy, sz])
+    return np.array(out)
+
+
+def _rest(W: np.ndarray, corners: np.ndarray, terrain) -> np.ndarray:
+    """world_from_carriage moved vertically so that its lowest corner touches the terrain (as it is without)."""
+    if terrain is None:
+        return W
+    P = (W[:3, :3] @ corners.T).T + W[:3, 3]
+    h = terrain.height_at(P[:, :2])
+    if not np.any(np.isfinite(h)):
+        return W
+    W = W.copy()
+    W[2, 3] -= float(np.nanmin(P[:, 2] - h))
+    return W
+
+
+class _Renderer:
+    """The car's faces as a hypothesis shows them, matched against the blurred photo over image shifts."""
+
+    def __init__(self, photo: PhotoFeatures, refs: dict[str, FaceReference], ct: CarriageType, down: int):
+        self.K = photo.intrinsics.without_distortion()
+        self.refs = {f: r for f, r in refs.items()}
+        self.gray = {f: cv2.GaussianBlur(cv2.cvtColor(r.image, cv2.COLOR_RGB2GRAY).astype(np.float32), (0, 0), 1.0)
+                     for f, r in refs.items()}
+        self.ct = ct
+        self.d = down
+        img = cv2.GaussianBlur(photo.gray_undistorted.astype(np.float32), (0, 0), BLUR_PX * down / 2)
+        img = cv2.resize(img, None, fx=1 / down, fy=1 / down, interpolation=cv2.INTER_AREA) if down > 1 else img
+        # padded (by the photo's mean, which correlates with nothing): a search area may reach past the border
+        self.pad = PAD_PX
+        self.img = cv2.copyMakeBorder(img, PAD_PX, PAD_PX, PAD_PX, PAD_PX, cv2.BORDER_CONSTANT,
+                                      value=float(img.mean()))
+        D = np.diag([1 / down, 1 / down, 1.0])
+        D[0, 2] = D[1, 2] = 0.5 / down - 0.5
+        self.D = D  # photo px -> working px
+
+    def faces(self, cam_from_carriage: np.ndarray, min_cos: float) -> list[tuple[str, np.ndarray]]:
+        out = []
+        for f, r in self.refs.items():
+            if facing_cosine(cam_from_carriage, self.ct, r) < min_cos:
+                continue
+            H = predicted_homography(cam_from_carriage, r, self.K)
+            if not _plausible(H, r, (self.K.width, self.K.height)):
+                continue
+            out.append((f, H))
+        return out
+
+    def match(self, cam_from_carriage: np.ndarray, min_cos: float, radius_px: float) -> tuple[float, np.ndarray, float]:
+        """(score, best shift (2,) photo px, area px) of the hypothesis's facing faces over shifts within
+        ``radius_px``; score = the sum over the faces' tiles of their positive correlation x sqrt(tile area, px)."""
+        faces = self.faces(cam_from_carriage, min_cos)
+        if not faces:
+            return -np.inf, np.zeros(2), 0.0
+        polys = [_apply_h(self.D @ H, self.refs[f].corners()) for f, H in faces]
+        allp = np.vstack(polys)
+        lo, hi = np.floor(allp.min(0)).astype(int) - 1, np.ceil(allp.max(0)).astype(int) + 1
+        size = (int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1))
+        if size[0] < 4 or size[1] < 4 or size[0] * size[1] > 400000:
+            return -np.inf, np.zeros(2), 0.0
+        Tc = np.array([[1.0, 0, -lo[0]], [0, 1, -lo[1]], [0, 0, 1]])
+        tmpl = np.zeros((size[1], size[0]), np.float32)
+        label = np.zeros((size[1], size[0]), np.uint8)  # 0: no face; else the tile (a third of a long face)
+        n = 0
+        for (f, H), poly in zip(faces, polys):
+            M = Tc @ self.D @ H
+            w = cv2.warpPerspective(self.gray[f], M, size, flags=cv2.INTER_AREA)
+            hh, ww = self.gray[f].shape
+            tiles = TILES if f in ("left", "right", "roof") else 1
+            lab = np.repeat((n + 1 + np.minimum(np.arange(ww) * tiles // ww, tiles - 1))[None].astype(np.uint8), hh, 0)
+            n += tiles
+            m = cv2.warpPerspective(lab, M, size, flags=cv2.INTER_NEAREST)
+            m = cv2.erode(m, np.ones((3, 3), np.uint8))  # off the face's edges (erosion of labels: min)
+            sel = m > 0
+            tmpl[sel] = w[sel]
+            label[sel] = m[sel]
+        r = int(np.ceil(radius_px / self.d))
+        x0, y0 = int(lo[0]) - r + self.pad, int(lo[1]) - r + self.pad
+        Hh, Ww = self.img.shape
+        if x0 < 0 or y0 < 0 or x0 + size[0] + 2 * r > Ww or y0 + size[1] + 2 * r > Hh:
+            return -np.inf, np.zeros(2), 0.0  # the search area reaches far outside the photo
+        # per tile, zero-mean normalised correlation over the shifts; a tile hidden (a building, another car)
+        # correlates with nothing and adds nothing, instead of diluting the whole face's correlation
+        total = np.zeros((2 * r + 1, 2 * r + 1), np.float32)
+        area = 0.0
+        for t in range(1, n + 1):
+            ys, xs = np.nonzero(label == t)
+            if len(ys) < 20:
+                continue
+            a0, a1, b0, b1 = xs.min(), xs.max() + 1, ys.min(), ys.max() + 1
+            tm = tmpl[b0:b1, a0:a1]
+            mk = ((label[b0:b1, a0:a1] == t) * 255).astype(np.uint8)
+            if float(tm[mk > 0].std()) < 1.0:
+                continue
+            win = self.img[y0 + b0:y0 + b1 + 2 * r, x0 + a0:x0 + a1 + 2 * r]
+            res = cv2.matchTemplate(win, tm, cv2.TM_CCOEFF_NORMED, mask=mk)
+            res[~np.isfinite(res)] = 0
+            at = float(len(ys)) * self.d ** 2
+            total += np.maximum(res, 0) * np.float32(np.sqrt(at))
+            area += at
+        if area == 0:
+            return -np.inf, np.zeros(2), 0.0
+        yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+        total[(xx ** 2 + yy ** 2) > r * r] = -1
+        k = int(np.argmax(total))
+        dy, dx = np.unravel_index(k, total.shape)
+        return float(total[dy, dx]), np.array([dx - r, dy - r], float) * self.d, area
+
+
+def _shifted(cam_from_carriage: np.ndarray, c: np.ndarray, shift: np.ndarray, K) -> np.ndarray:
+    """The pose moved so that its coupler ``c`` (carriage frame) moves by ``shift`` px in the photo, at the
+    same depth (across the line of sight: an image shift says nothing about the depth, which the joint pose
+    of the aligned faces fixes afterwards)."""
+    X = cam_from_carriage[:3, :3] @ c + cam_from_carriage[:3, 3]
+    uv = K.K @ X
+    uv = uv[:2] / uv[2] + shift
+    ray = np.linalg.inv(K.K) @ np.array([uv[0], uv[1], 1.0])
+    M = cam_from_carriage.copy()
+    M[:3, 3] += ray * (X[2] / ray[2]) - X
+    return M
+
+
+def _rest_on_ray(cam_from_carriage: np.ndarray, c: np.ndarray, cam_from_world: np.ndarray, corners: np.ndarray,
+                 terrain, reach_m: float) -> np.ndarray:
+    """The pose moved along the line of sight of its coupler ``c`` (the photo keeps the coupler where it is)
+    to where its lowest corner touches the terrain, within ``reach_m``: the depth that an image position leaves
+    open."""
+    if terrain is None:
+        return cam_from_carriage
+    world_from_cam = np.linalg.inv(cam_from_world)
+    X = cam_from_carriage[:3, :3] @ c + cam_from_carriage[:3, 3]
+
+    def at(sc):
+        M = cam_from_carriage.copy()
+        M[:3, 3] += (sc - 1.0) * X
+        return M
+
+    def clearance(sc):
+        W = world_from_cam @ at(sc)
+        P = (W[:3, :3] @ corners.T).T + W[:3, 3]
+        h = terrain.height_at(P[:, :2])
+        return float(np.nanmin(P[:, 2] - h)) if np.any(np.isfinite(h)) else np.nan
+
+    d = float(np.linalg.norm(X))
+    lo, hi = 1.0 - reach_m / d, 1.0 + reach_m / d  # within the anchor's reach along the line of sight
+    g_lo, g_hi = clearance(lo), clearance(hi)
+    if not (np.isfinite(g_lo) and np.isfinite(g_hi)) or np.sign(g_lo) == np.sign(g_hi):
+        return cam_from_carriage  # no contact along the ray within the range: leave it
+    for _ in range(24):
+        mid = 0.5 * (lo + hi)
+        g = clearance(mid)
+        if not np.isfinite(g):
+            break
+        if np.sign(g) == np.sign(g_lo):
+            lo, g_lo = mid, g
+        else:
+            hi = mid
+    return at(0.5 * (lo + hi))
+
+
+def _distinct(poses: list[tuple[float, np.ndarray]], k: int, min_sep_m: float, ct: CarriageType
+              ) -> list[tuple[float, np.ndarray]]:
+    """The k best (score, pose) whose couplers and roof are at least ``min_sep_m`` from any better one's."""
+    probe = np.array([ct.coupler_front, ct.coupler_rear, [0.0, 0.0, ct.height_m]])
+    out, pts = [], []
+    for sc, M in sorted(poses, key=lambda x: -x[0]):
+        if not np.isfinite(sc):
+            break
+        p = (M[:3, :3] @ probe.T).T + M[:3, 3]
+        if any(np.max(np.linalg.norm(p - q, axis=1)) < min_sep_m for q in pts):
+            continue
+        out.append((sc, M))
+        pts.append(p)
+        if len(out) >= k:
+            break
+    return out
+
+
+def search_car(photo: PhotoFeatures, number: str, ct: CarriageType, refs: dict[str, FaceReference],
+               anchors: list[Anchor], cam_from_world: np.ndarray, terrain, opts: MatchOptions,
+               taken: list[np.ndarray] | None = None) -> list[CarInPhoto]:
+    """The car's faces found by the chain- and terrain-guided pose search, or [] (not convincingly there)."""
+    K = photo.intrinsics.without_distortion()
+    L = float(np.linalg.norm(ct.coupler_front - ct.coupler_rear))
+    min_cos = opts.guided_min_cosine
+    corners = _corners(ct)
+    cands: list[tuple[float, np.ndarray]] = []
+    for a in anchors:
+        Xc = cam_from_world[:3, :3] @ a.world + cam_from_world[:3, 3]
+        if Xc[2] <= 1.0:
+            continue
+        px_per_m = K.fx / Xc[2]
+        radius_m = opts.search_held_radius_m if a.coupling == "held" else opts.search_broken_radius_m
+        down = int(np.clip(np.floor(L * px_per_m / 150.0), 1, 4))
+        coarse = _Renderer(photo, refs, ct, down)
+        c = ct.coupler_front if a.end == "front" else ct.coupler_rear
+        hyps = []
+        yaws = np.arange(0.0, 360.0, COARSE_HEADING_DEG) if a.yaw is None else \
+            np.rad2deg(a.yaw) + np.arange(-opts.search_yaw_span_deg, opts.search_yaw_span_deg + 1e-6, COARSE_HEADING_DEG)
+        for yaw in np.deg2rad(yaws):
+            pitch = _pitch_on_terrain(a, float(yaw), L, terrain)
+            for roll in np.deg2rad(np.arange(-180.0, 180.0, COARSE_ROLL_DEG)):
+                M0 = cam_from_world @ _rest(_pose_at(ct, a, float(yaw), pitch, float(roll)), corners, terrain)
+                sc, sh, _ = coarse.match(M0, min_cos, radius_m * px_per_m)
+                if np.isfinite(sc):
+                    hyps.append((sc, _shifted(M0, c, sh, K), float(yaw), pitch,
+                                 float(roll)))
+        if not hyps:
+            continue
+        hyps.sort(key=lambda h: -h[0])
+        # the best of every roll class (upright, on either side, ...): a partly hidden face scores low, and
+        # the verification, not the score, decides
+        seed_ids = set()
+        for roll in {round(h[4], 3) for h in hyps}:
+            cls = [(h[0], h[1]) for h in hyps if round(h[4], 3) == roll]
+            seed_ids |= {id(M) for _, M in _distinct(cls, SEEDS_PER_ROLL, 1.0, ct)}
+        fine = _Renderer(photo, refs, ct, 1)
+        for sc0, M0, yaw, pitch, roll in (h for h in hyps if id(h[1]) in seed_ids):
+            # finer orientations around the seed, each at its best shift (full resolution)
+            M0 = _rest_on_ray(M0, c, cam_from_world, corners, terrain, radius_m)
+            world0 = np.linalg.inv(cam_from_world) @ M0
+            cw = world0[:3, :3] @ c + world0[:3, 3]
+            a0 = Anchor(a.end, cw, a.neighbour, a.coupling)
+            best = (-np.inf, M0)
+            for dy in np.deg2rad(np.arange(-1.0, 1.01, FINE_HEADING_DEG)):
+                for dr in np.deg2rad(np.arange(-10.0, 10.1, 5.0)):
+                    for dp in (0.0,):
+                        # about the seed's coupler, where the photo put it (not rested again: a vertical
+                        # move is an image shift at a grazing view)
+                        M1 = cam_from_world @ _pose_at(ct, a0, yaw + dy, pitch + dp, roll + dr)
+                        sc, sh, _ = fine.match(M1, min_cos, 2.0 * down + 2.0)
+                        if sc > best[0]:
+                            best = (sc, _shifted(M1, c, sh, K))
+            cands.append((best[0], _rest_on_ray(best[1], c, cam_from_world, corners, terrain, radius_m), round(roll, 3)))
+    if not cands:
+        return []
+    # verified: the best refined candidates of every roll class, best first
+    chosen = []
+    for roll in {c[2] for c in cands}:
+        chosen += _distinct([(sc, M) for sc, M, r in cands if r == roll], SEEDS_PER_ROLL, 1.0, ct)
+    chosen = _distinct(chosen, opts.search_seeds, 1.0, ct)
+    accepted = []
+    for sc, M in chosen:
+        res = _verify(photo, number, ct, refs, anchors, M, cam_from_world, opts, taken or [])
+        if log.isEnabledFor(logging.DEBUG):
+            W = np.linalg.inv(cam_from_world) @ M
+            R = W[:3, :3]
+            log.debug("%s: car %s: candidate score %.1f origin %s heading %.1f pitch %.1f roll %.1f -> %s", photo.name,
+                      number, sc, np.round(W[:3, 3], 2).tolist(), (90 - np.degrees(np.arctan2(R[1, 0], R[0, 0]))) % 360,
+                      np.degrees(np.arcsin(np.clip(R[2, 0], -1, 1))), np.degrees(np.arctan2(R[2, 1], R[2, 2])),
+                      None if res is None else [d.ref.face for d in res[1]])
+        if res is not None:
+            accepted.append(res)
+    if not accepted:
+        return []
+    # poses that both pass but put the car's marked points in different places: ambiguous, left out
+    probe = np.array(list(ct.marked_points.values()))
+
+    def where(M):
+        return K.project((M[:3, :3] @ probe.T).T + M[:3, 3])
+
+    def apart(a, b):
+        # the faces both aligned: their outlines; every marked point: where the two poses put it (predictions,
+        # looser: a wrong point is 10 px off)
+        fa = {d.ref.face: d for d in a[1]}
+        d_face = max([0.0] + [float(np.max(np.linalg.norm(fa[d.ref.face].transfer(d.ref.corners()) - d.polygon(), axis=1)))
+                              for d in b[1] if d.ref.face in fa and d.ref.image.shape == fa[d.ref.face].ref.image.shape])
+        d_pose = float(np.max(np.linalg.norm(where(a[0]) - where(b[0]), axis=1)))
+        return d_face > DISTINCT_PX or d_pose > 2.5 * DISTINCT_PX
+
+    first = accepted[0]
+    for other in accepted[1:]:
+        if apart(first, other):
+            log.info("%s: car %s: the pose search found %d different poses (faces %s and %s, %.1f px apart); left out",
+                     photo.name, number, len(accepted), [d.ref.face for d in first[1]], [d.ref.face for d in other[1]],
+                     np.max(np.linalg.norm(where(first[0]) - where(other[0]), axis=1)))
+            return []
+    M, dets = first
+    log.info("%s: car %s found by the chain/terrain pose search: faces %s (ECC %s)", photo.name, number,
+             [d.ref.face for d in dets], [round(d.ecc, 3) for d in dets])
+    return [CarInPhoto(number, d, 0, M) for d in dets]
+
+
+def _verify(photo: PhotoFeatures, number: str, ct: CarriageType, refs: dict[str, FaceReference],
+            anchors: list[Anchor], M0: np.ndarray, cam_from_world: np.ndarray, opts: MatchOptions,
+            taken: list[np.ndarray]) -> tuple[np.ndarray, list] | None:
+    """ECC of every facing face from the hypothesis, the joint pose, and the checks; (pose, faces) or None."""
+    sub = MatchOptions(**{**{k: getattr(opts, k) for k in opts.__dataclass_fields__},
+                          "guided_min_ecc": opts.search_min_ecc})
+    dets = []
+    for f, r in refs.items():
+        d = guided_face(photo, r, M0, ct, sub)
+        if d is None and f in ("left", "right", "roof"):
+            # a long face partly hidden (a building, another car): its visible part, the largest that aligns
+            for u0, u1 in CROPS:
+                d = guided_face(photo, crop_reference(r, u0, u1), M0, ct, sub)
+                if d is not None:
+                    break
+        if d is not None:
+            dets.append(d)
+    if not dets:
+        return None
+    # a face of another car already found there: the search locked on a neighbour (identical coaches)
+    for d in dets:
+        if any(_overlap(d.polygon(), q) > 0.3 for q in taken):
+            log.info("%s: car %s: search face %s lies on a face of another car; rejected", photo.name, number,
+                     d.ref.face)
+            return None
+    M = joint_pose(dets, photo.intrinsics, M0)
+    if M is None:
+        return None
+    area = sum(_area(d.polygon()) for d in dets)
+    if len(dets) < opts.search_min_faces:
+        d = dets[0]
+        if not (d.ecc >= opts.search_single_face_ecc and area >= opts.search_single_face_px):
+            return None
+    # the refined pose meets the chain: a coupler near its anchor (held: the neighbour's pose error; broken:
+    # a few metres)
+    W = np.linalg.inv(cam_from_world) @ M
+    gaps = []
+    for a in anchors:
+        c = ct.coupler_front if a.end == "front" else ct.coupler_rear
+        tol = opts.search_held_radius_m if a.coupling == "held" else opts.search_broken_radius_m
+        gaps.append(float(np.linalg.norm(W[:3, :3] @ c + W[:3, 3] - a.world)) / tol)
+    if min(gaps) > 1.0:
+        log.info("%s: car %s: search pose off its anchors (gap / tolerance %s); rejected", photo.name, number,
+                 [round(g, 2) for g in gaps])
+        return None
+    # every face aligned must agree with the refined pose (ECC did not drift)
+    K = photo.intrinsics.without_distortion()
+    for d in dets:
+        Hp = predicted_homography(M, d.ref, K)
+        moved = np.linalg.norm(_apply_h(Hp, d.ref.corners()) - d.polygon(), axis=1)
+        if moved.max() > 3.0:
+            return None
+    return M, dets
+
+
+def crop_reference(ref: FaceReference, u0: float, u1: float) -> FaceReference:
+    """The part of a face reference between the shares ``u0`` and ``u1`` of its length (same plane mapping)."""
+    w = ref.image.shape[1]
+    a, b = int(round(u0 * w)), int(round(u1 * w))
+    pts = {n: p - [a, 0.0] for n, p in ref.points.items() if a - 0.5 <= p[0] <= b - 0.5}
+    return FaceReference(ref.type_id, ref.car_number, ref.face, np.ascontiguousarray(ref.image[:, a:b]), ref.px_per_m,
+                         pts, ref.origin_m + a * ref.axis_u_m, ref.axis_u_m, ref.axis_v_m)
+
+
+def _reliable(entries: list[CarInPhoto]) -> bool:
+    """A found car's pose is an anchor only if it rests on more than one face, or on one face matched over at
+    least 70 % of its length (a pose from a short stretch of a side is metres off at the couplers)."""
+    if len({c.detection.ref.face for c in entries}) >= 2:
+        return True
+    d = entries[0].detection
+    if d.inlier_ref_px is None or len(d.inlier_ref_px) < 6:
+        return False
+    u = d.inlier_ref_px[:, 0]
+    return bool(u.max() - u.min() >= 0.7 * d.ref.image.shape[1])
+
+
+def _area(poly: np.ndarray) -> float:
+    return float(0.5 * abs(np.sum(poly[:, 0] * np.roll(poly[:, 1], -1) - np.roll(poly[:, 0], -1) * poly[:, 1])))
+
+
+def chain_search(photo: PhotoFeatures, found: list[CarInPhoto], consist: list[tuple[str, str, str | None]],
+                 types: dict[str, CarriageType], by_number: dict[str, dict[str, FaceReference]],
+                 cam_from_world: np.ndarray, terrain, opts: MatchOptions,
+                 ref_cache: dict[tuple[str, str], FaceReference]) -> list[CarInPhoto]:
+    """``found`` completed with the cars found by the pose search (repeated while a new car gives a new
+    anchor)."""
+    out = list(found)
+    world_from_cam = np.linalg.inv(cam_from_world)
+    tried: set[tuple[str, tuple]] = set()
+    while True:
+        poses = {}
+        for number in dict.fromkeys(c.number for c in out):
+            mine = [c for c in out if c.number == number and c.cam_from_carriage is not None]
+            if mine and _reliable(mine):
+                poses[number] = world_from_cam @ mine[0].cam_from_carriage
+        have = {c.number for c in out}
+        new = []
+        for k, (number, _, _) in enumerate(consist):
+            if number in have:
+                continue
+            anchors = anchors_of(k, consist, types, poses, broken=opts.search_broken)
+            if not anchors:
+                continue
+            key = (number, tuple(a.neighbour for a in anchors))
+            if key in tried:
+                continue
+            tried.add(key)
+            ct = types[number]
+            refs = {f: by_number.get(number, {}).get(f) or _reference(ct, number, f, opts, ref_cache) for f in FACES}
+            taken = [c.detection.polygon() for c in out]
+            new = search_car(photo, number, ct, refs, anchors, cam_from_world, terrain, opts, taken)
+            if new:
+                break
+        if not new:
+            return out
+        out += new
