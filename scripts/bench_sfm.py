@@ -145,7 +145,7 @@ def _label(root: Path) -> str:
     return f"{g['scenario']} seed {g['seed']}"
 
 
-def georef_eval(root: Path, res, work: Path, centres: dict, rots: dict) -> dict:
+def georef_eval(root: Path, res, work: Path, centres: dict, rots: dict, rec: dict | None = None) -> dict:
     """The ``georef`` stage on an SfM result, in a scratch incident beside ``work`` (``camera.source = "sfm"``,
     the incident's control points): photos placed and their errors against the truth in the scene frame (no
     alignment), with every model (``after``) and with the main model only (``before``: the stage before the
@@ -160,7 +160,11 @@ def georef_eval(root: Path, res, work: Path, centres: dict, rots: dict) -> dict:
     from workbench.georef.solvers import GeorefOptions
 
     out = {}
-    for variant in ("before", "models", "after"):
+    if rec is None:
+        rec0 = None
+    else:
+        rec0 = json.loads(json.dumps(rec))
+    for variant in ("before", "models", "resected", "after"):
         dst = work / f"georef_{root.name}_{variant}"
         if dst.exists():
             shutil.rmtree(dst)
@@ -173,7 +177,7 @@ def georef_eval(root: Path, res, work: Path, centres: dict, rots: dict) -> dict:
         toml = toml.replace('photos = "photos/panorama"', 'photos = "photos/multiview"')
         (dst / "project.toml").write_text(toml)
         project = Project(dst)
-        rec = res.to_json(project.relative)
+        rec = json.loads(json.dumps(rec0)) if rec0 is not None else res.to_json(project.relative)
         if variant == "before":
             rec["models"] = []
         atomic_write_json(dst / "out" / "sfm" / "reconstruction.json", rec)
@@ -182,8 +186,9 @@ def georef_eval(root: Path, res, work: Path, centres: dict, rots: dict) -> dict:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 stage = run_georef(project, lambda f, m="": None,
-                                   GeorefOptions(resect_unplaced=variant == "after",
-                                                 reject_disagreeing_views=variant != "before"))
+                                   GeorefOptions(resect_unplaced=variant in ("resected", "after"),
+                                                 reject_disagreeing_views=variant != "before",
+                                                 adjust_camera=variant == "after"))
         except Exception as exc:  # noqa: BLE001 - a failed georegistration is a result
             out[variant] = {"n_placed": 0, "error": f"{type(exc).__name__}: {exc}"[:300]}
             continue
@@ -194,10 +199,24 @@ def georef_eval(root: Path, res, work: Path, centres: dict, rots: dict) -> dict:
                 for v in doc["views"]}
         e = np.array(list(errs.values()))
         g = doc["georegistration"]
+        # the stated uncertainty against the error: |error| / sigma (largest axis) and the squared Mahalanobis
+        # distance (chi-square with 3 degrees of freedom: 95 % below 7.81) where a covariance is stated
+        unc = g.get("view_uncertainty", {})
+        ratio, mahal = {}, {}
+        for v in doc["views"]:
+            u = unc.get(v["name"], {})
+            d = np.asarray(v["center_enu"]) - centres[v["name"]]
+            if u.get("sigma_centre_m"):
+                ratio[v["name"]] = float(np.linalg.norm(d) / u["sigma_centre_m"])
+            if u.get("cov_centre_enu_m2") is not None:
+                mahal[v["name"]] = float(d @ np.linalg.solve(np.asarray(u["cov_centre_enu_m2"]), d))
         out[variant] = {"n_placed": len(doc["views"]), "placed": sorted(errs),
                         "position_rms_m": float(np.sqrt(np.mean(e ** 2))), "position_max_m": float(e.max()),
                         "rotation_err_deg_max": float(max(rerr.values())), "georef_s": time.perf_counter() - t0,
                         "per_view_position_err_m": errs, "per_view_rotation_err_deg": rerr,
+                        "per_view_err_over_sigma": ratio, "per_view_mahalanobis2": mahal,
+                        "per_view_sigma_from": {n: u.get("from") for n, u in unc.items()},
+                        "camera_adjustment": g.get("camera_adjustment"),
                         "models": [{k: m.get(k) for k in ("model", "status", "reason", "views", "placed",
                                                           "n_fitting_triangulated", "spread_m", "rms_px",
                                                           "sigma_centre_max_m", "overlap")}
@@ -208,11 +227,19 @@ def georef_eval(root: Path, res, work: Path, centres: dict, rots: dict) -> dict:
     return out
 
 
-def bench_incident(root: Path, label: str, variants, georef_work: Path | None = None) -> list[dict]:
+def bench_incident(root: Path, label: str, variants, georef_work: Path | None = None,
+                   reuse_sfm: bool = False) -> list[dict]:
     photos = sorted((root / "photos" / "multiview").glob("*.jpg"))
     if not photos or not (root / "truth" / "ground_truth.json").is_file():
         raise FileNotFoundError(f"{root}: no generated multi-view photos or truth; run `workbench synth` on it first")
     centres, rots, intr = _truth_of_incident(root)
+    kept = None if georef_work is None else georef_work / f"georef_{root.name}_after" / "out" / "sfm" / "reconstruction.json"
+    if reuse_sfm and kept is not None and kept.is_file():  # georef only, on the SfM result of an earlier run
+        rec = json.loads(kept.read_text())
+        row = {"set": label, "variant": "reused SfM result (" + str(kept) + ")", "n_images": len(photos),
+               "n_registered": len(rec["images"])}
+        row["georef"] = georef_eval(root, None, georef_work, centres, rots, rec=rec)
+        return [row]
     rows = []
     for vlabel, opts, use_prior in variants:
         try:
@@ -316,6 +343,9 @@ def main() -> None:
                     help="incident sets: also run the georef stage on the SfM result (every model, and the main model "
                          "only) from the incident's control points, and compare the cameras with the truth in the "
                          "scene frame")
+    ap.add_argument("--reuse-sfm", action="store_true",
+                    help="with --georef: when WORK/georef_<incident>_after/out/sfm/reconstruction.json exists (an "
+                         "earlier run's SfM result), run only the georef variants on it")
     ap.add_argument("--variants", default="all", choices=("all", "stage"),
                     help="incident sets: 'stage' runs only the stage's options (not COLMAP's SIFT defaults too)")
     args = ap.parse_args()
@@ -337,8 +367,10 @@ def main() -> None:
     runs = {
         "render": lambda: bench_render(work, 8) + bench_render(work, 16),
         "synth": lambda: bench_synth(work),
-        "spuyten": lambda: bench_incident(Path(args.spuyten), "spuyten-duyvil seed 1", variants(), gw),
-        "frankford": lambda: bench_incident(Path(args.frankford), "frankford-junction seed 1", variants(), gw),
+        "spuyten": lambda: bench_incident(Path(args.spuyten), "spuyten-duyvil seed 1", variants(), gw,
+                                               args.reuse_sfm),
+        "frankford": lambda: bench_incident(Path(args.frankford), "frankford-junction seed 1", variants(), gw,
+                                                 args.reuse_sfm),
         "extra": lambda: [r for p in args.extra for r in bench_incident(Path(p), f"{_label(Path(p))}",
                                                                         variants(), gw)],
         "lund": bench_lund,
@@ -382,7 +414,8 @@ def main() -> None:
                 print(f"{r['set']} / {r['variant']}: georef {gv}: {g['error']}")
                 continue
             what = {"before": "main model only, no check of single photos", "models": "every SfM model",
-                    "after": "every SfM model, then resection of the photos left"}[gv]
+                    "resected": "every SfM model, then resection of the photos left",
+                    "after": "the default: models, resection, shared camera adjusted"}[gv]
             print(f"{r['set']} / {r['variant']}: georef {gv} ({what})", end="")
             print(f": {g['n_placed']}/{r['n_images']} photos placed, position error RMS {g['position_rms_m']:.3f} / "
                   f"max {g['position_max_m']:.3f} m, rotation max {g['rotation_err_deg_max']:.3f} deg, "
@@ -390,6 +423,17 @@ def main() -> None:
             print("    per photo (m / deg): " + " ".join(
                 f"{k}:{v:.3f}/{g['per_view_rotation_err_deg'][k]:.2f}"
                 for k, v in g["per_view_position_err_m"].items()))
+            if g.get("per_view_err_over_sigma"):
+                mh = g.get("per_view_mahalanobis2", {})
+                print("    error / stated 1-sigma (Mahalanobis^2): " + " ".join(
+                    f"{k}:{v:.2f}" + (f"({mh[k]:.1f})" if k in mh else "")
+                    for k, v in g["per_view_err_over_sigma"].items())
+                    + (f"; {sum(x < 7.81 for x in mh.values())}/{len(mh)} inside the 95 % ellipsoid" if mh else ""))
+            for a in g.get("camera_adjustment") or []:
+                print(f"    camera adjustment over {len(a.get('photos', []))} photos, {a.get('n_observations')} "
+                      f"picks: chosen {a.get('chosen')}, held-out RMS px {a.get('held_out_rms_px')}, intrinsics "
+                      f"{a.get('free_intrinsics')} +- {a.get('sigma_intrinsics')}, condition "
+                      f"{a.get('condition') or 0:.0f}, chi2_red {a.get('chi2_red') or 0:.3f}")
             for m in g["models"]:
                 print(f"    {m['model']} {m['views']}: {m['status']}" + (f" ({m['reason']})" if m.get("reason") else
                       f", {m.get('n_fitting_triangulated')} points, spread {m.get('spread_m') or 0:.1f} m, "

@@ -600,13 +600,13 @@ def test_multiview_resection_checks_a_wrong_sfm_focal(sample, tmp_path):
             warnings.simplefilter("ignore")
             return json.loads(run_georef(Project(dst), _no_progress, opts).outputs["cameras"].read_text())
 
-    # without the focal check (never refined): placed, but metres off
-    doc = run(GeorefOptions(resect_focal_disagree_sigma=1e9))
+    # without the focal check (never refined) and without the shared camera's adjustment: placed, but metres off
+    doc = run(GeorefOptions(resect_focal_disagree_sigma=1e9, adjust_camera=False))
     v = next(v for v in doc["views"] if v["name"] == lone)
     err_fixed = np.linalg.norm(np.asarray(v["center_enu"]) - truth_by[lone]["center_enu"])
     assert 0.5 < err_fixed < 20.0, err_fixed
     # with it: the refined focal is near the truth, and the photo is within 0.5 m or not placed
-    doc = run(GeorefOptions())
+    doc = run(GeorefOptions(adjust_camera=False))
     placed = [v for v in doc["views"] if v["name"] == lone]
     if placed:
         r = next(r for r in doc["georegistration"]["resected"] if r["name"] == lone)
@@ -617,3 +617,121 @@ def test_multiview_resection_checks_a_wrong_sfm_focal(sample, tmp_path):
     else:
         (u,) = [u for u in doc["georegistration"]["unregistered"] if u["name"] == lone]
         assert "fix it only to" in u["reason"], u
+
+
+# ----------------------------------------------------------------------------------------------------------
+# The shared camera adjusted from the control points; honest stated uncertainty; the main model checked
+# ----------------------------------------------------------------------------------------------------------
+def _wrong_camera_reconstruction(dst: Path, names: list[str], lone: str, *, f_scale: float, dcx: float,
+                                 dcy: float) -> dict:
+    """The true cameras in a model frame, with SfM's shared camera wrong (focal scaled, principal point moved),
+    and one photo left out by SfM."""
+    rec = _split_reconstruction(dst, [[n for n in names if n != lone]],
+                                [_similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0])])
+    for im in rec["images"]:
+        it = im["intrinsics"]
+        im["intrinsics"] = {**it, "fx": it["fx"] * f_scale, "fy": it["fy"] * f_scale, "cx": it["cx"] + dcx,
+                            "cy": it["cy"] + dcy}
+    rec["unregistered"] = [{"name": lone, "reason": "too few verified matches with the registered photos"}]
+    return rec
+
+
+def _errors(doc: dict, truth: dict) -> dict[str, tuple[float, float, float | None, float | None]]:
+    """photo -> (centre error m, rotation error deg, |error| / stated sigma, squared Mahalanobis distance)."""
+    truth_by = {Path(p["photo"]).name: p for p in truth["photos"]}
+    unc = doc["georegistration"].get("view_uncertainty", {})
+    out = {}
+    for v in doc["views"]:
+        d = np.asarray(v["center_enu"]) - truth_by[v["name"]]["center_enu"]
+        u = unc.get(v["name"], {})
+        ratio = float(np.linalg.norm(d) / u["sigma_centre_m"]) if u.get("sigma_centre_m") else None
+        m2 = (float(d @ np.linalg.solve(np.asarray(u["cov_centre_enu_m2"]), d))
+              if u.get("cov_centre_enu_m2") is not None else None)
+        out[v["name"]] = (float(np.linalg.norm(d)), _rot_err_deg(v["cam_from_world"],
+                                                                truth_by[v["name"]]["cam_from_world"]), ratio, m2)
+    return out
+
+
+def test_multiview_shared_camera_adjusted_and_uncertainty_honest(sample, tmp_path):
+    """SfM's shared camera 3 % short in focal with its principal point 20 px off (what pycolmap gave on the
+    synthetic incidents): the photos' own picks refine focal and principal point jointly with the poses (kept:
+    the held-out residual drops), the photos land centimetres from the truth, and every stated covariance
+    covers the error (the truth inside the 95 % ellipsoid), without being wildly pessimistic."""
+    dst, truth, names = _mv_project(sample, tmp_path, "mv_adjust")
+    picks = _picks_per_photo(dst)
+    lone = max(names, key=lambda n: (picks.get(n, 0), n))
+    rec = _wrong_camera_reconstruction(dst, names, lone, f_scale=0.97, dcx=-20.0, dcy=13.0)
+    atomic_write_json(dst / "out" / "sfm" / "reconstruction.json", rec)
+    true_intr = next(p for p in truth["photos"] if p["set"] == "multiview")["intrinsics"]
+
+    def run(opts):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return json.loads(run_georef(Project(dst), _no_progress, opts).outputs["cameras"].read_text())
+
+    off = _errors(run(GeorefOptions(adjust_camera=False)), truth)
+    doc = run(GeorefOptions())
+    on = _errors(doc, truth)
+    (adj,) = doc["georegistration"]["camera_adjustment"]
+    assert adj["chosen"] != "sfm", adj
+    ho = adj["held_out_rms_px"]
+    assert ho[adj["chosen"]] < 0.7 * ho["sfm"], ho
+    it = doc["views"][0]["intrinsics"]
+    sg = adj["sigma_refined"]
+    assert 0.0 < abs(it["fx"] / true_intr["fx"] - 1) < 0.01, (it["fx"], true_intr["fx"])
+    # the principal point within 3 of its stated sigmas (cy, with the cameras' pitch, is the weak one)
+    for k in ("cx", "cy"):
+        assert 0.0 < abs(it[k] - true_intr[k]) < 3.0 * sg[k] and sg[k] < 15.0, (k, it[k], true_intr[k], sg)
+    assert 1.0 < adj["condition"] < 1e4 and 0.0 < adj["sigma_intrinsics"]["f"] < 0.01 * true_intr["fx"], adj
+    # positions: worse than 0.3 m somewhere with SfM's camera; within 0.25 m everywhere with the adjusted one
+    assert max(e[0] for e in off.values()) > 0.3, off
+    assert 0.001 < max(e[0] for e in on.values()) < 0.25, on
+    assert 0.0005 < max(e[1] for e in on.values()) < min(1.2, max(e[1] for e in off.values())), (on, off)
+    unc = doc["georegistration"]["view_uncertainty"]
+    for name, e in on.items():  # rotation errors within 3 stated sigmas too
+        assert e[1] < 3.0 * unc[name]["sigma_rotation_deg"], (name, e, unc[name]["sigma_rotation_deg"])
+    # honesty: every photo has a covariance; the truth inside its 95 % ellipsoid (chi-square 3 dof: 7.81) for
+    # at least 85 % of the photos, and the mean squared Mahalanobis distance neither tiny nor large (3 expected)
+    m2 = [e[3] for e in on.values()]
+    assert all(x is not None for x in m2), on
+    assert sum(x < 7.81 for x in m2) >= 0.85 * len(m2), m2
+    assert 0.2 < float(np.mean(m2)) < 6.0, m2
+    # with the adjustment off the stated sigmas do not cover the error: that is what it fixes
+    worst = max((e for e in off.values() if e[2] is not None), key=lambda e: e[0])
+    assert worst[2] > 3.0, off
+
+
+def test_multiview_main_model_is_checked(sample, tmp_path):
+    """A main model that fails the separate-model checks (SfM's focal 15 % off: picks far from the fit) is not
+    kept, and its photos are tried on their own; when none of them passes either, the stage errors, naming the
+    main model's failed check and every photo's reason (never a model metres off, silently kept)."""
+    dst, truth, names = _mv_project(sample, tmp_path, "mv_main_checked")
+    picks = _picks_per_photo(dst)
+    lone = max(names, key=lambda n: (picks.get(n, 0), n))
+    rec = _wrong_camera_reconstruction(dst, names, lone, f_scale=0.85, dcx=0.0, dcy=0.0)
+    atomic_write_json(dst / "out" / "sfm" / "reconstruction.json", rec)
+
+    def run(opts):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return json.loads(run_georef(Project(dst), _no_progress, opts).outputs["cameras"].read_text())
+
+    for opts in (GeorefOptions(), GeorefOptions(resect_unplaced=False)):
+        with pytest.raises(InputError, match=r"main.*control-point RMS residual") as ei:
+            run(opts)
+        if opts.resect_unplaced:
+            assert "no photo could be placed on its own" in str(ei.value) and lone in str(ei.value)
+    # the same model with SfM's focal right is placed, and checked: its figures are reported
+    rec = _wrong_camera_reconstruction(dst, names, lone, f_scale=1.0, dcx=0.0, dcy=0.0)
+    atomic_write_json(dst / "out" / "sfm" / "reconstruction.json", rec)
+    doc = run(GeorefOptions())
+    g = doc["georegistration"]
+    main = g["models"][0]
+    assert main["status"] == "georegistered" and main["n_fitting_triangulated"] >= 3, main
+    assert 0.0 < main["rms_px"] < 3.0 and 0.0 < main["sigma_centre_max_m"] < 0.5, main
+    # with SfM's camera right, the adjustment (whichever set the held-out picks choose) does not make it worse
+    on = _errors(doc, truth)
+    off = _errors(run(GeorefOptions(adjust_camera=False)), truth)
+    assert sorted(on) == sorted(off) == sorted(names)
+    assert 0.0005 < max(e[0] for e in on.values()) < max(0.15, 1.5 * max(e[0] for e in off.values())), (on, off)
+    assert sum(e[3] < 7.81 for e in on.values() if e[3] is not None) >= 0.85 * len(on), on

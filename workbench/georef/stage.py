@@ -438,8 +438,162 @@ def _separate_model_verdict(res, views: list[SfmView], opts: GeorefOptions) -> t
     return None, figures
 
 
+def _cov_report(C: np.ndarray) -> dict:
+    C = 0.5 * (np.asarray(C, float) + np.asarray(C, float).T)
+    return {"sigma_centre_m": float(np.sqrt(max(np.linalg.eigvalsh(C).max(), 0.0))),
+            "sigma_centre_enu_m": np.sqrt(np.clip(np.diag(C), 0.0, None)).tolist(), "cov_centre_enu_m2": C.tolist()}
+
+
+def _camera_adjustment(models, placed: dict, resected: dict, out_views: list[dict], cps: list[ControlPoint],
+                       opts: GeorefOptions) -> tuple[dict, list, dict]:
+    """Every placed photo's stated uncertainty, and the shared camera's intrinsics refined from the picks.
+
+    Photos that share one SfM camera (identical SfM intrinsics) and have ``resect_min_points`` fitting picks are
+    adjusted together (:func:`~workbench.georef.solvers.adjust_shared_camera`): focal, principal point and k1
+    free (loose prior at SfM's values), every photo's pose free. Its covariance (times the variance factor: the
+    reduced chi-square when above 1, or with ``variance_factor_min_dof`` degrees of freedom) is each such photo's
+    stated uncertainty: it counts the picks' noise, the residual
+    scatter and the intrinsics' uncertainty. The refined intrinsics (the parameter set with the lowest
+    two-fold cross-validated residual of held-out picks) replace SfM's, and the photos take their adjusted
+    poses, only when that residual is lower than with SfM's intrinsics kept. A photo placed by its model with
+    too few picks to be adjusted states the similarity's covariance plus the scatter of its model's
+    adjusted photos about their model poses (the SfM model's own error). ``out_views`` is updated in place."""
+    from .solvers import INTRINSIC_SETS, adjust_shared_camera, held_out_rms
+
+    by_name = {v["name"]: v for v in out_views}
+    sfm_intr: dict[str, CameraIntrinsics] = {}
+    for _, vs in models:
+        for v in vs:
+            sfm_intr.setdefault(v.name, v.intrinsics)
+    main_cam = models[0][1][0].intrinsics if models and models[0][1] else None
+    groups: dict[str, list[str]] = {}
+    base_of: dict[str, CameraIntrinsics] = {}
+    for name in by_name:
+        it = sfm_intr.get(name) or main_cam
+        if it is None:
+            continue
+        key = _intr_key(it)
+        groups.setdefault(key, []).append(name)
+        base_of[key] = it
+    uncertainty: dict[str, dict] = {}
+    adjustments: list[dict] = []
+    adjusted_centres: dict[str, np.ndarray] = {}  # photo -> centre from the intrinsics-free adjustment
+    refined: dict[str, CameraIntrinsics] = {}  # SfM camera (key) -> its refined intrinsics
+    for key, names in (groups.items() if opts.adjust_camera else ()):
+        base = base_of[key]
+        poses, fit = {}, []
+        for n in sorted(names):
+            v = by_name[n]
+            M = np.asarray(v["cam_from_world"], float)
+            it = CameraIntrinsics.from_dict(v["intrinsics"])
+            ok = []
+            for cp in cps:
+                uv = cp.pixels.get(n)
+                if uv is None:
+                    continue
+                q = M[:3, :3] @ cp.enu + M[:3, 3]
+                if q[2] > 0 and np.hypot(*(it.project(q[None])[0] - uv)) < opts.ransac_threshold_px:
+                    ok.append(cp.name)
+            if len(ok) >= opts.resect_min_points:
+                poses[n] = M
+                fit.extend((p, n) for p in ok)
+        n_par = 4 + 6 * len(poses)
+        if not poses or 2 * len(fit) < n_par + 4:
+            continue
+        use = set(fit)
+        cps_use = [cp for cp in cps]
+        report: dict[str, Any] = {"photos": sorted(poses), "n_observations": len(fit),
+                                  "sfm_intrinsics": {"f": base.fx, "cx": base.cx, "cy": base.cy, "k1": base.k1}}
+        try:
+            free_adj = adjust_shared_camera(base, poses, cps_use, opts, free=INTRINSIC_SETS["f_pp_k1"], use=use)
+            cv = {"sfm": held_out_rms(base, poses, _only(cps_use, use), opts, ())}
+            for lbl, fr in INTRINSIC_SETS.items():
+                cv[lbl] = held_out_rms(base, poses, _only(cps_use, use), opts, fr)
+        except (ValueError, np.linalg.LinAlgError) as exc:
+            report["error"] = str(exc)
+            adjustments.append(report)
+            continue
+        report.update({"free_intrinsics": {k: free_adj["values"][k] for k in ("f", "cx", "cy", "k1")},
+                       "sigma_intrinsics": free_adj["sigma_intrinsics"], "condition": free_adj["condition"],
+                       "chi2_red": free_adj["chi2_red"], "dof": free_adj["dof"],
+                       "variance_factor": free_adj["variance_factor"], "rms_px": free_adj["rms_px"],
+                       "held_out_rms_px": {k: v[0] for k, v in cv.items()},
+                       "n_held_out": cv["sfm"][1]})
+        scored = {k: v[0] for k, v in cv.items() if v[0] is not None}
+        best = min(scored, key=scored.get) if "sfm" in scored else "sfm"
+        report["chosen"] = best
+        chosen = free_adj
+        if best != "sfm":
+            chosen = (free_adj if best == "f_pp_k1"
+                      else adjust_shared_camera(base, poses, cps_use, opts, free=INTRINSIC_SETS[best], use=use))
+            report["refined_intrinsics"] = chosen["intrinsics"].to_dict()
+            refined[key] = chosen["intrinsics"]
+            report["sigma_refined"] = chosen["sigma_intrinsics"]
+            for n, M in chosen["poses"].items():
+                by_name[n]["intrinsics"] = chosen["intrinsics"].to_dict()
+                by_name[n]["cam_from_world"] = M.tolist()
+                by_name[n]["center_enu"] = (-M[:3, :3].T @ M[:3, 3]).tolist()
+        for n in poses:
+            # the stated uncertainty: the intrinsics-free adjustment's (or the chosen one's, if larger)
+            C = free_adj["cov_centre"][n]
+            if np.linalg.eigvalsh(chosen["cov_centre"][n]).max() > np.linalg.eigvalsh(C).max():
+                C = chosen["cov_centre"][n]
+            uncertainty[n] = {**_cov_report(C), "sigma_rotation_deg": max(free_adj["sigma_rot_deg"][n],
+                                                                          chosen["sigma_rot_deg"][n]),
+                              "from": "joint adjustment of the shared camera (intrinsics free)",
+                              "intrinsics": "refined (" + best + ")" if best != "sfm" else "sfm"}
+            M = free_adj["poses"][n]
+            adjusted_centres[n] = -M[:3, :3].T @ M[:3, 3]
+        adjustments.append(report)
+    # photos placed by a model but not adjusted: the similarity's covariance plus the model's own scatter
+    for n, v in by_name.items():
+        if n in uncertainty:
+            continue
+        if n in placed:
+            label, res, sv = placed[n]
+            C = np.zeros((3, 3))
+            if res.covariance is not None:
+                q = res.scale * res.rotation @ (-sv.cam_from_model[:3, :3].T @ sv.cam_from_model[:3, 3])
+                from .solvers import _skew
+
+                Jc = np.hstack([q[:, None], -_skew(q), np.eye(3)])
+                C = Jc @ res.covariance @ Jc.T
+            d2 = []
+            for m, c_adj in adjusted_centres.items():
+                if m in placed and placed[m][0] == label:
+                    A = res.cam_from_world(placed[m][2].cam_from_model)
+                    d2.append(float(np.sum((-A[:3, :3].T @ A[:3, 3] - c_adj) ** 2)))
+            shape = float(np.mean(d2) / 3.0) if d2 else None
+            uncertainty[n] = {**_cov_report(C + (shape or 0.0) * np.eye(3)),
+                              "from": "similarity of SfM " + label + (
+                                  f" plus its photos' scatter about their adjusted poses ({len(d2)} photos)" if d2 else
+                                  " (the SfM model's own error not included: no photo of it could be adjusted)")}
+        elif n in resected:
+            r = resected[n]["report"]
+            uncertainty[n] = {"sigma_centre_m": r.get("sigma_centre_max_m"),
+                              "from": "resection (the intrinsics' error not included: too few picks to adjust)"}
+    return uncertainty, adjustments, refined
+
+
+def _intr_key(it: CameraIntrinsics) -> str:
+    return repr(sorted(it.to_dict().items()))
+
+
+def _only(cps: list[ControlPoint], use: set) -> list[ControlPoint]:
+    """The control points with only the picks in ``use`` ((point, photo) pairs)."""
+    from dataclasses import replace
+
+    out = []
+    for cp in cps:
+        pix = {ph: uv for ph, uv in cp.pixels.items() if (cp.name, ph) in use}
+        if pix:
+            out.append(replace(cp, pixels=pix))
+    return out
+
+
 def _resect_unplaced(project: Project, rdoc: dict, models, placed: dict, cps: list[ControlPoint], gps: dict,
-                     opts: GeorefOptions, where: str) -> tuple[dict[str, dict], dict[str, str]]:
+                     opts: GeorefOptions, where: str,
+                     refined: dict[str, CameraIntrinsics] | None = None) -> tuple[dict[str, dict], dict[str, str]]:
     """Photos of the SfM set in no placed model, each placed on its own from its control points (resection:
     P3P RANSAC + refinement, as the single-photo route), when the fit passes the checks of a separate model.
 
@@ -479,6 +633,9 @@ def _resect_unplaced(project: Project, rdoc: dict, models, placed: dict, cps: li
                 why[name] = "no SfM intrinsics for it (not in any model, and the photos do not share one camera)"
                 continue
             intr = main_cam
+        from_refined = False
+        if refined and _intr_key(intr) in refined:  # the shared camera as the joint adjustment refined it
+            intr, from_refined = refined[_intr_key(intr)], True
         import warnings as _w
 
         try:
@@ -499,7 +656,9 @@ def _resect_unplaced(project: Project, rdoc: dict, models, placed: dict, cps: li
         report = {"name": name, "placed_by": "resection", "n_points": s.get("n_points"),
                   "n_observations": s.get("n_observations"), "n_outliers": n_out, "rms_px": rms,
                   "max_px": s.get("max_px"), "rms_m": s.get("rms_m"), "sigma_centre_max_m": sig_max,
-                  "intrinsics_from": "sfm" if name in sfm_intr else "main model's camera (shared)",
+                  "intrinsics_from": ("the shared camera refined from the control points (joint adjustment)"
+                                      if from_refined else "sfm" if name in sfm_intr else
+                                      "main model's camera (shared)"),
                   "residuals": res.residuals}
         cam_from_world = res.cam_from_world(np.eye(3))
         ff = refine_resection_focal(intr, res, cps, name, opts)
@@ -625,7 +784,12 @@ def _multiview(project: Project, opts: GeorefOptions, where: str) -> tuple[dict,
                 report["refit_failed"] = str(exc)
         if rejected:
             report["rejected_views"] = rejected
-        reason, figures = (None, {}) if label == "main" else _separate_model_verdict(res, fitted_views, opts)
+        # every model, the main one too, must pass the checks when control points exist (a main model placed by
+        # GPS alone is not checked: it has no control points to check against)
+        reason, figures = ((None, {}) if (label == "main" and not cps)
+                           else _separate_model_verdict(res, fitted_views, opts))
+        if label == "main" and reason is not None:
+            main_error = InputError(f"{where}: the main SfM model could not be placed: {reason}")
         report.update(figures)
         report.update({"world_from_model": res.matrix.tolist(), "scale": res.scale,
                        "n_triangulated": res.stats.get("n_triangulated"), "rms_px": res.stats.get("rms_px"),
@@ -670,21 +834,43 @@ def _multiview(project: Project, opts: GeorefOptions, where: str) -> tuple[dict,
     if opts.resect_unplaced and cps:
         resected, resect_reasons = _resect_unplaced(project, rdoc, models, placed, cps, gps, opts, where)
     if not placed and not resected:
-        if len(models) == 1 and main_error is not None:
+        if len(models) == 1 and main_error is not None and not resect_reasons:
             raise main_error
         raise InputError(f"{where}: no SfM model could be placed in the scene: "
                          + "; ".join(f"{r['model']} ({len(r['views'])} photos): {r['reason']}" for r in reports)
                          + ("; and no photo could be placed on its own: "
                             + "; ".join(f"{n}: {why}" for n, why in sorted(resect_reasons.items()))
                             if resect_reasons else ""))
-    out_views = []
-    for name in sorted(set(placed) | set(resected)):
-        if name in resected:
-            out_views.append(resected[name]["entry"])
-            continue
-        label, res, v = placed[name]
-        out_views.append(_view_entry(name, images.get(name) or name, v.intrinsics, res.cam_from_world(v.cam_from_model),
-                                     src in ("calibrated", "sfm")))
+    def views_out():
+        out = []
+        for name in sorted(set(placed) | set(resected)):
+            if name in resected:
+                out.append(dict(resected[name]["entry"]))
+                continue
+            label, res, v = placed[name]
+            out.append(_view_entry(name, images.get(name) or name, v.intrinsics,
+                                   res.cam_from_world(v.cam_from_model), src in ("calibrated", "sfm")))
+        return out
+
+    out_views = views_out()
+    uncertainty, adjustments, refined = _camera_adjustment(models, placed, resected, out_views, cps, opts)
+    if refined and opts.resect_unplaced and cps:  # photos still unplaced, tried again with the refined camera
+        more, more_why = _resect_unplaced(project, rdoc, models, {**placed, **resected}, cps, gps, opts, where,
+                                          refined=refined)
+        if more:
+            resected.update(more)
+            for n in more:
+                resect_reasons.pop(n, None)
+            for n, why in more_why.items():
+                if n in resect_reasons:
+                    resect_reasons[n] = f"{resect_reasons[n]}; with the refined camera: {why}"
+            out_views = views_out()
+            uncertainty, adjustments, refined = _camera_adjustment(models, placed, resected, out_views, cps, opts)
+            for a in adjustments:
+                a["second_pass"] = True
+    for n, r in resected.items():  # the stated uncertainty beside the resection's own check
+        if n in uncertainty:
+            r["report"]["sigma_centre_stated_m"] = uncertainty[n].get("sigma_centre_m")
 
     done = set(placed) | set(resected)
     unreg = [{"name": u["name"], "reason": u.get("reason", "")} for u in rdoc.get("unregistered", [])
@@ -711,7 +897,13 @@ def _multiview(project: Project, opts: GeorefOptions, where: str) -> tuple[dict,
             u["reason"] = f"{u['reason']}; not placed on its own either: {resect_reasons[u['name']]}"
     res0 = main_res or first_res
     if res0 is None:  # only resected photos
-        return _resected_only_doc(project, rec_path, src, resected, reports, unreg)
+        doc, stats = _resected_only_doc(project, rec_path, src, resected, reports, unreg)
+        doc["views"] = out_views
+        doc["georegistration"].update({"view_uncertainty": uncertainty, "camera_adjustment": adjustments})
+        if main_error is not None:
+            doc["georegistration"]["main_model_error"] = str(main_error)
+        stats.update({"view_uncertainty": uncertainty, "camera_adjustment": adjustments})
+        return doc, stats
     block_label = ("main" if main_res is not None
                    else next(r["model"] for r in reports if r["status"] == "georegistered"))
     block = _georeg_block("control_points" if cps else "gps", res0,
@@ -721,7 +913,8 @@ def _multiview(project: Project, opts: GeorefOptions, where: str) -> tuple[dict,
                                {"residuals": r["residuals"]} if r["model"] != block_label and "residuals" in r else {})
                                for r in reports],
                            "n_views_placed": len(done), "unregistered": unreg,
-                           "resected": [r["report"] for _, r in sorted(resected.items())]})
+                           "resected": [r["report"] for _, r in sorted(resected.items())],
+                           "view_uncertainty": uncertainty, "camera_adjustment": adjustments})
     if main_res is None:
         block["main_model_error"] = str(main_error)
     doc = {"route": "multiview", "intrinsics_source": src, "georegistration": block, "views": out_views,
@@ -732,7 +925,7 @@ def _multiview(project: Project, opts: GeorefOptions, where: str) -> tuple[dict,
              "resected": [{k: v for k, v in r["report"].items() if k != "residuals"}
                           for _, r in sorted(resected.items())],
              "models": [{k: v for k, v in r.items() if k not in ("residuals", "world_from_model")} for r in reports],
-             "unregistered": unreg}
+             "unregistered": unreg, "view_uncertainty": uncertainty, "camera_adjustment": adjustments}
     return doc, stats
 
 
