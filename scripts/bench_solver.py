@@ -22,10 +22,11 @@ bias towards the camera grows as sigma^2). Timing: all four steps (with a
 plane terrain, so step 2 and the contact term run) for 10 carriages, and how time grows up to 100 carriages,
 for a camera at most 400 m away (a panorama of photos for long consists) and for one photo from 1.1 train
 lengths away, each with the centre error against the truth and the CRB.
-``--bias-correction`` runs the solver (and the truth-started fit) with ``SolveOptions.bias_correction`` (the
-second-order bias removed, workbench/solve/bias.py; not applied with an unknown focal) and prints, per cell, the
-same trials at the uncorrected truth-started minimum, paired. The bound is ``crb(weighting="per_point")`` (the
-ML information); with unequal point counts ``crb(weighting=<the solver's>)`` is printed too.
+The solver (and the truth-started fit) run with ``SolveOptions.bias_correction`` as it ships (on: the
+second-order bias removed, workbench/solve/bias.py; not applied with an unknown focal), and each cell prints the
+same trials at the uncorrected truth-started minimum, paired; ``--no-bias-correction`` turns it off. The bound
+is ``crb(weighting="per_point")`` (the ML information); with unequal point counts ``crb(weighting=<the
+solver's>)`` is printed too.
 Set OMP_NUM_THREADS=1 for one core (the script sets it when unset).
 """
 
@@ -120,7 +121,7 @@ def split_bias(n, sigma, est_focal, trials, seed0, draws, weighting, points, bia
 def run_config(n, sigma, est_focal, trials, seed0, weighting="per_carriage", points=7, bias_correction=False):
     e_s, e_p, r_s, r_p, b2, cover, times, bad = [], [], [], [], [], [], [], 0
     ef2, fb2, e_ml, worse, depth, at_slack, b2w = [], [], [], 0, [], 0, []
-    e_min, cover_min, depth_min, shift = [], [], [], []
+    e_min, cover_min, depth_min, shift, skipped, box = [], [], [], [], [], []
     opts = SolveOptions(pixel_sigma_px=sigma, estimate_focal=est_focal, weighting=weighting,
                         bias_correction=bias_correction)
     for k in range(trials):
@@ -140,6 +141,9 @@ def run_config(n, sigma, est_focal, trials, seed0, weighting="per_carriage", poi
         worse += res.cost_at_minimum > ml["cost"] * (1 + 1e-6) + 1e-6
         if bias_correction:
             shift.append(res.bias_correction.get("max_shift_m", 0.0))
+            # the safeguard: carriages left uncorrected (predicted bias >= bias_max_over_sd sd), Box's measure
+            skipped.append(len(res.bias_correction.get("skipped", [])))
+            box.append(res.bias_correction.get("max_bias_over_sd", 0.0))
         # the bound: the ML information (every point 1 / sigma^2); the estimator's own covariance with its
         # weighting (crb(weighting=...)) is the same when every carriage shows the same number of points, and is
         # kept as "crb_weighted" otherwise
@@ -219,6 +223,9 @@ def run_config(n, sigma, est_focal, trials, seed0, weighting="per_carriage", poi
         row["uncorrected_mean_depth_error_m"] = float(np.mean(depth_min))
         row["correction_max_shift_m_median"] = float(np.nanmedian(shift))
         row["correction_max_shift_m_max"] = float(np.nanmax(shift))
+        row["correction_carriages_skipped"] = int(np.sum(skipped))
+        row["correction_trials_with_a_skip"] = int(np.sum(np.asarray(skipped) > 0))
+        row["correction_max_bias_over_sd_max"] = float(np.max(box)) if box else 0.0
     if est_focal:
         row["focal_rms_px"] = float(np.sqrt(np.mean(ef2)))
         row["focal_crb_px"] = float(np.sqrt(np.mean(fb2)))
@@ -303,10 +310,12 @@ def main(argv=None) -> int:
     ap.add_argument("--no-timing", action="store_true", help="skip the timing part")
     ap.add_argument("--timing-sizes", default=None,
                     help="consist sizes of the timing part, comma-separated (default 3,5,10,20,50,100)")
-    ap.add_argument("--bias-correction", action="store_true",
-                    help="SolveOptions.bias_correction: the solver (and the truth-started fit) report the "
-                         "second-order bias-corrected poses; each cell also prints the same trials at the "
-                         "uncorrected minimum (paired), and the timing runs with it")
+    ap.add_argument("--bias-correction", action=argparse.BooleanOptionalAction,
+                    default=SolveOptions().bias_correction,
+                    help="SolveOptions.bias_correction (default: its default, on): the solver (and the truth-started "
+                         "fit) report the second-order bias-corrected poses (not applied with an unknown focal); "
+                         "each cell also prints the same trials at the uncorrected minimum (paired), and the "
+                         "timing runs with it; --no-bias-correction turns it off")
     args = ap.parse_args(argv)
     points = [int(p) for p in args.points.split(",")]
     points = points[0] if len(points) == 1 else tuple(points)
@@ -361,7 +370,10 @@ def main(argv=None) -> int:
                           f"uncorrected " + "/".join(f"{c * 100:.1f}" for c in r["uncorrected_coverage95_enu"])
                           + f"; mean depth error uncorrected {r['uncorrected_mean_depth_error_m']:+.3f} m; largest "
                             f"shift per solve median {r['correction_max_shift_m_median']:.3f} m, max "
-                            f"{r['correction_max_shift_m_max']:.3f} m", flush=True)
+                            f"{r['correction_max_shift_m_max']:.3f} m; carriages left uncorrected (bias >= "
+                            f"{SolveOptions().bias_max_over_sd:g} sd) "
+                            f"{r['correction_carriages_skipped']} in {r['correction_trials_with_a_skip']} trials, "
+                            f"largest bias/sd {r['correction_max_bias_over_sd_max']:.2f}", flush=True)
                 if args.split:
                     sp = split_bias(n, sigma, est, n_trials(n), seed0, args.split, args.weighting, points,
                                     args.bias_correction)

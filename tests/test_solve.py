@@ -113,7 +113,7 @@ def test_unknown_focal_long_consist_found_by_the_chained_profile(seed):
         res = solve_consist(sim.carriages, sim.links, sim.views, opts)
     assert res.converged
     ml = refine_from(sim.carriages, sim.links, sim.views, sim.truth, opts)
-    assert abs(res.final_cost - ml["cost"]) < 1e-6 * ml["cost"], (res.final_cost, ml["cost"])
+    assert abs(res.cost_at_minimum - ml["cost"]) < 1e-6 * ml["cost"], (res.final_cost, ml["cost"])
     assert abs(res.focal_px["photo"] - ml["focal_px"]["photo"]) < 0.5
     f_true = sim.views[0].intrinsics.fx
     bound = crb(sim.carriages, sim.links, sim.views, sim.truth, 2.0, True)
@@ -136,7 +136,7 @@ def test_known_focal_solver_reaches_the_truth_started_minimum():
         res = solve_consist(sim.carriages, sim.links, sim.views, opts)
         ml = refine_from(sim.carriages, sim.links, sim.views, sim.truth, opts)
         assert res.converged and ml["converged"]
-        assert abs(res.final_cost - ml["cost"]) < 1e-6 * ml["cost"]
+        assert abs(res.cost_at_minimum - ml["cost"]) < 1e-6 * ml["cost"]
         for c, M in zip(res.carriages, ml["world_from_carriage"]):
             assert np.abs(c.world_from_carriage[:3, 3] - M[:3, 3]).max() < 1e-3
         e = _body_err(res, sim)
@@ -388,7 +388,7 @@ def test_carriage_on_the_wrong_pnp_branch_is_restarted(case):
         res = solve_consist(sim.carriages, sim.links, sim.views, opts)
     ml = refine_from(sim.carriages, sim.links, sim.views, sim.truth, opts)
     assert res.converged
-    assert abs(res.final_cost - ml["cost"]) < 1e-5 * ml["cost"], (res.final_cost, ml["cost"])
+    assert abs(res.cost_at_minimum - ml["cost"]) < 1e-5 * ml["cost"], (res.cost_at_minimum, ml["cost"])
     assert max(c.rms_px for c in res.carriages) < 4 * sigma
     if not est:
         assert "another PnP branch" in res.steps[3].note
@@ -476,9 +476,10 @@ def test_bias_correction_option():
     minimum's (centred on the corrected poses); a non-boolean is refused."""
     from workbench.errors import SettingsError
 
+    assert SolveOptions().bias_correction is True  # on by default (as the stage's solver.bias_correction)
     sim = simulate_consist(6, seed=60100, pixel_sigma_px=2.0)
-    a = solve_consist(sim.carriages, sim.links, sim.views, SolveOptions(pixel_sigma_px=2.0))
-    b = solve_consist(sim.carriages, sim.links, sim.views, SolveOptions(pixel_sigma_px=2.0, bias_correction=True))
+    a = solve_consist(sim.carriages, sim.links, sim.views, SolveOptions(pixel_sigma_px=2.0, bias_correction=False))
+    b = solve_consist(sim.carriages, sim.links, sim.views, SolveOptions(pixel_sigma_px=2.0))
     assert a.converged and b.converged
     assert a.bias_correction == {} and len(a.steps) == 4 and a.cost_at_minimum == a.final_cost
     assert abs(b.cost_at_minimum - a.final_cost) < 1e-6 * a.final_cost
@@ -507,3 +508,66 @@ def test_bias_correction_option():
         SolveOptions(bias_correction="yes")
     with pytest.raises(TypeError):
         SolveOptions(bias_corection=True)
+    for bad in (0.0, -1.0, float("nan"), "1"):
+        with pytest.raises(SettingsError, match="bias_max_over_sd"):
+            SolveOptions(bias_max_over_sd=bad)
+
+
+def test_bias_correction_skips_carriages_where_the_expansion_fails():
+    """The safeguard: a carriage whose predicted bias exceeds ``bias_max_over_sd`` standard deviations in a pose
+    component is not corrected (the step's note and ``skipped`` name it, with its ratio); the others are. With a
+    limit below every carriage's ratio nothing is applied; with an estimated focal the step is skipped."""
+    sim = simulate_consist(6, seed=60100, pixel_sigma_px=2.0)
+    full = solve_consist(sim.carriages, sim.links, sim.views, SolveOptions(pixel_sigma_px=2.0))
+    bc = full.bias_correction
+    assert bc["applied"] and bc["skipped"] == [] and 0 < bc["max_bias_over_sd"] < 1.0
+    st = full.steps[4]
+    assert all(p["corrected"] for p in st.per_carriage)
+    # a limit at half the largest ratio: the worst carriage (at least) is left uncorrected, the rest corrected
+    lim = 0.5 * bc["max_bias_over_sd"]
+    part = solve_consist(sim.carriages, sim.links, sim.views, SolveOptions(pixel_sigma_px=2.0, bias_max_over_sd=lim))
+    pb = part.bias_correction
+    assert pb["applied"] and 1 <= len(pb["skipped"]) < 6
+    assert all(e["bias_over_sd"] >= lim for e in pb["skipped"])
+    assert max(e["bias_over_sd"] for e in pb["skipped"]) == pytest.approx(bc["max_bias_over_sd"], rel=1e-9)
+    names = {e["number"] for e in pb["skipped"]}
+    assert all(n in part.steps[4].note for n in names) and "not applied to car(s)" in part.steps[4].note
+    moved = {p["number"]: p for p in part.steps[4].per_carriage}
+    for cp in part.carriages:
+        assert moved[cp.number]["corrected"] == (cp.number not in names)
+        if cp.number in names and pb["links_clipped"] == 0:
+            assert moved[cp.number]["moved_m"] < 1e-9  # its pose is the minimum's
+    for L in part.links:
+        assert L["offset_norm_m"] <= L["slack_m"] + 1e-12
+    # a limit below every carriage's ratio: nothing applied, the reported poses are the minimum's
+    none = solve_consist(sim.carriages, sim.links, sim.views, SolveOptions(pixel_sigma_px=2.0, bias_max_over_sd=1e-9))
+    assert none.bias_correction["applied"] is False and len(none.bias_correction["skipped"]) == 6
+    assert not none.steps[4].ran and none.final_cost == none.cost_at_minimum
+    assert "not applied to car(s)" in none.steps[4].note
+    # an estimated focal: skipped, said so
+    est = solve_consist(sim.carriages, sim.links, sim.views, SolveOptions(pixel_sigma_px=2.0, estimate_focal=True))
+    assert est.bias_correction["applied"] is False and "focal" in est.bias_correction["note"]
+    assert est.steps[4].name == "5_bias_correction" and not est.steps[4].ran
+
+
+@pytest.mark.parametrize("seed, car", [(120226, "100"), (120242, "104")])
+def test_a_few_point_carriage_on_a_wrong_branch_is_judged_by_the_chain(seed, car):
+    """12 cars showing 4, 10, 6, 10, 5, 8 points at 2 px (benchmark seeds of ``--cells 12:2:known --points
+    4,10,6,10,5,8``): a 4- or 5-point carriage fits a wrong PnP branch with a chi-square its own pixels cannot
+    flag, and the chain then ended above the truth-started minimum (seed 120226: car 100, 4 points, 30 deg off,
+    cost 333.3 against 283.6; seed 120242: car 104, 5 points, 50 deg off, cost 326.5 against 280.3). Every
+    chained carriage with at most FEW_POINTS points is now tried on its other branches and on a pose carried from
+    its neighbours, the chained cost judging: the solve ends at the truth-started minimum."""
+    sim = simulate_consist(12, seed=seed, pixel_sigma_px=2.0, n_points=[4, 10, 6, 10, 5, 8])
+    opts = SolveOptions(pixel_sigma_px=2.0, bias_correction=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SolveWarning)
+        res = solve_consist(sim.carriages, sim.links, sim.views, opts)
+    ml = refine_from(sim.carriages, sim.links, sim.views, sim.truth, opts)
+    assert res.converged
+    assert res.cost_at_minimum <= ml["cost"] * (1 + 1e-6) + 1e-6, (res.cost_at_minimum, ml["cost"])
+    note = {st.name: st.note for st in res.steps}["4_all"]
+    assert f"car {car} restarted from" in note
+    for c, M in zip(res.carriages, ml["world_from_carriage"]):
+        R = c.world_from_carriage[:3, :3]
+        assert np.degrees(np.arccos(np.clip((np.trace(R.T @ M[:3, :3]) - 1) / 2, -1, 1))) < 0.5

@@ -199,3 +199,34 @@ def test_unknown_point_method_is_named(incident, tmp_path):
     views, _ = read_views(p, root / "cameras.json")
     with pytest.raises(InputError, match=r"observations\[0\].*method = 'guess'"):
         read_correspondences(p, root / "correspondences.json", views)
+
+
+def test_solution_records_the_bias_correction(incident, tmp_path):
+    """``solver.bias_correction`` (on by default, known cameras here): solution.json records ``cost_at_minimum``,
+    ``bias_correction`` and the step ``5_bias_correction``; with the setting off the same solve reports the
+    minimum itself (no step 5), and the two differ per carriage by what the step says it moved."""
+    assert Project(incident).settings.solver.bias_correction is True
+    sol = json.loads((incident / "out" / "solve" / "solution.json").read_text())
+    bc = sol["bias_correction"]
+    steps = {s["name"]: s for s in sol["steps"]}
+    assert [s["name"] for s in sol["steps"]][-1] == "5_bias_correction"
+    assert bc["applied"] is True and steps["5_bias_correction"]["ran"] is True
+    assert bc["skipped"] == [] and 0.0 <= bc["max_bias_over_sd"] < 1.0
+    assert sol["final_cost"] >= sol["cost_at_minimum"] > 0
+    moved = {p["number"]: p["moved_m"] for p in steps["5_bias_correction"]["per_carriage"]}
+    assert max(moved.values()) == pytest.approx(bc["max_shift_m"], abs=1e-12)
+
+    root = tmp_path / "inc"
+    shutil.copytree(incident, root, ignore=shutil.ignore_patterns("out"))
+    text = (root / "project.toml").read_text()
+    assert "[solver]" not in text
+    (root / "project.toml").write_text(text.replace("[camera]", "[solver]\nbias_correction = false\n\n[camera]", 1))
+    Runner(Project(root), STAGES).run()
+    off = json.loads((root / "out" / "solve" / "solution.json").read_text())
+    assert off["bias_correction"] == {} and "5_bias_correction" not in [s["name"] for s in off["steps"]]
+    assert off["final_cost"] == pytest.approx(off["cost_at_minimum"], rel=1e-12)
+    assert off["cost_at_minimum"] == pytest.approx(sol["cost_at_minimum"], rel=1e-6)  # the same minimum
+    for a, b in zip(sol["carriages"], off["carriages"]):
+        if "body_centre_enu" in a:
+            d = float(np.linalg.norm(np.subtract(a["body_centre_enu"], b["body_centre_enu"])))
+            assert d == pytest.approx(moved[a["number"]], abs=1e-6)

@@ -112,6 +112,10 @@ class Solver(_Strict):
     # pixels of misfit shared by the points one homography placed on one face (automatic points): modelled in
     # the covariance as a common affine displacement of each face's points (docs/solver.md); 0: none
     face_sigma_px: Annotated[float, Field(ge=0.0, le=10.0)] = FACE_SIGMA_PX
+    # subtract the second-order bias of the least-squares estimate (workbench/solve/bias.py, docs/solver.md): only
+    # with a known focal and no robust loss, and only for carriages whose predicted bias is under one standard
+    # deviation (the step "5_bias_correction" of solution.json says what was corrected and what was not)
+    bias_correction: bool = True
 
 
 class ProjectSettings(_Strict):
@@ -246,4 +250,5 @@ estimate_focal = false
 max_iterations = 200
 reject_outliers_sigma = 5.0    # drop a marked point farther than this many pixel sigmas from the fit (0: off)
 face_sigma_px = 0.15          # misfit shared by one face's automatic points, pixels (covariance only; 0: none)
+bias_correction = true        # remove the estimate's second-order bias (known focal only; docs/solver.md)
 """

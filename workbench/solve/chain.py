@@ -70,15 +70,20 @@ The four steps (as the seed, plus an optional contact term)
        (:func:`_retry_branches`): one whose pixel residuals are far beyond their chi-square (and the other
        carriages') may sit on the wrong branch of its own PnP (an end face seen alone, or 4 points, fit two
        poses ~90 degrees apart, and SQPnP may pick the wrong one); steps 3 and 4 are re-run from its other
-       branches (:func:`_pnp_branches`) and the cheapest solution kept (the step's note says so). The focal
-       profile makes the same check at each focal.
+       branches (:func:`_pnp_branches`) and the cheapest solution kept (the step's note says so). A carriage
+       with at most :data:`FEW_POINTS` (5) points cannot show a wrong branch in its own chi-square (4 points fit
+       P3P's other poses with 2 degrees of freedom left), so every such chained carriage is tried on its other
+       PnP branches and on a pose carried from each chain neighbour over the held coupling, the chained cost
+       judging. The focal profile makes the misfit check at each focal (not the few-point one).
 
-Optional step 5 (``SolveOptions.bias_correction``, off by default; not with a robust loss or an estimated focal)
+Step 5 (``SolveOptions.bias_correction``, on by default; not with a robust loss or an estimated focal)
     the second-order bias of the least-squares estimate (Box 1971; Cook, Tsai & Wei 1986) is estimated at the
     solution and subtracted (:mod:`.bias`): sigma-point differences of the residuals give each row's curvature
     along the covariance, no analytic Hessian; the corrected poses are put back on the chain (offsets clipped to
     the slack); the covariance is the minimum's, centred on the corrected poses; ``SolveResult.cost_at_minimum``
-    keeps the minimum's cost and ``SolveResult.bias_correction`` / the step's stats what moved.
+    keeps the minimum's cost and ``SolveResult.bias_correction`` / the step's stats what moved. A carriage whose
+    predicted bias exceeds ``SolveOptions.bias_max_over_sd`` (1) standard deviations in any pose component is
+    left uncorrected (the expansion does not hold there; the step's note names it).
 
 :func:`refine_from` (step 4 alone, from given poses) is a diagnostic for benchmarks: started at the truth it
 finds the minimum in the truth's basin, which tells a solver failure from the estimator's own spread.
@@ -198,9 +203,15 @@ class SolveOptions:
     weighting: str = "per_carriage"
     # subtract the second-order bias of the least-squares estimate (Box 1971; see .bias) from the solution: the
     # reported poses are the corrected ones, the intervals are centred on them, and the step
-    # "5_bias_correction" records what moved. Off by default, and not applied with a robust loss or an estimated
-    # focal (see docs/solver.md for what it changes).
-    bias_correction: bool = False
+    # "5_bias_correction" records what moved. On by default; not applied with a robust loss or an estimated focal
+    # (there the step says so), nor to a carriage whose predicted bias is not small against its own spread
+    # (below). See docs/solver.md for what it changes.
+    bias_correction: bool = True
+    # the second-order expansion holds only where the bias is small against the estimate's spread: a carriage
+    # whose predicted bias exceeds this many standard deviations in any of its six pose components is left
+    # uncorrected (the step's note names it), so that a poorly observed carriage is never moved by an expansion
+    # that does not hold there
+    bias_max_over_sd: float = 1.0
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> None:
@@ -231,6 +242,9 @@ class SolveOptions:
             bad("weighting", f"must be one of {', '.join(_WEIGHTINGS)}")
         if not isinstance(self.bias_correction, (bool, np.bool_)):
             bad("bias_correction", "must be true or false")
+        if not (isinstance(self.bias_max_over_sd, (int, float, np.floating)) and np.isfinite(self.bias_max_over_sd)
+                and self.bias_max_over_sd > 0):
+            bad("bias_max_over_sd", "must be a positive number of standard deviations")
 
 
 @dataclass
@@ -291,7 +305,8 @@ class SolveResult:
     # the cost at the least-squares minimum (= final_cost unless the bias correction moved the poses off it)
     cost_at_minimum: float = float("nan")
     # SolveOptions.bias_correction: what it did ({"applied", "note", "max_shift_m", "max_rotation_deg",
-    # "focal_shift_px", "links_clipped", "max_bias_over_sd"}); empty when off
+    # "focal_shift_px", "links_clipped", "max_bias_over_sd", "skipped"}, or {"applied": False, "note"});
+    # empty when off
     bias_correction: dict = field(default_factory=dict)
 
     @property
@@ -1462,35 +1477,77 @@ def _pnp_branches(prob: _Problem, cars: list[_Car], k: int, f: np.ndarray, R: np
     return keep
 
 
+# A carriage with at most this many distinct points cannot show a wrong PnP branch in its own pixels: 4 or 5
+# points fit the other branches of the pose (P3P's up to four, the weak-perspective mirror) with a chi-square of
+# 2 to 4 degrees of freedom, so the chi-square check of :func:`_misfit_cars` does not flag it; the chained cost
+# judges its branches instead (:func:`_retry_branches`). Benchmark: 12 cars showing 4, 10, 6, 10, 5, 8 points at
+# 2 px: every wrong basin was a 4- or 5-point carriage (docs/solver.md).
+FEW_POINTS = 5
+
+
+def _neighbour_poses(cars: list[_Car], chains, k: int, R: np.ndarray, t: np.ndarray):
+    """Poses of carriage ``k`` carried from each chain neighbour over the held coupling: the neighbour's rotation
+    (heading from the neighbour; the jack-knife angle is what is lost) and the coupler on the neighbour's."""
+    out = []
+    for ch in chains:
+        if k not in ch or len(ch) < 2:
+            continue
+        j = ch.index(k)
+        if j > 0:
+            a = ch[j - 1]
+            out.append((R[a].copy(), t[a] + R[a] @ cars[a].c_rear - R[a] @ cars[k].c_front))
+        if j < len(ch) - 1:
+            b = ch[j + 1]
+            out.append((R[b].copy(), t[b] + R[b] @ cars[b].c_front - R[b] @ cars[k].c_rear))
+    return out
+
+
 def _retry_branches(prob: _Problem, cars: list[_Car], chains, slacks, solo: Sequence[int], R1, t1, f1, R, t, f,
                     focal_views, contact: _Contact | None, options: SolveOptions, terrain: Any = None,
-                    max_cars: int = 3, max_nfev: int = 10**9):
+                    max_cars: int = 3, max_nfev: int = 10**9, few_points: bool = True):
     """After a chained solve (poses ``R, t``, focal ``f``) started from the poses ``R1, t1`` and focal ``f1``
-    (step 3's start): every carriage whose pixels the solution does not fit (:func:`_misfit_cars`; worst first,
-    at most ``max_cars``) is restarted from its other PnP branches (:func:`_pnp_branches`, from ``R1, t1, f1``):
-    step 4 is re-run from the solution ``R, t, f`` with that carriage's pose replaced (rested on the ``terrain`` when given, as step 2 does), and the
-    cheapest solution is kept. Each branch is ranked by a step 4 capped at 40 evaluations, the cheapest then
-    converged; no new branch is tried once ``max_nfev`` evaluations are spent.
+    (step 3's start), two kinds of carriage are restarted on other poses, and the cheapest chained solution kept:
+
+    * every carriage whose pixels the solution does not fit (:func:`_misfit_cars`; worst first, at most
+      ``max_cars``), from its other PnP branches (:func:`_pnp_branches`, from ``R1, t1, f1``);
+    * with ``few_points``, every chained carriage with at most :data:`FEW_POINTS` distinct points (fewest
+      first), whose own pixels cannot tell a wrong branch: from its other PnP branches and from a pose
+      carried from each chain neighbour (:func:`_neighbour_poses`, from the solution).
+
+    For each start, step 4 is re-run from the solution ``R, t, f`` with that carriage's pose replaced (rested on
+    the ``terrain`` when given, as step 2 does); each is ranked by a step 4 capped at 40 evaluations, the
+    cheapest (if cheaper than the solution) then converged: the chained cost is the judge. No new start is
+    tried once ``max_nfev`` evaluations are spent.
     Returns ``(result, nfev, notes)``: ``result`` None when nothing was cheaper, else ``(R, t, f, T_links, msg,
     ok, rounds, n_active)`` as :func:`_solve_chained`."""
     solo_set = set(solo)
     chained = [k for ch in chains if len(ch) > 1 for k in ch if k in solo_set]
     sig = options.pixel_sigma_px
     flagged = _misfit_cars(prob, R, t, f, sig, chained)
-    if not flagged:
+    few = sorted((k for k in chained if len(cars[k].distinct) <= FEW_POINTS),
+                 key=lambda k: len(cars[k].distinct)) if few_points else []
+    if not flagged and not few:
         return None, 0, []
     cost = _full_cost(prob, cars, chains, slacks, R, t, f, contact, options)
     nfev, notes, best, tried = 0, [], None, set()
+    n_flag_tried = 0
     opt3 = replace(options, max_iterations=min(int(options.max_iterations), 40))
     R1, t1 = R1.copy(), t1.copy()
-    while len(tried) < max_cars and nfev < max_nfev:
-        k = next((i for i in flagged if i not in tried), None)
+    while nfev < max_nfev:
+        k = next((i for i in flagged if i not in tried), None) if n_flag_tried < max_cars else None
+        if k is not None:
+            n_flag_tried += 1
+        else:
+            k = next((i for i in few if i not in tried), None)
         if k is None:
             break
         tried.add(k)
-        alts = _pnp_branches(prob, cars, k, f1, R1, t1, options)
+        alts = [(Rk, tk, "another PnP branch") for Rk, tk, _ in _pnp_branches(prob, cars, k, f1, R1, t1, options)]
+        if k in few:
+            alts += [(Rk, tk, "a pose carried from its neighbour")
+                     for Rk, tk in _neighbour_poses(cars, chains, k, R, t) if _rot_angle_deg(Rk, R[k]) >= 5.0]
         best_k, best_cost, best_sol = None, cost, None
-        for Rk, tk, _ in alts:
+        for Rk, tk, how in alts:
             # from the solution: the others' poses (and the focal) as found, this carriage on its branch
             R2, t2, f2 = R.copy(), t.copy(), f.copy()
             R2[k], t2[k] = Rk, tk
@@ -1507,7 +1564,7 @@ def _retry_branches(prob: _Problem, cars: list[_Car], chains, slacks, solo: Sequ
             if c2 < best_cost * (1.0 - 1e-9):
                 best_cost = c2
                 best_sol = (sol[0], sol[1], sol[2], sol[3], sol[5], sol[6], sol[7], sol[8])
-                best_k = (Rk, t2[k].copy())
+                best_k = (Rk, t2[k].copy(), how)
             if nfev >= max_nfev:
                 break
         if best_k is not None:
@@ -1519,13 +1576,17 @@ def _retry_branches(prob: _Problem, cars: list[_Car], chains, slacks, solo: Sequ
                 if c2 <= best_cost:
                     best_cost = c2
                     best_sol = (sol[0], sol[1], sol[2], sol[3], sol[5], sol[6], sol[7], sol[8])
-            notes.append(f"car {cars[k].number} restarted from another PnP branch "
-                         f"({_rot_angle_deg(best_k[0], R1[k]):.0f} deg from its own): cost {cost:.1f} -> "
+            notes.append(f"car {cars[k].number} restarted from {best_k[2]} "
+                         f"({_rot_angle_deg(best_k[0], R[k]):.0f} deg from the solution's): cost {cost:.1f} -> "
                          f"{best_cost:.1f}")
             cost, best = best_cost, best_sol
             R, t, f = best[0], best[1], best[2]
-            R1[k], t1[k] = best_k
+            R1[k], t1[k] = best_k[0], best_k[1]
             flagged = _misfit_cars(prob, R, t, f, sig, chained)
+    left = [i for i in (flagged[:max_cars] + few) if i not in tried]
+    if nfev >= max_nfev and left:
+        notes.append(f"branch check stopped after {nfev} evaluations (its cap): car(s) "
+                     f"{', '.join(cars[i].number for i in dict.fromkeys(left))} not tried on other poses")
     return best, nfev, notes
 
 
@@ -1590,8 +1651,9 @@ def _chained_focal_profile(prob: _Problem, cars: list[_Car], chains, slacks, sol
         R1, t1 = R.copy(), t.copy()
         R, t, fo, T_links, *_ = _solve_chained(prob, cars, chains, slacks, True, [], R, t, fv, None, opt)
         # a carriage on the wrong branch of its PnP would spoil this focal's cost: its other branches are tried
+        # (the few-point carriages' check is left to the final solve's: here it would multiply the profile's cost)
         sol, *_ = _retry_branches(prob, cars, chains, slacks, solo, R1, t1, fv, R, t, fo, [], None, opt,
-                                  max_cars=1)
+                                  max_cars=1, few_points=False)
         if sol is not None:
             R, t, fo, T_links = sol[:4]
         return {"f": fo.copy(), "R": R, "t": t, "cost": _chain_cost(prob, R, t, fo, T_links, slacks,
@@ -1947,7 +2009,7 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
 
             model = solution_model(prob, R, t, f, focal_views, final_chains, chain_slacks, contact, options)
             bc = correct(prob, cars, R, t, f, focal_views, final_chains, chain_slacks, contact, model,
-                         options.pixel_sigma_px, views)
+                         options.pixel_sigma_px, views, max_over_sd=options.bias_max_over_sd)
             bc_summary = bc.summary()
             if bc.applied:
                 R, t, f = bc.R, bc.t, bc.f
@@ -2085,7 +2147,8 @@ def refine_from(carriages: Sequence[CarriageInput], links: Sequence[ChainLink], 
         from .uncertainty import solution_model
 
         model = solution_model(prob, R, t, f, fv, chains, slacks, None, options)
-        bc = correct(prob, cars, R, t, f, fv, chains, slacks, None, model, options.pixel_sigma_px, views)
+        bc = correct(prob, cars, R, t, f, fv, chains, slacks, None, model, options.pixel_sigma_px, views,
+                     max_over_sd=options.bias_max_over_sd)
         if bc.applied:
             res["world_from_carriage_minimum"], res["focal_px_minimum"] = res["world_from_carriage"], res["focal_px"]
             res["world_from_carriage"] = poses(bc.R, bc.t)

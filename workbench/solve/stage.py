@@ -260,7 +260,7 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
                         loss_scale_px=s.solver.loss_scale_px, max_iterations=s.solver.max_iterations,
                         estimate_focal=bool(s.solver.estimate_focal or focal_unknown),
                         terrain_sigma_m=s.terrain.dem_vertical_accuracy_m,
-                        face_sigma_px=s.solver.face_sigma_px)
+                        face_sigma_px=s.solver.face_sigma_px, bias_correction=bool(s.solver.bias_correction))
     terrain = None
     if s.terrain.dem:
         from ..terrain.stage import terrain_model_for
@@ -417,7 +417,8 @@ def solution_document(project: Project, res: Any, views: list, cam_doc: dict, ob
         "views": [v.name for v in views], "focal_px": d.get("focal_px"), "sigma_focal_px": d.get("sigma_focal_px"),
         "sigma_px": d.get("sigma_px"), "sigma_px_estimated": d.get("sigma_px_estimated"), "dof": d.get("dof"),
         "ci95_factor": d.get("ci95_factor"), "iterations": d.get("iterations"), "time_s": d.get("time_s"),
-        "final_cost": d.get("final_cost"), "carriages": cars_out, "links": d.get("links", []),
+        "final_cost": d.get("final_cost"), "cost_at_minimum": d.get("cost_at_minimum"),
+        "bias_correction": d.get("bias_correction") or {}, "carriages": cars_out, "links": d.get("links", []),
         "neighbour_correlation": d.get("neighbour_correlation", []), "steps": d.get("steps", []),
         "warnings": d.get("warnings", []),
         "residual_rms_px": {"measured": rms[False], "predicted": rms[True], "n_measured": len(sq[False]),
