@@ -172,6 +172,34 @@ def test_guided_completion_aligns_the_other_faces():
     assert ang(J) < 0.5 * ang(start) and np.linalg.norm(J[:3, 3] - M[:3, 3]) < 0.05
 
 
+def test_ecc_on_the_cropped_photo_agrees_with_the_whole_photo(monkeypatch):
+    """``match._ecc_refine`` aligns on the photo cropped around the face (ECC filters its whole input image
+    on every call): from a start 2 px off, the face lands where the known warp put it, and where ECC on the
+    whole photo puts it (the crop's offset carried back), with the same correlation."""
+    from workbench.correspond import match as mm
+    from workbench.correspond.match import PhotoFeatures, _apply_h, _ecc_refine, undistorted_image
+
+    ct = get_type("shoreliner")
+    ref = face_reference(ct, "6100", "left", MatchOptions().px_per_m)
+    h, w = ref.image.shape[:2]
+    src = np.float32([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]])
+    dst = np.float32([[700, 500], [1180, 470], [1185, 512], [704, 556]])  # far from the photo's origin
+    H = cv2.getPerspectiveTransform(src, dst).astype(float)
+    photo = _warp_into(np.full((960, 1280, 3), (90, 140, 80), np.uint8), ref.image, H)
+    K = CameraIntrinsics(width=1280, height=960, fx=1500.0, fy=1500.0, cx=639.5, cy=479.5)
+    pf = PhotoFeatures("warp.png", K, undistorted_image(cv2.cvtColor(photo, cv2.COLOR_RGB2GRAY), K),
+                       np.zeros((0, 2)), np.zeros((0, 128), np.float32))
+    start = np.array([[1.0, 0.0, 2.0], [0.0, 1.0, -1.5], [0.0, 0.0, 1.0]]) @ H
+    Hc, cc_c = _ecc_refine(pf, ref, start)
+    monkeypatch.setattr(mm, "ECC_CROP_MARGIN_PX", 1e6)  # the crop is the whole photo
+    Hw, cc_w = _ecc_refine(pf, ref, start)
+    corners = ref.corners()
+    truth = _apply_h(H, corners)
+    assert 0.0 <= np.abs(_apply_h(Hc, corners) - truth).max() < 0.5
+    assert 0.0 <= np.abs(_apply_h(Hc, corners) - _apply_h(Hw, corners)).max() < 0.05
+    assert cc_c > 0.9 and abs(cc_c - cc_w) < 1e-3
+
+
 # ---------------------------------------------------------------------------------------------------------
 # a small synthetic incident through the stage
 # ---------------------------------------------------------------------------------------------------------

@@ -67,7 +67,7 @@ def guided_face(photo: PhotoFeatures, ref: FaceReference, cam_from_carriage: np.
     e = np.linalg.norm(np.roll(poly0, -1, axis=0) - poly0, axis=1)
     if min(e) < opts.guided_min_edge_px:
         return None
-    res = _ecc_refine(photo, ref, H0)
+    res = _ecc_refine(photo, ref, H0, min_cc=opts.guided_min_ecc)
     if res is None:
         return None
     H, cc = res

@@ -17,6 +17,7 @@ from ..core.camera import CameraIntrinsics
 from .references import FaceReference, sift_features
 
 log = logging.getLogger(__name__)
+ECC_CROP_MARGIN_PX = 32  # ECC works on the photo cropped around the face, this much (+ a quarter of its size) beyond
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -237,11 +238,14 @@ def _guided(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray, radius_px: 
     return np.array(P).reshape(-1, 2), np.array(R).reshape(-1, 2)
 
 
-def _ecc_refine(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray) -> tuple[np.ndarray, float] | None:
+def _ecc_refine(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray,
+                min_cc: float | None = None) -> tuple[np.ndarray, float] | None:
     """Dense alignment of the reference to the photo (ECC, homography), started from ``H``.
 
     The photo is warped into the reference frame (scaled to about the photo's resolution there) and the
-    warp is refined; the correlation coefficient is returned with the refined photo_from_ref.
+    warp is refined; the correlation coefficient is returned with the refined photo_from_ref. With
+    ``min_cc``, an alignment whose correlation stays below it (the caller rejects it) is returned after the
+    first (blurred) pass, without the second.
     """
     from .references import resize_linear_light
 
@@ -254,14 +258,28 @@ def _ecc_refine(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray) -> tupl
     sx, sy = Wk / w_ref, Hk / h_ref  # the template's exact scales (rounding its size changes them)
     S = np.array([[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, 0.5 * sy - 0.5], [0.0, 0.0, 1.0]])  # ref px -> working px
     tmpl = cv2.cvtColor(resize_linear_light(ref.image, (Wk, Hk)), cv2.COLOR_RGB2GRAY).astype(np.float32)
-    photo_from_work = H @ np.linalg.inv(S)
+    # the photo cropped around the face (with a margin wider than any accepted correction): ECC blurs and
+    # differentiates its whole input image on every call, which for a face of a few thousand pixels in a
+    # 2 MP photo cost 10-50 times the alignment itself
+    gray = photo.gray_undistorted
+    lo, hi = poly.min(0), poly.max(0)
+    m = ECC_CROP_MARGIN_PX + 0.25 * float(np.max(hi - lo))
+    x0, y0 = (int(np.clip(np.floor(v - m), 0, n)) for v, n in zip(lo, (gray.shape[1], gray.shape[0])))
+    x1, y1 = (int(np.clip(np.ceil(v + m) + 1, 0, n)) for v, n in zip(hi, (gray.shape[1], gray.shape[0])))
+    if x1 - x0 < 8 or y1 - y0 < 8:
+        return None
+    C = np.array([[1.0, 0.0, x0], [0.0, 1.0, y0], [0.0, 0.0, 1.0]])  # crop px -> photo px
+    photo_from_work = np.linalg.inv(C) @ H @ np.linalg.inv(S)  # (crop px)
     warp = photo_from_work.astype(np.float32) / np.float32(photo_from_work[2, 2])
-    img = photo.gray_undistorted.astype(np.float32)
+    img = np.ascontiguousarray(gray[y0:y1, x0:x1], dtype=np.float32)
     try:
         cc, warp = cv2.findTransformECC(tmpl, img, warp, cv2.MOTION_HOMOGRAPHY,
                                         (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-5), None, 3)
     except cv2.error:
         return None
+    if min_cc is not None and cc < min_cc:
+        Hn = C @ warp.astype(float) @ S
+        return Hn / Hn[2, 2], float(cc)
     # then without the 3 x 3 blur: blurred, the photo's pixels along the face's outline mix in what lies
     # beyond the face (the template's do not), which pulls the outline inwards (a vertical compression of
     # 1-3 % on a side 25 px high)
@@ -271,7 +289,7 @@ def _ecc_refine(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray) -> tupl
         warp = warp2  # the correlation reported stays the blurred one (the thresholds are set on it)
     except cv2.error:
         pass
-    Hn = warp.astype(float) @ S
+    Hn = C @ warp.astype(float) @ S
     return Hn / Hn[2, 2], float(cc)
 
 

@@ -13,15 +13,17 @@ be. With the photo's camera in the scene frame (``cameras.json``: ``cam_from_wor
 * **hypotheses**: heading every 2 deg within ``search_yaw_span_deg`` (90) of the neighbour's, roll every
   45 deg (upright, on either side, upside down and between), pitch from the terrain (the other coupler as high
   above the ground as the anchored one), the coupler at the anchor, the car lowered or raised until its
-  lowest collision-box corner touches the terrain;
+  lowest collision-box corner touches the terrain. The heading grid is scored coarse to fine: every
+  ``HEADING_STRIDE``-th heading first, then the grid's headings around the best ``STRIDE_KEEP`` of every roll
+  class;
 * **scoring**: each hypothesis predicts every face turned to the camera (``complete.predicted_homography``);
   they are painted from the car's own references into a template (a photo down-sampled so that the car is
   about 150 px long, blurred), and the template is matched over the image shifts that keep the coupler
   within the anchor's radius. Long faces (sides, roof) are scored in thirds: the score is the sum over the
   tiles of their positive zero-mean normalised correlation times the square root of their area, so a third
   hidden by a building adds nothing instead of diluting the rest. The best shift moves the pose across
-  the line of sight. The best hypotheses of every roll class are refined (heading +-1 deg, roll +-10 deg at
-  full resolution) and moved along the coupler's line of sight to where the car touches the terrain;
+  the line of sight. The best hypotheses of every roll class are refined at full resolution (roll +-10 deg in
+  5 deg steps, then heading +-1 deg at the best roll) and moved along the coupler's line of sight to where the car touches the terrain;
 * **verification**: every facing face is aligned by ECC from the hypothesis as the pose-guided completion
   does (``complete.guided_face``: correlation of at least ``search_min_ecc``, corners moved by at most
   ``guided_max_shift_px`` or a quarter of an edge); a long face that does not align whole is tried in part
@@ -58,6 +60,8 @@ COARSE_HEADING_DEG = 2.0
 FINE_HEADING_DEG = 1.0
 SEEDS_PER_ROLL = 4  # coarse hypotheses refined per roll class
 COARSE_ROLL_DEG = 45.0
+HEADING_STRIDE = 3  # the coarse heading grid is first scored at every third heading ...
+STRIDE_KEEP = 5  # ... and completed around the best five of every roll class
 TILES = 3  # a long face (side, roof) is scored in thirds along its length
 PAD_PX = 128  # working image padding
 CROPS = ((0.0, 0.8), (0.2, 1.0), (0.0, 0.6), (0.4, 1.0))  # parts of a face tried where the whole does not align
@@ -180,11 +184,20 @@ class _Renderer:
         D = np.diag([1 / down, 1 / down, 1.0])
         D[0, 2] = D[1, 2] = 0.5 / down - 0.5
         self.D = D  # photo px -> working px
+        # per face: its centre and outward normal (carriage frame), for the facing test of every hypothesis
+        self.centre_normal = {}
+        for f, r in self.refs.items():
+            h, w = r.image.shape[:2]
+            self.centre_normal[f] = (r.carriage_from_ref(np.array([[(w - 1) / 2, (h - 1) / 2]]))[0],
+                                     np.asarray(ct.face_normal(r.face), float))
 
     def faces(self, cam_from_carriage: np.ndarray, min_cos: float) -> list[tuple[str, np.ndarray]]:
         out = []
+        R, t = cam_from_carriage[:3, :3], cam_from_carriage[:3, 3]
         for f, r in self.refs.items():
-            if facing_cosine(cam_from_carriage, self.ct, r) < min_cos:
+            c, nrm = self.centre_normal[f]  # complete.facing_cosine, without recomputing the face's centre
+            Xc = R @ c + t
+            if -float((R @ nrm) @ Xc) / max(float(np.linalg.norm(Xc)), 1e-9) < min_cos:
                 continue
             H = predicted_homography(cam_from_carriage, r, self.K)
             if not _plausible(H, r, (self.K.width, self.K.height)):
@@ -292,7 +305,7 @@ def _rest_on_ray(cam_from_carriage: np.ndarray, c: np.ndarray, cam_from_world: n
     g_lo, g_hi = clearance(lo), clearance(hi)
     if not (np.isfinite(g_lo) and np.isfinite(g_hi)) or np.sign(g_lo) == np.sign(g_hi):
         return cam_from_carriage  # no contact along the ray within the range: leave it
-    for _ in range(24):
+    while (hi - lo) * d > 1e-3:  # to a millimetre along the line of sight
         mid = 0.5 * (lo + hi)
         g = clearance(mid)
         if not np.isfinite(g):
@@ -341,16 +354,37 @@ def search_car(photo: PhotoFeatures, number: str, ct: CarriageType, refs: dict[s
         coarse = _Renderer(photo, refs, ct, down)
         c = ct.coupler_front if a.end == "front" else ct.coupler_rear
         hyps = []
-        yaws = np.arange(0.0, 360.0, COARSE_HEADING_DEG) if a.yaw is None else \
-            np.rad2deg(a.yaw) + np.arange(-opts.search_yaw_span_deg, opts.search_yaw_span_deg + 1e-6, COARSE_HEADING_DEG)
-        for yaw in np.deg2rad(yaws):
-            pitch = _pitch_on_terrain(a, float(yaw), L, terrain)
-            for roll in np.deg2rad(np.arange(-180.0, 180.0, COARSE_ROLL_DEG)):
-                M0 = cam_from_world @ _rest(_pose_at(ct, a, float(yaw), pitch, float(roll)), corners, terrain)
-                sc, sh, _ = coarse.match(M0, min_cos, radius_m * px_per_m)
-                if np.isfinite(sc):
-                    hyps.append((sc, _shifted(M0, c, sh, K), float(yaw), pitch,
-                                 float(roll)))
+        yaws = np.deg2rad(np.arange(0.0, 360.0, COARSE_HEADING_DEG) if a.yaw is None else
+                          np.rad2deg(a.yaw) + np.arange(-opts.search_yaw_span_deg, opts.search_yaw_span_deg + 1e-6,
+                                                        COARSE_HEADING_DEG))
+        rolls = np.deg2rad(np.arange(-180.0, 180.0, COARSE_ROLL_DEG))
+        pitches: dict[int, float] = {}
+        scores = np.full((len(yaws), len(rolls)), np.nan)  # nan: not evaluated
+
+        def evaluate(i: int, j: int) -> None:
+            if not np.isnan(scores[i, j]):
+                return
+            if i not in pitches:
+                pitches[i] = _pitch_on_terrain(a, float(yaws[i]), L, terrain)
+            M0 = cam_from_world @ _rest(_pose_at(ct, a, float(yaws[i]), pitches[i], float(rolls[j])), corners, terrain)
+            sc, sh, _ = coarse.match(M0, min_cos, radius_m * px_per_m)
+            scores[i, j] = sc
+            if np.isfinite(sc):
+                hyps.append((sc, _shifted(M0, c, sh, K), float(yaws[i]), pitches[i], float(rolls[j])))
+
+        # coarse to fine over the heading: every HEADING_STRIDE-th heading of the grid first, then the grid's
+        # headings around the best STRIDE_KEEP of every roll class (the score's basin is wider than the stride)
+        n_y = len(yaws)
+        first = sorted(set(range(0, n_y, HEADING_STRIDE)) | {n_y - 1})
+        for j in range(len(rolls)):
+            for i in first:
+                evaluate(i, j)
+            col = scores[:, j]
+            ok = np.nonzero(np.isfinite(col))[0]
+            for i in ok[np.argsort(-col[ok])][:STRIDE_KEEP]:
+                for di in range(-(HEADING_STRIDE - 1), HEADING_STRIDE):
+                    if 0 <= i + di < n_y:
+                        evaluate(int(i + di), j)
         if not hyps:
             continue
         hyps.sort(key=lambda h: -h[0])
@@ -368,15 +402,24 @@ def search_car(photo: PhotoFeatures, number: str, ct: CarriageType, refs: dict[s
             cw = world0[:3, :3] @ c + world0[:3, 3]
             a0 = Anchor(a.end, cw, a.neighbour, a.coupling)
             best = (-np.inf, M0)
-            for dy in np.deg2rad(np.arange(-1.0, 1.01, FINE_HEADING_DEG)):
-                for dr in np.deg2rad(np.arange(-10.0, 10.1, 5.0)):
-                    for dp in (0.0,):
-                        # about the seed's coupler, where the photo put it (not rested again: a vertical
-                        # move is an image shift at a grazing view)
-                        M1 = cam_from_world @ _pose_at(ct, a0, yaw + dy, pitch + dp, roll + dr)
-                        sc, sh, _ = fine.match(M1, min_cos, 2.0 * down + 2.0)
-                        if sc > best[0]:
-                            best = (sc, _shifted(M1, c, sh, K))
+
+            def refine(dy: float, dr: float) -> None:
+                nonlocal best
+                # about the seed's coupler, where the photo put it (not rested again: a vertical move is an
+                # image shift at a grazing view)
+                M1 = cam_from_world @ _pose_at(ct, a0, yaw + dy, pitch, roll + dr)
+                sc, sh, _ = fine.match(M1, min_cos, 2.0 * down + 2.0)
+                if sc > best[0]:
+                    best = (sc, _shifted(M1, c, sh, K))
+                    best_at[:] = [dy, dr]
+
+            # roll first (+-10 deg in 5 deg steps), then the heading (+-1 deg) at the best roll
+            best_at = [0.0, 0.0]
+            for dr in np.deg2rad(np.arange(-10.0, 10.1, 5.0)):
+                refine(0.0, float(dr))
+            dr_best = best_at[1]
+            for dy in np.deg2rad([-FINE_HEADING_DEG, FINE_HEADING_DEG]):
+                refine(float(dy), dr_best)
             cands.append((best[0], _rest_on_ray(best[1], c, cam_from_world, corners, terrain, radius_m), round(roll, 3)))
     if not cands:
         return []
@@ -443,15 +486,15 @@ def _verify(photo: PhotoFeatures, number: str, ct: CarriageType, refs: dict[str,
                 if d is not None:
                     break
         if d is not None:
+            # a face of another car already found there: the search locked on a neighbour (identical
+            # coaches); rejected at once, before the car's other faces are aligned
+            if any(_overlap(d.polygon(), q) > 0.3 for q in taken):
+                log.info("%s: car %s: search face %s lies on a face of another car; rejected", photo.name, number,
+                         d.ref.face)
+                return None
             dets.append(d)
     if not dets:
         return None
-    # a face of another car already found there: the search locked on a neighbour (identical coaches)
-    for d in dets:
-        if any(_overlap(d.polygon(), q) > 0.3 for q in taken):
-            log.info("%s: car %s: search face %s lies on a face of another car; rejected", photo.name, number,
-                     d.ref.face)
-            return None
     M = joint_pose(dets, photo.intrinsics, M0)
     if M is None:
         return None
