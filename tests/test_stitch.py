@@ -548,6 +548,7 @@ def test_block_gains_as_opencv():
     assert not np.allclose(gains[1], 1.0)  # (the second photo is brighter: the gains do something)
 
 
+@needs_data
 def test_composed_panorama_is_the_photos_through_the_model(tmp_path):
     """Each panorama pixel shows what the model says: the photo pixel ``to_source`` gives (up to gains and
     blending), and black where no photo sees."""
