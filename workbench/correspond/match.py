@@ -287,8 +287,8 @@ def _ecc_refine(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray,
         cc2, warp2 = cv2.findTransformECC(tmpl, img, warp.copy(), cv2.MOTION_HOMOGRAPHY,
                                           (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-5), None, 1)
         warp = warp2  # the correlation reported stays the blurred one (the thresholds are set on it)
-    except cv2.error:
-        pass
+    except cv2.error as exc:  # the blurred alignment stands
+        log.debug("ECC without blur did not converge (%s); the blurred alignment is kept", exc)
     Hn = C @ warp.astype(float) @ S
     return Hn / Hn[2, 2], float(cc)
 
