@@ -271,9 +271,10 @@ def compose(model: PanoramaModel, paths: list[Path], small: list[np.ndarray], *,
                 img = img.get()
         return _clip(img, m, corner, model.width, model.height)
 
-    # a second thread reads and warps the photos at full resolution: the first one while gains and seams are
-    # found, each next one while the previous one is fed to the blender (OpenCV releases the GIL); the blender is
-    # fed in the same order as ever, so the result does not depend on the threads
+    # a second thread reads and warps the photos at full resolution: the first one (then the gains) while the
+    # low-resolution photos are warped and the seams found, each next one while the previous one is fed to the
+    # blender (OpenCV releases the GIL); the blender is fed in the same order as ever, so the result does not
+    # depend on the threads
     with ThreadPoolExecutor(max_workers=1) as pool:
         first = pool.submit(warp_full, 0) if keep else None
         # -- low resolution: gains and seams ----------------------------------------------------------------
@@ -283,21 +284,15 @@ def compose(model: PanoramaModel, paths: list[Path], small: list[np.ndarray], *,
             corners_lr.append(corner)
             imgs_lr.append(img)
             masks_lr.append(m)
-        progress(0.1, "exposure compensation")
+        progress(0.1, "exposure compensation and seams")
         if exposure == "gain_blocks":
             comp = cv2.detail_BlocksGainCompensator()
         elif exposure == "gain":
             comp = cv2.detail_GainCompensator()
         else:
             comp = cv2.detail.ExposureCompensator_createDefault(cv2.detail.ExposureCompensator_NO)
-        comp.feed(corners=corners_lr, images=imgs_lr, masks=[cv2.UMat(m) for m in masks_lr])
-        block_gains = None
-        if exposure == "gain_blocks":  # one (rows, cols) float32 gain per block of each warped photo
-            block_gains = [np.asarray(g.get() if isinstance(g, cv2.UMat) else g, np.float32)
-                           for g in comp.getMatGains()]
-            if any(g.ndim != 2 for g in block_gains):
-                block_gains = None  # (an OpenCV whose block gains have channels: its own apply)
-        progress(0.2, "seams")
+        # the gains in the second thread while the seams are found here (independent; OpenCV releases the GIL)
+        gains_fed = pool.submit(comp.feed, corners=corners_lr, images=imgs_lr, masks=[cv2.UMat(m) for m in masks_lr])
         if seam_finder == "gc_color":
             finder = cv2.detail_GraphCutSeamFinder("COST_COLOR")
         elif seam_finder == "dp_color":
@@ -307,7 +302,14 @@ def compose(model: PanoramaModel, paths: list[Path], small: list[np.ndarray], *,
         seams = finder.find([im.astype(np.float32) for im in imgs_lr], corners_lr,
                             [cv2.UMat(m) for m in masks_lr])
         seams = [s.get() if isinstance(s, cv2.UMat) else s for s in seams]
+        gains_fed.result()
         del imgs_lr
+        block_gains = None
+        if exposure == "gain_blocks":  # one (rows, cols) float32 gain per block of each warped photo
+            block_gains = [np.asarray(g.get() if isinstance(g, cv2.UMat) else g, np.float32)
+                           for g in comp.getMatGains()]
+            if any(g.ndim != 2 for g in block_gains):
+                block_gains = None  # (an OpenCV whose block gains have channels: its own apply)
         # -- full resolution: warp, compensate, blend --------------------------------------------------------
         blender = cv2.detail_MultiBandBlender()
         blend_width = np.sqrt(model.width * model.height) * blend_strength / 100.0
@@ -331,7 +333,7 @@ def compose(model: PanoramaModel, paths: list[Path], small: list[np.ndarray], *,
     result, result_mask = blender.blend(None, None)
     if isinstance(result, cv2.UMat):
         result, result_mask = result.get(), result_mask.get()
-    # int16 -> uint8, saturated (the blender has already set what no photo sees to 0)
-    pano = cv2.convertScaleAbs(cv2.max(result, 0))
+    # int16 -> uint8, saturated (the blender has already set what no photo sees to 0); negatives clipped in place
+    pano = cv2.convertScaleAbs(np.maximum(result, 0, out=result))
     coverage = float(np.count_nonzero(result_mask)) / result_mask.size
     return pano, {"n_blended": fed, "bands": bands, "coverage": round(coverage, 4)}

@@ -59,10 +59,10 @@ def detect_features(name: str, gray_work: np.ndarray, full_size: tuple[int, int]
     ws = (gray_work.shape[1] / w + gray_work.shape[0] / h) / 2  # the work scale (residuals are in work pixels)
     if desc is None or len(kps) == 0:
         return PhotoFeatures(name, w, h, ws, np.zeros((0, 2)), np.zeros((0, 128), np.float32))
-    pts = np.array([k.pt for k in kps], dtype=float)
+    pts = cv2.KeyPoint_convert(kps).astype(float)  # (the keypoints' float32 coordinates, as k.pt gives them)
     pts[:, 0] = (pts[:, 0] + 0.5) / sx - 0.5
     pts[:, 1] = (pts[:, 1] + 0.5) / sy - 0.5
-    return PhotoFeatures(name, w, h, ws, pts, desc.astype(np.float32))
+    return PhotoFeatures(name, w, h, ws, pts, desc.astype(np.float32, copy=False))
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -437,9 +437,10 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
     n_par = n_rot + n_gp * len(gids)
     f0 = {g: np.mean([init[k].fx for k in kept if groups[k] == g]) for g in gids}
 
-    a_pos = np.array([pos[k] for k in obs.a])
-    b_pos = np.array([pos[k] for k in obs.b])
-    s_obs = np.array([min(work_scale[x], work_scale[y]) for x, y in zip(obs.a, obs.b)])
+    pos_of = np.zeros(max(kept) + 1, dtype=int)  # photo -> position, as an array (looked up per observation)
+    pos_of[kept] = np.arange(len(kept))
+    a_pos, b_pos = pos_of[obs.a], pos_of[obs.b]
+    s_obs = min_work_scale(obs, work_scale)
     # parameter column of each photo position's rotation (-1: the root) and of its group's first parameter
     rot_col = np.full(len(kept), -1)
     for n_, k in enumerate(free):
@@ -476,13 +477,13 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
         return Rs, Jl, gp
 
     def cam_params(gp, ppos):
-        """Per row: f, k1, k2, cx, cy of the photo at each position."""
-        g = grp_of_pos[ppos]
-        f0r = f0_of_pos[ppos]
-        f = f0r * np.exp(gp[g, 0])
+        """Per row: f, k1, k2, cx, cy of the photo at each position (computed per position, then gathered)."""
+        f = (f0_of_pos * np.exp(gp[grp_of_pos, 0]))[ppos]
         if n_gp == 5:
-            return f, gp[g, 1], gp[g, 2], cx0[ppos] + gp[g, 3] * f0r, cy0[ppos] + gp[g, 4] * f0r
-        z = np.zeros(len(g))
+            g = gp[grp_of_pos]
+            return (f, g[:, 1][ppos], g[:, 2][ppos], (cx0 + g[:, 3] * f0_of_pos)[ppos],
+                    (cy0 + g[:, 4] * f0_of_pos)[ppos])
+        z = np.zeros(len(ppos))
         return f, z, z, cx0[ppos], cy0[ppos]
 
     def rays_est(x_px, ppos, gp, jac):
@@ -594,7 +595,11 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
             return res, None
         # d d / d (dst rotation perturbation) = -[d]x, d d / d (src) = M [r]x = [d]x M; rows of dp_dd [d]x are
         # dp_dd[r] x d
-        A = np.cross(dp_dd, d[:, None, :])
+        A = np.empty_like(dp_dd)  # np.cross(dp_dd, d[:, None, :]), the same products, without its overhead
+        d0, d1, d2 = d[:, None, 0], d[:, None, 1], d[:, None, 2]
+        A[:, :, 0] = dp_dd[:, :, 1] * d2 - dp_dd[:, :, 2] * d1
+        A[:, :, 1] = dp_dd[:, :, 2] * d0 - dp_dd[:, :, 0] * d2
+        A[:, :, 2] = dp_dd[:, :, 0] * d1 - dp_dd[:, :, 1] * d0
         J_gs = None
         if dr is not None:  # dp_dd M dr, with dr's z row zero
             DM = [dp_dd[:, :, 0, None] * M[:, 0, c, None, None] + dp_dd[:, :, 1, None] * M[:, 1, c, None, None]
@@ -610,29 +615,39 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
                + (4 * len(gids) if n_gp == 5 else 0))
     single_group = len(gids) == 1
 
-    def evaluate(x, idx, jac):
-        Rs, Jl, gp = unpack(x)
+    layouts: dict[int, tuple] = {}
+
+    def layout(idx):
+        """What :func:`evaluate` needs of the observations ``idx`` that does not depend on the parameters (once per
+        set): the blocks of consecutive observations of one pair of photos (stacked pair by pair: one block per
+        pair), and both directions' positions and pixels stacked, a -> b (rows :n) then b -> a (rows n:)."""
+        hit = layouts.get(id(idx))
+        if hit is not None and hit[0] is idx:
+            return hit[1]
         ap, bp = a_pos[idx], b_pos[idx]
-        # blocks of consecutive observations of one pair of photos (stacked pair by pair: one block per pair)
         cut = np.flatnonzero((np.diff(ap) != 0) | (np.diff(bp) != 0)) + 1
         starts = np.concatenate([[0], cut]).astype(int)
         ends = np.concatenate([cut, [len(idx)]]).astype(int)
-        pa, pb = ap[starts], bp[starts]
+        xa, xb = obs.xa[idx], obs.xb[idx]
+        lay = (starts, ends, ap[starts], bp[starts], np.concatenate([ap, bp]), np.concatenate([bp, ap]),
+               np.concatenate([xa, xb]), np.concatenate([xb, xa]),
+               np.concatenate([ray_a[idx], ray_b[idx]]) if fixed_intrinsics else None, s_obs[idx])
+        layouts[id(idx)] = (idx, lay)  # (idx kept alive: its id is not reused while cached)
+        return lay
+
+    def evaluate(x, idx, jac):
+        Rs, Jl, gp = unpack(x)
+        starts, ends, pa, pb, src2, dst2, xsrc2, xdst2, ray2, s = layout(idx)
         M_ba = Rs[pb] @ np.transpose(Rs[pa], (0, 2, 1))  # per pair: b_from_a
         M_ab = np.transpose(M_ba, (0, 2, 1))
         lens_ = ends - starts
         Mo_ba, Mo_ab = np.repeat(M_ba, lens_, axis=0), np.repeat(M_ab, lens_, axis=0)
         n = len(idx)
-        xa, xb = obs.xa[idx], obs.xb[idx]
-        ray2 = np.concatenate([ray_a[idx], ray_b[idx]]) if fixed_intrinsics else None
-        # a -> b (rows :n) and b -> a (rows n:)
-        res2, B2 = transfer(gp, np.concatenate([Mo_ba, Mo_ab]), np.concatenate([ap, bp]), np.concatenate([bp, ap]),
-                            np.concatenate([xa, xb]), np.concatenate([xb, xa]), ray2, jac)
+        res2, B2 = transfer(gp, np.concatenate([Mo_ba, Mo_ab]), src2, dst2, xsrc2, xdst2, ray2, jac)
         res_ab, res_ba = res2[:n], res2[n:]
         if jac:
             B_ab = [None if b_ is None else b_[:n] for b_ in B2]
             B_ba = [None if b_ is None else b_[n:] for b_ in B2]
-        s = s_obs[idx]
         r = (np.stack([res_ab, res_ba], axis=1) * s[:, None, None]).reshape(-1)
         extra, Jx = [], []
         if n_gp and focal_prior:
@@ -753,6 +768,13 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
                                         k1=float(lens[0]), k2=float(lens[1]))
     res = _transfer_all(evaluate, x, len(obs.a)) / s_obs[:, None, None]
     return BAResult(out_R, out_K, res, used, cost, nfev)
+
+
+def min_work_scale(obs: Observations, work_scale: dict[int, float]) -> np.ndarray:
+    """(M,) the smaller work scale of each observation's two photos (residuals in work pixels use it)."""
+    ws = np.zeros(max(work_scale) + 1)
+    ws[list(work_scale)] = list(work_scale.values())
+    return np.minimum(ws[obs.a], ws[obs.b])
 
 
 def _compress_least_squares(r: np.ndarray, J: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

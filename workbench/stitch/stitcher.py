@@ -413,7 +413,7 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
     timings["bundle_adjustment_s"] = time.perf_counter() - t0
 
     # -- residuals and the parallax check ------------------------------------------------------------------------
-    s_obs = np.array([min(wscale[a], wscale[b]) for a, b in zip(obs.a, obs.b)])
+    s_obs = reg.min_work_scale(obs, wscale)
     err_full = np.linalg.norm(ba.residuals_px, axis=2)  # (M, 2)
     err_work = err_full * s_obs[:, None]
     f_obs = np.array([ba.intrinsics[a].fx for a in obs.a])
@@ -508,8 +508,7 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
 
 
 def _rms_work(ba: "reg.BAResult", obs: "reg.Observations", wscale: dict[int, float]) -> float:
-    s = np.array([min(wscale[a], wscale[b]) for a, b in zip(obs.a, obs.b)])
-    e = np.linalg.norm(ba.residuals_px, axis=2) * s[:, None]
+    e = np.linalg.norm(ba.residuals_px, axis=2) * reg.min_work_scale(obs, wscale)[:, None]
     return float(np.sqrt(np.mean(e[ba.used] ** 2)))
 
 
