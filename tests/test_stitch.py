@@ -229,6 +229,39 @@ def test_compressed_least_squares_takes_the_same_steps(monkeypatch):
     assert np.array_equal(out.used, plain.used)
 
 
+def test_last_adjustment_weighs_the_tail_less():
+    """Restarted from an adjustment (``start``, its rotations as ``R0``), the same adjustment comes back; with
+    ``final_loss_median`` (soft L1 at the scale of the median residual) a tail of mismatches (5 %, 1 to 3 px outwards,
+    inside the 4 px outlier threshold) pulls the focal far less from the fit without them."""
+    from scipy.spatial.transform import Rotation
+
+    from workbench.stitch import register as reg
+
+    rng = np.random.default_rng(5)
+    lens = CameraIntrinsics(width=640, height=480, fx=700.0, fy=700.0, cx=319.5, cy=239.5, k1=-0.1)
+    R = {k: Rotation.from_euler("Y", 12.0 * k - 12.0, degrees=True).as_matrix().T for k in range(3)}
+    obs = _rotation_matches(reg, lens, R, rng, n=800, noise_px=0.05)
+    bad = rng.random(len(obs.a)) < 0.05
+    out = obs.xb[bad] - [lens.cx, lens.cy]  # pushed outwards: a tail that pulls the focal
+    obs.xb[bad] += rng.uniform(1.0, 3.0, bad.sum())[:, None] * out / np.linalg.norm(out, axis=1, keepdims=True)
+    R0 = {k: Rotation.from_rotvec(rng.normal(0, 0.01, 3)).as_matrix() @ R[k] for k in range(3)}
+    init = {k: CameraIntrinsics(width=640, height=480, fx=680.0, fy=680.0, cx=319.5, cy=239.5) for k in range(3)}
+    args = ([0, 1, 2], {0: 0, 1: 0, 2: 0}, init)
+    ws = {k: 1.0 for k in range(3)}
+    ba = reg.bundle_adjust(obs, *args, R0, ws, fixed_intrinsics=False, estimate_k1=True)
+    assert ba.used[bad].mean() > 0.9  # inside the outlier threshold
+    again = reg.bundle_adjust(obs, *args, ba.cam_from_pano, ws, fixed_intrinsics=False, estimate_k1=True,
+                              robust_pass=False, used=ba.used, start=ba.intrinsics)
+    assert again.intrinsics[0].fx == pytest.approx(ba.intrinsics[0].fx, rel=1e-6)
+    assert again.intrinsics[0].k1 == pytest.approx(ba.intrinsics[0].k1, abs=1e-6)
+    last = reg.bundle_adjust(obs, *args, ba.cam_from_pano, ws, fixed_intrinsics=False, estimate_k1=True,
+                             robust_pass=False, used=ba.used, start=ba.intrinsics, final_loss_median=1.0)
+    clean = reg.bundle_adjust(obs, *args, ba.cam_from_pano, ws, fixed_intrinsics=False, estimate_k1=True,
+                              robust_pass=False, used=ba.used & ~bad, start=ba.intrinsics)  # the tail left out
+    off_ls, off_robust = (abs(b.intrinsics[0].fx / clean.intrinsics[0].fx - 1.0) for b in (ba, last))
+    assert off_robust < 0.25 * off_ls, (off_ls, off_robust)
+
+
 @needs_data
 def test_cut_views_calibrated_keeps_the_lens(tmp_path):
     paths, truth, intr = _cut_set(tmp_path, -0.1)

@@ -410,7 +410,8 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
                   k1_prior_sigma: float = 0.25, pp_prior_sigma: float = 0.05, k2_prior_sigma: float = 0.25,
                   loss_scale_work_px: float = 1.0, reject_work_px: float = 4.0, max_nfev: int = 60,
                   robust_per_pair: int = 100, robust_pass: bool = True, final_pass: bool = True,
-                  used: np.ndarray | None = None, robust_tol: float = 1e-6) -> BAResult:
+                  used: np.ndarray | None = None, robust_tol: float = 1e-6,
+                  start: dict[int, CameraIntrinsics] | None = None, final_loss_median: float = 0.0) -> BAResult:
     """Refine rotations (and, unless ``fixed_intrinsics``, one focal, optionally k1, k2 and the principal
     point, per camera group).
 
@@ -425,6 +426,11 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
     Two passes: ``robust_pass`` (soft L1 on at most ``robust_per_pair`` observations per pair, to tolerance
     ``robust_tol``; its inliers are kept) and ``final_pass`` (least squares on the inliers: ``used`` (M,) bool when
     there is no robust pass, else every observation).
+    ``final_loss_median``: when > 0, the final pass minimises the soft-L1 loss of scale ``final_loss_median`` times
+    the inliers' median residual (at its start) instead of their sum of squares: the residuals' tail (mismatches
+    within ``reject_work_px``, occluded or poorly textured patches) weighs less.
+    ``start``: estimated intrinsics to start from (per photo; the priors stay those of ``init``), e.g. a previous
+    adjustment's, with ``R0`` its rotations.
     """
     kept = list(kept)
     pos = {k: n for n, k in enumerate(kept)}
@@ -690,7 +696,8 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
 
     def soft_l1(r, J, n_obs):
         """Residuals and Jacobian rescaled so that their sum of squares is the soft-L1 loss of the observations'
-        residuals (scale ``loss_scale_work_px``): rho(z) = 2 (sqrt(1 + z^2) - 1) = g(z)^2, g(z) = z sqrt(2 / (1 + sqrt(1 + z^2)))."""
+        residuals (scale ``c_loss``: ``loss_scale_work_px``, or the final pass's):
+        rho(z) = 2 (sqrt(1 + z^2) - 1) = g(z)^2, g(z) = z sqrt(2 / (1 + sqrt(1 + z^2)))."""
         z = r[:n_obs] / c_loss
         rho = np.sqrt(1.0 + z * z)
         sq = np.sqrt(2.0 / (1.0 + rho))
@@ -720,6 +727,14 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
         return _compress_least_squares(*(soft_l1(r, J, 4 * len(idx)) if robust else (r, J)))[1]
 
     x = np.zeros(n_par)
+    if start is not None and n_gp:
+        for g in gids:
+            k = next(k for k in kept if groups[k] == g)
+            c = start[k]
+            x[n_rot + n_gp * gpos[g]] = np.log(c.fx / f0[g])
+            if n_gp == 5:
+                x[n_rot + n_gp * gpos[g] + 1:n_rot + n_gp * (gpos[g] + 1)] = (
+                    c.k1, c.k2, (c.cx - init[k].cx) / f0[g], (c.cy - init[k].cy) / f0[g])
     used = np.ones(len(obs.a), dtype=bool) if used is None else used.copy()
     nfev = 0
     cost = 0.0
@@ -731,27 +746,30 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
         rows = np.flatnonzero(obs.pair == pid)
         sub[rng.permutation(rows)[:robust_per_pair]] = True
     for rnd in range(2):
-        idx = np.flatnonzero(sub if rnd == 0 else used)
         if len(x) == 0:
             break
         if (rnd == 0 and not robust_pass) or (rnd == 1 and not final_pass):
             continue
         # Levenberg-Marquardt (MINPACK) with the analytic Jacobian: a robust first pass (soft L1, by rescaling the
-        # residuals: the loss is their sum of squares), then plain least squares on the inliers. LM walks the
-        # focal / distortion valley far better than trf.
-        robust = rnd == 0
+        # residuals: the loss is their sum of squares), then least squares on the inliers (or soft L1 at the scale of
+        # their median residual: final_loss_median). LM walks the focal / distortion valley far better than trf.
+        idx = np.flatnonzero(sub if rnd == 0 else used)
+        robust = rnd == 0 or final_loss_median > 0
+        if rnd == 1 and robust:
+            err = np.max(np.linalg.norm(_transfer_all(evaluate, x, len(obs.a)), axis=2), axis=1)
+            c_loss = final_loss_median * float(np.median(err[idx]))
         # the robust pass only has to find the inliers and come near the minimum: a looser tolerance
-        tol = robust_tol if robust else 1e-10
+        tol = robust_tol if rnd == 0 else 1e-10
         sol = least_squares(fun, x, jac=jac, args=(idx, robust), method="lm", xtol=tol, ftol=tol,
                             max_nfev=max_nfev * 2)
         x, cost, n_ev, msg = sol.x, float(sol.cost), sol.nfev, sol.message
         nfev += n_ev
         log.debug("BA round %d: %d evaluations, cost %.4g, %s", rnd, n_ev, cost, msg)
-        res = _transfer_all(evaluate, x, len(obs.a))
-        err = np.max(np.linalg.norm(res, axis=2), axis=1)
-        new_used = err < reject_work_px
-        if rnd == 0 and new_used.sum() >= 0.5 * len(used):
-            used = new_used  # else: the robust pass has not converged yet; LM goes on with every inlier
+        if rnd == 0:
+            res = _transfer_all(evaluate, x, len(obs.a))
+            new_used = np.max(np.linalg.norm(res, axis=2), axis=1) < reject_work_px
+            if new_used.sum() >= 0.5 * len(used):
+                used = new_used  # else: the robust pass has not converged yet; LM goes on with every inlier
     Rs, _, gp = unpack(x)
     out_R = {k: Rs[pos[k]] for k in kept}
     out_K = {}
