@@ -49,6 +49,47 @@ def test_predictions_add_no_information():
     assert np.all(sig["as_measured"] < 0.97 * sig["predicted"])
 
 
+def test_predictions_are_checked_against_the_measured_points():
+    """Step 4b: predictions 36 px off (a far corner projected from a face's pose with the wrong roll) pull their
+    car (4 measured points) further than its measured points allow (a shift chi-square of about 40), so they
+    are released and the pose comes back to the measured points' fit (within 5 % of the pull); predictions
+    that agree with the measurements keep their weight (the pose is the one they give at full weight)."""
+    names = sorted(next(iter(simulate_consist(3, seed=4).carriages[1].observations.values())))
+
+    def measured_only(v, obs, clean):
+        return [Observation(n, *obs[n]) for n in names[:4]]
+
+    def predictions(off):
+        def make(v, obs, clean):
+            return [Observation(n, *obs[n]) for n in names[:4]] + \
+                   [Observation(n, *(np.asarray(clean[n]) + off), sigma_px=2.0, derived=True) for n in names[4:]]
+        return make
+
+    centre, note = {}, {}
+    for label, make, release in (("measured", measured_only, 30.0),
+                                 ("biased_kept", predictions(np.array([30.0, -20.0])), 1.0),
+                                 ("biased", predictions(np.array([30.0, -20.0])), 30.0),
+                                 ("good_kept", predictions(np.zeros(2)), 1.0),
+                                 ("good", predictions(np.zeros(2)), 30.0)):
+        sim = simulate_consist(3, seed=4, pixel_sigma_px=0.5)
+        _with(sim, 1, make)
+        res = solve_consist(sim.carriages, sim.links, sim.views,
+                            SolveOptions(pixel_sigma_px=0.5, prediction_release=release), terrain=None)
+        assert res.status == "converged"
+        step = {s.name: s for s in res.steps}["4b_predictions_checked"]
+        assert step.ran == (label in ("biased", "good"))
+        note[label] = step.note
+        centre[label] = np.asarray(res.carriages[1].body_centre_m, float)
+    pull = np.linalg.norm(centre["biased_kept"] - centre["measured"])
+    assert pull > 0.005  # the biased predictions do bend the fit
+    assert np.linalg.norm(centre["biased"] - centre["measured"]) < 0.05 * pull
+    assert "released on every car with some" in note["biased"]
+    assert "kept" in note["good"] and "released" not in note["good"]
+    np.testing.assert_allclose(centre["good"], centre["good_kept"], atol=1e-6)
+    with pytest.raises(SettingsError, match="prediction_release"):
+        SolveOptions(prediction_release=0.5)
+
+
 def test_shared_misfit_only_widens_grouped_points():
     opts0, opts = SolveOptions(pixel_sigma_px=0.5), SolveOptions(pixel_sigma_px=0.5, face_sigma_px=0.5)
 

@@ -116,6 +116,11 @@ class Solver(_Strict):
     # with a known focal and no robust loss, and only for carriages whose predicted bias is under one standard
     # deviation (the step "5_bias_correction" of solution.json says what was corrected and what was not)
     bias_correction: bool = True
+    # predicted points (projected from a face's pose, carried from another photo) steer the solve into its
+    # basin; step "4b_predictions_checked" fits again with their sigmas multiplied by this (the measured points'
+    # fit, which the intervals describe) and releases them on every car they pulled further than its covariance
+    # allows (docs/correspondences.md); 1: no check, they keep their weight
+    prediction_release: Annotated[float, Field(ge=1.0)] = 30.0
 
 
 class ProjectSettings(_Strict):
@@ -251,4 +256,5 @@ max_iterations = 200
 reject_outliers_sigma = 5.0    # drop a marked point farther than this many pixel sigmas from the fit (0: off)
 face_sigma_px = 0.15          # misfit shared by one face's automatic points, pixels (covariance only; 0: none)
 bias_correction = true        # remove the estimate's second-order bias (known focal only; docs/solver.md)
+prediction_release = 30.0     # predictions that pull a car off its measured points' fit: sigma x this (1: no check)
 """

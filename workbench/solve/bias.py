@@ -218,15 +218,8 @@ def estimate_bias(prob, cars, R, t, f, focal_views, chains, slacks, contact, mod
         S = np.array([col[k] for k in ck])[:, None] + np.arange(6)
 
         def eval_contact(delta, ck=ck, sz=sz):
-            out = np.zeros((len(ck), 1))
-            Rc, tc = R.copy(), t.copy()
-            for i, k in enumerate(ck):
-                Rc[k] = exp_so3(delta[i, :3]) @ R[k]
-                tc[k] = t[k] + delta[i, 3:6]
-                cl = contact.clearance(Rc, tc, k)
-                out[i, 0] = cl[0] / sz if cl is not None else np.nan
-                Rc[k], tc[k] = R[k], t[k]
-            return out
+            d, _, _ = contact.clearances(exp_so3(delta[:, :3]) @ R[ck], t[ck] + delta[:, 3:6], ck)
+            return (d / sz)[:, None]
 
         units.append(_Units(S, row0 + np.arange(len(ck))[:, None], eval_contact))
         row0 += len(ck)

@@ -46,7 +46,11 @@ Method (one for every step and every size)
     ``C z = 0``: there the Gauss-Newton matrix is block diagonal (plus the focal's rows) and ``C`` couples only
     neighbours, so the KKT system is sparse and is factored by SuperLU (``scipy.sparse.linalg.splu``) in
     O(N) per iteration for a chain of N carriages (the elimination in ``x`` would make the normal equations
-    dense, O(N^3)). The step is identical to the dense one in ``x``. Exact analytic Jacobians (projection
+    dense, O(N^3)); a small system (up to :data:`DENSE_KKT_MAX` rows, ~17 carriages with free rotations) is
+    solved dense by LAPACK, where SuperLU's per-call overhead would dominate. The step is identical to the
+    dense one in ``x``. A link on the sphere adds the sphere's curvature times its multiplier to its block of
+    the Gauss-Newton matrix (the constraint's term of the Lagrangian's Hessian), so that an offset held at the
+    slack converges quadratically, not linearly. Exact analytic Jacobians (projection
     derivatives from :mod:`.projection`, the SO(3) left Jacobian, the chain rule of the couplings). Robust
     losses (scipy's ``huber``, ``soft_l1``, ``cauchy``) enter as in scipy's ``least_squares`` (rows rescaled
     by the loss' derivatives).
@@ -91,6 +95,7 @@ finds the minimum in the truth's basin, which tells a solver failure from the es
 
 from __future__ import annotations
 
+import copy
 import logging
 import math
 import time
@@ -212,6 +217,14 @@ class SolveOptions:
     # uncorrected (the step's note names it), so that a poorly observed carriage is never moved by an expansion
     # that does not hold there
     bias_max_over_sd: float = 1.0
+    # predictions (points projected from a face's pose, points carried from another photo: Observation.derived)
+    # steer steps 1-4 at their own sigma, which keeps a carriage seen by one face in the right basin. Step
+    # "4b_predictions_checked" then fits again with their sigmas multiplied by this factor (the fit of the measured
+    # points, which the covariance describes) and checks each carriage: where its predictions moved it further
+    # from that fit than its own covariance allows (chi-square, 6 dof, 95 %), they were off (a far corner
+    # projected from a face whose pose fits the face but not the car) and stay released; elsewhere they agree
+    # with the measurements and keep their weight. 1: no check, the predictions keep their weight
+    prediction_release: float = 30.0
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> None:
@@ -245,6 +258,9 @@ class SolveOptions:
         if not (isinstance(self.bias_max_over_sd, (int, float, np.floating)) and np.isfinite(self.bias_max_over_sd)
                 and self.bias_max_over_sd > 0):
             bad("bias_max_over_sd", "must be a positive number of standard deviations")
+        if not (isinstance(self.prediction_release, (int, float, np.floating)) and np.isfinite(self.prediction_release)
+                and self.prediction_release >= 1):
+            bad("prediction_release", "must be a number >= 1 (the factor on the predictions' sigmas in the last fit)")
 
 
 @dataclass
@@ -456,6 +472,14 @@ def _degeneracy(ct: Any, names: list[str]) -> str:
 # ----------------------------------------------------------------------------------------------------------
 # Parametrisation of one optimisation step
 # ----------------------------------------------------------------------------------------------------------
+_EYE3 = np.eye(3)
+_EYE3.flags.writeable = False
+# the trust-region system of a step is solved dense up to this many unknowns and constraints (a 10-carriage
+# step with free rotations has 114): dense LU costs O(n^3), SuperLU O(n) plus a fixed per-call overhead; on
+# the benchmark's consists the two break even between 20 (n = 234) and 30 carriages (n = 354)
+DENSE_KKT_MAX = 200
+
+
 def _sphere_basis(d: np.ndarray) -> np.ndarray:
     """(3, 2) orthonormal basis of the plane orthogonal to the unit vector d."""
     a = np.array([1.0, 0.0, 0.0]) if abs(d[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
@@ -522,70 +546,96 @@ class _Layout:
         self.rot_cars = [k for ch in chains for k in ch] if rot_free else []
         self.rot_idx = np.array([self.off[c] + 3 + 3 * j + i for c, ch in enumerate(chains) for j in range(len(ch))
                                  for i in range(3)], dtype=int) if rot_free else np.zeros(0, int)
+        # every link of every chain, in chain order, as arrays (unpack works on all links at once)
+        links = [(c, j) for c, ch in enumerate(chains) for j in range(len(ch) - 1)]
+        self._link_a = np.array([chains[c][j] for c, j in links], dtype=int)  # front carriage of the link
+        self._link_b = np.array([chains[c][j + 1] for c, j in links], dtype=int)  # rear carriage
+        self._c_rear = np.array([cars[chains[c][j]].c_rear for c, j in links], dtype=float).reshape(-1, 3)
+        self._c_front = np.array([cars[chains[c][j + 1]].c_front for c, j in links], dtype=float).reshape(-1, 3)
+        self._link_col = [self.off[c] + self.link_off[c][j] for c, j in links]  # first column of its parameters
+        is_sph = np.array([self.sphere[c][j] is not None for c, j in links], dtype=bool)
+        self._free = np.nonzero(~is_sph)[0]
+        self._free_cols = np.array([self._link_col[i] for i in self._free], dtype=int).reshape(-1, 1) + np.arange(3)
+        self._sph = np.nonzero(is_sph)[0]
+        self._sph_cols = np.array([self._link_col[i] for i in self._sph], dtype=int).reshape(-1, 1) + np.arange(2)
+        self._sph_d0 = np.array([self.sphere[c][j][0] for c, j in (links[i] for i in self._sph)]).reshape(-1, 3)
+        self._sph_B = np.array([self.sphere[c][j][1] for c, j in (links[i] for i in self._sph)]).reshape(-1, 3, 2)
+        self._sph_s = np.array([slacks[c][j] for c, j in (links[i] for i in self._sph)], dtype=float)
+        self.link_sph = is_sph
+        self.link_w = np.where(is_sph, 2, 3)  # parameters per link
+        # coupler prior rows: T * prior_px / sigma_T, sigma_T = slack / sqrt 5
+        self.link_scale = np.array([self.prior_px * SQRT5 / slacks[c][j] for c, j in links], dtype=float)
+        self._chain_links = np.cumsum([0] + [len(ch) - 1 for ch in chains])  # chain c: links [c_, c_ + 1)
 
     def unpack(self, x: np.ndarray, with_derivs: bool | str = True):
         """Poses, focal, offsets at ``x``. ``with_derivs``: True also the dense chain derivatives ``D`` (d t / d
         chain params, O(N^2) for a long chain) and the left Jacobians; ``"local"`` only the left Jacobians
-        (what the structured solver needs); False neither."""
-        dense_D = with_derivs is True
+        (what the structured solver needs); False neither. The left Jacobians are an (N, 3, 3) array (the
+        identity for a carriage whose rotation is held), None without derivatives. Sets, per link,
+        ``self.GT[c][j] = (column, d T / d link params (3, 3 or 2))``, and for all links in chain order ``self.T``
+        (L, 3) and ``self.GT_pad`` (L, 3, 3) (a sphere link's third column zero)."""
         R = self.R_ref.copy()
         t = np.zeros((len(self.cars), 3))
         D: dict[int, np.ndarray] = {}  # car -> (3, size_c): d t / d chain params
-        Jl: dict[int, np.ndarray] = {}
-        T_links: list[list[np.ndarray]] = []
-        self.GT = []
+        Jl = np.tile(_EYE3, (len(self.cars), 1, 1)) if with_derivs else None
         if self.rot_free and self.rot_cars:  # all rotations at once
             dl = x[self.rot_idx].reshape(-1, 3)
             R[self.rot_cars] = exp_so3(dl) @ self.R_ref[self.rot_cars]
             if with_derivs:
-                Jl = dict(zip(self.rot_cars, left_jacobian_so3(dl)))
-        for c, (ch, sl) in enumerate(zip(self.chains, self.slacks)):
-            o, m = self.off[c], self.size[c]
-            GTc = []
+                Jl[self.rot_cars] = left_jacobian_so3(dl)
+        nl = len(self._link_a)
+        T = np.empty((nl, 3))
+        GT: list[np.ndarray] = [_EYE3] * nl
+        GT_pad = np.zeros((nl, 3, 3))
+        GT_pad[self._free] = _EYE3
+        T[self._free] = x[self._free_cols]
+        if len(self._sph):
+            # exponential chart of the sphere at d0 (covers every direction): T = s (cos|v| d0 + sinc|v| v), v = B a
+            d0, B, s = self._sph_d0, self._sph_B, self._sph_s
+            v = np.einsum("nij,nj->ni", B, x[self._sph_cols])
+            th = np.linalg.norm(v, axis=1)
+            small = th < 1e-6
+            ths = np.where(small, 1.0, th)
+            c1 = np.where(small, 1.0 - th * th / 6.0, np.sin(ths) / ths)
+            c2 = np.where(small, -1.0 / 3.0 + th * th / 30.0, (ths * np.cos(ths) - np.sin(ths)) / ths**3)
+            T[self._sph] = s[:, None] * (np.cos(th)[:, None] * d0 + c1[:, None] * v)
+            G = (c1[:, None, None] * (_EYE3 - d0[:, :, None] * v[:, None, :]) + c2[:, None, None] * v[:, :, None]
+                 * v[:, None, :]) @ B * s[:, None, None]
+            GT_pad[self._sph, :, :2] = G
+            for i, g in zip(self._sph, G):
+                GT[i] = g
+        self.T, self.GT_pad = T, GT_pad
+        ra = np.einsum("nij,nj->ni", R[self._link_a], self._c_rear)
+        rb = np.einsum("nij,nj->ni", R[self._link_b], self._c_front)
+        step = ra + T - rb  # t_b - t_a of every link
+        T_links: list[list[np.ndarray]] = []
+        self.GT = []
+        for c, ch in enumerate(self.chains):
+            o = self.off[c]
+            l0, l1 = self._chain_links[c], self._chain_links[c + 1]
             t[ch[0]] = x[o:o + 3]
-            Tl = []
-            if dense_D:
-                Dk = np.zeros((3, m))
-                Dk[:, 0:3] = np.eye(3)
+            if l1 > l0:
+                t[ch[1:]] = x[o:o + 3] + np.cumsum(step[l0:l1], axis=0)
+            T_links.append(list(T[l0:l1]))
+            self.GT.append([(self._link_col[i], GT[i]) for i in range(l0, l1)])
+            if with_derivs is True:
+                Dk = np.zeros((3, self.size[c]))
+                Dk[:, 0:3] = _EYE3
                 D[ch[0]] = Dk
-            for j in range(len(ch) - 1):
-                a, b = ch[j], ch[j + 1]
-                ca, cb = self.cars[a], self.cars[b]
-                lo = self.link_off[c][j]
-                sph = self.sphere[c][j]
-                if sph is None:
-                    T = x[o + lo:o + lo + 3].copy()
-                    GT = np.eye(3)
-                    w_ = 3
-                else:
-                    d0, B = sph  # exponential chart of the sphere at d0: covers every direction
-                    v = B @ x[o + lo:o + lo + 2]
-                    th = float(np.linalg.norm(v))
-                    if th < 1e-6:
-                        c1, c2 = 1.0 - th * th / 6.0, -1.0 / 3.0 + th * th / 30.0
-                    else:
-                        c1, c2 = math.sin(th) / th, (th * math.cos(th) - math.sin(th)) / th**3
-                    T = sl[j] * (math.cos(th) * d0 + c1 * v)
-                    GT = sl[j] * (-c1 * np.outer(d0, v) + c1 * np.eye(3) + c2 * np.outer(v, v)) @ B
-                    w_ = 2
-                Tl.append(T)
-                GTc.append((o + lo, GT))
-                ra, rb = R[a] @ ca.c_rear, R[b] @ cb.c_front
-                t[b] = t[a] + ra + T - rb
-                if dense_D:
+                for j in range(len(ch) - 1):
+                    i = l0 + j
+                    lo = self.link_off[c][j]
                     Dk = Dk.copy()
-                    Dk[:, lo:lo + w_] += GT
+                    Dk[:, lo:lo + GT[i].shape[1]] += GT[i]
                     if self.rot_free:
                         ja = 3 + 3 * j
-                        Dk[:, ja:ja + 3] += -skew(ra) @ Jl[a]
-                        Dk[:, ja + 3:ja + 6] += skew(rb) @ Jl[b]
-                    D[b] = Dk
-            T_links.append(Tl)
-            self.GT.append(GTc)
+                        Dk[:, ja:ja + 3] += -skew(ra[i]) @ Jl[ch[j]]
+                        Dk[:, ja + 3:ja + 6] += skew(rb[i]) @ Jl[ch[j + 1]]
+                    D[ch[j + 1]] = Dk
         f = self.f_ref.copy()
         for i, grp in enumerate(self.focal_views):
-            for v in grp:
-                f[v] = self.f_ref[v] * math.exp(x[self.f_off + i])
+            for v_ in grp:
+                f[v_] = self.f_ref[v_] * math.exp(x[self.f_off + i])
         return R, t, f, D, Jl, T_links
 
 
@@ -594,13 +644,20 @@ class _Layout:
 # ----------------------------------------------------------------------------------------------------------
 def carriage_weights(cars: Sequence[_Car], active: Sequence[int], weighting: str = "per_carriage") -> dict[int, float]:
     """Row weight of each carriage of ``active`` (see :class:`SolveOptions.weighting`): ``"per_carriage"``
-    ``sqrt(n_mean / n_i)`` (n_i its observation rows, n_mean their mean over ``active``: 1 for all when the
-    counts are equal), ``"per_point"`` 1 (maximum likelihood for independent pixel noise)."""
+    ``sqrt(n_mean / n_i)`` (n_i its measured observation rows, predictions not counted; n_mean their mean over
+    ``active``: 1 for all when the counts are equal), ``"per_point"`` 1 (maximum likelihood for independent
+    pixel noise)."""
     if weighting == "per_point":
         return {k: 1.0 for k in active}
     if weighting != "per_carriage":
         raise SettingsError(f"solve options: weighting = {weighting!r}: must be one of {', '.join(_WEIGHTINGS)}")
-    counts = {k: len(cars[k].P) for k in active}
+
+    def measured(c: _Car) -> int:
+        if c.derived is None or len(c.derived) != len(c.P):
+            return len(c.P)
+        return max(int(np.count_nonzero(~c.derived)), 1)
+
+    counts = {k: measured(cars[k]) for k in active}
     nmean = float(np.mean(list(counts.values()))) if counts else 1.0
     return {k: math.sqrt(nmean / max(counts[k], 1)) for k in active}
 
@@ -637,6 +694,14 @@ class _Problem:
         self.by_view = [np.nonzero(self.view == v)[0] for v in range(len(views))]
         self.by_car = {k: np.nonzero(self.car == k)[0] for k in active}
 
+    def with_predictions_scaled(self, factor: float, cars: Sequence[int] | None = None) -> "_Problem":
+        """A copy whose prediction rows (``~measured``), of the carriages ``cars`` (None: all), have their sigma
+        multiplied by ``factor``."""
+        out = copy.copy(self)
+        rows = ~self.measured if cars is None else ~self.measured & np.isin(self.car, list(cars))
+        out.w = np.where(rows, self.w / float(factor), self.w)
+        return out
+
     def intrinsics(self, v: int, f: float) -> CameraIntrinsics:
         intr = self.views[v].intrinsics
         ratio = intr.fy / intr.fx
@@ -662,27 +727,67 @@ class _Problem:
 
 
 class _Contact:
-    """Soft terrain contact per carriage: residual ``scale * min_s (z_s - h(xy_s))`` (scale = px_sigma / sigma_z)."""
+    """Soft terrain contact per carriage: residual ``scale * min_s (z_s - h(xy_s))`` (scale = px_sigma / sigma_z).
+
+    ``samples``: carriage index -> its surface samples (m, 3), carriage frame, metres; ``self.cars`` keeps their
+    order, which is the order of the batched :meth:`clearances` and of the contact rows."""
 
     def __init__(self, terrain: Any, samples: dict[int, np.ndarray], scale: float, step: float = 0.05):
         self.terrain, self.samples, self.scale, self.step = terrain, samples, scale, step
+        self.cars = list(samples)
+        self._row = {k: i for i, k in enumerate(self.cars)}
+        m = max((len(S) for S in samples.values()), default=0)
+        self._S = np.zeros((len(self.cars), m, 3))  # padded to the longest set; _valid marks the real samples
+        self._valid = np.zeros((len(self.cars), m), dtype=bool)
+        for i, k in enumerate(self.cars):
+            S = np.asarray(samples[k], dtype=float).reshape(-1, 3)
+            self._S[i, :len(S)] = S
+            self._valid[i, :len(S)] = True
+
+    def clearances(self, R_c: np.ndarray, t_c: np.ndarray, cars: Sequence[int] | None = None):
+        """The clearance of several carriages at once: poses ``R_c`` (n, 3, 3), ``t_c`` (n, 3) of the carriages
+        ``cars`` (consist indices; None: ``self.cars``). Returns the clearance (n,) (m; NaN for a carriage off
+        the terrain), its lowest sample in the scene X (n, 3) and that sample rotated, R s (n, 3)."""
+        rows = slice(None) if cars is None else np.array([self._row[k] for k in cars], dtype=int)
+        S, valid = self._S[rows], self._valid[rows]
+        X = S @ np.swapaxes(R_c, 1, 2) + t_c[:, None, :]  # (n, m, 3)
+        if valid.all():
+            h = np.asarray(self.terrain.height_at(X[:, :, :2].reshape(-1, 2)), dtype=float).reshape(valid.shape)
+        else:
+            h = np.full(valid.shape, np.nan)
+            h[valid] = np.asarray(self.terrain.height_at(X[valid][:, :2]), dtype=float)
+        dz = X[:, :, 2] - h
+        dz = np.where(np.isfinite(dz), dz, np.inf)
+        n = np.arange(len(S))
+        i = np.argmin(dz, axis=1) if S.shape[1] else np.zeros(len(S), dtype=int)
+        d = dz[n, i] if S.shape[1] else np.full(len(S), np.inf)
+        d = np.where(np.isfinite(d), d, np.nan)
+        return d, X[n, i], np.einsum("nij,nj->ni", R_c, S[n, i])
 
     def clearance(self, R: np.ndarray, t: np.ndarray, k: int):
-        S = self.samples[k]
-        X = S @ R[k].T + t[k]
-        h = np.asarray(self.terrain.height_at(X[:, :2]), dtype=float)
-        d = X[:, 2] - h
-        if not np.any(np.isfinite(d)):
-            return None
-        i = int(np.nanargmin(d))
-        return float(d[i]), X[i], S[i] @ R[k].T
+        """Carriage ``k`` (scene poses ``R`` (N, 3, 3), ``t`` (N, 3)): (clearance m, lowest sample X (3,), R s
+        (3,)), or None off the terrain."""
+        d, X, q = self.clearances(R[[k]], t[[k]], [k])
+        return None if not np.isfinite(d[0]) else (float(d[0]), X[0], q[0])
 
-    def gradient(self, xy: np.ndarray) -> np.ndarray:
+    def gradients(self, xy: np.ndarray) -> np.ndarray:
+        """Terrain slopes (n, 2) (dh/dx, dh/dy; 0 where undefined) at ``xy`` (n, 2), central differences."""
         e = self.step
-        q = np.array([[xy[0] + e, xy[1]], [xy[0] - e, xy[1]], [xy[0], xy[1] + e], [xy[0], xy[1] - e]])
-        h = np.asarray(self.terrain.height_at(q), dtype=float)
-        g = np.array([(h[0] - h[1]) / (2 * e), (h[2] - h[3]) / (2 * e)])
+        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+        q = np.repeat(xy, 4, axis=0) + np.tile([[e, 0.0], [-e, 0.0], [0.0, e], [0.0, -e]], (len(xy), 1))
+        h = np.asarray(self.terrain.height_at(q), dtype=float).reshape(-1, 4)
+        g = np.column_stack([(h[:, 0] - h[:, 1]) / (2 * e), (h[:, 2] - h[:, 3]) / (2 * e)])
         return np.where(np.isfinite(g), g, 0.0)
+
+    def rows(self, R_c: np.ndarray, t_c: np.ndarray):
+        """Contact residuals and their derivatives for every carriage (poses as :meth:`clearances`): residual
+        (n,) (0 off the terrain), ``a`` (n, 3) d residual / d X (0 off the terrain), R s (n, 3), on-terrain mask."""
+        d, X, q = self.clearances(R_c, t_c)
+        on = np.isfinite(d)
+        gh = self.gradients(X[:, :2])
+        a = np.column_stack([-gh, np.ones(len(d))]) * self.scale
+        a[~on] = 0.0
+        return np.where(on, self.scale * np.nan_to_num(d), 0.0), a, q, on
 
 
 def focal_groups(views: Sequence[View], used: Sequence[int]) -> list[list[int]]:
@@ -711,13 +816,10 @@ def _residuals_and_jac(prob: _Problem, lay: _Layout, x: np.ndarray, contact: _Co
     uv, Xw, JX, Jf = prob.project(R, t, f, jac=jac)
     w = prob.w
     r = ((uv - prob.uv) * w[:, None]).reshape(-1)
-    cars_c = list(contact.samples) if contact is not None else []
+    cars_c = contact.cars if contact is not None else []
     rc = np.zeros(len(cars_c))
-    cinfo = []
-    for i, k in enumerate(cars_c):
-        cl = contact.clearance(R, t, k)
-        cinfo.append(cl)
-        rc[i] = contact.scale * cl[0] if cl is not None else 0.0
+    if cars_c:
+        rc, a_c, q_c, on_c = contact.rows(R[cars_c], t[cars_c])
     T_all = [(c, j, T) for c, Tl in enumerate(T_links) for j, T in enumerate(Tl)]
     rp = np.concatenate([T * (lay.prior_px * SQRT5 / lay.slacks[c][j]) for c, j, T in T_all]) if T_all else np.zeros(0)
     res = np.concatenate([r, rc, rp])
@@ -748,12 +850,9 @@ def _residuals_and_jac(prob: _Problem, lay: _Layout, x: np.ndarray, contact: _Co
         J[2 * idx, col] = Jf[idx, 0] * w[idx] * f[prob.view[idx]]
         J[2 * idx + 1, col] = Jf[idx, 1] * w[idx] * f[prob.view[idx]]
     for i, k in enumerate(cars_c):
-        cl = cinfo[i]
-        if cl is None:
+        if not on_c[i]:
             continue
-        _, X, q = cl
-        gh = contact.gradient(X[:2])
-        a = np.array([-gh[0], -gh[1], 1.0]) * contact.scale  # d clearance / d X
+        a, q = a_c[i], q_c[i]  # d residual / d X, R s
         c, j = lay.chain_of[k]
         o, m = lay.off[c], lay.size[c]
         row = 2 * M + i
@@ -862,6 +961,39 @@ class _ZLayout:
                 ccol.append(np.tile(cc, 3))
         self.c_rows = np.concatenate(crow) if crow else np.zeros(0, int)
         self.c_cols = np.concatenate(ccol) if ccol else np.zeros(0, int)
+        # per link (chain order): its parameters' indices in x and in z, padded to 3 (link_mask: the real ones)
+        self.link_mask = np.arange(3) < lay.link_w[:, None]  # (L, 3)
+        self.link_mask2 = self.link_mask[:, :, None] & self.link_mask[:, None, :]  # (L, 3, 3)
+        self.link_x = np.array(lay._link_col, dtype=int).reshape(-1, 1) + np.arange(3)
+        self.link_z = np.array([self.zl[c][j][0] for c, j in self.link_list], dtype=int).reshape(-1, 1) + np.arange(3)
+        # the C entries of a link, in the order of c_rows / c_cols: I, -I, -GT (3 x w), then -A, -B (rotations)
+        nblk = 5 if lay.rot_free else 3
+        self.c_mask = np.ones((self.n_links, nblk, 9), dtype=bool)
+        self.c_mask[:, 2, :] = np.repeat(self.link_mask, 3, axis=0).reshape(-1, 9)
+        self.car_pos = np.full(len(lay.cars), -1, dtype=int)  # consist index -> position in self.cars
+        self.car_pos[self.cars] = np.arange(len(self.cars))
+        # the KKT matrix [[Hz + diag(damping), C^T], [C, 0]]: its entries (Hz, C, C^T, the diagonal) in one list
+        nz, nk = self.nz, self.nz + 3 * self.n_links
+        self.nk = nk
+        k_rows = np.concatenate([self.h_rows, self.c_rows + nz, self.c_cols, np.arange(nz)])
+        k_cols = np.concatenate([self.h_cols, self.c_cols, self.c_rows + nz, np.arange(nz)])
+        self.dense = nk <= DENSE_KKT_MAX
+        if self.dense:
+            self.k_flat = k_rows * nk + k_cols
+        else:  # compressed-column structure, computed once: each entry's slot in the CSC data (duplicates summed)
+            uniq, self.k_slot = np.unique(k_cols * nk + k_rows, return_inverse=True)
+            self.k_indices = (uniq % nk).astype(np.int32)
+            self.k_indptr = np.searchsorted(uniq // nk, np.arange(nk + 1)).astype(np.int32)
+
+    def kkt(self, h_vals: np.ndarray, c_vals: np.ndarray, damping: np.ndarray) -> np.ndarray | sp.csc_matrix:
+        """The KKT matrix (nk, nk) ``[[Hz + diag(damping), C^T], [C, 0]]`` from the values of Hz and C on their
+        patterns (:func:`_struct_system`) and the damping (nz,): dense when small (``self.dense``), else CSC."""
+        vals = np.concatenate([h_vals, c_vals, c_vals, damping])
+        nk = self.nk
+        if self.dense:
+            return np.bincount(self.k_flat, weights=vals, minlength=nk * nk).reshape(nk, nk)
+        data = np.bincount(self.k_slot, weights=vals, minlength=len(self.k_indices))
+        return sp.csc_matrix((data, self.k_indices, self.k_indptr), shape=(nk, nk))
 
 
 def _struct_eval(prob: _Problem, lay: _Layout, zl: _ZLayout, x: np.ndarray, contact: _Contact | None, loss_fn):
@@ -876,8 +1008,7 @@ def _struct_eval(prob: _Problem, lay: _Layout, zl: _ZLayout, x: np.ndarray, cont
     JXw = JX * w[:, None, None]
     if lay.rot_free:
         q = Xw - t[prob.car]
-        JlA = np.array([Jl[k] for k in prob.car]) if M else np.zeros((0, 3, 3))
-        Jr = -np.einsum("nab,nbc,ncd->nad", JXw, skew(q), JlA)
+        Jr = -np.einsum("nab,nbc,ncd->nad", JXw, skew(q), Jl[prob.car])
         Jpt = np.concatenate([Jr, JXw], axis=2)
     else:
         Jpt = JXw
@@ -886,25 +1017,16 @@ def _struct_eval(prob: _Problem, lay: _Layout, zl: _ZLayout, x: np.ndarray, cont
     for i, grp in enumerate(lay.focal_views):
         idx = _group_rows(prob, grp)
         Jfp[idx, :, i] = Jf[idx] * (w[idx] * f[prob.view[idx]])[:, None]
-    cars_c = list(contact.samples) if contact is not None else []
+    cars_c = contact.cars if contact is not None else []
     rc = np.zeros(len(cars_c))
     Jc = np.zeros((len(cars_c), zl.bs))
-    for i, k in enumerate(cars_c):
-        cl = contact.clearance(R, t, k)
-        if cl is None:
-            continue
-        _, X, qk = cl
-        gh = contact.gradient(X[:2])
-        a = np.array([-gh[0], -gh[1], 1.0]) * contact.scale
-        rc[i] = contact.scale * cl[0]
-        Jc[i, zl.nr:] = a
-        if lay.rot_free:
-            Jc[i, :3] = -(a @ skew(qk)) @ Jl[k]
-    links = []  # (chain, j, T, GT, scale)
-    for c, Tl in enumerate(T_links):
-        for j, T in enumerate(Tl):
-            links.append((c, j, T, lay.GT[c][j][1], lay.prior_px * SQRT5 / lay.slacks[c][j]))
-    rp = np.concatenate([T * s for _, _, T, _, s in links]) if links else np.zeros(0)
+    if cars_c:
+        rc, a, qk, _ = contact.rows(R[cars_c], t[cars_c])
+        Jc[:, zl.nr:] = a
+        if lay.rot_free:  # -(a x-matrix(R s)) J_l, i.e. (R s x a)^T J_l
+            Jc[:, :3] = np.einsum("ni,nij->nj", np.cross(qk, a), Jl[cars_c])
+    s_l = lay.link_scale
+    rp = (lay.T * s_l[:, None]).reshape(-1)
     r = np.concatenate([rpix, rc, rp])
     if loss_fn is None:
         cost = 0.5 * float(r @ r)
@@ -925,9 +1047,8 @@ def _struct_eval(prob: _Problem, lay: _Layout, zl: _ZLayout, x: np.ndarray, cont
         Jfp = Jfp * sp_[:, :, None]
         Jc = Jc * sc[2 * M:2 * M + len(cars_c), None]
         scp = sc[2 * M + len(cars_c):]
-    ncar = len(zl.zc)
-    pos = {k: i for i, k in enumerate(zl.zc)}
-    cpos = np.array([pos[k] for k in prob.car], dtype=int)
+    ncar = len(zl.cars)
+    cpos = zl.car_pos[prob.car]
     Hcar = np.zeros((ncar, zl.bs, zl.bs))
     gcar = np.zeros((ncar, zl.bs))
     np.add.at(Hcar, cpos, np.einsum("nai,naj->nij", Jpt, Jpt))
@@ -937,83 +1058,34 @@ def _struct_eval(prob: _Problem, lay: _Layout, zl: _ZLayout, x: np.ndarray, cont
         np.add.at(Hcf, cpos, np.einsum("nai,naj->nij", Jpt, Jfp))
     Hff = np.einsum("nai,naj->ij", Jfp, Jfp)
     gf = np.einsum("nai,na->i", Jfp, rpm)
-    for i, k in enumerate(cars_c):
-        Hcar[pos[k]] += np.outer(Jc[i], Jc[i])
-        gcar[pos[k]] += Jc[i] * rcm[i]
-    Hl, gl = [], []
-    for i, (c, j, T, GT, s) in enumerate(links):
-        Jp = GT * s
-        if sc is not None:
-            Jp = Jp * scp[3 * i:3 * i + 3, None]
-        Hl.append(Jp.T @ Jp)
-        gl.append(Jp.T @ rpr[3 * i:3 * i + 3])
-    Jlk = []
-    for i, (c, j, T, GT, s) in enumerate(links):
-        Jp = GT * s
-        if sc is not None:
-            Jp = Jp * scp[3 * i:3 * i + 3, None]
-        Jlk.append(Jp)
-    zcar = np.array([zl.zc[k] for k in prob.car], dtype=int)
-    zcon = np.array([zl.zc[k] for k in cars_c], dtype=int)
-    return {"x": x, "cost": cost, "R": R, "Jl": Jl, "pos": pos, "Hcar": Hcar, "gcar": gcar, "Hcf": Hcf,
-            "Hff": Hff, "gf": gf, "Hl": Hl, "gl": gl, "m": len(r), "r": r,
-            "J": (Jpt, Jfp, zcar, Jc, zcon, Jlk)}
-
-
-def _struct_jz(E: dict, zl: _ZLayout, z: np.ndarray) -> np.ndarray:
-    """J z: the (linearised) change of the residual vector for a step ``z`` of the expanded variables."""
-    Jpt, Jfp, zcar, Jc, zcon, Jlk = E["J"]
-    blk = z[zcar[:, None] + np.arange(zl.bs)]  # (M, bs)
-    rp = np.einsum("nai,ni->na", Jpt, blk)
-    if zl.nf:
-        rp = rp + Jfp @ z[zl.zf:zl.zf + zl.nf]
-    rc = np.einsum("ni,ni->n", Jc, z[zcon[:, None] + np.arange(zl.bs)]) if len(zcon) else np.zeros(0)
-    rl = [Jp @ z[l0:l0 + w] for Jp, (l0, w) in zip(Jlk, (zl.zl[c][j] for c, j in zl.link_list))]
-    return np.concatenate([rp.reshape(-1), rc] + rl)
-
-
-def _struct_jtr(E: dict, zl: _ZLayout, v: np.ndarray) -> np.ndarray:
-    """J^T v in the expanded variables for a residual-space vector ``v``."""
-    Jpt, Jfp, zcar, Jc, zcon, Jlk = E["J"]
-    M = len(zcar)
-    out = np.zeros(zl.nz)
-    vp = v[:2 * M].reshape(M, 2)
-    np.add.at(out, zcar[:, None] + np.arange(zl.bs), np.einsum("nai,na->ni", Jpt, vp))
-    if zl.nf:
-        out[zl.zf:zl.zf + zl.nf] += np.einsum("nai,na->i", Jfp, vp)
-    nc = len(zcon)
-    if nc:
-        np.add.at(out, zcon[:, None] + np.arange(zl.bs), Jc * v[2 * M:2 * M + nc, None])
-    o = 2 * M + nc
-    for i, (c, j) in enumerate(zl.link_list):
-        l0, w = zl.zl[c][j]
-        out[l0:l0 + w] += Jlk[i].T @ v[o + 3 * i:o + 3 * i + 3]
-    return out
-
-
-def _struct_resid(prob: _Problem, lay: _Layout, x: np.ndarray, contact: _Contact | None) -> np.ndarray:
-    """The residual vector at ``x`` (linear loss), without derivatives (order as :func:`_struct_eval`)."""
-    R, t, f, _, _, T_links = lay.unpack(x, with_derivs=False)
-    uv, *_ = prob.project(R, t, f, jac=False)
-    rpix = ((uv - prob.uv) * prob.w[:, None]).reshape(-1)
-    cars_c = list(contact.samples) if contact is not None else []
-    rc = np.zeros(len(cars_c))
-    for i, k in enumerate(cars_c):
-        cl = contact.clearance(R, t, k)
-        rc[i] = contact.scale * cl[0] if cl is not None else 0.0
-    rp = [T * (lay.prior_px * SQRT5 / lay.slacks[c][j]) for c, Tl in enumerate(T_links) for j, T in enumerate(Tl)]
-    return np.concatenate([rpix, rc] + rp)
+    if cars_c:
+        kpos = zl.car_pos[cars_c]
+        np.add.at(Hcar, kpos, Jc[:, :, None] * Jc[:, None, :])
+        np.add.at(gcar, kpos, Jc * rcm[:, None])
+    # the coupler prior rows, all links at once (padded to 3 parameters, see _Layout.GT_pad)
+    Jp = lay.GT_pad * s_l[:, None, None]  # (L, 3, 3): d rows / d link params
+    rpr3 = rpr.reshape(-1, 3)
+    gT = rpr3 * s_l[:, None]  # d cost / d T of each link's prior rows
+    if sc is not None:
+        scp3 = scp.reshape(-1, 3)
+        Jp = Jp * scp3[:, :, None]
+        gT = gT * scp3
+    Hl = np.einsum("nji,njk->nik", Jp, Jp)
+    gl = np.einsum("nji,nj->ni", Jp, rpr3)
+    return {"x": x, "cost": cost, "R": R, "Jl": Jl, "Hcar": Hcar, "gcar": gcar, "Hcf": Hcf, "Hff": Hff, "gf": gf,
+            "Hl": Hl, "gl": gl, "T": lay.T, "gTp": gT}
 
 
 def _struct_chain_grad_diag(lay: _Layout, zl: _ZLayout, E: dict, cars: list[_Car]):
-    """Gradient and the diagonal of the Gauss-Newton matrix in the chain parameters ``x`` (exact, by suffix
-    sums along each chain: a link or rotation moves every carriage behind it), and the coupling blocks
-    (A = d(R c_rear)/d rot, B = -d(R c_front)/d rot per carriage)."""
+    """Gradient (n,) and the diagonal (n,) of the Gauss-Newton matrix in the chain parameters ``x`` (exact, by
+    suffix sums along each chain: a link or rotation moves every carriage behind it), the coupling blocks
+    ``(A, B)`` (each (ncar, 3, 3) in the order of ``zl.cars``: A = d(R c_rear)/d rot, B = -d(R c_front)/d rot;
+    None with rotations held) and the link blocks (L, 3, 3) of the Gauss-Newton matrix, a sphere link's with
+    the sphere's curvature added (padded as ``_Layout.GT_pad``)."""
     g = np.zeros(lay.n)
     d = np.zeros(lay.n)
     nr = zl.nr
-    order = [E["pos"][k] for k in zl.cars]
-    H, gc = E["Hcar"][order], E["gcar"][order]
+    H, gc = E["Hcar"], E["gcar"]
     n = len(zl.cars)
     Htt, gt = H[:, nr:, nr:], gc[:, nr:]
     # suffix sums within each chain: S[i] = sum over the carriages from i to the end of its chain
@@ -1033,9 +1105,8 @@ def _struct_chain_grad_diag(lay: _Layout, zl: _ZLayout, E: dict, cars: list[_Car
     d[zl.tfirst_x] = np.diagonal(S[fi], axis1=1, axis2=2).ravel()
     AB = None
     if lay.rot_free:
-        R, Jl = E["R"], E["Jl"]
-        Rk = R[zl.cars]
-        JL = np.array([Jl[k] for k in zl.cars])
+        Rk = E["R"][zl.cars]
+        JL = E["Jl"][zl.cars]
         cr = np.array([cars[k].c_rear for k in zl.cars])
         cf = np.array([cars[k].c_front for k in zl.cars])
         A = -skew(np.einsum("nij,nj->ni", Rk, cr)) @ JL
@@ -1050,45 +1121,71 @@ def _struct_chain_grad_diag(lay: _Layout, zl: _ZLayout, E: dict, cars: list[_Car
         go = go + np.einsum("nji,nj->ni", cc, Gn)
         g[zl.rot_x] = go.ravel()
         d[zl.rot_x] = np.diagonal(Ho, axis1=1, axis2=2).ravel()
-        AB = {k: (A[i], B[i]) for i, k in enumerate(zl.cars)}
-    for li, (c, j) in enumerate(zl.link_list):
-        GT = lay.GT[c][j][1]
-        lo = lay.off[c] + lay.link_off[c][j]
-        w_ = GT.shape[1]
-        ib = zl.link_rear_pos[li]
-        g[lo:lo + w_] = GT.T @ G[ib] + E["gl"][li]
-        d[lo:lo + w_] = np.einsum("ji,jk,ki->i", GT, S[ib], GT) + np.diag(E["Hl"][li])
+        AB = (A, B)
+    Hl = E["Hl"]
+    if zl.n_links:
+        ib = zl.link_rear_pos
+        GT = lay.GT_pad
+        if lay.link_sph.any():
+            # the sphere's curvature (the constraint's term of the Lagrangian's Hessian): along any direction e of
+            # the chart, d2T = -(|GT e|^2 / s) u normal to the sphere, so the cost's second derivative gains
+            # mu GT^T GT, mu = -(dcost/dT . u) / s >= 0 while the constraint binds. Without it Gauss-Newton
+            # converges only linearly on an offset held at the slack by a large multiplier
+            gT = G[ib] + E["gTp"]
+            T = E["T"]
+            mu = -np.einsum("ni,ni->n", gT, T) / np.einsum("ni,ni->n", T, T)
+            mu = np.where(lay.link_sph & (mu > 0.0), mu, 0.0)
+            Hl = Hl + mu[:, None, None] * np.einsum("nji,njk->nik", GT, GT)
+        m = zl.link_mask
+        g[zl.link_x[m]] = (np.einsum("nji,nj->ni", GT, G[ib]) + E["gl"])[m]
+        d[zl.link_x[m]] = (np.einsum("nji,njk,nki->ni", GT, S[ib], GT) + np.diagonal(Hl, axis1=1, axis2=2))[m]
     nf = zl.nf
     if nf:
         g[lay.f_off:lay.f_off + nf] = E["gf"]
         d[lay.f_off:lay.f_off + nf] = np.diag(E["Hff"])
-    return g, d, AB
+    return g, d, AB, Hl
 
 
-def _struct_system(lay: _Layout, zl: _ZLayout, E: dict, AB):
-    """Gauss-Newton matrix Hz (sparse, in z), gradient gz, and the coupling constraint matrix C (sparse)."""
-    order = [E["pos"][k] for k in zl.cars]
-    vals = [E["Hcar"][order].ravel()]
+def _struct_system(lay: _Layout, zl: _ZLayout, E: dict, AB, Hl: np.ndarray):
+    """The values of the Gauss-Newton matrix Hz (in z) and of the coupling constraint matrix C on their fixed
+    patterns (``zl.h_rows, zl.h_cols`` and ``zl.c_rows, zl.c_cols``, see :meth:`_ZLayout.kkt`), and the
+    gradient gz (nz,). ``AB``: the coupling blocks (A, B) (n, 3, 3) per carriage of ``zl.cars`` (rotations
+    free); ``Hl`` (L, 3, 3): the link blocks (with the sphere's curvature, :func:`_struct_chain_grad_diag`)."""
+    vals = [E["Hcar"].ravel()]
     gz = np.zeros(zl.nz)
     z0 = np.array([zl.zc[k] for k in zl.cars], dtype=int)
-    gz[(z0[:, None] + np.arange(zl.bs)).ravel()] = E["gcar"][order].ravel()
+    gz[(z0[:, None] + np.arange(zl.bs)).ravel()] = E["gcar"].ravel()
     if zl.nf:
-        Hcf = E["Hcf"][order].ravel()
+        Hcf = E["Hcf"].ravel()
         vals += [Hcf, Hcf, E["Hff"].ravel()]
         gz[zl.zf:] = E["gf"]
-    I3 = np.eye(3).ravel()
-    cvals = []
-    for li, (c, j) in enumerate(zl.link_list):
-        vals.append(E["Hl"][li].ravel())
-        l0, w = zl.zl[c][j]
-        gz[l0:l0 + w] = E["gl"][li]
-        cvals += [I3, -I3, -lay.GT[c][j][1].ravel()]
-        if lay.rot_free:
-            cvals += [-AB[lay.chains[c][j]][0].ravel(), -AB[lay.chains[c][j + 1]][1].ravel()]
-    Hz = sp.csr_matrix((np.concatenate(vals), (zl.h_rows, zl.h_cols)), shape=(zl.nz, zl.nz))
-    C = sp.csr_matrix((np.concatenate(cvals) if cvals else np.zeros(0), (zl.c_rows, zl.c_cols)),
-                      shape=(3 * zl.n_links, zl.nz))
-    return Hz, gz, C
+    if not zl.n_links:
+        return np.concatenate(vals), np.zeros(0), gz
+    vals.append(Hl[zl.link_mask2])
+    gz[zl.link_z[zl.link_mask]] = E["gl"][zl.link_mask]
+    nl = zl.n_links
+    blocks = [np.broadcast_to(_EYE3.ravel(), (nl, 9)), np.broadcast_to(-_EYE3.ravel(), (nl, 9)),
+              -lay.GT_pad.reshape(nl, 9)]
+    if lay.rot_free:
+        A, B = AB
+        ib = zl.link_rear_pos
+        blocks += [-A[ib - 1].reshape(nl, 9), -B[ib].reshape(nl, 9)]
+    return np.concatenate(vals), np.stack(blocks, axis=1)[zl.c_mask], gz
+
+
+def _solve_kkt(K: np.ndarray | sp.csc_matrix, rhs: np.ndarray) -> np.ndarray | None:
+    """Solve the KKT system ``K`` (from :meth:`_ZLayout.kkt`): dense LU (LAPACK) for a small system, SuperLU
+    for a large one. None when it is singular or the solution is not finite."""
+    try:
+        if isinstance(K, np.ndarray):
+            sol = np.linalg.solve(K, rhs)
+        else:
+            from scipy.sparse.linalg import splu
+
+            sol = splu(K, permc_spec="MMD_AT_PLUS_A").solve(rhs)
+    except (RuntimeError, np.linalg.LinAlgError):  # exactly singular
+        return None
+    return sol if np.all(np.isfinite(sol)) else None
 
 
 def _lm_struct(prob: _Problem, lay: _Layout, contact: _Contact | None, options: SolveOptions):
@@ -1098,10 +1195,10 @@ def _lm_struct(prob: _Problem, lay: _Layout, contact: _Contact | None, options: 
     actual to predicted reduction. The step is computed in the chain parameters ``x`` (so the coupling
     constraint |T| <= s stays exact, see :class:`_Layout`) but solved through the sparse KKT system of the
     expanded variables ``z`` (:class:`_ZLayout`) with a sparse LU (SuperLU), O(N) per iteration for a chain of
-    N carriages instead of the dense O(N^3) normal equations of ``x``. ``d`` is the exact diagonal of the
-    Gauss-Newton matrix in ``x``."""
-    from scipy.sparse.linalg import splu
-
+    N carriages instead of the dense O(N^3) normal equations of ``x`` (a small system, up to
+    :data:`DENSE_KKT_MAX` unknowns and constraints, is solved dense: the same system, without the sparse
+    overhead). ``d`` is the exact diagonal of the Gauss-Newton matrix in ``x``; a link on the sphere adds the
+    sphere's curvature to its block (see :func:`_struct_chain_grad_diag`)."""
     if lay.n == 0:
         return lay.x0, 0, "nothing to optimise", True
     zl = _ZLayout(lay)
@@ -1111,7 +1208,7 @@ def _lm_struct(prob: _Problem, lay: _Layout, contact: _Contact | None, options: 
     if options.robust_loss != "linear":
         from scipy.optimize._lsq.least_squares import construct_loss_function
 
-        m = 2 * len(prob.P) + (len(contact.samples) if contact is not None else 0) + 3 * zl.n_links
+        m = 2 * len(prob.P) + (len(contact.cars) if contact is not None else 0) + 3 * zl.n_links
         loss_fn = construct_loss_function(m, options.robust_loss, options.loss_scale_px)
     x = lay.x0.copy()
     # the focal is kept inside the field-of-view range of the sweep (guards against runaway along the
@@ -1131,32 +1228,27 @@ def _lm_struct(prob: _Problem, lay: _Layout, contact: _Contact | None, options: 
     lam, nu = 1e-3, 2.0
     nc = 3 * zl.n_links
     while True:
-        g, d, AB = _struct_chain_grad_diag(lay, zl, E, prob.cars)
+        g, d, AB, Hl = _struct_chain_grad_diag(lay, zl, E, prob.cars)
         dmax = float(np.max(d)) if len(d) else 1.0
         d = np.maximum(d, 1e-12 * max(1.0, dmax))
         cost = E["cost"]
         if float(np.max(np.abs(g) / np.sqrt(d))) < tol * max(1.0, math.sqrt(2 * cost)):
             return x, nfev, "gradient small", True
-        Hz, gz, C = _struct_system(lay, zl, E, AB)
+        hv, cv, gz = _struct_system(lay, zl, E, AB, Hl)
+        K0 = zl.kkt(hv, cv, np.zeros(zl.nz))
         dz = np.zeros(zl.nz)
         dz[zl.xz] = d
+        rhs = np.concatenate([-gz, np.zeros(nc)])
         while True:
-            K = sp.bmat([[Hz + sp.diags(lam * dz), C.T], [C, None]], format="csc") if nc else \
-                (Hz + sp.diags(lam * dz)).tocsc()
-            rhs = np.concatenate([-gz, np.zeros(nc)])
-            try:
-                lu = splu(K, permc_spec="MMD_AT_PLUS_A")
-                sol = lu.solve(rhs)
-            except RuntimeError:  # exactly singular
-                sol = None
-            if sol is None or not np.all(np.isfinite(sol)):
+            sol = _solve_kkt(zl.kkt(hv, cv, lam * dz), rhs)
+            if sol is None:
                 lam *= 10.0
                 if lam > 1e16:
                     return x, nfev, "trust region collapsed", False
                 continue
             z = sol[:zl.nz]
             dx = z[zl.xz]
-            pred = -float(gz @ z) - 0.5 * float(z @ (Hz @ z))
+            pred = -float(gz @ z) - 0.5 * float(z @ (K0 @ np.concatenate([z, np.zeros(nc)]))[:zl.nz])
             if 0.0 <= pred <= tol * cost:
                 # the model predicts no reduction worth taking (MINPACK's ftol test on the predicted
                 # reduction): a minimum to the tolerance, also at the kink of the contact term, where
@@ -1248,6 +1340,32 @@ def _pixel_cost(prob: _Problem, R, t, f) -> float:
 def _rot_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
     c = (np.trace(Ra @ Rb.T) - 1.0) / 2.0
     return float(np.rad2deg(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+_CHI2_6_95 = 12.5916  # 95 % point of the chi-square distribution with 6 degrees of freedom
+
+
+def _prediction_shift(released: _Problem, R, t, f, R_kept, t_kept, focal_views, chains, slacks, contact,
+                      options: SolveOptions) -> dict[int, float]:
+    """Per carriage with predicted points: the squared Mahalanobis length of the shift from the fit with the
+    predictions released (``R, t, f``: the measured points' fit) to the fit with them kept (``R_kept, t_kept``),
+    in the released fit's pose covariance (scene rotation vector, origin). Under the solve's noise model it is
+    about chi-square with 6 degrees of freedom or less (the kept fit uses the same measurements); a larger value
+    says that the predictions pulled the car where its measured points do not put it."""
+    from scipy.spatial.transform import Rotation
+
+    from .uncertainty import solution_model
+
+    model = solution_model(released, R, t, f, focal_views, chains, slacks, contact, options)
+    cov, col = model["cov"], model["col"]
+    out = {}
+    for k in released.active:
+        if released.measured[released.by_car[k]].all():
+            continue
+        d = np.concatenate([Rotation.from_matrix(R_kept[k] @ R[k].T).as_rotvec(), t_kept[k] - t[k]])
+        C = cov[col[k]:col[k] + 6, col[k]:col[k] + 6]
+        out[k] = float(d @ np.linalg.pinv(C, rcond=1e-12) @ d) if np.all(np.isfinite(C)) else float("inf")
+    return out
 
 
 def _changes(cars, active, R0, t0, R1, t1) -> list[dict]:
@@ -1991,6 +2109,45 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
     if not ok:
         all_ok = False
         messages.append(f"step 4: {msg}")
+
+    # -- step 4b: the predictions checked against the measured points ----------------------------------------
+    n_pred = int((~prob.measured).sum())
+    if n_pred == 0 or options.prediction_release <= 1.0:
+        steps.append(StepStats("4b_predictions_checked", False, "skipped: no predicted points" if n_pred == 0
+                               else "skipped: solver.prediction_release = 1 (predictions keep their weight)"))
+    else:
+        t4b = time.perf_counter()
+        kept = (R.copy(), t.copy(), f.copy(), T_links, msg, ok, rounds, n_act)
+        released = prob.with_predictions_scaled(options.prediction_release)
+        R, t, f, T_links, nfev, msg, ok, rounds, n_act = _solve_chained(released, cars, final_chains, chain_slacks,
+                                                                        True, focal_views, R, t, f, contact, options)
+        total_nfev += nfev
+        d2 = _prediction_shift(released, R, t, f, kept[0], kept[1], focal_views, final_chains, chain_slacks,
+                               contact, options)
+        off = sorted(k for k, v in d2.items() if not v <= _CHI2_6_95)
+        listed = ", ".join(f"{cars[k].number} {d2[k]:.1f}" for k in sorted(d2))
+        if not off:  # every car's predictions agree with its measured points: step 4's fit stands
+            R, t, f, T_links, msg, ok, rounds, n_act = kept
+            note = f"predictions agree with the measured points on every car (shift chi-square {listed}): kept"
+        elif len(off) == len(d2):
+            prob = released
+            note = (f"predictions released on every car with some (shift chi-square {listed}, 95 % limit "
+                    f"{_CHI2_6_95:.1f})")
+        else:
+            prob = prob.with_predictions_scaled(options.prediction_release, off)
+            R, t, f, T_links, nfev2, msg, ok, rounds, n_act = _solve_chained(
+                prob, cars, final_chains, chain_slacks, True, focal_views, kept[0], kept[1], kept[2], contact, options)
+            nfev += nfev2
+            total_nfev += nfev2
+            note = (f"predictions released on car(s) {', '.join(cars[k].number for k in off)}, kept on the others "
+                    f"(shift chi-square {listed}, 95 % limit {_CHI2_6_95:.1f})")
+        steps.append(StepStats("4b_predictions_checked", True, f"{n_pred} predicted point(s) checked: fitted again "
+                               f"with their sigmas x {options.prediction_release:g}; " + note,
+                               _pixel_cost(prob, *kept[:3]), _pixel_cost(prob, R, t, f), nfev, msg,
+                               time.perf_counter() - t4b, _changes(cars, active, kept[0], kept[1], R, t)))
+        if not ok:
+            all_ok = False
+            messages.append(f"step 4b: {msg}")
     final_cost = _full_cost(prob, cars, final_chains, chain_slacks, R, t, f, contact, options)
     cost_at_minimum = final_cost
 

@@ -260,7 +260,8 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
                         loss_scale_px=s.solver.loss_scale_px, max_iterations=s.solver.max_iterations,
                         estimate_focal=bool(s.solver.estimate_focal or focal_unknown),
                         terrain_sigma_m=s.terrain.dem_vertical_accuracy_m,
-                        face_sigma_px=s.solver.face_sigma_px, bias_correction=bool(s.solver.bias_correction))
+                        face_sigma_px=s.solver.face_sigma_px, bias_correction=bool(s.solver.bias_correction),
+                        prediction_release=float(s.solver.prediction_release))
     terrain = None
     if s.terrain.dem:
         from ..terrain.stage import terrain_model_for
@@ -324,8 +325,12 @@ def _solve_rejecting(carriages: list, links: list, views: list, opts: Any, terra
                 sig = getattr(o, "sigma_px", None)
                 return 1.0 if sig is None else float(sig) / float(solver.pixel_sigma_px)
 
+            # predictions (points projected from a face's pose or carried from another photo) are released in the
+            # last fit (SolveOptions.prediction_release): their residuals say how far the prediction was off, not
+            # that a measurement is wrong
             worst = max(((math.hypot(*e) / scale(v, p), v, p, math.hypot(*e))
-                         for v, pts in cr.residuals_px.items() for p, e in pts.items()), default=None)
+                         for v, pts in cr.residuals_px.items() for p, e in pts.items()
+                         if not getattr(cin.observations.get(v, {}).get(p), "derived", False)), default=None)
             if worst is None or worst[0] <= thr:
                 continue
             _, v, p, r_px = worst

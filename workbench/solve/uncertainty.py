@@ -107,23 +107,17 @@ def _prior_info(cars, R, t, chains, slacks, col, P):
 def _contact_rows(contact, R, t, col, P, sigma_cfg) -> tuple[np.ndarray, list[int]]:
     """Whitened Jacobian rows (one per carriage in contact, ``clearance / sigma_z``) of the terrain contact term,
     and the carriages they belong to (a carriage off the terrain has none)."""
-    rows, ks = [], []
-    if contact is None:
-        return np.zeros((0, P)), ks
-    for k in contact.samples:
-        cl = contact.clearance(R, t, k)
-        if cl is None:
-            continue
-        _, X, q = cl
-        gh = contact.gradient(X[:2])
-        a = np.array([-gh[0], -gh[1], 1.0]) * contact.scale
-        row = np.zeros(P)
+    if contact is None or not contact.cars:
+        return np.zeros((0, P)), []
+    cars_c = contact.cars
+    _, a, q, on = contact.rows(R[cars_c], t[cars_c])
+    ks = [k for k, o in zip(cars_c, on) if o]
+    rows = np.zeros((len(ks), P))
+    for i, (k, a_k, q_k) in enumerate(zip(ks, a[on], q[on])):
         c = col[k]
-        row[c:c + 3] = -(a @ skew(q))
-        row[c + 3:c + 6] = a
-        rows.append(row / sigma_cfg)
-        ks.append(k)
-    return (np.vstack(rows) if rows else np.zeros((0, P))), ks
+        rows[i, c:c + 3] = np.cross(q_k, a_k)  # -(a x-matrix(R s))
+        rows[i, c + 3:c + 6] = a_k
+    return rows / sigma_cfg, ks
 
 
 def _contact_info(contact, R, t, col, P, sigma_cfg):
