@@ -230,3 +230,58 @@ def test_solution_records_the_bias_correction(incident, tmp_path):
         if "body_centre_enu" in a:
             d = float(np.linalg.norm(np.subtract(a["body_centre_enu"], b["body_centre_enu"])))
             assert d == pytest.approx(moved[a["number"]], abs=1e-6)
+
+
+def test_camera_pose_jacobian_matches_the_composition():
+    """The first-order map from a camera-pose error (scene rotation about its centre, centre shift) to a carriage's
+    pose parameters, against the exact composition with a small error."""
+    from scipy.spatial.transform import Rotation
+
+    from workbench.solve.uncertainty import camera_pose_jacobian
+
+    rng = np.random.default_rng(3)
+    M = np.eye(4)
+    M[:3, :3] = Rotation.from_rotvec(rng.normal(size=3)).as_matrix()
+    M[:3, 3] = [80.0, -40.0, 3.0]
+    c = np.array([5.0, 2.0, 15.0])
+    d = np.r_[rng.normal(size=3) * 1e-6, rng.normal(size=3) * 1e-4]
+    dR = Rotation.from_rotvec(d[:3]).as_matrix()
+    R2 = dR @ M[:3, :3]
+    t2 = c + d[3:] + dR @ (M[:3, 3] - c)
+    w = Rotation.from_matrix(R2 @ M[:3, :3].T).as_rotvec()
+    got = np.r_[w, t2 - M[:3, 3]]
+    assert np.allclose(camera_pose_jacobian(M, c) @ d, got, rtol=1e-4, atol=1e-10)
+
+
+def test_georegistration_uncertainty_widens_the_intervals(incident, tmp_path):
+    """A cameras file with the georegistration's camera-pose covariance (as georef writes it): every carriage's
+    intervals include it (a centre error of 0.2 m per axis adds 0.2 m in quadrature to the body centre's sigma in
+    east and north, the up sigma at least as much as that), the fit's own sigmas are kept apart, and the poses are
+    unchanged. Cameras without it are taken as exact, and the solution says so."""
+    sol0 = json.loads((incident / "out" / "solve" / "solution.json").read_text())
+    assert sol0["camera_uncertainty"]["included"] is False
+    root = tmp_path / "inc"
+    shutil.copytree(incident, root, ignore=shutil.ignore_patterns("out"))
+    cams = json.loads((root / "cameras.json").read_text())
+    s_rot, s_c = np.radians(0.01), 0.2
+    cams["georegistration"] = {"method": "control_points",
+                               "covariance_world_rotation_centre": np.diag([s_rot**2] * 3 + [s_c**2] * 3).tolist()}
+    (root / "cameras.json").write_text(json.dumps(cams))
+    Runner(Project(root), STAGES).run()
+    sol = json.loads((root / "out" / "solve" / "solution.json").read_text())
+    cu = sol["camera_uncertainty"]
+    assert cu["included"] is True and cu["sigma_centre_m"] == pytest.approx([s_c] * 3)
+    solved = [c for c in sol["carriages"] if c.get("sigma_body_centre_m") is not None]
+    assert solved and sorted(cu["carriages"]) == sorted(c["number"] for c in solved)
+    for a, b in zip(sol0["carriages"], sol["carriages"]):
+        if b.get("sigma_body_centre_m") is None:
+            continue
+        assert np.allclose(a["body_centre_enu"], b["body_centre_enu"], atol=1e-9)
+        fit = np.asarray(b["sigma_body_centre_fit_m"])
+        assert np.allclose(fit, a["sigma_body_centre_m"], rtol=1e-9)
+        tot = np.asarray(b["sigma_body_centre_m"])
+        lever = np.linalg.norm(np.asarray(b["body_centre_enu"]) - cu["centre_enu"])
+        extra = np.sqrt(tot**2 - fit**2)
+        assert np.all(extra >= s_c - 1e-9) and np.all(extra <= np.hypot(s_c, 2 * lever * s_rot) + 1e-9)
+        assert np.allclose(np.asarray(b["ci95_body_centre_m"]) / tot, sol["ci95_factor"], rtol=1e-9)
+        assert np.all(np.asarray(b["sigma_hpr_deg"]) >= np.asarray(b["sigma_hpr_fit_deg"]) - 1e-12)

@@ -412,6 +412,14 @@ def solve_central(views: Sequence[RigView], cps: Sequence[ControlPoint], *, prio
         sd = np.sqrt(np.clip(np.diag(cov), 0, None))
         stats["sigma_rotation_deg"] = [float(np.degrees(x)) for x in sd[:3]]
         stats["sigma_centre_m"] = [float(x) for x in sd[3:]]
+        # the same covariance in the scene frame, for the solve to carry into the carriages' poses: the rotation
+        # was perturbed in the rig frame (rig_from_world <- Exp(x) rig_from_world), i.e. by R^T x in the scene
+        # frame (world_from_rig <- Exp(R^T x) world_from_rig); order: rotation vector (rad), centre (m), ENU
+        T = np.zeros((6, 6))
+        T[:3, :3] = R1.T
+        T[3:, 3:] = np.eye(3)
+        cw = T @ cov @ T.T
+        stats["covariance_world_rotation_centre"] = (0.5 * (cw + cw.T)).tolist()
     if has_prior:
         stats["centre_minus_prior_m"] = (c1 - np.asarray(prior_centre, float)).tolist()
     warns = _warnings(residuals, stats, opts, where)

@@ -287,7 +287,8 @@ def _georeg_block(method: str, res, extra: dict | None = None) -> dict:
              "max_px": s.get("max_px"), "n_points": s.get("n_points"), "n_observations": s.get("n_observations"),
              "n_outliers": s.get("n_outliers"), "control_points": CONTROL_POINTS_FILE,
              "residuals": res.residuals, "warnings": res.warnings}
-    for k in ("sigma_centre_m", "sigma_rotation_deg", "prior", "centre_minus_prior_m", "scale", "n_triangulated",
+    for k in ("sigma_centre_m", "sigma_rotation_deg", "covariance_world_rotation_centre", "prior",
+              "centre_minus_prior_m", "scale", "n_triangulated",
               "n_gps_centres", "gps_residuals_m", "gps_rms_m"):
         if k in s:
             block[k] = s[k]

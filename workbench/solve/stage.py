@@ -271,8 +271,19 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
     progress(0.3, f"solving {len(carriages)} carriages")
     res, rejected = _solve_rejecting(carriages, links, views, opts, terrain, s.solver, progress)
     progress(0.9, "writing the solution")
+    fit_sigmas = {c.number: (c.sigma_body_centre_m, c.sigma_hpr_deg) for c in res.carriages}
+    camera_unc = camera_uncertainty(cam_doc)
+    if camera_unc is not None:
+        from .uncertainty import add_camera_uncertainty
+
+        camera_unc["carriages"] = add_camera_uncertainty(res, camera_unc["centre_enu"], camera_unc["cov"])
     used = {c.number: c.observations for c in carriages}
     doc = solution_document(project, res, views, cam_doc, used)
+    doc["camera_uncertainty"] = _camera_uncertainty_record(camera_unc, cam_doc)
+    for rec in doc["carriages"]:
+        sb, sh = fit_sigmas.get(rec["number"], (None, None))
+        rec["sigma_body_centre_fit_m"] = None if sb is None else np.asarray(sb, dtype=float).tolist()
+        rec["sigma_hpr_fit_deg"] = None if sh is None else np.asarray(sh, dtype=float).tolist()
     doc["correspondences"] = corr_stats
     doc["rejected_points"] = rejected
     out_dir = project.stage_dir("solve")
@@ -345,6 +356,50 @@ def _solve_rejecting(carriages: list, links: list, views: list, opts: Any, terra
         log.info("solve: round %d dropped %d outlying point(s)", rnd + 1, sum(r["round"] == rnd + 1 for r in rejected))
         progress(0.3 + 0.1 * (rnd + 1), f"{len(rejected)} outlying point(s) dropped")
     return res, rejected
+
+
+def camera_uncertainty(cam_doc: dict) -> dict | None:
+    """The georegistration's camera-pose covariance to carry into the carriages' poses, or None.
+
+    Present when the georef stage registered one central camera (a panorama's photos, or a single photo) from
+    control points: ``georegistration.covariance_world_rotation_centre`` (6, 6; scene rotation vector in rad,
+    centre in m, ENU) and every view's centre at the same place. Cameras written by hand carry no such
+    covariance (they are taken as exact), nor do the multi-view route's (a camera each: not modelled)."""
+    g = cam_doc.get("georegistration") or {}
+    cov = g.get("covariance_world_rotation_centre")
+    if cov is None:
+        return None
+    C = np.asarray(cov, dtype=float)
+    if C.shape != (6, 6) or not np.all(np.isfinite(C)):
+        log.warning("georegistration.covariance_world_rotation_centre is not a finite 6 x 6 matrix: the camera's "
+                    "uncertainty is not carried into the carriages' intervals")
+        return None
+    centres = []
+    for v in cam_doc.get("views", []):
+        M = np.asarray(v.get("cam_from_world"), dtype=float)
+        if M.shape != (4, 4):
+            return None
+        centres.append(-M[:3, :3].T @ M[:3, 3])
+    if not centres or np.max(np.linalg.norm(np.asarray(centres) - centres[0], axis=1)) > 1e-3:
+        return None
+    return {"cov": C, "centre_enu": centres[0]}
+
+
+def _camera_uncertainty_record(camera_unc: dict | None, cam_doc: dict) -> dict:
+    if camera_unc is None:
+        g = cam_doc.get("georegistration") or {}
+        why = ("cameras given as exact (no georegistration covariance in the cameras file)" if not g else
+               "the georegistration states no single camera-pose covariance (multi-view route, or an older "
+               "cameras.json): the intervals are the fit's alone")
+        return {"included": False, "note": why}
+    C = camera_unc["cov"]
+    sd = np.sqrt(np.clip(np.diag(C), 0.0, None))
+    return {"included": True,
+            "note": "the georegistration's camera-pose covariance is added to every carriage's (first order: the "
+                    "poses move with the camera); sigma_*_fit_* give the fit's alone",
+            "sigma_rotation_deg": np.degrees(sd[:3]).tolist(), "sigma_centre_m": sd[3:].tolist(),
+            "centre_enu": np.asarray(camera_unc["centre_enu"], dtype=float).tolist(),
+            "carriages": camera_unc.get("carriages", [])}
 
 
 def _num(x: Any) -> float | None:

@@ -363,3 +363,53 @@ def crb(carriages: Sequence[Any], links: Sequence[Any], views: Sequence[Any], wo
         j = 6 * N + i
         out["focal_sigma"].append(float(math.sqrt(model["cov"][j, j])))
     return out
+
+
+def camera_pose_jacobian(world_from_carriage: np.ndarray, centre_enu: np.ndarray) -> np.ndarray:
+    """(6, 6) derivative of a carriage's pose parameters (scene rotation vector ``w``, origin ``t``: the order of
+    ``covariance_pose``) with respect to a rigid error of the camera (rig) pose: a rotation ``d_theta`` (rad,
+    scene frame) about the camera centre ``centre_enu`` (3,) and a shift ``d_c`` (m) of that centre.
+
+    Poses solved from pixels move with the camera: ``R' = Exp(d_theta) R``, ``t' = c + d_c + Exp(d_theta) (t - c)``,
+    so ``d_w = d_theta`` and ``d_t = d_c - [t - c]x d_theta``."""
+    M = np.asarray(world_from_carriage, dtype=float)
+    A = np.eye(6)
+    A[3:, :3] = -skew(M[:3, 3] - np.asarray(centre_enu, dtype=float))
+    return A
+
+
+def add_camera_uncertainty(res: Any, centre_enu: np.ndarray, cov_camera: np.ndarray) -> list[str]:
+    """Add the georegistration's uncertainty of the camera pose to every carriage's covariance, in place.
+
+    ``cov_camera`` (6, 6): covariance of the camera's scene rotation vector (rad) and centre (m, ENU), as the
+    georef stage writes it (``georegistration.covariance_world_rotation_centre``). The fit's covariance
+    (``covariance_pose``) is that of the poses *relative to the camera*; a carriage's scene pose is the camera's
+    pose composed with it, so to first order its covariance is ``C_fit + A C_cam A^T``
+    (:func:`camera_pose_jacobian`; the two errors are independent: the control points are not the marked
+    points). The sigmas and 95 % intervals (position, body centre, heading / pitch / roll) are recomputed from
+    the sum with the fit's ``ci95_factor``; ``res.covariance`` (the fit's joint covariance, of which the
+    neighbour correlations are computed) stays the fit's: the camera moves every carriage together and does not
+    change where one lies relative to the next. Returns the numbers of the carriages changed."""
+    C_cam = np.asarray(cov_camera, dtype=float)
+    if C_cam.shape != (6, 6) or not np.all(np.isfinite(C_cam)):
+        raise ValueError(f"camera covariance must be a finite (6, 6) matrix, got shape {C_cam.shape}")
+    q = float(res.ci95_factor) if getattr(res, "ci95_factor", None) else 1.959963984540054
+    changed = []
+    for cr in res.carriages:
+        if cr.covariance_pose is None or cr.world_from_carriage is None or cr.body_centre_m is None:
+            continue
+        M = np.asarray(cr.world_from_carriage, dtype=float)
+        A = camera_pose_jacobian(M, centre_enu)
+        C = np.asarray(cr.covariance_pose, dtype=float) + A @ C_cam @ A.T
+        C = 0.5 * (C + C.T)
+        cr.covariance_pose = C
+        sp = np.sqrt(np.maximum(np.diag(C[3:, 3:]), 0))
+        cr.sigma_position_m, cr.ci95_position_m = sp, q * sp
+        Jb = np.hstack([-skew(np.asarray(cr.body_centre_m, dtype=float) - M[:3, 3]), np.eye(3)])
+        sb = np.sqrt(np.maximum(np.diag(Jb @ C @ Jb.T), 0))
+        cr.sigma_body_centre_m, cr.ci95_body_centre_m = sb, q * sb
+        Jh = _hpr_jac(M[:3, :3])
+        sh = np.sqrt(np.maximum(np.diag(Jh @ C[:3, :3] @ Jh.T), 0))
+        cr.sigma_hpr_deg, cr.ci95_hpr_deg = sh, q * sh
+        changed.append(cr.number)
+    return changed
