@@ -262,6 +262,18 @@ def residual_figure(path: Path, cars: list[dict], sigma_px: float | None) -> dic
 # ----------------------------------------------------------------------------------------------------------
 # Tables
 # ----------------------------------------------------------------------------------------------------------
+def _camera_uncertainty_text(cu: dict | None) -> str:
+    """One sentence: whether the intervals include the camera's georegistration uncertainty."""
+    if not cu:
+        return "They are those of the fit of the marked points; the cameras were taken as exact."
+    if cu.get("included"):
+        rot = max(cu.get("sigma_rotation_deg") or [0.0])
+        cen = max(cu.get("sigma_centre_m") or [0.0])
+        return (f"They include the camera's georegistration uncertainty (1σ up to {cen:.2f} m in its position and "
+                f"{rot:.3f}° in its orientation, from the control points).")
+    return f"They are those of the fit of the marked points: {cu.get('note', 'the cameras were taken as exact')}."
+
+
 def _f(x, nd: int) -> str:
     if x is None:
         return "–"
@@ -476,6 +488,7 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
         "sigma_est": _f(solution.get("sigma_px_estimated"), 2), "dof": solution.get("dof", "–"),
         "ci95_factor": _f(solution.get("ci95_factor"), 2),
         "georef": (cams.get("georegistration") or {}).get("method", "–"),
+        "camera_uncertainty": _camera_uncertainty_text(solution.get("camera_uncertainty")),
     }
     ctx = {
         "incident": {"name": s.incident.name, "date": s.incident.date.isoformat(),
