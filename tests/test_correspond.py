@@ -395,9 +395,10 @@ class _FlatGround:
         return np.zeros(len(np.asarray(xy).reshape(-1, 2)))
 
 
-def _on_its_side_scene():
+def _on_its_side_scene(pitch_deg: float = 0.0):
     """A coach (6223) lying on its left side behind an upright one (6100), coupled (held), on flat ground,
-    seen from 70 m and 12 m up: the photo, its PhotoFeatures, the camera and the true poses (world_from_carriage)."""
+    seen from 70 m and 12 m up: the photo, its PhotoFeatures, the camera and the true poses (world_from_carriage).
+    ``pitch_deg``: the coach on its side pitched so (one end on debris)."""
     from workbench.core.camera import look_at
     from workbench.correspond import search as se
     from workbench.correspond.complete import facing_cosine, predicted_homography
@@ -410,7 +411,7 @@ def _on_its_side_scene():
     corners = se._corners(ct)
     yaw = np.deg2rad(20.0)
     Wb = np.eye(4)
-    Wb[:3, :3] = se._rot(yaw, 0.0, np.deg2rad(-90.0))  # on its left side
+    Wb[:3, :3] = se._rot(yaw, np.deg2rad(pitch_deg), np.deg2rad(-90.0))  # on its left side
     Wb = se._rest(Wb, corners, ground)
     front_b = Wb[:3, :3] @ ct.coupler_front + Wb[:3, 3]
     Wa = np.eye(4)
@@ -487,3 +488,97 @@ def test_pose_search_finds_a_coach_on_its_side():
     assert sum(e <= 3.0 for e in errs) >= 4, errs
     # the same photo without the coach: nothing
     assert se.search_car(pf_clean, "6223", ct, refs, [anchor], cam_from_world, ground, opts, taken) == []
+
+
+def test_coupler_in_sight_from_the_side():
+    """A coupler protrudes beyond its end: seen from the side at an angle towards that end it is in sight
+    although the end turns away (the ray passes the body's end), and reported from the car's pose; seen
+    square to the side from near the car, the body hides it. Corners on the body are left to the facing test."""
+    from workbench.core.camera import look_at
+    from workbench.correspond.assign import CarInPhoto, _in_sight, observations_of
+    from workbench.correspond.match import FaceDetection, PhotoFeatures
+
+    ct = get_type("shoreliner")
+    L = ct.length_m
+    # the car at the origin of the scene, x forward, the camera on its left (y > 0)
+    front = ct.coupler_front
+    oblique = look_at(np.array([0.35 * L, 25.0, front[2]]), front)  # between the end planes, towards the front
+    square = look_at(np.array([0.0, 4.0, 3.0]), front)  # close to the side, above it: the body is in the way
+    n_front = ct.face_normal("front")
+    for M in (oblique, square):
+        C = -M[:3, :3].T @ M[:3, 3]
+        assert (C - front) @ n_front < 0  # the front end turns away from the camera in both
+    assert _in_sight(ct, oblique, front)
+    assert not _in_sight(ct, square, front)
+    assert not _in_sight(ct, oblique, ct.marked_points["body_top_front_left"])  # on the body: the faces decide
+    # reported from a side's pose (the detection spans the whole side, so its pose places the car's points)
+    K = CameraIntrinsics(width=1600, height=1200, fx=1800.0, fy=1800.0, cx=799.5, cy=599.5)
+    ref = face_reference(ct, "6100", "left", 25.0)
+    h, w = ref.image.shape[:2]
+    g = np.stack(np.meshgrid(np.linspace(0, w - 1, 9), np.linspace(0, h - 1, 3)), -1).reshape(-1, 2)
+    from workbench.correspond.complete import predicted_homography
+    from workbench.correspond.match import _apply_h
+
+    H = predicted_homography(oblique, ref, K)
+    det = FaceDetection(ref, "p.png", H, len(g), 0.3, 0.99, _apply_h(H, g), g)
+    pf = PhotoFeatures("p.png", K, np.zeros((1200, 1600), np.uint8), np.zeros((0, 2)), np.zeros((0, 128), np.float32))
+    obs = {o.point: o for o in observations_of([CarInPhoto("6100", det, 30, oblique)], pf, {"6100": ct})}
+    assert "coupler_front" in obs and obs["coupler_front"].how == "pose"
+    truth = K.project((oblique[:3, :3] @ front + oblique[:3, 3])[None])[0]
+    assert np.hypot(*(np.asarray(obs["coupler_front"].uv) - truth)) < 0.1
+
+
+def test_pose_of_an_aligned_face_rests_on_its_homography():
+    """A face aligned by ECC gives its pose through its homography (a lattice over its matched part), not
+    through its SIFT keypoints: with the keypoints 1 px off at random and the homography exact, the pose
+    places the far coupler (1.5 m off the side's plane) within 0.5 px; from the keypoints it is worse."""
+    from workbench.core.camera import look_at
+    from workbench.correspond.assign import _pose
+    from workbench.correspond.complete import predicted_homography
+    from workbench.correspond.match import FaceDetection, _apply_h
+
+    ct = get_type("shoreliner")
+    K = CameraIntrinsics(width=1600, height=1200, fx=1800.0, fy=1800.0, cx=799.5, cy=599.5)
+    M = look_at(np.array([5.0, 90.0, 8.0]), np.array([0.0, 0.0, 2.0]))  # a far coach, seen from its left
+    ref = face_reference(ct, "6100", "left", 25.0)
+    h, w = ref.image.shape[:2]
+    H = predicted_homography(M, ref, K)
+    rng = np.random.default_rng(1)
+    R_px = rng.uniform([0, 0], [w - 1, h - 1], (300, 2))
+    P_px = _apply_h(H, R_px) + rng.normal(0.0, 1.0, (300, 2))
+    X = ct.coupler_rear
+    truth = K.project((M[:3, :3] @ X + M[:3, 3])[None])[0]
+
+    def err(det):
+        P = _pose(det, K)
+        return float(np.hypot(*(K.project((P[:3, :3] @ X + P[:3, 3])[None])[0] - truth)))
+
+    aligned = FaceDetection(ref, "p.png", H, 300, 1.0, 0.99, P_px, R_px)
+    raw = FaceDetection(ref, "p.png", H, 300, 1.0, None, P_px, R_px)
+    assert err(aligned) < 0.5, err(aligned)
+    assert err(raw) > err(aligned)
+
+
+def test_pose_search_over_a_broken_coupling_tries_pitches():
+    """Over a broken coupling the car lies metres from its anchor, where the terrain's slope need not be the
+    anchor's: a coach on its side, pitched 3.5 deg (one end on debris; the ground is flat, so the terrain gives
+    0 deg), its neighbour's coupler 6 m from its own (beyond the former 5 m radius), is found by the search with
+    the pitches tried about the terrain's (``search_broken_pitch_deg``), its coupler within the broken radius
+    (8 m), and nothing is found on the photo without it."""
+    from workbench.correspond import search as se
+
+    ct, K, cam_from_world, Wa, Wb, pf, pf_clean, ground = _on_its_side_scene(pitch_deg=3.5)
+    opts = MatchOptions(search_yaw_span_deg=20.0)
+    assert opts.search_broken_radius_m >= 6.5 and len(opts.search_broken_pitch_deg) > 1
+    refs = {f: face_reference(ct, "6223", f, opts.px_per_m) for f in FACES}
+    anchor_at = Wa[:3, :3] @ ct.coupler_rear + Wa[:3, 3] + np.array([4.5, -4.0, 0.0])  # 6.0 m off
+    anchor = se.Anchor("front", anchor_at, "6100", "broken", float(np.arctan2(Wa[1, 0], Wa[0, 0])))
+    t0 = time.perf_counter()
+    found = se.search_car(pf, "6223", ct, refs, [anchor], cam_from_world, ground, opts, [])
+    print(f"pose search {time.perf_counter() - t0:.1f} s")
+    assert found, "the pitched coach was not found over the broken coupling"
+    W = np.linalg.inv(cam_from_world) @ found[0].cam_from_carriage
+    assert np.linalg.norm(W[:3, 3] - Wb[:3, 3]) < 0.3, W[:3, 3] - Wb[:3, 3]
+    pitch = np.degrees(np.arcsin(np.clip(W[2, 0], -1, 1)))
+    assert abs(pitch - 3.5) < 1.0, pitch
+    assert se.search_car(pf_clean, "6223", ct, refs, [anchor], cam_from_world, ground, opts, []) == []

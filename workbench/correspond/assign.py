@@ -52,16 +52,38 @@ class PointObservation:
     how: str  # "homography" (on the face plane), "pose" (off the plane, from the face's pose) or "carried"
 
 
+POSE_LATTICE = (13, 5)  # a face aligned by ECC gives its pose through this lattice (along, across) of its matched part
+
+
+def pose_correspondences(det: FaceDetection) -> tuple[np.ndarray, np.ndarray]:
+    """(reference px, undistorted photo px) that a face's pose rests on: for a face aligned by ECC (dense,
+    sub-pixel over the whole face), a lattice over the part of the face its matches span, mapped by the
+    aligned homography; else its matches themselves (SIFT keypoints, a pixel or so of noise each, which
+    tilts a one-face pose about the face's long axis: points off the plane move by pixels)."""
+    Ri, Pi = det.inlier_ref_px, det.inlier_photo_px
+    if det.ecc is None or Ri is None or len(Ri) < 6:
+        return Ri, Pi
+    h, w = det.ref.image.shape[:2]
+    lo, hi = Ri.min(0), Ri.max(0)
+    if det.guided:  # a guided face's lattice already covers the whole face
+        lo, hi = np.zeros(2), np.array([w - 1.0, h - 1.0])
+    g = np.stack(np.meshgrid(np.linspace(lo[0], hi[0], POSE_LATTICE[0]),
+                             np.linspace(lo[1], hi[1], POSE_LATTICE[1])), -1).reshape(-1, 2)
+    return g, det.transfer(g)
+
+
 def _pose(det: FaceDetection, K) -> np.ndarray | None:
-    """cam_from_carriage (4, 4) from a face's inliers (planar PnP in undistorted pixels), or None."""
+    """cam_from_carriage (4, 4) from a face (planar PnP in undistorted pixels, :func:`pose_correspondences`),
+    or None."""
     if det.inlier_ref_px is None or len(det.inlier_ref_px) < 6:
         return None
-    X = det.ref.carriage_from_ref(det.inlier_ref_px)
-    ok, rvec, tvec = cv2.solvePnP(X.astype(np.float64), det.inlier_photo_px.astype(np.float64), K.K, None,
+    R_px, P_px = pose_correspondences(det)
+    X = det.ref.carriage_from_ref(R_px)
+    ok, rvec, tvec = cv2.solvePnP(X.astype(np.float64), P_px.astype(np.float64), K.K, None,
                                   flags=cv2.SOLVEPNP_IPPE)
     if not ok:
         return None
-    rvec, tvec = cv2.solvePnPRefineLM(X, det.inlier_photo_px.astype(np.float64), K.K, None, rvec, tvec)
+    rvec, tvec = cv2.solvePnPRefineLM(X, P_px.astype(np.float64), K.K, None, rvec, tvec)
     M = np.eye(4)
     M[:3, :3] = cv2.Rodrigues(rvec)[0]
     M[:3, 3] = tvec.ravel()
@@ -280,11 +302,40 @@ def _improve_by_chain(found: list[CarInPhoto], consist, types, photo, by_number,
     return found
 
 
+def _in_sight(ct: CarriageType, cam_from_carriage: np.ndarray, X: np.ndarray, margin_m: float = 0.05) -> bool:
+    """Whether a point that stands off the car's body (a coupler, beyond the end) is in the camera's sight
+    although none of its faces turns to the camera: it lies outside every collision box of the car (body,
+    bogies, equipment) by ``margin_m`` and the line of sight from the camera to it crosses none of them.
+    A point on the body's surface (a corner) is not: its faces' facing test decides."""
+    boxes = ct.collision_boxes()
+    C = -cam_from_carriage[:3, :3].T @ cam_from_carriage[:3, 3]  # camera centre, carriage frame
+    d = X - C
+    for c, h in boxes:
+        if np.all(np.abs(X - c) < h + margin_m):
+            return False  # on (or in) a box: not a protruding point
+    for c, h in boxes:
+        # slab test of the segment C + s d, s in [0, 1 - margin], against the box
+        s0, s1 = 0.0, 1.0 - margin_m / max(float(np.linalg.norm(d)), 1e-9)
+        lo, hi = c - h - C, c + h - C
+        for k in range(3):
+            if abs(d[k]) < 1e-12:
+                if lo[k] > 0 or hi[k] < 0:
+                    s0, s1 = 1.0, 0.0
+                    break
+                continue
+            a, b = lo[k] / d[k], hi[k] / d[k]
+            s0, s1 = max(s0, min(a, b)), min(s1, max(a, b))
+        if s0 < s1:
+            return False
+    return True
+
+
 def observations_of(found: list[CarInPhoto], photo: PhotoFeatures, types: dict[str, CarriageType], *,
                     pose_points: bool = True, margin_px: float = 2.0) -> list[PointObservation]:
     """Marked points from the found faces, one per (car, point): on a face's plane by its homography, the
     other points of a car (couplers, corners of an unseen face) from its pose when their face turns to the
-    camera. A point seen by two faces keeps the face with more inliers."""
+    camera, or, for a point standing off the body (a coupler beyond its end), when the line of sight to it
+    passes the car's body (:func:`_in_sight`). A point seen by two faces keeps the face with more inliers."""
     K = photo.intrinsics
     best: dict[tuple[str, str], PointObservation] = {}
     for c in sorted(found, key=lambda c: -c.detection.n_inliers):
@@ -312,7 +363,7 @@ def observations_of(found: list[CarInPhoto], photo: PhotoFeatures, types: dict[s
                 continue
             Xc = M[:3, :3] @ X + M[:3, 3]
             facing = any(float((M[:3, :3] @ ct.face_normal(f)) @ Xc) < 0 for f in ct.marked_point_faces[n])
-            if Xc[2] <= 0 or not facing:
+            if Xc[2] <= 0 or not (facing or _in_sight(ct, M, X)):
                 continue
             p = K.project(Xc[None])[0]
             if not np.all(np.isfinite(p)) or not K.in_image(p[None], margin_px)[0]:

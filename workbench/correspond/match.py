@@ -63,7 +63,10 @@ class MatchOptions:
     search_single_face_px: float = 400.0  # ... covering this many photo pixels
     search_broken: bool = True  # also from neighbours over a broken coupling (its coupler within a few metres)
     search_held_radius_m: float = 2.0  # a held coupling's coupler within this of the neighbour's (its pose error)
-    search_broken_radius_m: float = 5.0  # a broken coupling's coupler within this of the neighbour's
+    search_broken_radius_m: float = 8.0  # a broken coupling's coupler within this of the neighbour's
+    # a broken coupling: pitches (deg) also tried about the terrain's at the anchor (the car lies metres from
+    # it, where the ground's slope can differ), at the best coarse headings of every roll class (search.py)
+    search_broken_pitch_deg: tuple[float, ...] = (-4.0, 0.0, 4.0)
     search_yaw_span_deg: float = 90.0  # the car's heading within this of its neighbour's (a consist folds)
 
     def __post_init__(self) -> None:

@@ -9,7 +9,11 @@ be. With the photo's camera in the scene frame (``cameras.json``: ``cam_from_wor
   used only when it rests on two faces or on one matched over 70 % of its length). A held coupling puts the
   car's coupler there within centimetres, but a neighbour's pose from one face can be a metre or two off at
   its far coupler: the coupler is searched within ``search_held_radius_m`` (2 m); a broken coupling within
-  ``search_broken_radius_m`` (5 m; the samples' broken couplings are 3.0-3.2 m apart);
+  ``search_broken_radius_m`` (8 m: the samples' broken couplings are 3.0-3.2 m apart, a fresh seed-2 incident's
+  6.3 m, and the generator draws 1.5-8 m). Over a broken coupling the car lies metres from the anchor, where
+  the terrain's slope can differ: at the best ``PITCH_KEEP`` (2) coarse headings of every roll class the pitch
+  is also tried ``search_broken_pitch_deg`` (+-4 deg) about the terrain's, and the headings around them are
+  scored at the pitch that won;
 * **hypotheses**: heading every 2 deg within ``search_yaw_span_deg`` (90) of the neighbour's, roll every
   45 deg (upright, on either side, upside down and between), pitch from the terrain (the other coupler as high
   above the ground as the anchored one), the coupler at the anchor, the car lowered or raised until its
@@ -62,6 +66,7 @@ SEEDS_PER_ROLL = 4  # coarse hypotheses refined per roll class
 COARSE_ROLL_DEG = 45.0
 HEADING_STRIDE = 3  # the coarse heading grid is first scored at every third heading ...
 STRIDE_KEEP = 5  # ... and completed around the best five of every roll class
+PITCH_KEEP = 2  # a broken coupling: the other pitches (search_broken_pitch_deg) tried at the best two of them
 TILES = 3  # a long face (side, roof) is scored in thirds along its length
 PAD_PX = 128  # working image padding
 CROPS = ((0.0, 0.8), (0.2, 1.0), (0.0, 0.6), (0.4, 1.0))  # parts of a face tried where the whole does not align
@@ -361,19 +366,28 @@ def search_car(photo: PhotoFeatures, number: str, ct: CarriageType, refs: dict[s
         pitches: dict[int, float] = {}
         scores = np.full((len(yaws), len(rolls)), np.nan)  # nan: not evaluated
 
-        def evaluate(i: int, j: int) -> None:
-            if not np.isnan(scores[i, j]):
-                return
+        # a broken coupling's car lies metres from the anchor, where the ground's slope can differ: other
+        # pitches about the terrain's are tried at the best PITCH_KEEP headings of every roll class
+        dps = [] if a.coupling == "held" else [float(np.deg2rad(x)) for x in opts.search_broken_pitch_deg if x != 0]
+        best_dp = np.zeros(scores.shape)  # the pitch offset that scored best at each (heading, roll)
+
+        def trial(i: int, j: int, dp: float) -> float:
             if i not in pitches:
                 pitches[i] = _pitch_on_terrain(a, float(yaws[i]), L, terrain)
-            M0 = cam_from_world @ _rest(_pose_at(ct, a, float(yaws[i]), pitches[i], float(rolls[j])), corners, terrain)
+            M0 = cam_from_world @ _rest(_pose_at(ct, a, float(yaws[i]), pitches[i] + dp, float(rolls[j])), corners,
+                                        terrain)
             sc, sh, _ = coarse.match(M0, min_cos, radius_m * px_per_m)
-            scores[i, j] = sc
             if np.isfinite(sc):
-                hyps.append((sc, _shifted(M0, c, sh, K), float(yaws[i]), pitches[i], float(rolls[j])))
+                hyps.append((sc, _shifted(M0, c, sh, K), float(yaws[i]), pitches[i] + dp, float(rolls[j])))
+            return sc
+
+        def evaluate(i: int, j: int, dp: float = 0.0) -> None:
+            if np.isnan(scores[i, j]):
+                scores[i, j], best_dp[i, j] = trial(i, j, dp), dp
 
         # coarse to fine over the heading: every HEADING_STRIDE-th heading of the grid first, then the grid's
-        # headings around the best STRIDE_KEEP of every roll class (the score's basin is wider than the stride)
+        # headings around the best STRIDE_KEEP of every roll class (the score's basin is wider than the stride),
+        # at the pitch that scored best there
         n_y = len(yaws)
         first = sorted(set(range(0, n_y, HEADING_STRIDE)) | {n_y - 1})
         for j in range(len(rolls)):
@@ -381,10 +395,14 @@ def search_car(photo: PhotoFeatures, number: str, ct: CarriageType, refs: dict[s
                 evaluate(i, j)
             col = scores[:, j]
             ok = np.nonzero(np.isfinite(col))[0]
-            for i in ok[np.argsort(-col[ok])][:STRIDE_KEEP]:
+            for rank, i in enumerate(ok[np.argsort(-col[ok])][:STRIDE_KEEP]):
+                for dp in dps if rank < PITCH_KEEP else []:
+                    sc = trial(i, j, dp)
+                    if sc > scores[i, j]:
+                        scores[i, j], best_dp[i, j] = sc, dp
                 for di in range(-(HEADING_STRIDE - 1), HEADING_STRIDE):
                     if 0 <= i + di < n_y:
-                        evaluate(int(i + di), j)
+                        evaluate(int(i + di), j, float(best_dp[i, j]))
         if not hyps:
             continue
         hyps.sort(key=lambda h: -h[0])
