@@ -1346,7 +1346,7 @@ _CHI2_6_95 = 12.5916  # 95 % point of the chi-square distribution with 6 degrees
 
 
 def _prediction_shift(released: _Problem, R, t, f, R_kept, t_kept, focal_views, chains, slacks, contact,
-                      options: SolveOptions) -> dict[int, float]:
+                      options: SolveOptions, model: dict | None = None) -> dict[int, float]:
     """Per carriage with predicted points: the squared Mahalanobis length of the shift from the fit with the
     predictions released (``R, t, f``: the measured points' fit) to the fit with them kept (``R_kept, t_kept``),
     in the released fit's pose covariance (scene rotation vector, origin). Under the solve's noise model it is
@@ -1356,7 +1356,8 @@ def _prediction_shift(released: _Problem, R, t, f, R_kept, t_kept, focal_views, 
 
     from .uncertainty import solution_model
 
-    model = solution_model(released, R, t, f, focal_views, chains, slacks, contact, options)
+    if model is None:
+        model = solution_model(released, R, t, f, focal_views, chains, slacks, contact, options)
     cov, col = model["cov"], model["col"]
     out = {}
     for k in released.active:
@@ -2122,25 +2123,49 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
         R, t, f, T_links, nfev, msg, ok, rounds, n_act = _solve_chained(released, cars, final_chains, chain_slacks,
                                                                         True, focal_views, R, t, f, contact, options)
         total_nfev += nfev
-        d2 = _prediction_shift(released, R, t, f, kept[0], kept[1], focal_views, final_chains, chain_slacks,
-                               contact, options)
+        rel_sol = (R.copy(), t.copy(), f.copy(), T_links, msg, ok, rounds, n_act)
+        from .uncertainty import solution_model
+
+        rel_model = solution_model(released, R, t, f, focal_views, final_chains, chain_slacks, contact, options)
+
+        def shift(R_k, t_k):
+            return _prediction_shift(released, rel_sol[0], rel_sol[1], rel_sol[2], R_k, t_k, focal_views,
+                                     final_chains, chain_slacks, contact, options, model=rel_model)
+
+        d2 = shift(kept[0], kept[1])
         off = sorted(k for k, v in d2.items() if not v <= _CHI2_6_95)
         listed = ", ".join(f"{cars[k].number} {d2[k]:.1f}" for k in sorted(d2))
+        # with some cars' predictions released and the others' kept, the kept ones can pull further (a
+        # neighbour's opposite pull gone, a chained car no longer held by its own): the mixed fit is checked in
+        # turn, and a car it moves beyond the limit is released too, until the fit is consistent
+        rounds_note = []
+        while off and len(off) < len(d2):
+            prob_m = prob.with_predictions_scaled(options.prediction_release, off)
+            sol_m = _solve_chained(prob_m, cars, final_chains, chain_slacks, True, focal_views, kept[0], kept[1],
+                                   kept[2], contact, options)
+            nfev += sol_m[4]
+            total_nfev += sol_m[4]
+            d2m = shift(sol_m[0], sol_m[1])
+            more = sorted(k for k, v in d2m.items() if k not in off and not v <= _CHI2_6_95)
+            if not more:
+                break
+            rounds_note.append(", ".join(f"{cars[k].number} {d2m[k]:.1f}" for k in more))
+            off = sorted(set(off) | set(more))
+        extra = (f"; then, with those released, the remaining predictions moved car(s) beyond the limit too "
+                 f"(chi-square {'; '.join(rounds_note)}): released") if rounds_note else ""
         if not off:  # every car's predictions agree with its measured points: step 4's fit stands
             R, t, f, T_links, msg, ok, rounds, n_act = kept
             note = f"predictions agree with the measured points on every car (shift chi-square {listed}): kept"
         elif len(off) == len(d2):
             prob = released
+            R, t, f, T_links, msg, ok, rounds, n_act = rel_sol
             note = (f"predictions released on every car with some (shift chi-square {listed}, 95 % limit "
-                    f"{_CHI2_6_95:.1f})")
+                    f"{_CHI2_6_95:.1f}){extra}")
         else:
-            prob = prob.with_predictions_scaled(options.prediction_release, off)
-            R, t, f, T_links, nfev2, msg, ok, rounds, n_act = _solve_chained(
-                prob, cars, final_chains, chain_slacks, True, focal_views, kept[0], kept[1], kept[2], contact, options)
-            nfev += nfev2
-            total_nfev += nfev2
+            prob = prob_m
+            R, t, f, T_links, _, msg, ok, rounds, n_act = sol_m
             note = (f"predictions released on car(s) {', '.join(cars[k].number for k in off)}, kept on the others "
-                    f"(shift chi-square {listed}, 95 % limit {_CHI2_6_95:.1f})")
+                    f"(shift chi-square {listed}, 95 % limit {_CHI2_6_95:.1f}){extra}")
         steps.append(StepStats("4b_predictions_checked", True, f"{n_pred} predicted point(s) checked: fitted again "
                                f"with their sigmas x {options.prediction_release:g}; " + note,
                                _pixel_cost(prob, *kept[:3]), _pixel_cost(prob, R, t, f), nfev, msg,
