@@ -269,6 +269,23 @@ def solution_model(prob, R, t, f, focal_views, chains, slacks, contact, options)
                             face_sigma=options.face_sigma_px)
 
 
+def _set_pose_covariance(cr: Any, C: np.ndarray, R: np.ndarray, lever: np.ndarray, q: float) -> np.ndarray:
+    """Set a carriage result's ``covariance_pose`` (6, 6: scene rotation vector, origin) and the sigmas and 95 %
+    half widths (``q`` sigmas) of its origin, body centre and heading / pitch / roll that follow from it.
+    ``R`` (3, 3) its rotation, ``lever`` (3,) the body centre minus the origin in the scene frame (m). Returns
+    the body centre's Jacobian (3, 6)."""
+    cr.covariance_pose = C
+    sp = np.sqrt(np.maximum(np.diag(C[3:, 3:]), 0))
+    cr.sigma_position_m, cr.ci95_position_m = sp, q * sp
+    Jb = np.hstack([-skew(lever), np.eye(3)])
+    sb = np.sqrt(np.maximum(np.diag(Jb @ C @ Jb.T), 0))
+    cr.sigma_body_centre_m, cr.ci95_body_centre_m = sb, q * sb
+    Jh = _hpr_jac(R)
+    sh = np.sqrt(np.maximum(np.diag(Jh @ C[:3, :3] @ Jh.T), 0))
+    cr.sigma_hpr_deg, cr.ci95_hpr_deg = sh, q * sh
+    return Jb
+
+
 def attach_covariance(res, prob, R, t, f, focal_views, chains, slacks, contact, options,
                       model: dict | None = None) -> None:
     """Fill the covariance fields of a :class:`SolveResult` in place. ``model``: a :func:`solution_model` already
@@ -292,17 +309,7 @@ def attach_covariance(res, prob, R, t, f, focal_views, chains, slacks, contact, 
     for k in prob.active:
         cr = res.carriages[k]
         c = col[k]
-        C = cov[c:c + 6, c:c + 6]
-        cr.covariance_pose = C
-        sp = np.sqrt(np.maximum(np.diag(C[3:, 3:]), 0))
-        cr.sigma_position_m, cr.ci95_position_m = sp, q * sp
-        Jb = np.hstack([-skew(R[k] @ prob.cars[k].c_body), np.eye(3)])
-        Jbs[k] = Jb
-        sb = np.sqrt(np.maximum(np.diag(Jb @ C @ Jb.T), 0))
-        cr.sigma_body_centre_m, cr.ci95_body_centre_m = sb, q * sb
-        Jh = _hpr_jac(R[k])
-        sh = np.sqrt(np.maximum(np.diag(Jh @ C[:3, :3] @ Jh.T), 0))
-        cr.sigma_hpr_deg, cr.ci95_hpr_deg = sh, q * sh
+        Jbs[k] = _set_pose_covariance(cr, cov[c:c + 6, c:c + 6], R[k], R[k] @ prob.cars[k].c_body, q)
     for i, grp in enumerate(focal_views):
         j = 6 * len(prob.active) + i
         for v in grp:
@@ -401,15 +408,6 @@ def add_camera_uncertainty(res: Any, centre_enu: np.ndarray, cov_camera: np.ndar
         M = np.asarray(cr.world_from_carriage, dtype=float)
         A = camera_pose_jacobian(M, centre_enu)
         C = np.asarray(cr.covariance_pose, dtype=float) + A @ C_cam @ A.T
-        C = 0.5 * (C + C.T)
-        cr.covariance_pose = C
-        sp = np.sqrt(np.maximum(np.diag(C[3:, 3:]), 0))
-        cr.sigma_position_m, cr.ci95_position_m = sp, q * sp
-        Jb = np.hstack([-skew(np.asarray(cr.body_centre_m, dtype=float) - M[:3, 3]), np.eye(3)])
-        sb = np.sqrt(np.maximum(np.diag(Jb @ C @ Jb.T), 0))
-        cr.sigma_body_centre_m, cr.ci95_body_centre_m = sb, q * sb
-        Jh = _hpr_jac(M[:3, :3])
-        sh = np.sqrt(np.maximum(np.diag(Jh @ C[:3, :3] @ Jh.T), 0))
-        cr.sigma_hpr_deg, cr.ci95_hpr_deg = sh, q * sh
+        _set_pose_covariance(cr, 0.5 * (C + C.T), M[:3, :3], np.asarray(cr.body_centre_m, dtype=float) - M[:3, 3], q)
         changed.append(cr.number)
     return changed
