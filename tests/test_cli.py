@@ -114,3 +114,111 @@ def test_types_lists_the_library():
 def test_synth_bad_options(tmp_path):
     one_line_error(wb("synth", tmp_path / "x", "--scenario", "nowhere"), "unknown scenario 'nowhere'", "spuyten-duyvil")
     one_line_error(wb("synth", tmp_path / "x", "--cars", "0"), "--cars 0")
+
+
+# -- usage errors, console markup, the state file, the folder lock, umask, start-up -------------------------
+@pytest.mark.parametrize("args, needle", [
+    ((), None),  # no command: the help, as a usage error
+    (("bogus",), "No such command 'bogus'"),
+    (("status",), "Missing argument"),
+    (("run", "--bogus", "x"), "No such option: --bogus"),
+    (("pick", ".", "--port", "abc"), "--port"),
+    (("pick", ".", "--port", "80"), "--port"),
+    (("calibrate", "."), None),
+])
+def test_usage_errors_are_one_line_and_exit_2(tmp_path, args, needle):
+    r = wb(*args, cwd=tmp_path)
+    assert "Traceback" not in r.stderr + r.stdout, r.stderr
+    assert r.returncode == 2, (r.returncode, r.stderr)
+    if args == ():
+        assert "Commands:" in r.stdout
+    elif needle is not None:
+        one_line_error(r, needle)
+
+
+def test_markup_in_a_path_is_printed_as_it_is(tmp_path):
+    d = tmp_path / "[red]inc[bold]"
+    d.mkdir()
+    r = wb("status", d)
+    one_line_error(r, "[red]inc[bold]", "settings file not found")
+
+
+def test_init_with_a_bad_value_writes_nothing(tmp_path):
+    root = tmp_path / "new"
+    r = wb("init", root, "--crs", "EPSG:4326")
+    one_line_error(r, "EPSG:4326", "projected")
+    assert not root.exists()
+    r = wb("init", root, "--crs", "EPSG:32618")  # the corrected retry is not refused
+    assert r.returncode == 0, r.stderr
+
+
+def test_outputs_follow_the_umask(tmp_path):
+    root = small_incident(tmp_path)
+    assert (root / "project.toml").stat().st_mode & 0o777 == 0o644  # the test process's umask is 022
+    r = wb("run", root, "--only", "inputs")
+    assert r.returncode == 0, r.stderr
+    for p in (root / "out").rglob("*.json"):
+        assert p.stat().st_mode & 0o777 == 0o644, p
+
+
+def test_corrupt_state_file_is_kept_aside(tmp_path):
+    root = small_incident(tmp_path)
+    (root / "out").mkdir(exist_ok=True)
+    (root / "out" / "state.json").write_text("[1, 2]")
+    r = wb("status", root)
+    assert r.returncode == 0 and "Traceback" not in r.stderr and "corrupt" in r.stderr
+    r = wb("run", root, "--only", "inputs")
+    assert r.returncode == 0, r.stderr
+    assert (root / "out" / "state.json.corrupt").read_text() == "[1, 2]"
+    assert json.loads((root / "out" / "state.json").read_text())["inputs"]["status"] == "done"
+
+
+def test_read_only_folder_is_one_line_and_loses_nothing(tmp_path):
+    import os
+
+    if os.geteuid() == 0:  # root writes anyway: simulate the refusal where every write goes through
+        from workbench.core import io
+
+        root = small_incident(tmp_path)
+        assert wb("run", root, "--only", "inputs").returncode == 0
+        before = (root / "out" / "state.json").read_bytes()
+        code = ("import errno, sys, tempfile\n"
+                "def refuse(*a, **k): raise PermissionError(errno.EACCES, 'Permission denied')\n"
+                "tempfile.mkstemp = refuse\n"
+                "from workbench.cli import main\n"
+                f"main(['run', {str(root)!r}, '--only', 'inputs', '--force'])\n")
+        r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+        one_line_error(r, "cannot write", "Permission denied", "writable")
+        assert (root / "out" / "state.json").read_bytes() == before
+        assert io is not None
+    else:  # pragma: no cover - a non-root user gets the real refusal
+        root = small_incident(tmp_path)
+        assert wb("run", root, "--only", "inputs").returncode == 0
+        os.chmod(root / "out" / "inputs", 0o555)
+        try:
+            one_line_error(wb("run", root, "--only", "inputs", "--force"), "cannot write", "writable")
+        finally:
+            os.chmod(root / "out" / "inputs", 0o755)
+
+
+def test_a_second_run_on_the_same_incident_is_refused(tmp_path):
+    from workbench.project import Project
+
+    root = small_incident(tmp_path)
+    with Project(root).lock():
+        r = wb("run", root, "--only", "inputs")
+    one_line_error(r, "another workbench command is running on this incident", f"pid {__import__('os').getpid()}")
+    assert wb("run", root, "--only", "inputs").returncode == 0  # released
+
+
+def test_help_and_status_load_no_stage_code(tmp_path):
+    """`--help` and `status` import neither a stage's code nor the heavy libraries (they start at once)."""
+    root = small_incident(tmp_path)
+    code = ("import sys\nfrom workbench.cli import main\n"
+            "try:\n    main(sys.argv[1:])\nexcept SystemExit:\n    pass\n"
+            "heavy = sorted(m for m in sys.modules if m.split('.')[0] in ('scipy', 'trimesh', 'cv2', 'open3d', "
+            "'rasterio', 'pycolmap') or m.endswith('.stage') or m.endswith('_stage'))\n"
+            "print('HEAVY', heavy)\n")
+    for args in (["--help"], ["status", str(root)], ["types"]):
+        r = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=120)
+        assert "HEAVY []" in r.stdout, (args, r.stdout[-500:], r.stderr[-2000:])

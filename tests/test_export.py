@@ -28,10 +28,12 @@ from workbench.core.frames import SceneFrame, rot_z
 from workbench.core.io import atomic_write_json
 from workbench.errors import SettingsError
 from workbench.export import GLTF_FROM_ENU, ExportOptions
-from workbench.export.stage import STAGE as EXPORT_STAGE
 from workbench.export.stage import export_scene
+from workbench.pipeline import stage
 from workbench.project import Project
 from workbench.rolling_stock import get_type
+
+EXPORT_STAGE = stage("export")
 
 G = GLTF_FROM_ENU
 KML = "{http://www.opengis.net/kml/2.2}"

@@ -174,7 +174,8 @@ photos = "photos/multiview"
 
 
 def test_sfm_stage_writes_reconstruction(tmp_path, mv_set):
-    from workbench.intrinsics.stage import STAGE, resolve_intrinsics
+    from workbench.intrinsics.stage import resolve_intrinsics
+    from workbench.pipeline import stage
     from workbench.project import Project
     from workbench.runner import Runner, StageResult, StageSpec
 
@@ -188,7 +189,7 @@ def test_sfm_stage_writes_reconstruction(tmp_path, mv_set):
     project = Project(root)
     # a stand-in for the `inputs` stage the sfm stage depends on (keeps this test independent of the others)
     inputs = StageSpec("inputs", "stand-in", lambda project, progress: StageResult(outputs={}))
-    runner = Runner(project, [inputs, STAGE])
+    runner = Runner(project, [inputs, stage("sfm")])
     runner.run()
     rec = json.loads((root / "out" / "sfm" / "reconstruction.json").read_text())
     assert set(rec) >= {"images", "unregistered", "points", "intrinsics_source", "stats"}

@@ -15,7 +15,10 @@ from workbench.core.frames import SceneFrame
 from workbench.errors import InputError
 from workbench.project import Project
 from workbench.terrain.dem import DemVerticalUnits, TerrainModel, resolve_dem_sources, simplify_terrain_mesh
-from workbench.terrain.stage import STAGE, run_terrain
+from workbench.pipeline import stage
+from workbench.terrain.stage import run_terrain
+
+STAGE = stage("terrain")
 
 DEM = Path(__file__).resolve().parents[2] / "shared" / "data" / "dem"
 NRW = DEM / "nrw_dom1_32_356_5699_1_nw_2020.tif"

@@ -10,19 +10,21 @@ from typing import Optional
 
 import typer
 from rich.console import Console
-from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-from rich.table import Table
 
 from .errors import WorkbenchError
 
-app = typer.Typer(add_completion=False, no_args_is_help=True,
+# Plain help (click's formatter): rich's help panels cost half a second at every `--help`.
+app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode=None,
                   help="Reconstruction workbench for train-accident scenes: one incident folder per incident.")
-console = Console(stderr=True)
-out = Console()
+# markup off: a photo or folder named like "[red]x" is printed as it is, never parsed as console markup
+console = Console(stderr=True, markup=False, highlight=False)
+out = Console(markup=False, highlight=False)
 
 
-def _progress() -> Progress:
-    return Progress(TextColumn("[bold]{task.description:<10}"), BarColumn(), TextColumn("{task.fields[msg]}"),
+def _progress():
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    return Progress(TextColumn("[bold]{task.description:<10}"), BarColumn(), TextColumn("{task.fields[msg]}", markup=False),
                     TimeElapsedColumn(), console=console, disable=not console.is_terminal, transient=False)
 
 
@@ -154,6 +156,8 @@ def _print_outputs(project, statuses) -> None:
 @app.command()
 def status(path: Path = typer.Argument(..., help="incident folder")) -> None:
     """Show which stages are done, stale, failed or not run."""
+    from rich.table import Table
+
     project, runner = _runner(path)
     table = Table(title=f"{project.settings.incident.name} ({project.root})")
     for col in ("stage", "status", "last run (UTC)", "time (s)", "note"):
@@ -167,6 +171,8 @@ def status(path: Path = typer.Argument(..., help="incident folder")) -> None:
 @app.command()
 def types(project: Optional[Path] = typer.Option(None, help="also list an incident's own types")) -> None:
     """List the rolling-stock types (carriage models) the workbench knows."""
+    from rich.table import Table
+
     from .rolling_stock import load_library
 
     extra = [project / "rolling_stock"] if project and (project / "rolling_stock").is_dir() else []
@@ -238,7 +244,7 @@ def control_points(path: Path = typer.Argument(..., help="synthetic incident fol
 
 
 def _register_stage_commands() -> None:
-    from .pipeline import STAGES
+    from .pipeline import STAGES  # the registry only: no stage's code is imported
 
     for spec in STAGES:
         if spec.name not in ("inputs",) and spec.name not in {c.name for c in app.registered_commands}:
@@ -248,24 +254,42 @@ def _register_stage_commands() -> None:
 _register_stage_commands()
 
 
-def main() -> None:
+def _error(message: str, limit: int = 2000) -> None:
+    """One line on stderr: ``error: message`` (cut to ``limit`` characters; never parsed as markup)."""
+    from rich.text import Text
+
+    message = " ".join(str(message).split())
+    if len(message) > limit:
+        message = message[:limit] + f"... ({len(message) - limit} more characters)"
+    console.print(Text.assemble(("error:", "red"), " ", message), soft_wrap=True)
+
+
+def main(argv: list[str] | None = None) -> None:
+    """The ``workbench`` entry point: every error a user can cause is one line on stderr and exit status 2."""
     try:
-        app(standalone_mode=False)
+        result = app(args=argv, standalone_mode=False)
     except WorkbenchError as exc:
-        console.print(f"[red]error:[/red] {exc}", highlight=False, soft_wrap=True)
+        _error(str(exc))
         sys.exit(2)
     except (typer.Abort, KeyboardInterrupt):
         console.print("aborted")
         sys.exit(130)
-    except Exception as exc:  # click usage errors
-        import click
-
-        if isinstance(exc, click.exceptions.ClickException):
-            exc.show()
-            sys.exit(exc.exit_code)
-        if isinstance(exc, click.exceptions.Exit):
-            sys.exit(exc.exit_code)
-        raise
+    except typer.Exit as exc:
+        sys.exit(exc.exit_code)
+    except typer.TyperException as exc:  # usage errors: no or unknown command, bad option or value
+        if type(exc).__name__ == "NoArgsIsHelpError":  # `workbench` alone: the help, as a usage error
+            out.print(exc.format_message())
+            sys.exit(2)
+        ctx = getattr(exc, "ctx", None)
+        where = f" (see `{ctx.command_path} --help`)" if ctx is not None else " (see `workbench --help`)"
+        _error(exc.format_message() + where)
+        sys.exit(getattr(exc, "exit_code", 2) or 2)
+    except OSError as exc:  # a folder that cannot be written, a full disk, ...
+        _error(f"{exc.filename or ''}: {exc.strerror or exc}; check that the folder exists, is writable and has "
+               f"free space, then run the command again (finished stages are kept)")
+        sys.exit(2)
+    if isinstance(result, int) and result:
+        sys.exit(result)
 
 
 if __name__ == "__main__":

@@ -24,6 +24,10 @@ class UnknownModelType(WorkbenchError):
     """A carriage type named in a consist is not in the rolling-stock library."""
 
 
+class OutputError(WorkbenchError):
+    """An output cannot be written: a read-only folder, a full disk, a missing permission."""
+
+
 class StageError(WorkbenchError):
     """A stage failed or a stage's required input (an earlier stage's output) is missing."""
 

@@ -1,7 +1,8 @@
-"""The stages of ``workbench run``, in order. Each later stage lives with its module and is listed in _stages().
+"""The stages of ``workbench run``, in order: the registry.
 
-Each stage is a plain function ``(project, progress) -> StageResult``; the runner handles hashing,
-skipping, timing and the record in ``out/state.json``.
+Each stage is declared here (name, the files it reads, the settings sections it depends on, when it applies)
+and its code, a plain function ``(project, progress) -> StageResult`` in its own module, is imported only when
+the stage runs. The runner handles hashing, skipping, timing and the record in ``out/state.json``.
 """
 
 from __future__ import annotations
@@ -9,11 +10,13 @@ from __future__ import annotations
 import logging
 import warnings
 from pathlib import Path
-
+from typing import TYPE_CHECKING
 
 from .errors import InputError
-from .project import Project
 from .runner import Progress, StageResult, StageSpec
+
+if TYPE_CHECKING:  # stages are handed the Project; the registry itself loads nothing (a CLI that starts at once)
+    from .project import Project
 
 log = logging.getLogger(__name__)
 
@@ -94,22 +97,226 @@ def run_inputs(project: Project, progress: Progress) -> StageResult:
                                                          "n_chains": chains, "camera_source": s.camera.source.value})
 
 
-def _stages() -> list[StageSpec]:
-    """The stages after ``inputs``, in order (each module owns its stage; see docs/pipeline.md)."""
-    from .correspond.stage import STAGE as CORRESPOND
-    from .export.stage import STAGE as EXPORT
-    from .georef.stage import STAGE as GEOREF
-    from .intrinsics.stage import STAGE as SFM
-    from .report.render_stage import STAGE as RENDER
-    from .report.report_stage import STAGE as REPORT
-    from .solve.stage import STAGE as SOLVE
-    from .stitch.stage import STAGE as STITCH
-    from .terrain.stage import STAGE as TERRAIN
-
-    return [TERRAIN, STITCH, SFM, GEOREF, CORRESPOND, SOLVE, EXPORT, RENDER, REPORT]
+# ---------------------------------------------------------------------------------------------------
+# The stages' input files: what each stage reads, for the runner's hashes (every path from the Project)
+# ---------------------------------------------------------------------------------------------------
+def _rolling_stock_files(project: Project) -> dict[str, Path]:
+    if not project.rolling_stock_dir.is_dir():
+        return {}
+    return {f"rolling_stock:{t.name}": t for t in sorted(project.rolling_stock_dir.glob("*.toml"))}
 
 
+def _dem_files(project: Project) -> dict[str, Path]:
+    paths = project.dem_paths()
+    return {"dem": paths[0]} if len(paths) == 1 else {f"dem:{p.name}": p for p in paths}
+
+
+def _terrain_inputs(project: Project) -> dict[str, Path]:
+    files = _dem_files(project)
+    if project.settings.terrain.buildings:
+        files["buildings"] = project.require_file(project.settings.terrain.buildings, "terrain.buildings")
+    return files
+
+
+def _photo_files(project: Project) -> dict[str, Path]:
+    return {f"photo:{p.name}": p for p in project.photo_paths()}
+
+
+def _stitch_applies(project: Project) -> bool:
+    if project.settings.camera.source.value == "sfm":
+        return False
+    try:
+        return len(project.photo_paths()) >= 2
+    except InputError:
+        return False
+
+
+def _stitch_inputs(project: Project) -> dict[str, Path]:
+    files = _photo_files(project)
+    cam = project.settings.camera
+    if cam.source.value == "calibrated" and cam.profile:
+        files["camera_profile"] = project.path(cam.profile)
+    return files
+
+
+def _sfm_inputs(project: Project) -> dict[str, Path]:
+    files = _photo_files(project)
+    if project.settings.camera.profile:
+        files["camera_profile"] = project.require_file(project.settings.camera.profile, "camera.profile")
+    return files
+
+
+def _georef_inputs(project: Project) -> dict[str, Path]:
+    files: dict[str, Path] = {}
+    route = project.georef_route()
+    if route == "known":
+        files["cameras"] = project.own_cameras_path
+    if project.control_points_path.is_file():
+        files["control_points"] = project.control_points_path
+    if route == "panorama":
+        p = project.panorama_model_path
+        if p.is_file():
+            files["panorama_model"] = p
+    elif route == "multiview":
+        p = project.reconstruction_path
+        if p.is_file():
+            files["reconstruction"] = p
+    elif route == "single":
+        files["photo"] = project.photo_paths()[0]
+        if project.settings.camera.profile:
+            prof = project.path(project.settings.camera.profile)
+            if prof.is_file():
+                files["camera_profile"] = prof
+    return files
+
+
+def _georef_applies(project: Project) -> bool:
+    """Known cameras, control points, or (multiview) an SfM model that the photos' GPS can place."""
+    if project.own_cameras_path.is_file() or project.control_points_path.is_file():
+        return True
+    return project.georef_route() == "multiview" and project.reconstruction_path.is_file()
+
+
+def _correspond_inputs(project: Project) -> dict[str, Path]:
+    files = _photo_files(project)
+    if project.manual_picks_path.is_file():
+        files["manual"] = project.manual_picks_path
+    cams = project.cameras_path()
+    if cams is not None:
+        files["cameras"] = cams
+    if project.settings.camera.profile:
+        files["camera_profile"] = project.path(project.settings.camera.profile)
+    files.update(_rolling_stock_files(project))
+    pano = project.stage_dir("stitch") / "panorama.jpg"
+    if pano.is_file():
+        files["panorama"] = pano
+    files.update(_dem_files(project))  # the pose search's ground
+    return files
+
+
+def _panorama_model_path(project: Project, cameras: Path | None) -> Path | None:
+    """The panorama model a ``cameras.json`` refers to (its ``panorama.model``), if any."""
+    if cameras is None:
+        return None
+    try:
+        doc = project.read_json(cameras)
+    except InputError:
+        return None
+    pano = doc.get("panorama") if isinstance(doc, dict) else None
+    if isinstance(pano, dict) and pano.get("model"):
+        return project.path(pano["model"])
+    return None
+
+
+def _solve_inputs(project: Project) -> dict[str, Path]:
+    files: dict[str, Path] = {}
+    cams = project.cameras_path()
+    if cams is not None:
+        files["cameras"] = cams
+    corr = project.correspondences_path()
+    if corr is not None:
+        files["correspondences"] = corr
+    pano = _panorama_model_path(project, cams)
+    if pano is not None:
+        files["panorama_model"] = pano
+    files.update(_dem_files(project))
+    return files
+
+
+def _solve_applies(project: Project) -> bool:
+    return project.correspondences_path() is not None or project.cameras_path() is not None
+
+
+def _export_inputs(project: Project) -> dict[str, Path]:
+    files = {"solution": project.solution_path}
+    for name in ("terrain.ply", "buildings.ply"):
+        if (project.stage_dir("terrain") / name).is_file():
+            files[name.replace(".ply", "_mesh")] = project.stage_dir("terrain") / name
+    if project.settings.terrain.dem:
+        ortho = project.orthophoto_path()
+        if ortho is not None:
+            files["orthophoto"] = ortho
+    files.update(_rolling_stock_files(project))
+    return files
+
+
+def scene_input_files(project: Project) -> dict[str, Path]:
+    """The files the scene of renders, report, exports and viewer is read from (solution, cameras, terrain)."""
+    files: dict[str, Path] = {"solution": project.require_solution("render stage")}
+    cams = project.cameras_path()
+    if cams is not None:
+        files["cameras"] = cams
+    for name in ("terrain.ply", "buildings.ply"):
+        p = project.stage_dir("terrain") / name
+        if p.is_file():
+            files[f"terrain:{name}"] = p
+    ortho = project.orthophoto_path()
+    if ortho is not None and project.settings.terrain.dem:
+        files["ortho"] = ortho
+        for i, d in enumerate(project.dem_paths()):
+            files["dem" if i == 0 else f"dem:{d.name}"] = d
+    return files
+
+
+def _report_inputs(project: Project) -> dict[str, Path]:
+    renders = project.stage_dir("render") / "renders.json"
+    if not renders.is_file():
+        raise InputError(f"{renders}: not found; the report needs the 'render' stage's output, and the 'render' "
+                         f"stage has not run for this incident. Run `workbench run {project.root}` (or `--only "
+                         f"render`)")
+    files = {"solution": project.require_solution("report"), "renders": renders}
+    cams = project.cameras_path()
+    if cams is not None:
+        files["cameras"] = cams
+    # The stages' stats.json files are read but not hashed: they hold run times, which change on every run (and
+    # stages after the report, such as export, would make it stale forever). A new solution reaches the report
+    # through the solution's hash and the render stage's outputs.
+    return files
+
+
+# ---------------------------------------------------------------------------------------------------
+# The registry. A stage's code is named "module:function" and imported only when the stage runs, so
+# `workbench --help` and `workbench status` start without loading the pipeline.
+# ---------------------------------------------------------------------------------------------------
 STAGES: list[StageSpec] = [
     StageSpec("inputs", "check photos, camera profile and consist", run_inputs, inputs=_inputs_files,
               settings_sections=("consist", "camera")),
-] + _stages()
+    StageSpec("terrain", "DEM and buildings to meshes in the scene frame", "workbench.terrain.stage:run_terrain",
+              inputs=_terrain_inputs, settings_sections=("location", "terrain"),
+              applies=lambda project: project.settings.terrain.dem is not None),
+    StageSpec("stitch", "stitch the panorama photos into one panorama with its exact camera model",
+              "workbench.stitch.stage:run_stitch", inputs=_stitch_inputs, settings_sections=("camera",),
+              depends_on=("inputs",), applies=_stitch_applies),
+    StageSpec("sfm", "multi-view structure from motion (pycolmap): intrinsics and every camera's pose",
+              "workbench.intrinsics.stage:run_sfm_stage", inputs=_sfm_inputs, settings_sections=("camera", "sfm"),
+              depends_on=("inputs",), applies=lambda project: project.settings.camera.source.value == "sfm"),
+    StageSpec("georef", "place the cameras in the scene frame from control points (or known cameras)",
+              "workbench.georef.stage:run_georef", inputs=_georef_inputs, settings_sections=("location", "camera"),
+              depends_on=("stitch", "sfm"), applies=_georef_applies),
+    StageSpec("correspond", "marked points in the photos: SIFT against each car's livery, plus manual picks",
+              "workbench.correspond.stage:run_correspond", inputs=_correspond_inputs,
+              settings_sections=("consist", "camera", "terrain"), depends_on=("inputs",)),
+    StageSpec("solve", "every carriage's pose from the marked points (chained least squares, four steps)",
+              "workbench.solve.stage:run_solve", inputs=_solve_inputs,
+              settings_sections=("consist", "solver", "terrain", "location"),
+              depends_on=("inputs", "terrain", "georef", "correspond"), applies=_solve_applies),
+    StageSpec("export", "the scene as glTF, GeoJSON, KMZ, CityJSON and 3D Tiles, georeferenced",
+              "workbench.export.stage:run_export", inputs=_export_inputs,
+              settings_sections=("location", "consist", "terrain"), depends_on=("terrain", "solve"),
+              applies=lambda project: project.solution_path.is_file()),
+    StageSpec("render", "off-screen renders of the reconstructed scene (overview, map, photo overlays, close-ups, "
+              "orbit)", "workbench.report.render_stage:run_render", inputs=scene_input_files,
+              settings_sections=("incident", "location", "terrain", "consist"), depends_on=("solve",)),
+    StageSpec("report", "incident report (HTML and PDF) from the stages' statistics and renders",
+              "workbench.report.report_stage:run_report", inputs=_report_inputs,
+              settings_sections=("incident", "location", "consist"), depends_on=("render",)),
+]
+STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES)
+
+
+def stage(name: str) -> StageSpec:
+    """The registered stage ``name``."""
+    for s in STAGES:
+        if s.name == name:
+            return s
+    raise KeyError(f"no stage {name!r}; the stages are {list(STAGE_NAMES)}")

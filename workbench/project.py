@@ -19,20 +19,26 @@ from __future__ import annotations
 import datetime as _dt
 import json
 import logging
+import os
+import tomllib
 from functools import cached_property
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from .core.frames import SceneFrame
+from .core.layout import CAMERAS_FILE, CONTROL_POINTS_FILE, CORRESPONDENCES_FILE
 from .core.io import atomic_write, atomic_write_json, atomic_write_text
-from .core.settings import SETTINGS_FILE, TEMPLATE, ProjectSettings, load_settings
-from .errors import InputError, SettingsError, UnknownModelType
+from .core.settings import SETTINGS_FILE, TEMPLATE, ProjectSettings, load_settings, parse_settings
+from .errors import InputError, SettingsError, StageError, UnknownModelType
+
+if TYPE_CHECKING:  # numpy and the frame are loaded on use: `workbench status` needs neither
+    import numpy as np
+
+    from .core.frames import SceneFrame
 
 log = logging.getLogger(__name__)
 
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff")
+
 
 
 class Project:
@@ -52,9 +58,13 @@ class Project:
         settings = root / SETTINGS_FILE
         if settings.exists():
             raise SettingsError(f"{settings}: already exists; `workbench init` never overwrites an incident")
-        root.mkdir(parents=True, exist_ok=True)
         text = TEMPLATE.format(name=(name or root.name).replace('"', "'"), date=(date or _dt.date.today()).isoformat(),
-                               lat=repr(float(lat)), lon=repr(float(lon)), crs=crs)
+                               lat=repr(float(lat)), lon=repr(float(lon)), crs=crs.replace('"', "'"))
+        try:  # validated before anything is written: a bad --crs or --lat leaves nothing behind
+            parse_settings(tomllib.loads(text), str(settings))
+        except tomllib.TOMLDecodeError as exc:
+            raise SettingsError(f"{settings}: the values given do not make a valid settings file ({exc})") from None
+        root.mkdir(parents=True, exist_ok=True)
         atomic_write_text(settings, text)
         for sub in ("photos/panorama", "out"):
             (root / sub).mkdir(parents=True, exist_ok=True)
@@ -109,6 +119,104 @@ class Project:
                              f"or put the file there")
         return p
 
+    # -- the incident's files: where each one is (docs/formats.md) ------------------------------------
+    @property
+    def own_cameras_path(self) -> Path:
+        """The incident's hand-written ``cameras.json`` (known cameras; it takes georef's output's place)."""
+        return self.root / CAMERAS_FILE
+
+    def cameras_path(self) -> Path | None:
+        """The views every stage after georef reads: the incident's own ``cameras.json``, else georef's, else
+        None."""
+        if self.own_cameras_path.is_file():
+            return self.own_cameras_path
+        out = self.stage_dir("georef") / CAMERAS_FILE
+        return out if out.is_file() else None
+
+    @property
+    def manual_picks_path(self) -> Path:
+        """The user's marked-point picks and rejections (``correspondences.json`` in the incident folder)."""
+        return self.root / CORRESPONDENCES_FILE
+
+    def correspondences_path(self) -> Path | None:
+        """The marked points the solve reads: the correspond stage's merge, else the user's own file, else None."""
+        out = self.stage_dir("correspond") / CORRESPONDENCES_FILE
+        if out.is_file():
+            return out
+        return self.manual_picks_path if self.manual_picks_path.is_file() else None
+
+    @property
+    def control_points_path(self) -> Path:
+        return self.root / CONTROL_POINTS_FILE
+
+    @property
+    def panorama_model_path(self) -> Path:
+        """The stitch stage's panorama model (its exact camera model), which georef places."""
+        return self.stage_dir("stitch") / "panorama.json"
+
+    @property
+    def reconstruction_path(self) -> Path:
+        """The sfm stage's reconstruction (every photo's camera), which georef places."""
+        return self.stage_dir("sfm") / "reconstruction.json"
+
+    @property
+    def solution_path(self) -> Path:
+        return self.stage_dir("solve") / "solution.json"
+
+    def require_solution(self, needed_by: str) -> Path:
+        p = self.solution_path
+        if not p.is_file():
+            raise InputError(f"{p}: not found; the {needed_by} needs the 'solve' stage's output, and the 'solve' "
+                             f"stage has not run for this incident. Run `workbench run {self.root}` first")
+        return p
+
+    def dem_paths(self) -> list[Path]:
+        """The DEM file(s) ``terrain.dem`` names (one file, a folder of tiles or a glob); [] when it is unset."""
+        from .core.io import resolve_dem_sources
+
+        dem = self.settings.terrain.dem
+        if not dem:
+            return []
+        try:
+            return resolve_dem_sources(dem, self.root)
+        except InputError as exc:
+            raise InputError(f"{self.settings_path}: {exc}") from None
+
+    def orthophoto_path(self) -> Path | None:
+        """The orthophoto draped on the terrain, or None: ``terrain.ortho`` when set; else a synthetic incident's
+        (``truth/ground_truth.json`` ``layers.ortho``); else a JPEG beside a single DEM file named like it with
+        ``_ortho`` for ``_dem``. It covers the DEM's whole extent, row 0 at the north edge."""
+        t = self.settings.terrain
+        if t.ortho:
+            return self.require_file(t.ortho, "terrain.ortho")
+        truth = self.truth_dir / "ground_truth.json"
+        if truth.is_file():
+            try:
+                rel = json.loads(truth.read_text(encoding="utf-8")).get("layers", {}).get("ortho")
+            except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
+                rel = None
+            if rel and self.path(rel).is_file():
+                return self.path(rel)
+        if t.dem and self.path(t.dem).is_file():  # one DEM file (not a folder or pattern of tiles)
+            d = self.path(t.dem)
+            for cand in (d.with_name(d.stem.replace("_dem", "_ortho") + ".jpg"), d.with_suffix(".ortho.jpg")):
+                if cand != d and cand.is_file():
+                    return cand
+        return None
+
+    def georef_route(self) -> str:
+        """How the cameras are placed: ``known`` (the incident's own ``cameras.json``), ``multiview`` (SfM),
+        ``single`` (one photo) or ``panorama``."""
+        if self.own_cameras_path.is_file():
+            return "known"
+        if self.settings.camera.source.value == "sfm":
+            return "multiview"
+        try:
+            photos = self.photo_paths()
+        except InputError:
+            photos = []
+        return "single" if len(photos) == 1 else "panorama"
+
     # -- settings -------------------------------------------------------------------------------------
     @cached_property
     def settings(self) -> ProjectSettings:
@@ -120,6 +228,8 @@ class Project:
 
     @cached_property
     def frame(self) -> SceneFrame:
+        from .core.frames import SceneFrame
+
         loc = self.settings.location
         return SceneFrame(loc.crs, loc.lat, loc.lon, loc.height_m)
 
@@ -166,6 +276,7 @@ class Project:
 
     def write_image(self, path: Path, rgb: np.ndarray) -> Path:
         """Write an (h, w, 3) uint8 RGB or (h, w) image (PNG/JPEG by suffix), atomically."""
+        import numpy as np
         from PIL import Image
 
         img = Image.fromarray(np.ascontiguousarray(rgb))
@@ -177,13 +288,65 @@ class Project:
 
     # -- stage state ----------------------------------------------------------------------------------
     def read_state(self) -> dict:
-        if not self.state_path.is_file():
+        """The runner's record of every stage (``out/state.json``); {} when there is none or it is corrupt (then
+        every stage counts as not run, and the next write keeps the corrupt file aside, see :meth:`write_state`)."""
+        state = self._read_state_file()
+        if state is None:
+            log.warning("%s is corrupt (not a JSON object); every stage counts as not run, and the file is kept as "
+                        "%s when a stage next runs", self.state_path, self.state_path.name + ".corrupt")
             return {}
+        return state
+
+    def _read_state_file(self) -> dict | None:
+        """The state file's object; {} when there is none; None when it is corrupt."""
         try:
-            return json.loads(self.state_path.read_text(encoding="utf-8"))
-        except json.JSONDecodeError:
-            log.warning("%s is corrupt; all stages will run again", self.state_path)
+            state = json.loads(self.state_path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
             return {}
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError):
+            return None
+        if not isinstance(state, dict) or not all(isinstance(v, dict) for v in state.values()):
+            return None
+        return state
 
     def write_state(self, state: dict) -> None:
+        if self.state_path.is_file() and self._read_state_file() is None:  # keep a corrupt record for inspection
+            os.replace(self.state_path, self.state_path.with_name(self.state_path.name + ".corrupt"))
         atomic_write_json(self.state_path, state)
+
+    def lock(self) -> "IncidentLock":
+        """An exclusive lock on the incident folder for a run (``with project.lock(): ...``); a second run on the
+        same folder is refused with a message naming the process that holds it."""
+        return IncidentLock(self.out_dir / ".lock")
+
+
+class IncidentLock:
+    """``flock`` on ``out/.lock``: released when the process ends, even by ``kill -9``, so it is never stale."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self._fd: int | None = None
+
+    def __enter__(self) -> "IncidentLock":
+        import fcntl
+
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            try:
+                holder = os.read(fd, 64).decode(errors="replace").strip() or "another process"
+            finally:
+                os.close(fd)
+            raise StageError(f"{self.path.parent.parent}: another workbench command is running on this incident "
+                             f"({holder}); wait for it to finish, then run this one again") from None
+        os.ftruncate(fd, 0)
+        os.write(fd, f"pid {os.getpid()}".encode())
+        self._fd = fd
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._fd is not None:
+            os.close(self._fd)  # closing releases the lock
+            self._fd = None

@@ -7,24 +7,27 @@ the hashes of its dependencies' outputs, its outputs with their hashes, the run 
 it failed. A stage is *done* when that record matches the current inputs, *stale* when it does not,
 *failed* when its last run raised, and *not run* otherwise. Running skips done stages unless forced.
 
-Stages that later issues build register themselves in ``workbench/pipeline.py``.
+The stages are declared in ``workbench/pipeline.py``.
 """
 
 from __future__ import annotations
 
 import datetime as _dt
 import hashlib
+import importlib
 import json
 import logging
 import time
 import traceback
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Protocol
+from typing import TYPE_CHECKING, Callable, Protocol
 
 from .core.io import hash_file
 from .errors import StageError, WorkbenchError
-from .project import Project
+
+if TYPE_CHECKING:  # the runner is handed a Project; importing it here would load the settings models
+    from .project import Project
 
 log = logging.getLogger(__name__)
 
@@ -45,13 +48,24 @@ class StageResult:
 
 @dataclass(frozen=True)
 class StageSpec:
+    """A stage. ``run`` is the function ``(project, progress) -> StageResult``, or its name ``"module:function"``,
+    imported the first time the stage runs (so listing or checking stages loads none of their code)."""
+
     name: str
     description: str
-    run: Callable[[Project, Progress], StageResult]
+    run: Callable[[Project, Progress], StageResult] | str
     inputs: Callable[[Project], dict[str, Path]] = lambda project: {}
     settings_sections: tuple[str, ...] = ()
     depends_on: tuple[str, ...] = ()
     applies: Callable[[Project], bool] = lambda project: True  # False: the stage has nothing to do here
+
+
+    def function(self) -> Callable[[Project, Progress], StageResult]:
+        """The stage's code, imported on first use when ``run`` names it."""
+        if not isinstance(self.run, str):
+            return self.run
+        module, _, attr = self.run.partition(":")
+        return getattr(importlib.import_module(module), attr)
 
 
 @dataclass
@@ -154,6 +168,11 @@ class Runner:
         if until is not None:  # the stage and every stage before it (those not done run; done ones are skipped)
             last = [s.name for s in self.stages].index(until)
             selected = [s for s in selected if [x.name for x in self.stages].index(s.name) <= last]
+        with self.project.lock():  # one run at a time on an incident: a second one is refused, not interleaved
+            self._run_selected(selected, force, progress_factory, on_event)
+        return self.status()
+
+    def _run_selected(self, selected: list[StageSpec], force: bool, progress_factory, on_event) -> None:
         for spec in selected:
             state = self.project.read_state()
             st = self._status_of(spec, state)
@@ -171,7 +190,6 @@ class Runner:
                                      f"{': ' + dst.reason if dst.reason else ''}; run `workbench run "
                                      f"{self.project.root}` (or with --only {d})")
             self._run_one(spec, state, progress_factory, on_event)
-        return self.status()
 
     def _run_one(self, spec: StageSpec, state: dict, progress_factory, on_event) -> None:
         fp = self._fingerprint(spec, state)
@@ -181,7 +199,7 @@ class Runner:
         t0 = time.perf_counter()
         log.info("stage %s: running", spec.name)
         try:
-            result = spec.run(self.project, progress)
+            result = spec.function()(self.project, progress)
         except Exception as exc:
             duration = time.perf_counter() - t0
             msg = str(exc) if isinstance(exc, WorkbenchError) else f"{type(exc).__name__}: {exc}"

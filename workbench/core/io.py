@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import hashlib
 import json
 import os
@@ -9,29 +10,66 @@ import tempfile
 from pathlib import Path
 from typing import Any, Callable
 
-import numpy as np
+
+_UMASK: int | None = None
+
+
+def _file_mode() -> int:
+    """The mode a new file gets under the process's umask (``0o666 & ~umask``), read once.
+
+    ``tempfile.mkstemp`` creates its file 0600 and a rename keeps that mode; atomic writes set this mode instead,
+    so an incident folder shared with colleagues (or served by a web server) stays readable as the user's umask
+    says.
+    """
+    global _UMASK
+    if _UMASK is None:
+        _UMASK = os.umask(0o022)
+        os.umask(_UMASK)
+    return 0o666 & ~_UMASK
 
 
 def atomic_write(path: Path, write: Callable[[Path], None], suffix: str | None = None) -> Path:
     """Write ``path`` atomically: ``write(tmp)`` writes a temp file in the same folder, then it is renamed.
 
-    A crash or an exception inside ``write`` leaves any earlier ``path`` untouched.
+    A crash or an exception inside ``write`` leaves any earlier ``path`` untouched. The file gets the mode the
+    user's umask gives a new file.
     ``suffix`` (default: the suffix of ``path``) is kept on the temp name so writers that
     infer the format from the extension (PIL, cv2, rasterio) still work.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=suffix if suffix is not None else path.suffix,
-                                    dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp_name = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=suffix if suffix is not None else path.suffix,
+                                        dir=path.parent)
+    except OSError as exc:
+        raise _output_error(path, exc) from None
     os.close(fd)
     tmp = Path(tmp_name)
     try:
         write(tmp)
+        os.chmod(tmp, _file_mode())
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         tmp.unlink(missing_ok=True)
+        if isinstance(exc, OSError) and exc.errno in _NO_SPACE_OR_ACCESS:
+            raise _output_error(path, exc) from None
         raise
     return path
+
+
+_NO_SPACE_OR_ACCESS = {errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, errno.EDQUOT}
+
+
+def _output_error(path: Path, exc: OSError) -> Exception:
+    from ..errors import OutputError
+
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        todo = "free some space on that disk (or move the incident folder), then run the command again"
+    elif exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        todo = f"make {path.parent} writable (or copy the incident folder somewhere writable), then run it again"
+    else:
+        return exc
+    return OutputError(f"{path}: cannot write ({exc.strerror}); {todo}; the files already there are unchanged")
 
 
 def atomic_write_bytes(path: Path, data: bytes) -> Path:
@@ -43,6 +81,8 @@ def atomic_write_text(path: Path, text: str) -> Path:
 
 
 def _json_default(obj: Any) -> Any:
+    import numpy as np  # only values that JSON cannot write get here
+
     if isinstance(obj, np.ndarray):
         return obj.tolist()
     if isinstance(obj, (np.floating,)):
@@ -109,3 +149,31 @@ def read_json(path, *, missing: str = ""):
         raise InputError(f"{path}: " + (missing or "file not found")) from None
     except (json.JSONDecodeError, UnicodeDecodeError) as exc:
         raise InputError(f"{path}: not valid JSON ({exc})") from None
+
+
+def resolve_dem_sources(value: str | Path, base: Path) -> list[Path]:
+    """``terrain.dem`` -> the DEM file(s): one file, a folder (every .tif/.tiff in it) or a glob pattern.
+
+    Relative values are relative to ``base`` (the incident folder). No match is an :class:`InputError`.
+    """
+    import glob as _glob
+
+    from ..errors import InputError
+
+    raw = str(value)
+    p = Path(raw)
+    p = p if p.is_absolute() else Path(base) / p
+    if any(ch in raw for ch in "*?["):
+        files = sorted(Path(x) for x in _glob.glob(str(p), recursive=True) if Path(x).is_file())
+        what = "pattern"
+    elif p.is_dir():
+        files = sorted(x for x in p.iterdir() if x.suffix.lower() in (".tif", ".tiff") and not x.name.startswith("."))
+        what = "folder"
+    else:
+        if not p.is_file():
+            raise InputError(f"terrain.dem = {raw!r} -> {p} does not exist; fix the path or put the DEM there")
+        return [p]
+    if not files:
+        raise InputError(f"terrain.dem = {raw!r}: the {what} {p} matches no GeoTIFF; put the DEM tiles there or fix "
+                         f"the key")
+    return files

@@ -15,9 +15,8 @@ from typing import Annotated, Any
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from ..errors import SettingsError
-from .frames import parse_projected_crs
-
-SETTINGS_FILE = "project.toml"
+from .crs import parse_projected_crs
+from .layout import SETTINGS_FILE
 
 
 class _Strict(BaseModel):

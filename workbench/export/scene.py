@@ -306,12 +306,10 @@ def _height_colors(z: np.ndarray) -> np.ndarray:
 def find_orthophoto(project: "Project") -> tuple[Path, Path] | None:
     """(orthophoto image, DEM whose extent it covers) for the project, or None (see
     :func:`workbench.terrain.stage.orthophoto_path`)."""
-    from ..terrain.stage import orthophoto_path
-
     t = project.settings.terrain
     if not t.dem:
         return None
-    ortho = orthophoto_path(project)
+    ortho = project.orthophoto_path()
     return (ortho, project.path(t.dem)) if ortho is not None else None
 
 

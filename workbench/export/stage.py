@@ -22,12 +22,12 @@ import numpy as np
 
 from ..core.io import atomic_write_bytes, to_json
 from ..project import Project
-from ..runner import Progress, StageResult, StageSpec
+from ..runner import Progress, StageResult
 from .cityjson import cityjson_document
 from .geojson import carriages_geojson
 from .gltf import glb_bytes
 from .kmz import kmz_bytes
-from .scene import ExportOptions, build_scene, find_orthophoto
+from .scene import ExportOptions, build_scene
 from .tiles import tileset_document
 
 log = logging.getLogger(__name__)
@@ -128,27 +128,3 @@ def _centre_check(project: Project, scene: Any, gj: dict) -> float | None:
 def run_export(project: Project, progress: Progress) -> StageResult:
     paths, stats = export_scene(project, ExportOptions(), progress)
     return StageResult(outputs=paths, stats=stats)
-
-
-def _inputs(project: Project) -> dict[str, Path]:
-    files = {"solution": project.stage_dir("solve") / "solution.json"}
-    tdir = project.stage_dir("terrain")
-    for name in ("terrain.ply", "buildings.ply"):
-        if (tdir / name).is_file():
-            files[name.replace(".ply", "_mesh")] = tdir / name
-    ortho = find_orthophoto(project)
-    if ortho is not None:
-        files["orthophoto"] = ortho[0]
-    if project.rolling_stock_dir.is_dir():
-        for t in sorted(project.rolling_stock_dir.glob("*.toml")):
-            files[f"rolling_stock:{t.name}"] = t
-    return files
-
-
-def _applies(project: Project) -> bool:
-    return (project.stage_dir("solve") / "solution.json").is_file()
-
-
-STAGE = StageSpec("export", "the scene as glTF, GeoJSON, KMZ, CityJSON and 3D Tiles, georeferenced", run_export,
-                  inputs=_inputs, settings_sections=("location", "consist", "terrain"),
-                  depends_on=("terrain", "solve"), applies=_applies)

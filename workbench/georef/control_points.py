@@ -29,12 +29,12 @@ from pyproj import CRS, Transformer
 from pyproj.exceptions import CRSError
 
 from ..core.frames import SceneFrame
+from ..core.layout import CONTROL_POINTS_FILE
 from ..core.settings import describe_validation_error
 from ..errors import InputError
 
 log = logging.getLogger(__name__)
 
-CONTROL_POINTS_FILE = "control_points.json"
 MAX_DISTANCE_M = 20_000.0  # a control point farther than this from the scene origin is a CRS or axis-order mistake
 
 __all__ = ["CONTROL_POINTS_FILE", "ControlPoint", "ControlPointsDoc", "load_control_points", "parse_control_points",

@@ -21,7 +21,7 @@ import numpy as np
 from ..core.camera import CameraIntrinsics
 from ..errors import InputError
 from ..project import Project
-from ..runner import Progress, StageResult, StageSpec
+from ..runner import Progress, StageResult
 from .calibrate import load_camera_profile
 from .exif import FocalPrior, exif_focal_prior
 
@@ -142,13 +142,6 @@ def resolve_intrinsics(project: Project, photos: list[Path] | None = None) -> In
 # -------------------------------------------------------------------------------------------------------
 # the sfm stage
 # -------------------------------------------------------------------------------------------------------
-def _sfm_files(project: Project) -> dict[str, Path]:
-    files = {f"photo:{p.name}": p for p in project.photo_paths()}
-    if project.settings.camera.profile:
-        files["camera_profile"] = project.require_file(project.settings.camera.profile, "camera.profile")
-    return files
-
-
 def _sfm_options(project: Project):
     from .sfm import SfmOptions
 
@@ -215,10 +208,3 @@ def run_sfm_stage(project: Project, progress: Progress) -> StageResult:
         "warnings": st["warnings"],
     }
     return StageResult(outputs={"reconstruction": path}, stats=stats)
-
-
-STAGE = StageSpec(
-    "sfm", "multi-view structure from motion (pycolmap): intrinsics and every camera's pose", run_sfm_stage,
-    inputs=_sfm_files, settings_sections=("camera", "sfm"), depends_on=("inputs",),
-    applies=lambda project: project.settings.camera.source.value == "sfm",
-)

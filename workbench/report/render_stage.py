@@ -30,8 +30,8 @@ import numpy as np
 from ..core.camera import CameraIntrinsics, look_at
 from ..errors import RenderError
 from ..project import Project
-from ..runner import Progress, StageResult, StageSpec
-from .scene import IncidentScene, PlacedCarriage, camera_glyph, car_color, load_scene, scene_input_files
+from ..runner import Progress, StageResult
+from .scene import IncidentScene, PlacedCarriage, camera_glyph, car_color, load_scene
 
 log = logging.getLogger(__name__)
 
@@ -469,12 +469,3 @@ def run_render(project: Project, progress: Progress) -> StageResult:
         "time_by_kind_s": {k: round(v, 3) for k, v in timings.items()},
         "terrain_textured": bool(sc.terrain is not None and getattr(sc.terrain.visual, "kind", None) == "texture"),
     })
-
-
-def _render_inputs(project: Project) -> dict[str, Path]:
-    return scene_input_files(project)
-
-
-STAGE = StageSpec("render", "off-screen renders of the reconstructed scene (overview, map, photo overlays, "
-                  "close-ups, orbit)", run_render, inputs=_render_inputs,
-                  settings_sections=("incident", "location", "terrain", "consist"), depends_on=("solve",))

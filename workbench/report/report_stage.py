@@ -24,10 +24,11 @@ from pathlib import Path
 
 import numpy as np
 
+from ..core.io import read_json
 from ..errors import InputError, StageError
 from ..project import Project
-from ..runner import Progress, StageResult, StageSpec
-from .scene import cameras_path, car_color, require_solution
+from ..runner import Progress, StageResult
+from .scene import car_color
 
 log = logging.getLogger(__name__)
 
@@ -45,25 +46,6 @@ def _versions() -> dict[str, str]:
         except _md.PackageNotFoundError:
             out[name] = "not installed"
     return out
-
-
-def _require_render(project: Project) -> Path:
-    p = project.stage_dir("render") / "renders.json"
-    if not p.is_file():
-        raise InputError(f"{p}: not found; the report needs the 'render' stage's output, and the 'render' stage has "
-                         f"not run for this incident. Run `workbench run {project.root}` (or `--only render`)")
-    return p
-
-
-def _report_inputs(project: Project) -> dict[str, Path]:
-    files = {"solution": require_solution(project, "report"), "renders": _require_render(project)}
-    cams = cameras_path(project)
-    if cams is not None:
-        files["cameras"] = cams
-    # The stages' stats.json files are read but not hashed: they hold run times, which change on every run (and
-    # stages after the report, such as export, would make it stale forever). A new solution reaches the report
-    # through the solution's hash and the render stage's outputs.
-    return files
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -409,12 +391,14 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
     s = project.settings
     out = project.stage_dir("report")
     figs = out / "figures"
-    sol_path = require_solution(project, "report")
+    sol_path = project.require_solution("report")
     solution = project.read_json(sol_path)
-    renders = project.read_json(_require_render(project))
+    renders = read_json(project.stage_dir("render") / "renders.json",
+                        missing=f"not found; the report needs the 'render' stage's output. Run `workbench run "
+                                f"{project.root}` (or `--only render`)")
     state = project.read_state()
     stats = _stats(project)
-    cams = project.read_json(cameras_path(project)) if cameras_path(project) else {}
+    cams = project.read_json(project.cameras_path()) if project.cameras_path() else {}
     cars = solution.get("carriages", [])
 
     progress(0.1, "observations")
@@ -559,10 +543,6 @@ def run_report(project: Project, progress: Progress) -> StageResult:
                               "n_figures": len([f for f in (out / "figures").iterdir() if not f.name.startswith(".")]),
                               "pdf_time_s": round(t_pdf, 3),
                               "figures_time_s": round(time.perf_counter() - t0 - t_pdf, 3)})
-
-
-STAGE = StageSpec("report", "incident report (HTML and PDF) from the stages' statistics and renders", run_report,
-                  inputs=_report_inputs, settings_sections=("incident", "location", "consist"), depends_on=("render",))
 
 
 def _warning_text(w: object) -> str:

@@ -113,58 +113,6 @@ class IncidentScene:
 
 
 # ----------------------------------------------------------------------------------------------------------
-# Where the files are
-# ----------------------------------------------------------------------------------------------------------
-def solution_path(project: Project) -> Path:
-    return project.stage_dir("solve") / "solution.json"
-
-
-def cameras_path(project: Project) -> Path | None:
-    """The incident's hand-written ``cameras.json`` (it takes the georef output's place), else georef's."""
-    own = project.root / "cameras.json"
-    if own.is_file():
-        return own
-    geo = project.stage_dir("georef") / "cameras.json"
-    return geo if geo.is_file() else None
-
-
-def require_solution(project: Project, needed_by: str) -> Path:
-    p = solution_path(project)
-    if not p.is_file():
-        raise InputError(f"{p}: not found; the {needed_by} needs the 'solve' stage's output, and the 'solve' stage "
-                         f"has not run for this incident. Run `workbench run {project.root}` first")
-    return p
-
-
-def ortho_path(project: Project) -> Path | None:
-    """The terrain texture (orthophoto) draped on the DEM, when the incident has one (see
-    :func:`workbench.terrain.stage.orthophoto_path`)."""
-    from ..terrain.stage import orthophoto_path
-
-    return orthophoto_path(project)
-
-
-def scene_input_files(project: Project) -> dict[str, Path]:
-    """The files an :class:`IncidentScene` is read from (for the runner's input hashes)."""
-    files: dict[str, Path] = {"solution": require_solution(project, "render stage")}
-    cams = cameras_path(project)
-    if cams is not None:
-        files["cameras"] = cams
-    for name in ("terrain.ply", "buildings.ply"):
-        p = project.stage_dir("terrain") / name
-        if p.is_file():
-            files[f"terrain:{name}"] = p
-    o = ortho_path(project)
-    if o is not None and project.settings.terrain.dem:
-        from ..terrain.dem import resolve_dem_sources
-
-        files["ortho"] = o
-        for i, d in enumerate(resolve_dem_sources(project.settings.terrain.dem, project.root)):
-            files["dem" if i == 0 else f"dem:{d.name}"] = d
-    return files
-
-
-# ----------------------------------------------------------------------------------------------------------
 # Loading
 # ----------------------------------------------------------------------------------------------------------
 def _matrix(value, where: str) -> np.ndarray:
@@ -175,7 +123,7 @@ def _matrix(value, where: str) -> np.ndarray:
 
 
 def load_cameras(project: Project) -> tuple[dict, list[SceneCamera]]:
-    p = cameras_path(project)
+    p = project.cameras_path()
     if p is None:
         return {}, []
     data = project.read_json(p)
@@ -196,13 +144,13 @@ def _terrain_mesh(project: Project, *, textured: bool) -> trimesh.Trimesh | None
     """The terrain with the orthophoto draped on it (the DEM read as the terrain stage reads it), else the
     terrain stage's mesh in a plain colour."""
     s = project.settings.terrain
-    ortho = ortho_path(project) if textured else None
+    ortho = project.orthophoto_path() if textured else None
     if ortho is not None and s.dem:
         from PIL import Image
 
-        from ..terrain.dem import TerrainModel, resolve_dem_sources
+        from ..terrain.dem import TerrainModel
 
-        tm = TerrainModel.from_sources(resolve_dem_sources(s.dem, project.root), project.frame,
+        tm = TerrainModel.from_sources(project.dem_paths(), project.frame,
                                        aoi_radius_m=s.aoi_radius_m, vertical_accuracy_m=s.dem_vertical_accuracy_m,
                                        max_cells=MAX_TERRAIN_CELLS)
         with Image.open(ortho) as im:
@@ -233,7 +181,7 @@ def _buildings_mesh(project: Project) -> trimesh.Trimesh | None:
 
 def load_scene(project: Project, *, textured: bool = True, with_terrain: bool = True) -> IncidentScene:
     """Read the reconstructed scene of ``project``. :class:`InputError` naming the 'solve' stage if it has not run."""
-    sp = require_solution(project, "scene")
+    sp = project.require_solution("scene")
     solution = project.read_json(sp)
     if not isinstance(solution, dict) or not isinstance(solution.get("carriages"), list):
         raise InputError(f"{sp}: no 'carriages' list; see docs/pipeline.md (solution.json)")
@@ -256,8 +204,8 @@ def load_scene(project: Project, *, textured: bool = True, with_terrain: bool = 
     terrain = _terrain_mesh(project, textured=textured) if with_terrain else None
     buildings = _buildings_mesh(project) if with_terrain else None
     files = {"solution": sp}
-    if cameras_path(project):
-        files["cameras"] = cameras_path(project)
+    if project.cameras_path():
+        files["cameras"] = project.cameras_path()
     return IncidentScene(terrain, buildings, cars, cams, solution, cam_data, files)
 
 

@@ -10,8 +10,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from typing import TYPE_CHECKING
+
 import numpy as np
-import trimesh
+
+if TYPE_CHECKING:  # trimesh takes seconds to import: loaded when a mesh is built, not to list or check types
+    import trimesh
 
 from .spec import CarriageSpec, _ANCHOR_RE
 
@@ -94,6 +98,8 @@ def body_points(spec: CarriageSpec) -> np.ndarray:
 
 
 def _hull(points: np.ndarray) -> trimesh.Trimesh:
+    import trimesh
+
     m = trimesh.convex.convex_hull(np.asarray(points, dtype=float))
     keep = m.area_faces > 1e-10
     if not np.all(keep):
@@ -104,6 +110,8 @@ def _hull(points: np.ndarray) -> trimesh.Trimesh:
 
 
 def _box(lo, hi) -> trimesh.Trimesh:
+    import trimesh
+
     lo, hi = np.asarray(lo, float), np.asarray(hi, float)
     return trimesh.creation.box(extents=hi - lo, transform=trimesh.transformations.translation_matrix((lo + hi) / 2))
 

@@ -4,17 +4,17 @@ from __future__ import annotations
 
 import threading
 from pathlib import Path
-from typing import Iterable
+from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
-import trimesh
-from trimesh.visual import TextureVisuals
-from trimesh.visual.material import SimpleMaterial
 
 from ..errors import SettingsError, UnknownModelType
 from .geometry import FACE_NORMALS, Part, anchor_point, bogie_boxes, build_parts, equipment_box
 from .livery import Atlas, paint_atlas
 from .spec import CarriageSpec, load_spec
+
+if TYPE_CHECKING:  # trimesh takes seconds to import: loaded when a mesh is built, not to list or check types
+    import trimesh
 
 TYPES_DIR = Path(__file__).with_name("types")
 
@@ -74,6 +74,8 @@ class CarriageType:
         explicit = [(i, mp) for i, mp in enumerate(self.spec.marked_points) if mp.xyz is not None]
         if not explicit:
             return
+        import trimesh
+
         tri = self.mesh(textured=False).triangles
         for i, mp in explicit:
             p = np.asarray(mp.xyz, dtype=float)
@@ -165,11 +167,17 @@ class CarriageType:
         return cached.copy()
 
     def _build_plain(self) -> trimesh.Trimesh:
+        import trimesh
+
         meshes = [p.mesh for p in self.parts()]
         m = trimesh.util.concatenate(meshes)
         return trimesh.Trimesh(vertices=m.vertices, faces=m.faces, process=False)
 
     def _build_textured(self, number: str) -> trimesh.Trimesh:
+        import trimesh
+        from trimesh.visual import TextureVisuals
+        from trimesh.visual.material import SimpleMaterial
+
         atlas, image = paint_atlas(self.spec, number)
         verts, uvs = [], []
         for part in self.parts():
@@ -220,6 +228,8 @@ class CarriageType:
         extra = max(0, int(n) - len(verts))
         if extra == 0:
             return verts
+        import trimesh
+
         pts, _ = trimesh.sample.sample_surface(m, extra, seed=seed)
         return np.vstack([verts, np.asarray(pts)])
 

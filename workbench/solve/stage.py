@@ -19,68 +19,11 @@ import numpy as np
 
 from ..core.camera import CameraIntrinsics
 from ..errors import InputError, StageError
+from ..core.layout import CAMERAS_FILE, CORRESPONDENCES_FILE
 from ..project import Project
-from ..runner import Progress, StageResult, StageSpec
+from ..runner import Progress, StageResult
 
 log = logging.getLogger(__name__)
-
-CAMERAS_FILE = "cameras.json"
-CORRESPONDENCES_FILE = "correspondences.json"
-
-
-# ---------------------------------------------------------------------------------------------------------
-# Where the inputs are
-# ---------------------------------------------------------------------------------------------------------
-def cameras_path(project: Project) -> Path | None:
-    """The views file the solve reads: the incident's own ``cameras.json``, else the georef stage's."""
-    own = project.root / CAMERAS_FILE
-    if own.is_file():
-        return own
-    out = project.stage_dir("georef") / CAMERAS_FILE
-    return out if out.is_file() else None
-
-
-def correspondences_path(project: Project) -> Path | None:
-    out = project.stage_dir("correspond") / CORRESPONDENCES_FILE
-    if out.is_file():
-        return out
-    own = project.root / CORRESPONDENCES_FILE
-    return own if own.is_file() else None
-
-
-def _inputs(project: Project) -> dict[str, Path]:
-    files: dict[str, Path] = {}
-    cp = cameras_path(project)
-    if cp is not None:
-        files["cameras"] = cp
-    cr = correspondences_path(project)
-    if cr is not None:
-        files["correspondences"] = cr
-    pano = _panorama_model_path(project, cp)
-    if pano is not None:
-        files["panorama_model"] = pano
-    if project.settings.terrain.dem:
-        from ..terrain.stage import _files as terrain_files
-
-        files.update({k: v for k, v in terrain_files(project).items() if k.startswith("dem")})
-    return files
-
-
-def _applies(project: Project) -> bool:
-    return correspondences_path(project) is not None or cameras_path(project) is not None
-
-
-def _panorama_model_path(project: Project, cameras: Path | None) -> Path | None:
-    if cameras is None:
-        return None
-    try:
-        doc = project.read_json(cameras)
-    except InputError:
-        return None
-    pano = doc.get("panorama") if isinstance(doc, dict) else None
-    if isinstance(pano, dict) and pano.get("model"):
-        return project.path(pano["model"])
-    return None
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -235,11 +178,11 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
     from .chain import CarriageInput, ChainLink, SolveOptions
 
     s = project.settings
-    cam_path = cameras_path(project)
+    cam_path = project.cameras_path()
     if cam_path is None:
         raise InputError(f"{project.root}: no cameras: run the georef stage (it needs control_points.json), or "
                          f"write {project.root / CAMERAS_FILE} by hand (docs/pipeline.md)")
-    corr_path = correspondences_path(project)
+    corr_path = project.correspondences_path()
     if corr_path is None:
         raise InputError(f"{project.root}: no marked points: run the correspond stage, or write "
                          f"{project.root / CORRESPONDENCES_FILE} by hand (docs/pipeline.md)")
@@ -484,8 +427,3 @@ def solution_document(project: Project, res: Any, views: list, cam_doc: dict, ob
         "residual_rms_px": {"measured": rms[False], "predicted": rms[True], "n_measured": len(sq[False]),
                             "n_predicted": len(sq[True])},
     }
-
-
-STAGE = StageSpec("solve", "every carriage's pose from the marked points (chained least squares, four steps)",
-                  run_solve, inputs=_inputs, settings_sections=("consist", "solver", "terrain", "location"),
-                  depends_on=("inputs", "terrain", "georef", "correspond"), applies=_applies)

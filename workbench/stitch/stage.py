@@ -23,29 +23,12 @@ import cv2
 from ..core.camera import CameraIntrinsics
 from ..errors import InputError
 from ..project import Project
-from ..runner import Progress, StageResult, StageSpec
+from ..runner import Progress, StageResult
 from .stitcher import StitchOptions, StitchResult, stitch_photos
 
 log = logging.getLogger(__name__)
 
 JPEG_QUALITY = 92
-
-
-def _applies(project: Project) -> bool:
-    if project.settings.camera.source.value == "sfm":
-        return False
-    try:
-        return len(project.photo_paths()) >= 2
-    except InputError:
-        return False
-
-
-def _inputs(project: Project) -> dict[str, Path]:
-    files = {f"photo:{p.name}": p for p in project.photo_paths()}
-    cam = project.settings.camera
-    if cam.source.value == "calibrated" and cam.profile:
-        files["camera_profile"] = project.path(cam.profile)
-    return files
 
 
 def load_profile_intrinsics(project: Project) -> CameraIntrinsics:
@@ -124,7 +107,3 @@ def run_stitch(project: Project, progress: Progress) -> StageResult:
     stats["route"] = "panorama"
     stats["pairs"] = result.stats.get("pairs", [])[:200]
     return StageResult(outputs={"panorama_image": image_path, "panorama_model": model_path}, stats=stats)
-
-
-STAGE = StageSpec("stitch", "stitch the panorama photos into one panorama with its exact camera model", run_stitch,
-                  inputs=_inputs, settings_sections=("camera",), depends_on=("inputs",), applies=_applies)

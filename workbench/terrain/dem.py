@@ -36,6 +36,7 @@ from scipy import sparse
 from scipy.sparse.linalg import spsolve
 
 from ..core.frames import SceneFrame
+from ..core.io import resolve_dem_sources  # noqa: F401 - re-exported: the DEM sources of a terrain.dem value
 from ..errors import InputError, WorkbenchWarning
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -121,32 +122,6 @@ def _check_plausible_heights(z: np.ndarray, where: str) -> None:
                          f"{PLAUSIBLE_HEIGHTS_M[0]:.0f} and {PLAUSIBLE_HEIGHTS_M[1]:.0f} m); the DEM may be in "
                          f"centimetres or feet, or its nodata value is not set: declare the unit "
                          f"(gdal_edit.py -units cm|ft), set -a_nodata, or convert it to metres")
-
-
-def resolve_dem_sources(value: str | Path, base: Path) -> list[Path]:
-    """``terrain.dem`` -> the DEM file(s): one file, a folder (every .tif/.tiff in it) or a glob pattern.
-
-    Relative values are relative to ``base`` (the incident folder). No match is an :class:`InputError`.
-    """
-    import glob as _glob
-
-    raw = str(value)
-    p = Path(raw)
-    p = p if p.is_absolute() else Path(base) / p
-    if any(ch in raw for ch in "*?["):
-        files = sorted(Path(x) for x in _glob.glob(str(p), recursive=True) if Path(x).is_file())
-        what = "pattern"
-    elif p.is_dir():
-        files = sorted(x for x in p.iterdir() if x.suffix.lower() in (".tif", ".tiff") and not x.name.startswith("."))
-        what = "folder"
-    else:
-        if not p.is_file():
-            raise InputError(f"terrain.dem = {raw!r} -> {p} does not exist; fix the path or put the DEM there")
-        return [p]
-    if not files:
-        raise InputError(f"terrain.dem = {raw!r}: the {what} {p} matches no GeoTIFF; put the DEM tiles there or fix "
-                         f"the key")
-    return files
 
 
 def _pyproj_crs(crs: Any) -> CRS | None:

@@ -12,18 +12,17 @@ from __future__ import annotations
 import logging
 import time
 import warnings
-from pathlib import Path
 
 import numpy as np
 
 from ..errors import InputError, WorkbenchWarning
 from ..project import Project
-from ..runner import Progress, StageResult, StageSpec
-from .dem import TerrainModel, resolve_dem_sources, simplify_terrain_mesh
+from ..runner import Progress, StageResult
+from .dem import TerrainModel, simplify_terrain_mesh
 
 log = logging.getLogger(__name__)
 
-__all__ = ["STAGE", "run_terrain", "terrain_model_for", "DEFAULT_SIMPLIFY_MAX_ERROR_M", "DemHeightMismatch",
+__all__ = ["run_terrain", "terrain_model_for", "DEFAULT_SIMPLIFY_MAX_ERROR_M", "DemHeightMismatch",
            "DemPartialCoverage"]
 
 DEFAULT_SIMPLIFY_MAX_ERROR_M = 0.05
@@ -33,29 +32,12 @@ class DemHeightMismatch(WorkbenchWarning):
     """The DEM's height at the reference point differs much from ``location.height_m``."""
 
 
-def _dem_paths(project: Project) -> list[Path]:
-    t = project.settings.terrain
-    try:
-        return resolve_dem_sources(t.dem, project.root)
-    except InputError as exc:
-        raise InputError(f"{project.settings_path}: {exc}") from None
-
-
-def _files(project: Project) -> dict[str, Path]:
-    t = project.settings.terrain
-    paths = _dem_paths(project)
-    files = {"dem": paths[0]} if len(paths) == 1 else {f"dem:{p.name}": p for p in paths}
-    if t.buildings:
-        files["buildings"] = project.require_file(t.buildings, "terrain.buildings")
-    return files
-
-
 def terrain_model_for(project: Project) -> TerrainModel:
     """The incident's terrain model (DEM tiles mosaicked, cropped, holes filled) as the terrain stage builds it."""
     t = project.settings.terrain
     if t.dem is None:
         raise InputError(f"{project.settings_path}: terrain.dem is not set")
-    return TerrainModel.from_sources(_dem_paths(project), project.frame, aoi_radius_m=t.aoi_radius_m,
+    return TerrainModel.from_sources(project.dem_paths(), project.frame, aoi_radius_m=t.aoi_radius_m,
                                      vertical_accuracy_m=t.dem_vertical_accuracy_m)
 
 
@@ -106,8 +88,7 @@ def run_terrain(project: Project, progress: Progress) -> StageResult:
     from .buildings import read_buildings
 
     t = project.settings.terrain
-    files = _files(project)
-    paths = _dem_paths(project)
+    paths = project.dem_paths()
     where = str(paths[0]) if len(paths) == 1 else f"tiles {[p.name for p in paths]}"
     stats: dict = {}
     with warnings.catch_warnings(record=True) as caught:
@@ -140,9 +121,9 @@ def run_terrain(project: Project, progress: Progress) -> StageResult:
             "vertical_accuracy_m": t.dem_vertical_accuracy_m, "simplification": simp,
             "dem_info": {k: (list(v) if isinstance(v, tuple) else v) for k, v in info.items()},
         })
-        if "buildings" in files:
+        if t.buildings:
             progress(0.6, "buildings")
-            res = read_buildings(files["buildings"], project.frame, tm)
+            res = read_buildings(project.require_file(t.buildings, "terrain.buildings"), project.frame, tm)
             merged = res.merged()
             if merged is not None:
                 outputs["buildings_mesh"] = project.write_with(out / "buildings.ply", lambda p: merged.export(p))
@@ -150,33 +131,3 @@ def run_terrain(project: Project, progress: Progress) -> StageResult:
             stats["n_buildings"] = int(res.info.get("n_buildings", len(res.meshes)))
     stats["warnings"] = [str(w.message) for w in caught if issubclass(w.category, WorkbenchWarning)]
     return StageResult(outputs=outputs, stats=stats)
-
-
-STAGE = StageSpec("terrain", "DEM and buildings to meshes in the scene frame", run_terrain, inputs=_files,
-                  settings_sections=("location", "terrain"), depends_on=(),
-                  applies=lambda project: project.settings.terrain.dem is not None)
-
-
-def orthophoto_path(project: Project) -> Path | None:
-    """The orthophoto draped on the terrain, or None: ``terrain.ortho`` when set; else a synthetic incident's
-    (``truth/ground_truth.json`` ``layers.ortho``); else a JPEG beside a single DEM file named like it with
-    ``_ortho`` for ``_dem``. It covers the DEM's whole extent, row 0 at the north edge."""
-    import json
-
-    t = project.settings.terrain
-    if t.ortho:
-        return project.require_file(t.ortho, "terrain.ortho")
-    truth = project.truth_dir / "ground_truth.json"
-    if truth.is_file():
-        try:
-            rel = json.loads(truth.read_text(encoding="utf-8")).get("layers", {}).get("ortho")
-        except (json.JSONDecodeError, UnicodeDecodeError, AttributeError):
-            rel = None
-        if rel and project.path(rel).is_file():
-            return project.path(rel)
-    if t.dem and project.path(t.dem).is_file():  # one DEM file (not a folder or pattern of tiles)
-        d = project.path(t.dem)
-        for cand in (d.with_name(d.stem.replace("_dem", "_ortho") + ".jpg"), d.with_suffix(".ortho.jpg")):
-            if cand != d and cand.is_file():
-                return cand
-    return None

@@ -309,9 +309,8 @@ def view(root: str | Path, *, screenshot: str | Path | None = None, select: str 
     """
     project = Project(root)
     project.settings  # validate first
-    from ..report.scene import require_solution
 
-    require_solution(project, "viewer")
+    project.require_solution("viewer")
     import os
     import sys
 
