@@ -1,10 +1,13 @@
-"""The marked-point picker: its HTTP API, and the page driven in a headless Chromium as a person would."""
+"""The marked-point picker: its HTTP API, the hostile requests it refuses (issue 20), a property-based fuzz of its
+endpoints, and the page driven in a headless Chromium as a person would."""
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
+import socket
 import subprocess
 import sys
 import urllib.error
@@ -19,7 +22,7 @@ from workbench.correspond import manual as mf
 from workbench.picker import PickerServer
 
 W, H = 480, 360
-SMOKE = Path(__file__).resolve().parents[1] / "workbench" / "picker" / "smoke.py"
+DRIVER = Path(__file__).resolve().with_name("picker_browser.py")
 
 
 @pytest.fixture
@@ -45,14 +48,26 @@ def incident(tmp_path):
     return root
 
 
-def _get(url):
-    with urllib.request.urlopen(url, timeout=30) as r:
+def _token(url):
+    """The run's token, as the page gets it: from the HTML the server sends."""
+    page = _get(url, token=None)[2].decode()
+    return re.search(r'<meta name="picker-token" content="([^"]+)">', page).group(1)
+
+
+def _get(url, token=""):
+    """GET like the page does (``token=""``: read it from the page first; None: send none)."""
+    if token == "":
+        token = _token(url.split("/", 3)[0] + "//" + url.split("/", 3)[2] + "/")
+    req = urllib.request.Request(url, headers={"X-Picker-Token": token} if token else {})
+    with urllib.request.urlopen(req, timeout=30) as r:
         return r.status, r.headers.get("Content-Type"), r.read()
 
 
 def _post(url, data):
+    root = url.split("/", 3)[0] + "//" + url.split("/", 3)[2]
     req = urllib.request.Request(url, data=json.dumps(data).encode(), method="POST",
-                                 headers={"Content-Type": "application/json"})
+                                 headers={"Content-Type": "application/json", "X-Picker-Token": _token(root + "/"),
+                                          "Origin": root})
     try:
         with urllib.request.urlopen(req, timeout=30) as r:
             return r.status, json.loads(r.read())
@@ -67,6 +82,7 @@ def test_state_photo_and_references(incident):
         assert status == 200 and ctype == "application/json"
         assert [c["number"] for c in doc["cars"]] == ["6100", "6223"]
         assert doc["photos"] == [{"name": "p0.jpg", "width": W, "height": H, "url": "/photo/p0.jpg"}]
+        assert srv.url.startswith("http://127.0.0.1:") and srv.httpd.server_address[0] == "127.0.0.1"
         assert doc["automatic"][0]["point"] == "body_top_front_left" and doc["manual"] == []
         left = doc["cars"][0]["faces"]["left"]
         assert "front_door_top_front_left" in left["points"] and "coupler_front" not in left["points"]
@@ -78,8 +94,9 @@ def test_state_photo_and_references(incident):
         assert ref.size == (left["width"], left["height"])
         status, ctype, body = _get(srv.url + "photo/p0.jpg")
         assert status == 200 and Image.open(BytesIO(body)).size == (W, H)
-        _, _, page = _get(srv.url)
+        _, _, page = _get(srv.url, token=None)
         assert b"photo-canvas" in page and b"picker.js" in page
+        assert f'<meta name="picker-token" content="{srv.token}">'.encode() in page and len(srv.token) >= 32
         with pytest.raises(urllib.error.HTTPError):
             _get(srv.url + "photo/../project.toml")
 
@@ -88,7 +105,7 @@ def test_save_validates_and_writes_atomically(incident):
     path = incident / mf.FILE_NAME
     good = {"carriage": "6223", "point": "coupler_rear", "view": "p0.jpg", "uv": [100.5, 170.25]}
     with PickerServer(incident) as srv:
-        status, res = _post(srv.url + "api/save", {"observations": [good]})
+        status, res = _post(srv.url + "api/save", {"observations": [good], "rejected": []})
         assert status == 200 and res["n"] == 1
         saved = json.loads(path.read_text())
         assert saved["observations"] == [{**good, "source": "manual", "confidence": 1.0}]
@@ -96,7 +113,7 @@ def test_save_validates_and_writes_atomically(incident):
                          ({"carriage": "9999"}, "unknown carriage '9999'"),
                          ({"uv": [W + 3.0, 10.0]}, "outside view 'p0.jpg'")]:
             status, res = _post(srv.url + "api/save", {"observations": [good, {**good, "point": "coupler_front",
-                                                                               **bad}]})
+                                                                               **bad}], "rejected": []})
             assert status == 400 and msg in res["error"], res
             assert json.loads(path.read_text()) == saved  # a refused save leaves the file as it was
         # what the picker saved is what the stage reads
@@ -105,6 +122,16 @@ def test_save_validates_and_writes_atomically(incident):
 
         cf = load_manual(Project(incident))
         assert [o.key for o in cf.observations] == [("6223", "coupler_rear", "p0.jpg")]
+        # the next save that changes the file keeps the previous one as correspondences.json.bak
+        first = path.read_bytes()
+        status, res = _post(srv.url + "api/save", {"observations": [{**good, "uv": [101.0, 171.0]}], "rejected": []})
+        assert status == 200 and res["backup"] == str(incident / "correspondences.json.bak"), res
+        assert (incident / "correspondences.json.bak").read_bytes() == first
+        assert json.loads(path.read_text())["observations"][0]["uv"] == [101.0, 171.0]
+        second = path.read_bytes()
+        status, res = _post(srv.url + "api/save", {"observations": [{**good, "uv": [101.0, 171.0]}], "rejected": []})
+        assert status == 200 and res["backup"] is None and path.read_bytes() == second  # the same save again
+        assert (incident / "correspondences.json.bak").read_bytes() == first  # keeps the backup of a real change
     assert not list(incident.glob(".correspondences*"))  # no temp files left behind
 
 
@@ -120,7 +147,7 @@ def test_rejected_automatic_point_is_dropped_by_the_stage(incident):
         both = {"observations": [{**rej, "uv": [61.0, 151.0]}], "rejected": [rej]}
         status, res = _post(srv.url + "api/save", both)
         assert status == 400 and "picked or rejected, not both" in res["error"], res
-        status, res = _post(srv.url + "api/save", {"rejected": [{**rej, "point": "no_such_point"}]})
+        status, res = _post(srv.url + "api/save", {"observations": [], "rejected": [{**rej, "point": "no_such_point"}]})
         assert status == 400 and "no marked point 'no_such_point'" in res["error"], res
     from workbench.correspond.stage import load_manual
     from workbench.project import Project
@@ -130,6 +157,334 @@ def test_rejected_automatic_point_is_dropped_by_the_stage(incident):
     auto = mf.parse(json.loads((incident / "out" / "correspond" / mf.FILE_NAME).read_text()), "auto").observations
     assert len(auto) == 1 and mf.merge(auto, cf.observations, cf.rejected) == []
     assert mf.merge(auto, cf.observations) == auto  # without the rejection the point stays
+
+
+# -- hostile requests (issue 20) ------------------------------------------------------------------------------------
+
+GOOD_SAVE = {"observations": [{"carriage": "6223", "point": "coupler_rear", "view": "p0.jpg", "uv": [100.5, 170.25]}],
+             "rejected": []}
+
+
+def _raw(port, request: bytes, timeout=10.0):
+    """Send ``request`` as it is, close the writing side, read the answer: (status or None, headers, body)."""
+    with socket.create_connection(("127.0.0.1", port), timeout=timeout) as s:
+        s.sendall(request)
+        s.shutdown(socket.SHUT_WR)
+        data = b""
+        try:
+            while chunk := s.recv(65536):
+                data += chunk
+        except (ConnectionResetError, TimeoutError):
+            pass
+    head, _, body = data.partition(b"\r\n\r\n")
+    m = re.match(rb"HTTP/1\.[01] (\d{3})", head)
+    headers = dict(line.split(": ", 1) for line in head.decode("latin-1").split("\r\n")[1:] if ": " in line)
+    return (int(m.group(1)) if m else None), headers, body
+
+
+def _request(port, method="GET", path="/", body=b"", headers=None, host=None):
+    """A request with exactly these headers (``Host`` 127.0.0.1:PORT unless ``host`` is given; a header whose value
+    is None is left out) and a ``Content-Length`` matching the body unless given."""
+    hs = {"Host": f"127.0.0.1:{port}" if host is None else host, **(headers or {})}
+    if body and "Content-Length" not in hs:
+        hs["Content-Length"] = str(len(body))
+    lines = f"{method} {path} HTTP/1.1\r\n" + "".join(f"{k}: {v}\r\n" for k, v in hs.items() if v is not None)
+    return _raw(port, lines.encode("latin-1") + b"\r\n" + body)
+
+
+def _hostile_cases(port, token):
+    """(name, method, path, body, headers, host, expected status): the battery that found issue 20, and more."""
+    own = f"http://127.0.0.1:{port}"
+    ok = {"Content-Type": "application/json", "X-Picker-Token": token, "Origin": own}
+    empty = b'{"observations": [], "rejected": []}'
+    obs = GOOD_SAVE["observations"][0]
+
+    def save(**change):
+        return json.dumps({"observations": [{**obs, **change}], "rejected": []}).encode()
+
+    return [
+        ("cross-origin text/plain POST", "POST", "/api/save", empty,
+         {"Content-Type": "text/plain", "Origin": "http://evil.example"}, None, 403),
+        ("cross-origin POST that knows the token", "POST", "/api/save", empty, {**ok, "Origin": "http://evil.example"},
+         None, 403),
+        ("Origin null", "POST", "/api/save", empty, {**ok, "Origin": "null"}, None, 403),
+        ("another port of 127.0.0.1", "POST", "/api/save", empty, {**ok, "Origin": "http://127.0.0.1:1"}, None, 403),
+        ("a fetch from another site", "POST", "/api/save", empty, {**ok, "Origin": None, "Sec-Fetch-Site": "cross-site",
+                                                                   "Sec-Fetch-Mode": "cors"}, None, 403),
+        ("no token", "POST", "/api/save", empty, {**ok, "X-Picker-Token": None}, None, 403),
+        ("wrong token", "POST", "/api/save", empty, {**ok, "X-Picker-Token": "x" * len(token)}, None, 403),
+        ("text/plain with the token", "POST", "/api/save", empty, {**ok, "Content-Type": "text/plain"}, None, 415),
+        ("JSON in another charset", "POST", "/api/save", empty,
+         {**ok, "Content-Type": "application/json; charset=utf-16"}, None, 415),
+        ("DNS rebinding: the state", "GET", "/api/state", b"", {"X-Picker-Token": token}, f"evil.example:{port}", 403),
+        ("DNS rebinding: the page (and its token)", "GET", "/", b"", {}, f"evil.example:{port}", 403),
+        ("no Host", "GET", "/", b"", {"Host": None}, None, 403),
+        ("DNS rebinding: a save", "POST", "/api/save", empty, {**ok, "Origin": f"http://evil.example:{port}"},
+         f"evil.example:{port}", 403),
+        ("empty Host", "GET", "/api/state", b"", {"X-Picker-Token": token}, "", 403),
+        ("the state without the token", "GET", "/api/state", b"", {}, None, 403),
+        ("the state from another site", "GET", "/api/state", b"", {"X-Picker-Token": token, "Origin": "http://a.b"},
+         None, 403),
+        ("empty body", "POST", "/api/save", b"", {**ok, "Content-Length": "0"}, None, 400),
+        ("observations a string", "POST", "/api/save", b'{"observations": "x", "rejected": []}', ok, None, 400),
+        ("observations missing", "POST", "/api/save", b'{"rejected": []}', ok, None, 400),
+        ("an empty object", "POST", "/api/save", b"{}", ok, None, 400),
+        ("a number", "POST", "/api/save", b"42", ok, None, 400),
+        ("null", "POST", "/api/save", b"null", ok, None, 400),
+        ("an observation a string", "POST", "/api/save", b'{"observations": ["x"], "rejected": []}', ok, None, 400),
+        ("deep nesting", "POST", "/api/save", b"[" * 50000 + b"]" * 50000, ok, None, 400),
+        ("deep nesting inside a save", "POST", "/api/save",
+         b'{"observations": [], "rejected": [' + b"[" * 20 + b"]" * 20 + b"]}", ok, None, 400),
+        ("Content-Length not a number", "POST", "/api/save", empty, {**ok, "Content-Length": "abc"}, None, 400),
+        ("Content-Length negative", "POST", "/api/save", empty, {**ok, "Content-Length": "-5"}, None, 400),
+        ("Content-Length longer than the body", "POST", "/api/save", empty, {**ok, "Content-Length": "500"}, None,
+         400),
+        ("Content-Length huge", "POST", "/api/save", empty, {**ok, "Content-Length": str(10 ** 12)}, None, 413),
+        ("Content-Length twice", "POST", "/api/save", empty, {**ok, "Content-Length": None}, None, 411),
+        ("chunked", "POST", "/api/save", b"0\r\n\r\n", {**ok, "Transfer-Encoding": "chunked"}, None, 411),
+        ("not UTF-8", "POST", "/api/save", b'{"observations": ["\xff"], "rejected": []}', ok, None, 400),
+        ("not JSON", "POST", "/api/save", b"{observations: []}", ok, None, 400),
+        ("NaN", "POST", "/api/save", save(uv=[float("nan"), 1.0]), ok, None, 400),
+        ("Infinity", "POST", "/api/save", b'{"observations": [], "rejected": [], "x": Infinity}', ok, None, 400),
+        ("1e400 (infinite once read)", "POST", "/api/save",
+         save(sigma_px=1).replace(b'"sigma_px": 1', b'"sigma_px": 1e400'), ok, None, 400),
+        ("a 5000-digit number", "POST", "/api/save",
+         save(sigma_px=1).replace(b'"sigma_px": 1', b'"sigma_px": ' + b"9" * 5000), ok, None, 400),
+        ("uv as strings", "POST", "/api/save", save(uv=["100", "170"]), ok, None, 400),
+        ("uv as booleans", "POST", "/api/save", save(uv=[True, False]), ok, None, 400),
+        ("uv of three numbers", "POST", "/api/save", save(uv=[1.0, 2.0, 3.0]), ok, None, 400),
+        ("carriage a number", "POST", "/api/save", save(carriage=6223), ok, None, 400),
+        ("unknown carriage", "POST", "/api/save", save(carriage="9999"), ok, None, 400),
+        ("unknown point", "POST", "/api/save", save(point="roof_hatch"), ok, None, 400),
+        ("unknown photo", "POST", "/api/save", save(view="zz.jpg"), ok, None, 400),
+        ("a path as the photo", "POST", "/api/save", save(view="../project.toml"), ok, None, 400),
+        ("outside the photo", "POST", "/api/save", save(uv=[W + 5.0, 1.0]), ok, None, 400),
+        ("an automatic point", "POST", "/api/save", save(source="sift"), ok, None, 400),
+        ("unknown key in an observation", "POST", "/api/save", save(evil=1), ok, None, 400),
+        ("unknown key in the save", "POST", "/api/save", b'{"observations": [], "rejected": [], "x": 1}', ok, None,
+         400),
+        ("duplicate key", "POST", "/api/save", b'{"observations": [], "observations": [], "rejected": []}', ok, None,
+         400),
+        ("a 1 MB carriage name", "POST", "/api/save", save(carriage="x" * 1_000_000), ok, None, 400),
+        ("symlinked photo -> /etc/passwd", "GET", "/photo/leak.jpg", b"", {}, None, 404),
+        ("photo path traversal", "GET", "/photo/../project.toml", b"", {}, None, 404),
+        ("photo path traversal, encoded", "GET", "/photo/%2e%2e%2fproject.toml", b"", {}, None, 404),
+        ("a file of the incident that is no photo", "GET", "/photo/project.toml", b"", {}, None, 404),
+        ("reference without a face", "GET", "/reference/abc.png", b"", {}, None, 404),
+        ("reference of an unknown face", "GET", "/reference/6100/../../x.png", b"", {}, None, 404),
+        ("absolute-form target", "GET", "http://evil.example/api/state", b"", {"X-Picker-Token": token}, None, 400),
+        ("PUT", "PUT", "/api/save", empty, ok, None, 405),
+        ("DELETE", "DELETE", "/api/save", b"", ok, None, 405),
+        ("OPTIONS (a CORS preflight)", "OPTIONS", "/api/save", b"",
+         {"Origin": "http://evil.example", "Access-Control-Request-Method": "POST"}, None, 405),
+        ("an invented method", "BREW", "/", b"", {}, None, 405),
+        ("POST elsewhere", "POST", "/api/state", empty, ok, None, 404),
+    ]
+
+
+def test_hostile_requests_are_refused_and_change_nothing(incident, caplog, capfd):
+    """Each request of the battery gets its 4xx with a JSON message, the file stays byte-identical, nothing leaks,
+    and the server logs one line per refusal, never a traceback."""
+    import logging
+
+    os.symlink("/etc/passwd", incident / "photos" / "panorama" / "leak.jpg")
+    path = incident / mf.FILE_NAME
+    caplog.set_level(logging.INFO, logger="workbench.picker")
+    with PickerServer(incident) as srv:
+        st, _, body = _request(srv.port, "POST", "/api/save", json.dumps(GOOD_SAVE).encode(),
+                               {"Content-Type": "application/json", "X-Picker-Token": srv.token})
+        assert st == 200, body
+        before = path.read_bytes()
+        for name, method, target, body, headers, host, expected in _hostile_cases(srv.port, srv.token):
+            if name == "Content-Length twice":
+                raw = (f"POST /api/save HTTP/1.1\r\nHost: 127.0.0.1:{srv.port}\r\nContent-Type: application/json\r\n"
+                       f"X-Picker-Token: {srv.token}\r\nContent-Length: {len(body)}\r\nContent-Length: 1\r\n\r\n")
+                st, hs, answer = _raw(srv.port, raw.encode() + body)
+            else:
+                st, hs, answer = _request(srv.port, method, target, body, headers, host)
+            assert st == expected, (name, st, answer[:300])
+            assert hs.get("Content-Type") == "application/json", (name, hs)
+            message = json.loads(answer)["error"]
+            assert 0 < len(message) < 600, (name, message)
+            assert b"root:" not in answer and b"[incident]" not in answer, name  # no leak
+            assert path.read_bytes() == before, name  # byte-identical after every refused request
+        # the leak is gone from the page too: the symlink is not listed as a photo
+        assert [p["name"] for p in json.loads(_get(srv.url + "api/state", token=srv.token)[2])["photos"]] == ["p0.jpg"]
+    assert not list(incident.glob(".correspondences*")) and not (incident / "correspondences.json.bak").exists()
+    err = capfd.readouterr().err
+    assert "Traceback" not in err, err[-3000:]
+    assert not [r for r in caplog.records if r.exc_info or "Traceback" in r.getMessage()]
+    refusals = [r.getMessage() for r in caplog.records if r.levelname == "WARNING" and " for " in r.getMessage()]
+    assert len(refusals) >= len(_hostile_cases(1, "t")) and all("\n" not in m for m in refusals)
+
+
+def test_messages_name_the_key_and_the_value_cut_short(incident):
+    with PickerServer(incident) as srv:
+        ok = {"Content-Type": "application/json", "X-Picker-Token": srv.token}
+        obs = {**GOOD_SAVE["observations"][0], "carriage": "y" * 100_000}
+        st, _, body = _request(srv.port, "POST", "/api/save", json.dumps({"observations": [obs], "rejected": []})
+                               .encode(), ok)
+        msg = json.loads(body)["error"]
+        assert st == 400 and "observations[0]: unknown carriage 'yyyy" in msg and "..." in msg and len(msg) < 400, msg
+        obs = {**GOOD_SAVE["observations"][0], "uv": ["100", 170.0]}
+        st, _, body = _request(srv.port, "POST", "/api/save", json.dumps({"observations": [obs], "rejected": []})
+                               .encode(), ok)
+        msg = json.loads(body)["error"]
+        assert st == 400 and "observations[0].uv[0]" in msg and "'100'" in msg and "unchanged" in msg, msg
+        st, _, body = _request(srv.port, "POST", "/api/save",
+                               b'{"observations": "' + b"z" * 5000 + b'", "rejected": []}', ok)
+        msg = json.loads(body)["error"]
+        assert st == 400 and msg.startswith("save refused") and "observations = 'zzz" in msg and len(msg) < 200, msg
+
+
+def test_port_in_use_is_one_clear_error(incident):
+    from workbench.errors import WorkbenchError
+
+    with PickerServer(incident) as srv:
+        with pytest.raises(WorkbenchError, match=rf"port {srv.port} on 127.0.0.1 is already in use.*--port"):
+            PickerServer(incident, port=srv.port)
+    with pytest.raises(WorkbenchError, match="127.0.0.1 only"):
+        PickerServer(incident, host="0.0.0.0")
+
+
+def test_an_unexpected_error_is_a_500_with_a_message_and_nothing_written(incident, monkeypatch, capfd):
+    from workbench.picker import server
+
+    path = incident / mf.FILE_NAME
+    path.write_text(json.dumps(GOOD_SAVE))
+    before = path.read_bytes()
+
+    def broken(*a, **k):
+        raise ZeroDivisionError("a bug")
+
+    monkeypatch.setattr(server, "to_json", broken)
+    with PickerServer(incident) as srv:
+        st, hs, body = _request(srv.port, "POST", "/api/save", json.dumps(GOOD_SAVE).encode(),
+                                {"Content-Type": "application/json", "X-Picker-Token": srv.token})
+    assert st == 500 and "internal error (ZeroDivisionError)" in json.loads(body)["error"]
+    assert path.read_bytes() == before and not list(incident.glob(".correspondences*"))
+    assert "Traceback" not in capfd.readouterr().err
+
+
+# -- property-based fuzz of the endpoints ---------------------------------------------------------------------------
+
+SERVER_SCRIPT = """
+import sys
+from workbench.picker import PickerServer
+srv = PickerServer(sys.argv[1]).start()
+print(srv.port, srv.token, flush=True)
+sys.stdin.read()  # until the test closes it
+srv.close()
+"""
+
+
+def test_fuzz_endpoints(incident, tmp_path):
+    """Random methods, paths, headers and bodies (hypothesis) against a picker running in its own process: never a
+    5xx, never a traceback on its stderr, and correspondences.json byte-identical after every refused request."""
+    import time
+
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    os.symlink("/etc/passwd", incident / "photos" / "panorama" / "leak.jpg")
+    path = incident / mf.FILE_NAME
+    path.write_text(json.dumps(GOOD_SAVE))
+    err_file = (tmp_path / "server.err").open("w")  # a file, not a pipe: a full pipe would stall the server
+    proc = subprocess.Popen([sys.executable, "-c", SERVER_SCRIPT, str(incident)], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, stderr=err_file, text=True)
+    try:
+        port_s, token = proc.stdout.readline().split()
+        port = int(port_s)
+        obs = GOOD_SAVE["observations"][0]
+        json_value = st.recursive(
+            st.none() | st.booleans() | st.integers(-10**6, 10**6) | st.floats(allow_nan=False, allow_infinity=False)
+            | st.text(max_size=12) | st.sampled_from(["6100", "6223", "p0.jpg", "coupler_rear", "manual", "sift"]),
+            lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8) | st.sampled_from(
+                ["observations", "rejected", "carriage", "point", "view", "uv", "source", "sigma_px"]), inner,
+                max_size=4),
+            max_leaves=12)
+        mutated_save = st.builds(
+            lambda key, value, where: json.dumps({"observations": [{**obs, key: value}] if where else [],
+                                                  "rejected": [] if where else [{**obs, key: value}]}),
+            st.sampled_from(["carriage", "point", "view", "uv", "source", "confidence", "sigma_px", "reason", "x"]),
+            json_value, st.booleans())
+        valid_save = st.builds(lambda u, v: json.dumps({"observations": [{**obs, "uv": [u, v]}], "rejected": []}),
+                               st.floats(-0.5, W - 0.5), st.floats(-0.5, H - 0.5))
+        bodies = st.one_of(  # mostly saves with one key's value replaced by anything JSON holds
+            mutated_save, mutated_save, mutated_save, mutated_save, valid_save,
+            st.binary(min_size=1, max_size=200),
+            json_value.map(json.dumps),
+            mutated_save.map(lambda s: s.replace("0.", "NaN").replace("1", "Infinity")),
+            st.integers(1, 60).map(lambda n: "[" * n + "]" * n),
+        ).map(lambda b: b if isinstance(b, bytes) else b.encode())
+        # mostly well-formed requests with some parts changed, so that every check is reached: each header is
+        # kept as the page sends it, changed or left out; the method and the path are mostly the save's
+        RANDOM, DROP = object(), object()
+        methods = st.sampled_from(["POST"] * 16 + ["GET"] * 4 + ["PUT", "DELETE", "HEAD", "OPTIONS", "PATCH", RANDOM])
+        random_methods = st.text("ABCDEFGHIJKLMNOPQRSTUVWXYZ-", min_size=1, max_size=8)
+        paths = st.sampled_from(["/api/save"] * 24 + [
+            "/", "/index.html", "/picker.js", "/api/state", "/api/state", "/photo/p0.jpg", "/photo/leak.jpg",
+            "/photo/../project.toml", "/photo/%2e%2e/project.toml", "/photo/project.toml", "/reference/6100/left.png",
+            "/reference/x.png", "/reference/6100/../../x.png", "*", "http://evil.example/", "/api/save?x=1",
+            "//etc/passwd", RANDOM])
+        random_paths = st.text("abcdefghijklmnopqrstuvwxyz0123456789/._%?#-", max_size=30).map(lambda s: "/" + s)
+
+        def header(good, *bad):
+            return st.sampled_from([good] * 6 * len(bad) + list(bad) + [DROP])
+
+        own = f"http://127.0.0.1:{port}"
+        header_sets = st.fixed_dictionaries({
+            "Host": header(f"127.0.0.1:{port}", f"localhost:{port}", f"LOCALHOST:{port}", f"evil.example:{port}",
+                           "127.0.0.1", "", f"127.0.0.1:{port}, evil.example"),
+            "Origin": header(own, DROP, f"http://localhost:{port}", "http://evil.example", "null",
+                             f"https://127.0.0.1:{port}", "", f"http://127.0.0.1:{port + 1}"),
+            "X-Picker-Token": header(token, "", "x", token + "x", token.upper(), token[:-1]),
+            "Content-Type": header("application/json", "application/json; charset=utf-8", "text/plain",
+                                   "application/x-www-form-urlencoded", "application/json; charset=latin-1",
+                                   "multipart/form-data; boundary=x", "", "APPLICATION/JSON"),
+            "Content-Length": header(None, "0", "1", "-1", "abc", "99999999999", "1e3", "+5", "5 5"),
+            "Sec-Fetch-Site": header(DROP, "same-origin", "cross-site", "same-site", "none"),
+            "Transfer-Encoding": header(DROP, "chunked", "gzip"),
+        })
+        state = {"file": path.read_bytes(), "n": 0, "statuses": {}}
+        t0 = time.monotonic()
+
+        @settings(max_examples=400, deadline=None, database=None, derandomize=True,
+                  suppress_health_check=list(HealthCheck))
+        @given(method=methods, random_method=random_methods, target=paths, random_path=random_paths,
+               headers=header_sets, body=bodies)
+        def one_request(method, random_method, target, random_path, headers, body):
+            if time.monotonic() - t0 > 10:  # bounded in time as well as in count
+                return
+            method = random_method if method is RANDOM else method
+            target = random_path if target is RANDOM else target
+            hs = {k: (str(len(body)) if k == "Content-Length" and v is None else v) for k, v in headers.items()
+                  if v is not DROP}
+            head = f"{method} {target} HTTP/1.1\r\n" + "".join(f"{k}: {v}\r\n" for k, v in hs.items())
+            status, _, answer = _raw(port, head.encode("latin-1") + b"\r\n" + body)
+            state["n"] += 1
+            state["statuses"][status] = state["statuses"].get(status, 0) + 1
+            assert status is None or status < 500, (method, target, hs, body[:200], answer[:300])
+            now = path.read_bytes()
+            if status == 200 and method == "POST":
+                state["file"] = now  # an accepted save (a valid body with the token)
+            assert now == state["file"], (method, target, hs, body[:200], status, answer[:300])
+            assert b"root:x:" not in answer
+
+        one_request()
+        assert state["n"] >= 100, state  # the time bound must not hollow the test out
+        assert {400, 403, 404, 405, 415} <= set(state["statuses"]), state["statuses"]
+    finally:
+        proc.stdin.close()
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        err_file.close()
+    err = (tmp_path / "server.err").read_text()
+    assert "Traceback" not in err, err[-3000:]
+    assert all(line.startswith("picker: ") for line in err.splitlines()), err[-3000:]
 
 
 def _playwright_python() -> str | None:
@@ -157,10 +512,11 @@ def test_driven_in_a_browser_like_a_person(incident, tmp_path):
     (tmp_path / "plan.json").write_text(json.dumps(plan))
     shot = tmp_path / "picker.png"
     with PickerServer(incident) as srv:
-        out = subprocess.run([py, str(SMOKE), srv.url, str(tmp_path / "plan.json"), str(shot), "--chromium", chromium],
+        out = subprocess.run([py, str(DRIVER), srv.url, str(tmp_path / "plan.json"), str(shot), "--chromium", chromium],
                              capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     log = json.loads(out.stdout.strip().splitlines()[-1])
+    assert log["console_errors"] == [], log["console_errors"]  # the page's CSP and the token broke nothing
     assert log["point_selected"] == "front_door_top_front_left"
     assert log["scale"] > 4  # zoomed in
     assert np.allclose(log["after_undo"]["uv"], plan["first_uv"], atol=1.5)  # undo went back to the rough pick

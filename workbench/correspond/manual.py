@@ -17,10 +17,11 @@ u in [-0.5, w - 0.5]. ``view`` is a photo name of the photo set, or ``"panorama"
 from __future__ import annotations
 
 import math
+import reprlib
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, ValidationError, field_validator
 
 from ..errors import InputError
 
@@ -29,15 +30,17 @@ PANORAMA = "panorama"
 
 
 class Observation(BaseModel):
+    # numbers must be JSON numbers (a string "1.5" or a boolean is refused) and finite (NaN, Infinity and 1e400,
+    # which reads as infinity, are refused)
     model_config = ConfigDict(extra="forbid")
 
     carriage: str
     point: str
     view: str
-    uv: tuple[float, float]
+    uv: tuple[StrictFloat, StrictFloat]
     source: Literal["manual", "sift"] = "manual"
-    confidence: float = Field(1.0, ge=0.0, le=1.0)
-    sigma_px: float | None = Field(None, gt=0.0)
+    confidence: StrictFloat = Field(1.0, ge=0.0, le=1.0, allow_inf_nan=False)
+    sigma_px: StrictFloat | None = Field(None, gt=0.0, allow_inf_nan=False)
     # how a "sift" point was placed: on its face's plane by the face's homography; projected from the car's pose
     # (off the plane); or carried from another photo of a panorama set. The last two are predictions: the
     # solve lets them guide the fit but counts no information from them (docs/pipeline.md)
@@ -111,7 +114,18 @@ class CorrespondenceFile(BaseModel):
 
 
 def _where(loc: tuple) -> str:
-    return ".".join(str(x) if not isinstance(x, int) else f"[{x}]" for x in loc).replace(".[", "[")
+    return ".".join(_cut(x, 40, quote=False) if not isinstance(x, int) else f"[{x}]" for x in loc).replace(".[", "[")
+
+
+_repr = reprlib.Repr()
+_repr.maxlevel, _repr.maxstring, _repr.maxother, _repr.maxlist, _repr.maxdict = 2, 40, 40, 4, 3
+
+
+def _cut(value: object, n: int = 40, *, quote: bool = True) -> str:
+    """``value`` for a message: its repr (or the string itself, ``quote=False``), cut to about ``n`` characters
+    (a bad value may be megabytes long)."""
+    s = _repr.repr(value) if quote or not isinstance(value, str) else value
+    return s if len(s) <= n else s[: n - 3] + "..."
 
 
 def parse(data: object, path: Path | str) -> CorrespondenceFile:
@@ -119,7 +133,7 @@ def parse(data: object, path: Path | str) -> CorrespondenceFile:
     try:
         return CorrespondenceFile.model_validate(data)
     except ValidationError as exc:
-        errs = "; ".join(f"{_where(e['loc'])}: {e['msg']} (got {e.get('input')!r})" for e in exc.errors()[:5])
+        errs = "; ".join(f"{_where(e['loc'])}: {e['msg']} (got {_cut(e.get('input'))})" for e in exc.errors()[:5])
         raise InputError(f"{path}: invalid correspondence file: {errs}. See docs/pipeline.md "
                          f"(correspondences.json)") from None
 
@@ -138,46 +152,46 @@ def validate(cf: CorrespondenceFile, path: Path | str, *, points: dict[str, list
     for i, o in enumerate(cf.observations):
         where = f"observations[{i}]"
         if o.carriage not in points:
-            problems.append(f"{where}: unknown carriage {o.carriage!r} (the consist has {', '.join(points)})")
+            problems.append(f"{where}: unknown carriage {_cut(o.carriage)} (the consist has {', '.join(points)})")
             continue
         if o.point not in points[o.carriage]:
-            problems.append(f"{where}: carriage {o.carriage!r} has no marked point {o.point!r} (its points: "
+            problems.append(f"{where}: carriage {_cut(o.carriage)} has no marked point {_cut(o.point)} (its points: "
                             f"{', '.join(points[o.carriage])})")
         if o.view in image_sizes:
             w, h = image_sizes[o.view]
             u, v = o.uv
             if not (-0.5 <= u <= w - 0.5 and -0.5 <= v <= h - 0.5):
-                problems.append(f"{where}: uv = [{u}, {v}] is outside view {o.view!r} ({w} x {h} px; pixel centres "
+                problems.append(f"{where}: uv = [{u}, {v}] is outside view {_cut(o.view)} ({w} x {h} px; pixel centres "
                                 f"span [-0.5, {w - 0.5}] x [-0.5, {h - 0.5}])")
         elif o.view == PANORAMA:
             if min(o.uv) < -0.5:
                 problems.append(f"{where}: uv = {list(o.uv)} is outside the panorama")
         else:
-            problems.append(f"{where}: unknown view {o.view!r} (the photos are {', '.join(sorted(image_sizes))}"
+            problems.append(f"{where}: unknown view {_cut(o.view)} (the photos are {', '.join(sorted(image_sizes))}"
                             f", or 'panorama')")
         if o.key in seen:
-            problems.append(f"{where}: duplicate of observations[{seen[o.key]}] (carriage {o.carriage!r}, point "
-                            f"{o.point!r}, view {o.view!r}); keep one")
+            problems.append(f"{where}: duplicate of observations[{seen[o.key]}] (carriage {_cut(o.carriage)}, point "
+                            f"{_cut(o.point)}, view {_cut(o.view)}); keep one")
         else:
             seen[o.key] = i
     for i, n in enumerate(cf.needs_manual):
         if n.carriage not in points:
-            problems.append(f"needs_manual[{i}]: unknown carriage {n.carriage!r}")
+            problems.append(f"needs_manual[{i}]: unknown carriage {_cut(n.carriage)}")
     rejected: dict[tuple[str, str, str], int] = {}
     for i, r in enumerate(cf.rejected):
         where = f"rejected[{i}]"
         if r.carriage not in points:
-            problems.append(f"{where}: unknown carriage {r.carriage!r} (the consist has {', '.join(points)})")
+            problems.append(f"{where}: unknown carriage {_cut(r.carriage)} (the consist has {', '.join(points)})")
         elif r.point not in points[r.carriage]:
-            problems.append(f"{where}: carriage {r.carriage!r} has no marked point {r.point!r}")
+            problems.append(f"{where}: carriage {_cut(r.carriage)} has no marked point {_cut(r.point)}")
         if r.view not in image_sizes and r.view != PANORAMA:
-            problems.append(f"{where}: unknown view {r.view!r} (the photos are {', '.join(sorted(image_sizes))})")
+            problems.append(f"{where}: unknown view {_cut(r.view)} (the photos are {', '.join(sorted(image_sizes))})")
         if r.key in rejected:
             problems.append(f"{where}: duplicate of rejected[{rejected[r.key]}]; keep one")
         rejected.setdefault(r.key, i)
         if r.key in seen:
-            problems.append(f"{where}: (carriage {r.carriage!r}, point {r.point!r}, view {r.view!r}) is also picked "
-                            f"in observations[{seen[r.key]}]; a point is picked or rejected, not both")
+            problems.append(f"{where}: (carriage {_cut(r.carriage)}, point {_cut(r.point)}, view {_cut(r.view)}) is "
+                            f"also picked in observations[{seen[r.key]}]; a point is picked or rejected, not both")
     if problems:
         more = f" (and {len(problems) - 8} more)" if len(problems) > 8 else ""
         raise InputError(f"{path}: " + "; ".join(problems[:8]) + more)

@@ -4,6 +4,15 @@
 const S = { doc: null, photo: null, car: null, point: null, manual: [], rejected: [], undo: [], img: null,
             scale: 1, ox: 0, oy: 0, faceImgs: {}, dirty: false };
 const $ = (id) => document.getElementById(id);
+// the run's token (the server puts it in the page): sent with every API request; without it the server refuses
+const TOKEN = document.querySelector('meta[name="picker-token"]').content;
+const API_HEADERS = { "X-Picker-Token": TOKEN };
+// names come from the incident's files (photo names, carriage numbers): escaped before they go into HTML
+const esc = (s) => String(s).replace(/[&<>"']/g, (c) => ({ "&": "&amp;", "<": "&lt;", ">": "&gt;", '"': "&quot;", "'": "&#39;" })[c]);
+async function jsonOf(r) {  // the server answers JSON, errors included; anything else is reported as it came
+  const text = await r.text();
+  try { return JSON.parse(text); } catch (e) { return { error: `HTTP ${r.status}: ${text.slice(0, 200)}` }; }
+}
 const cv = $("photo-canvas"), ctx = cv.getContext("2d");
 
 function status(msg, error) { const s = $("status"); s.textContent = msg; s.className = error ? "error" : ""; }
@@ -11,14 +20,14 @@ function key(o) { return o.carriage + "|" + o.point + "|" + o.view; }
 function car() { return S.doc.cars.find((c) => c.number === S.car); }
 
 async function load() {
-  const r = await fetch("/api/state");
-  const doc = await r.json();
+  const r = await fetch("/api/state", { headers: API_HEADERS });
+  const doc = await jsonOf(r);
   if (!r.ok) { status(doc.error || "cannot load", true); return; }
   S.doc = doc; S.manual = doc.manual.map((o) => Object.assign({}, o));
   S.rejected = (doc.rejected || []).map((o) => Object.assign({}, o));
   $("incident").textContent = doc.incident;
-  $("photo-select").innerHTML = doc.photos.map((p) => `<option>${p.name}</option>`).join("");
-  $("car-select").innerHTML = doc.cars.map((c) => `<option value="${c.number}">${c.number} (${c.type})</option>`).join("");
+  $("photo-select").innerHTML = doc.photos.map((p) => `<option value="${esc(p.name)}">${esc(p.name)}</option>`).join("");
+  $("car-select").innerHTML = doc.cars.map((c) => `<option value="${esc(c.number)}">${esc(c.number)} (${esc(c.type)})</option>`).join("");
   S.car = doc.cars[0].number;
   await selectPhoto(doc.photos[0].name);
   selectCar(S.car);
@@ -43,7 +52,7 @@ function selectCar(number) {
   box.innerHTML = "";
   for (const [face, f] of Object.entries(c.faces)) {
     const div = document.createElement("div"); div.className = face === "front" || face === "rear" ? "face end" : "face";
-    div.innerHTML = `<h3>${face}</h3>`;
+    div.innerHTML = `<h3>${esc(face)}</h3>`;
     const fc = document.createElement("canvas"); fc.id = "face-" + face; fc.width = f.width; fc.height = f.height;
     fc.dataset.face = face; div.appendChild(fc); box.appendChild(div);
     const im = new Image(); im.onload = () => { S.faceImgs[face] = im; drawFace(fc, face); }; im.src = f.url;
@@ -72,7 +81,7 @@ function listPoints() {
     const tag = m ? '<span class="tag manual">manual</span>' : x ? '<span class="tag rejected">rejected</span>'
       : a ? (predicted(a) ? '<span class="tag predicted" title="predicted from the car\'s pose or another photo: check it">predicted</span>'
                           : '<span class="tag auto">auto</span>') : "";
-    return `<li data-point="${n}" class="${n === S.point ? "selected" : ""}">${n} <small>(${c.point_faces[n].join(", ")})</small>${tag}</li>`;
+    return `<li data-point="${esc(n)}" class="${n === S.point ? "selected" : ""}">${esc(n)} <small>(${esc(c.point_faces[n].join(", "))})</small>${tag}</li>`;
   }).join("");
   for (const li of $("points").children) li.onclick = () => selectPoint(li.dataset.point);
 }
@@ -165,10 +174,10 @@ function toggleReject() {
   listPoints(); draw(); status(`${S.car} ${S.point}: automatic point rejected — unsaved`);
 }
 async function save() {
-  const r = await fetch("/api/save", { method: "POST", headers: { "Content-Type": "application/json" },
+  const r = await fetch("/api/save", { method: "POST", headers: Object.assign({ "Content-Type": "application/json" }, API_HEADERS),
                                       body: JSON.stringify({ observations: S.manual, rejected: S.rejected }) });
-  const res = await r.json();
-  if (!r.ok) { status(res.error, true); return; }
+  const res = await jsonOf(r);
+  if (!r.ok) { status(res.error || `HTTP ${r.status}`, true); return; }
   S.dirty = false; status(`saved ${res.n} manual points and ${res.n_rejected} rejections to ${res.saved}`);
 }
 

@@ -1,8 +1,8 @@
-"""Drive the picker page in a headless Chromium as a person would (Playwright), for the tests.
+"""Drive the picker page in a headless Chromium as a person would (Playwright), for tests/test_picker.py.
 
 Standalone (standard library + ``playwright`` only), so it runs under any Python that has Playwright::
 
-    python workbench/picker/smoke.py URL PLAN.json SCREENSHOT.png [--chromium /usr/bin/chromium]
+    python tests/picker_browser.py URL PLAN.json SCREENSHOT.png [--chromium /usr/bin/chromium]
 
 PLAN.json: ``{"car": "6223", "point": "front_door_top_front_left", "face": "left", "view": "pano_01.jpg",
 "first_uv": [u, v], "uv": [u, v]}``. The run: choose the photo and the carriage, click the point on the
@@ -33,8 +33,12 @@ def drive(url: str, plan: dict, screenshot: str, chromium: str | None = None) ->
         browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox"]) if chromium \
             else p.chromium.launch(args=["--no-sandbox"])
         page = browser.new_page(viewport={"width": 1400, "height": 800})
+        errors = log["console_errors"] = []  # a script error or a refused resource (the page's CSP) shows here
+        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+        page.on("pageerror", lambda e: errors.append(str(e)))
         page.goto(url)
-        page.wait_for_function("document.getElementById('status').textContent.includes('automatic')", timeout=30000)
+        # selectors, not wait_for_function: the page's CSP forbids the eval that a JS string would need
+        page.wait_for_selector("#status:has-text('automatic')", timeout=30000)
         log["loaded"] = page.inner_text("#status")
         page.select_option("#photo-select", plan["view"])
         page.wait_for_timeout(300)
@@ -75,7 +79,7 @@ def drive(url: str, plan: dict, screenshot: str, chromium: str | None = None) ->
             page.keyboard.press("r")
             log["rejected"] = page.inner_text("#status")
         page.keyboard.press("Control+s")
-        page.wait_for_function("document.getElementById('status').textContent.startsWith('saved')", timeout=10000)
+        page.wait_for_selector("#status:text-matches('^saved')", timeout=10000)
         log["saved"] = page.inner_text("#status")
         page.screenshot(path=screenshot)
         browser.close()
