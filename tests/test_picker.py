@@ -366,6 +366,27 @@ def test_an_unexpected_error_is_a_500_with_a_message_and_nothing_written(inciden
     assert "Traceback" not in capfd.readouterr().err
 
 
+def test_a_full_disk_is_a_500_naming_the_file_and_nothing_changes(incident, monkeypatch):
+    import errno
+
+    from workbench.picker import server
+
+    path = incident / mf.FILE_NAME
+    path.write_text(json.dumps(GOOD_SAVE))
+    before = path.read_bytes()
+
+    def full(p, text):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(server, "atomic_write_text", full)
+    with PickerServer(incident) as srv:
+        save = {"observations": [{**GOOD_SAVE["observations"][0], "uv": [1.0, 2.0]}], "rejected": []}
+        st, _, body = _request(srv.port, "POST", "/api/save", json.dumps(save).encode(),
+                               {"Content-Type": "application/json", "X-Picker-Token": srv.token})
+    msg = json.loads(body)["error"]
+    assert st == 500 and str(path) in msg and "No space left" in msg and "unchanged" in msg, msg
+    assert path.read_bytes() == before
+
 # -- property-based fuzz of the endpoints ---------------------------------------------------------------------------
 
 SERVER_SCRIPT = """

@@ -56,7 +56,7 @@ import numpy as np
 from ..core.io import atomic_write_bytes, atomic_write_text, to_json
 from ..correspond import manual as mf
 from ..correspond.references import FACES, face_reference
-from ..errors import InputError, WorkbenchError
+from ..errors import InputError, OutputError, WorkbenchError
 from ..project import Project
 
 log = logging.getLogger(__name__)
@@ -109,7 +109,7 @@ class PickerState:
 
     @property
     def path(self) -> Path:
-        return self.project.root / mf.FILE_NAME
+        return self.project.manual_picks_path
 
     @property
     def backup_path(self) -> Path:
@@ -237,6 +237,8 @@ class PickerState:
                 if old is not None and old != text.encode("utf-8"):
                     backup = atomic_write_bytes(self.backup_path, old)
                 atomic_write_text(self.path, text)
+            except OutputError as exc:  # core.io's own message: the file, why, what to do
+                raise WriteFailed(str(exc)) from None
             except OSError as exc:
                 raise WriteFailed(f"could not write {self.path} ({exc.strerror or exc}); the file is unchanged: "
                                   f"check that the incident folder is writable and the disk has room") from None
