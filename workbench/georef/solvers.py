@@ -901,30 +901,61 @@ def adjust_shared_camera(intr: CameraIntrinsics, poses: dict[str, np.ndarray], c
             "residual": residual}
 
 
-def held_out_rms(intr: CameraIntrinsics, poses: dict[str, np.ndarray], cps: Sequence[ControlPoint],
-                 opts: GeorefOptions, free: Sequence[str], min_train: int = 4) -> tuple[float | None, int]:
+def held_out_errors(intr: CameraIntrinsics, poses: dict[str, np.ndarray], cps: Sequence[ControlPoint],
+                    opts: GeorefOptions, free: Sequence[str], min_train: int = 4) -> dict[str, np.ndarray]:
     """Two-fold cross-validation over the picks: every photo's picks split in two alternately (sorted by point
     name); the adjustment (intrinsics ``free``, or none: ``free=()``, SfM's kept) is fitted on one half of every
     photo and predicts the other half, then the halves swap. Only photos with ``min_train`` picks in each half
-    are scored (the others are fitted on all their picks both times, and not scored). Returns (RMS px of the
-    held-out picks, their number)."""
-    picks = {n: sorted(cp.name for cp in cps if n in cp.pixels) for n in poses}
-    scored = [n for n, ps in picks.items() if len(ps) >= 2 * min_train]
-    if not scored:
-        return None, 0
-    errs = []
+    are scored (the others are fitted on all their picks both times, and not scored). Returns photo -> pixel
+    errors of its held-out picks (every pick of a scored photo, once), in :func:`held_out_picks` order."""
+    picks = held_out_picks(poses, cps, min_train)
+    errs: dict[str, list[float]] = {n: [] for n in picks}
+    if not picks:
+        return {}
     for fold in (0, 1):
         use, test = set(), {}
-        for n, ps in picks.items():
-            if n in scored:
+        for n in poses:
+            ps = sorted(cp.name for cp in cps if n in cp.pixels)
+            if n in picks:
                 use |= {(p, n) for k, p in enumerate(ps) if k % 2 != fold}
                 test[n] = [p for k, p in enumerate(ps) if k % 2 == fold]
             else:
                 use |= {(p, n) for p in ps}
         adj = adjust_shared_camera(intr, poses, cps, opts, free=free, use=use)
         for n, ps in test.items():
-            errs.extend(adj["residual"](n, ps))
-    e = np.asarray(errs)
-    # a robust RMS: picks beyond the outlier threshold count at the threshold
-    e = np.minimum(e, opts.ransac_threshold_px)
-    return float(np.sqrt(np.mean(e ** 2))), len(e)
+            errs[n].extend(adj["residual"](n, ps))
+    # back in held_out_picks order (fold 0 took the even picks, fold 1 the odd ones)
+    out = {}
+    for n, ps in picks.items():
+        e = np.asarray(errs[n], float)
+        n0 = (len(ps) + 1) // 2
+        order = np.empty(len(ps), float)
+        order[0::2], order[1::2] = e[:n0], e[n0:]
+        out[n] = order
+    return out
+
+
+def held_out_picks(poses: dict[str, np.ndarray], cps: Sequence[ControlPoint], min_train: int = 4) -> dict[str, list[str]]:
+    """The photos :func:`held_out_errors` scores (``2 min_train`` picks or more) -> their picks' point names."""
+    out = {}
+    for n in poses:
+        ps = sorted(cp.name for cp in cps if n in cp.pixels)
+        if len(ps) >= 2 * min_train:
+            out[n] = ps
+    return out
+
+
+def robust_rms(errors: Sequence[float] | np.ndarray, opts: GeorefOptions) -> float | None:
+    """RMS of pixel errors with those beyond the outlier threshold counted at the threshold (None: no errors)."""
+    e = np.minimum(np.asarray(errors, float).ravel(), opts.ransac_threshold_px)
+    return float(np.sqrt(np.mean(e ** 2))) if e.size else None
+
+
+def held_out_rms(intr: CameraIntrinsics, poses: dict[str, np.ndarray], cps: Sequence[ControlPoint],
+                 opts: GeorefOptions, free: Sequence[str], min_train: int = 4) -> tuple[float | None, int]:
+    """(robust RMS px of the held-out picks of :func:`held_out_errors`, their number)."""
+    per = held_out_errors(intr, poses, cps, opts, free, min_train)
+    if not per:
+        return None, 0
+    e = np.concatenate(list(per.values()))
+    return robust_rms(e, opts), len(e)

@@ -20,6 +20,7 @@ Control-point residuals (pixels and metres, per point and per photo) go to ``out
 from __future__ import annotations
 
 import logging
+import math
 import warnings
 from pathlib import Path
 from typing import Any
@@ -28,8 +29,9 @@ import numpy as np
 
 from ..core.camera import CameraIntrinsics
 from ..errors import InputError, StageError
+from ..core.layout import CAMERAS_FILE
 from ..project import Project
-from ..runner import Progress, StageResult, StageSpec
+from ..runner import Progress, StageResult
 from .control_points import CONTROL_POINTS_FILE, ControlPoint, load_control_points
 from .gps import read_gps
 from .solvers import (GeorefOptions, GeorefResidualsLarge, RigView, SfmView, refine_resection_focal, solve_central,
@@ -37,67 +39,9 @@ from .solvers import (GeorefOptions, GeorefResidualsLarge, RigView, SfmView, ref
 
 log = logging.getLogger(__name__)
 
-__all__ = ["STAGE", "run_georef", "georef_route", "read_panorama_model", "read_reconstruction",
-           "validate_cameras_doc", "UPSTREAM_STAGES"]
+__all__ = ["run_georef", "read_panorama_model", "read_reconstruction", "validate_cameras_doc"]
 
-CAMERAS_FILE = "cameras.json"
-UPSTREAM_STAGES = ("stitch", "sfm")  # the stages whose outputs georef reads
-PANORAMA_MODEL = ("stitch", "panorama.json")
-RECONSTRUCTION = ("sfm", "reconstruction.json")
 PANORAMA_KEY = "panorama"  # pixel key of a pick made in the stitched panorama image
-
-
-# ----------------------------------------------------------------------------------------------------------
-# Which route, which files
-# ----------------------------------------------------------------------------------------------------------
-def georef_route(project: Project) -> str:
-    """``known``, ``multiview``, ``single`` or ``panorama`` (see the module docstring)."""
-    if (project.root / CAMERAS_FILE).is_file():
-        return "known"
-    cam = project.settings.camera
-    if cam.source.value == "sfm":
-        return "multiview"
-    try:
-        photos = project.photo_paths()
-    except InputError:
-        photos = []
-    return "single" if len(photos) == 1 else "panorama"
-
-
-def _control_points_path(project: Project) -> Path:
-    return project.root / CONTROL_POINTS_FILE
-
-
-def _inputs(project: Project) -> dict[str, Path]:
-    files: dict[str, Path] = {}
-    route = georef_route(project)
-    if route == "known":
-        files["cameras"] = project.root / CAMERAS_FILE
-    cp = _control_points_path(project)
-    if cp.is_file():
-        files["control_points"] = cp
-    if route == "panorama":
-        p = project.stage_dir(PANORAMA_MODEL[0]) / PANORAMA_MODEL[1]
-        if p.is_file():
-            files["panorama_model"] = p
-    elif route == "multiview":
-        p = project.stage_dir(RECONSTRUCTION[0]) / RECONSTRUCTION[1]
-        if p.is_file():
-            files["reconstruction"] = p
-    elif route == "single":
-        files["photo"] = project.photo_paths()[0]
-        if project.settings.camera.profile:
-            prof = project.path(project.settings.camera.profile)
-            if prof.is_file():
-                files["camera_profile"] = prof
-    return files
-
-
-def _applies(project: Project) -> bool:
-    """Known cameras, control points, or (multiview) an SfM model that the photos' GPS can place."""
-    if (project.root / CAMERAS_FILE).is_file() or _control_points_path(project).is_file():
-        return True
-    return georef_route(project) == "multiview" and (project.stage_dir(RECONSTRUCTION[0]) / RECONSTRUCTION[1]).is_file()
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -247,7 +191,7 @@ def _gps_enu(project: Project, path: Path | None) -> np.ndarray | None:
 
 
 def _load_cps(project: Project) -> list[ControlPoint]:
-    path = _control_points_path(project)
+    path = project.control_points_path
     if not path.is_file():
         raise InputError(f"{path}: not found; georegistration needs control points (landmarks with known "
                          f"coordinates picked in the photos, docs/gis.md) or a hand-written {CAMERAS_FILE}")
@@ -258,9 +202,9 @@ def _load_cps(project: Project) -> list[ControlPoint]:
 # The stage
 # ----------------------------------------------------------------------------------------------------------
 def run_georef(project: Project, progress: Progress, opts: GeorefOptions = GeorefOptions()) -> StageResult:
-    route = georef_route(project)
+    route = project.georef_route()
     out_dir = project.stage_dir("georef")
-    cp_path = _control_points_path(project)
+    cp_path = project.control_points_path
     where = str(cp_path)
     stats: dict[str, Any] = {"route": route}
     progress(0.05, route)
@@ -305,7 +249,7 @@ def _known(project: Project, opts: GeorefOptions) -> tuple[dict, dict]:
     doc = project.read_json(path)
     views = validate_cameras_doc(doc, str(path))
     extra: dict[str, Any] = {"n_views": len(views), "source": project.relative(path)}
-    cp_path = _control_points_path(project)
+    cp_path = project.control_points_path
     if cp_path.is_file():  # check the known cameras against the control points
         cps = load_control_points(cp_path, project.frame)
         resid = []
@@ -342,7 +286,7 @@ def _prior(project: Project, photo_paths: list[Path | None], opts: GeorefOptions
 
 
 def _panorama(project: Project, opts: GeorefOptions, where: str) -> tuple[dict, dict]:
-    pano_path = project.stage_dir(PANORAMA_MODEL[0]) / PANORAMA_MODEL[1]
+    pano_path = project.panorama_model_path
     if not pano_path.is_file():
         raise StageError(f"{pano_path}: not found; the panorama route needs the stitch stage's panorama model: run "
                          f"`workbench run {project.root} --only stitch` first (or write a {CAMERAS_FILE} by hand)")
@@ -417,8 +361,20 @@ def _separate_model_verdict(res, views: list[SfmView], opts: GeorefOptions) -> t
     n_out = sum(1 for r in res.residuals if not r["inlier"])
     sig = [res.centre_sigma_m(v.cam_from_model) for v in views]
     sig_max = None if any(x is None for x in sig) else float(max(sig))
+    finite = [r["error_px"] for r in res.residuals if r["error_px"] is not None]
+    rms_all = float(np.sqrt(np.mean(np.square(finite)))) if finite else None
     figures = {"n_fitting_triangulated": len(good), "spread_m": spread, "n_observations": n_obs,
-               "n_outliers": n_out, "rms_px": res.stats.get("rms_px"), "sigma_centre_max_m": sig_max}
+               "n_outliers": n_out, "rms_px": res.stats.get("rms_px"), "rms_all_px": rms_all,
+               "sigma_centre_max_m": sig_max}
+    if len(good) < opts.model_min_points and len(res.triangulated) >= opts.model_min_points:
+        # the points are there (picked in two or more photos, their rays meet): the model disagrees with them
+        behind = n_obs - len(finite)
+        return (f"control-point RMS residual {'-' if rms_all is None else f'{rms_all:.1f}'} px over its {n_obs} "
+                f"picks ({n_out} beyond {opts.ransac_threshold_px:g} px"
+                + (f", {behind} behind the camera" if behind else "")
+                + f"): of the {len(res.triangulated)} control points triangulated in it, {len(good)} fit it "
+                f"({opts.model_min_points} are needed): the model or its camera (focal) disagrees with the control "
+                f"points"), figures
     if len(good) < opts.model_min_points:
         return (f"{len(good)} control point(s) triangulated in this model fit it (all picks within "
                 f"{opts.ransac_threshold_px:g} px); {opts.model_min_points} are needed: pick more control points in "
@@ -459,7 +415,7 @@ def _camera_adjustment(models, placed: dict, resected: dict, out_views: list[dic
     poses, only when that residual is lower than with SfM's intrinsics kept. A photo placed by its model with
     too few picks to be adjusted states the similarity's covariance plus the scatter of its model's
     adjusted photos about their model poses (the SfM model's own error). ``out_views`` is updated in place."""
-    from .solvers import INTRINSIC_SETS, adjust_shared_camera, held_out_rms
+    from .solvers import INTRINSIC_SETS, adjust_shared_camera, held_out_errors, held_out_picks, robust_rms
 
     by_name = {v["name"]: v for v in out_views}
     sfm_intr: dict[str, CameraIntrinsics] = {}
@@ -507,20 +463,47 @@ def _camera_adjustment(models, placed: dict, resected: dict, out_views: list[dic
                                   "sfm_intrinsics": {"f": base.fx, "cx": base.cx, "cy": base.cy, "k1": base.k1}}
         try:
             free_adj = adjust_shared_camera(base, poses, cps_use, opts, free=INTRINSIC_SETS["f_pp_k1"], use=use)
-            cv = {"sfm": held_out_rms(base, poses, _only(cps_use, use), opts, ())}
+            picks_use = _only(cps_use, use)
+            cv = {"sfm_poses_refit": held_out_errors(base, poses, picks_use, opts, ())}
             for lbl, fr in INTRINSIC_SETS.items():
-                cv[lbl] = held_out_rms(base, poses, _only(cps_use, use), opts, fr)
+                cv[lbl] = held_out_errors(base, poses, picks_use, opts, fr)
         except (ValueError, np.linalg.LinAlgError) as exc:
             report["error"] = str(exc)
             adjustments.append(report)
             continue
+        # "sfm" (SfM's camera kept) keeps the photos' poses as placed, so it is scored on those poses: a photo
+        # placed by its SfM model by its picks' errors under the model pose (the similarity's 7 parameters are
+        # fitted to all the model's picks, so these are nearly held out: inflated by sqrt(m / (m - 7)), m the
+        # fit's residuals); a resected photo (its pose fitted to these very picks) by its pose refitted on
+        # held-out halves. Scoring "sfm" by poses refitted to each photo's own picks would compare the
+        # alternatives with poses "sfm" does not deliver: an exact SfM model lost to a refined focal on noise,
+        # and its photos took poses from their few own picks (a 5-pick photo 0.14 m and 0.25 deg off where
+        # its model pose was within 0.01 m).
+        hp = held_out_picks(poses, picks_use)
+        cps_by = {cp.name: cp for cp in cps_use}
+        as_placed = {}
+        for n, names_ in hp.items():
+            if n in placed and n not in resected:
+                label, res_m, _ = placed[n]
+                M = poses[n]
+                X = np.array([cps_by[p].enu for p in names_])
+                q = X @ M[:3, :3].T + M[:3, 3]
+                uv = np.array([cps_by[p].pixels[n] for p in names_], float)
+                e = np.full(len(names_), np.inf)
+                front = q[:, 2] > 1e-6
+                e[front] = np.hypot(*(base.project(q[front]) - uv[front]).T)
+                m = 2 * int(res_m.stats.get("n_observations") or 0)
+                as_placed[n] = e * (math.sqrt(m / (m - 7)) if m > 14 else 1.0)
+            else:
+                as_placed[n] = cv["sfm_poses_refit"][n]
+        cv = {"sfm": as_placed, **cv}
+        ho = {k: (robust_rms(np.concatenate(list(v.values())), opts) if v else None) for k, v in cv.items()}
         report.update({"free_intrinsics": {k: free_adj["values"][k] for k in ("f", "cx", "cy", "k1")},
                        "sigma_intrinsics": free_adj["sigma_intrinsics"], "condition": free_adj["condition"],
                        "chi2_red": free_adj["chi2_red"], "dof": free_adj["dof"],
                        "variance_factor": free_adj["variance_factor"], "rms_px": free_adj["rms_px"],
-                       "held_out_rms_px": {k: v[0] for k, v in cv.items()},
-                       "n_held_out": cv["sfm"][1]})
-        scored = {k: v[0] for k, v in cv.items() if v[0] is not None}
+                       "held_out_rms_px": ho, "n_held_out": int(sum(len(v) for v in as_placed.values()))})
+        scored = {k: v for k, v in ho.items() if v is not None and k != "sfm_poses_refit"}
         best = min(scored, key=scored.get) if "sfm" in scored else "sfm"
         report["chosen"] = best
         chosen = free_adj
@@ -615,6 +598,8 @@ def _resect_unplaced(project: Project, rdoc: dict, models, placed: dict, cps: li
     for cp in cps:
         for k in cp.pixels:
             picks[k] = picks.get(k, 0) + 1
+    # the cameras a placed SfM model checked against its control points (its photos' intrinsics)
+    checked_cameras = {_intr_key(x[2].intrinsics) for x in placed.values() if isinstance(x, tuple)}
     out, why = {}, {}
     for name in sorted(set(photo_paths) | set(sfm_intr)):
         if name in placed:
@@ -635,6 +620,7 @@ def _resect_unplaced(project: Project, rdoc: dict, models, placed: dict, cps: li
                 continue
             intr = main_cam
         from_refined = False
+        camera_checked = _intr_key(intr) in checked_cameras
         if refined and _intr_key(intr) in refined:  # the shared camera as the joint adjustment refined it
             intr, from_refined = refined[_intr_key(intr)], True
         import warnings as _w
@@ -673,7 +659,13 @@ def _resect_unplaced(project: Project, rdoc: dict, models, placed: dict, cps: li
                                "(SfM's disagrees with this photo's control points)", "rms_px": rms,
                                "sigma_centre_max_m": sig_max})
         reason = None
-        if rms is None or rms > opts.warn_rms_px:
+        if ff is None and not (from_refined or camera_checked):
+            # SfM's camera, checked by no placed model (its model failed its checks, or none was placed), and
+            # too few picks to check its focal here: a focal 8 % off moved such a photo (5 picks) 2.5 m along
+            # its line of sight with small residuals and a 0.41 m 1-sigma that does not count the focal
+            reason = (f"its camera (SfM's) is checked by no placed SfM model, and its {len(res.residuals)} "
+                      f"pick(s) cannot check the focal (6 fitting picks are needed)")
+        elif rms is None or rms > opts.warn_rms_px:
             reason = f"control-point RMS residual {rms} px exceeds {opts.warn_rms_px:g} px"
         elif int(s.get("n_points") or 0) - n_out < opts.resect_min_points:
             reason = f"only {int(s.get('n_points') or 0) - n_out} of its control points fit"
@@ -723,12 +715,12 @@ def _multiview(project: Project, opts: GeorefOptions, where: str) -> tuple[dict,
     from the control points triangulated in it, when they fix it (:func:`_separate_model_verdict`)."""
     import warnings as _w
 
-    rec_path = project.stage_dir(RECONSTRUCTION[0]) / RECONSTRUCTION[1]
+    rec_path = project.reconstruction_path
     if not rec_path.is_file():
         raise StageError(f"{rec_path}: not found; the multiview route needs the sfm stage's reconstruction: run "
                          f"`workbench run {project.root} --only sfm` first (or write a {CAMERAS_FILE} by hand)")
     models, rdoc = read_reconstruction_models(project, rec_path)
-    cp_path = _control_points_path(project)
+    cp_path = project.control_points_path
     cps = load_control_points(cp_path, project.frame) if cp_path.is_file() else []
     photos = _photo_by_name(project)
     all_views = {v.name: v for _, vs in models for v in vs}
@@ -967,8 +959,3 @@ def _single(project: Project, opts: GeorefOptions, where: str) -> tuple[dict, di
                                  src == "calibrated")],
            "panorama": None}
     return doc, {**_short_stats(res), "prior_source": prior_src, "centre_enu": res.centre_enu.tolist()}
-
-
-STAGE = StageSpec(
-    "georef", "place the cameras in the scene frame from control points (or known cameras)", run_georef,
-    inputs=_inputs, settings_sections=("location", "camera"), depends_on=UPSTREAM_STAGES, applies=_applies)
