@@ -180,13 +180,11 @@ def test_real_canon_cropped_and_resized_after_tagging():
     assert pr.sigma_px >= 0.15 * pr.focal_px
 
 
-def test_real_synthetic_incident_focal_plane():
-    truth = ROOT / "projects" / "spuyten-duyvil" / "truth" / "ground_truth.json"
-    if not truth.is_file():
-        pytest.skip("sample incident not here")
-    t = json.loads(truth.read_text())
+def test_real_synthetic_incident_focal_plane(small_incident):
+    """The EXIF a generated incident's photos carry (tests/conftest.py's small incident, never projects/)."""
+    root, t = small_incident
     ph = t["photos"][0]
-    pr = exif_focal_prior(ROOT / "projects" / "spuyten-duyvil" / ph["photo"])
+    pr = exif_focal_prior(root / ph["photo"])
     assert pr.source == "focal_plane" and abs(pr.focal_px / ph["intrinsics"]["fx"] - 1) < 1e-4
     assert abs(pr.candidates["35mm_equivalent"] / ph["intrinsics"]["fx"] - 1) < 0.03
 

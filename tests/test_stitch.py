@@ -1,5 +1,5 @@
 """The stitch stage against ground truth: focal and rotations of views cut from a real photo by known
-rotations (with and without lens distortion) and of the synthetic sample's panorama set; the distractor
+rotations (with and without lens distortion) and of a small generated incident's panorama set; the distractor
 rejected; parallax refused; the stage's files, with a true 3D point landing where the panorama shows it."""
 
 from __future__ import annotations
@@ -22,12 +22,9 @@ from workbench.stitch.cutviews import align_rotation, cut_views, grid_rotations,
 REPO = Path(__file__).resolve().parents[1]
 DATA = REPO.parent / "shared" / "data"
 STITCHING = DATA / "stitching"
-SAMPLE = REPO / "projects" / "spuyten-duyvil"
-SMALL = (480, 360)  # the sample's 1600x1200 photos reduced by 0.3
+SMALL = (480, 360)  # the generated incident's 800x600 photos reduced by 0.6
 
 needs_data = pytest.mark.skipif(not STITCHING.is_dir(), reason="../shared/data/stitching is not there")
-needs_sample = pytest.mark.skipif(not (SAMPLE / "truth" / "ground_truth.json").is_file(),
-                                  reason="the spuyten-duyvil sample is not there")
 FAST = StitchOptions(compose=False)
 
 
@@ -55,16 +52,17 @@ def _cut_set(tmp: Path, k1: float, kind: str = "grid"):
 
 
 @pytest.fixture(scope="module")
-def sample_small(tmp_path_factory):
-    """The sample's panorama photos reduced to 480x360, their true intrinsics and cam_from_world."""
-    truth = json.loads((SAMPLE / "truth" / "ground_truth.json").read_text())
+def sample_small(small_incident, tmp_path_factory):
+    """The panorama photos of the session's small generated incident (tests/conftest.py) reduced to 480x360,
+    their true intrinsics and cam_from_world."""
+    root, truth = small_incident
     out = tmp_path_factory.mktemp("sample_small")
     paths, intr, rot, photos = [], {}, {}, []
     for ph in truth["photos"]:
         if ph["set"] != "panorama":
             continue
         name = Path(ph["photo"]).name
-        img = cv2.imread(str(SAMPLE / ph["photo"]))
+        img = cv2.imread(str(root / ph["photo"]))
         cv2.imwrite(str(out / name), cv2.resize(img, SMALL, interpolation=cv2.INTER_AREA),
                     [cv2.IMWRITE_JPEG_QUALITY, 95])
         paths.append(out / name)
@@ -72,7 +70,7 @@ def sample_small(tmp_path_factory):
         intr[name] = K.scaled(SMALL[0] / K.width)
         rot[name] = np.asarray(ph["cam_from_world"])[:3, :3]
         photos.append(ph)
-    return {"paths": paths, "intrinsics": intr, "cam_from_world": rot, "truth": truth, "photos": photos}
+    return {"paths": paths, "intrinsics": intr, "cam_from_world": rot, "truth": truth, "photos": photos, "root": root}
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -272,7 +270,6 @@ def test_cut_views_calibrated_keeps_the_lens(tmp_path):
     assert all(0.0 < e < 0.03 for e in errs.values()), errs
 
 
-@needs_sample
 def test_sample_panorama_calibrated(sample_small):
     """The synthetic sample's panorama set (distorted, k1 = -0.08), calibrated route: rotations to 0.05 deg."""
     d = sample_small
@@ -344,7 +341,6 @@ def test_weir_distractor_rejected(tmp_path):
 
 
 @needs_data
-@needs_sample
 def test_unrelated_photo_rejected_from_sample(sample_small, tmp_path):
     d = sample_small
     img = cv2.imread(str(STITCHING / "skimage_pano_arches" / "JDW_9519.jpg"))
@@ -356,13 +352,23 @@ def test_unrelated_photo_rejected_from_sample(sample_small, tmp_path):
     assert len(r.model.sources) == len(d["paths"])
 
 
-@needs_sample
 def test_parallax_is_refused(tmp_path):
-    """Photos from different places (the sample's multi-view set) are refused with advice to use sfm."""
-    for n in ("view_02.jpg", "view_05.jpg", "view_06.jpg"):
-        img = cv2.imread(str(SAMPLE / "photos" / "multiview" / n))
-        cv2.imwrite(str(tmp_path / n), cv2.resize(img, SMALL, interpolation=cv2.INTER_AREA))
-    with pytest.raises(InputError, match="sfm"):
+    """Photos from different places are refused with advice to use sfm. Built here: three views of the ray-cast
+    scene of workbench.intrinsics.synthetic (ground and boxes 4-6 m tall) from three places 6 m apart, 18 m
+    from the boxes (the small generated incident's overlapping multi-view photos are 4-8 m apart at 50-100 m:
+    too little parallax to test this; the full sample's were 30-110 m apart)."""
+    from PIL import Image
+
+    from workbench.intrinsics.synthetic import look_at, make_scene, pixel_rays, render
+
+    w, h = SMALL
+    f = w / 2 / np.tan(np.radians(27.5))
+    intr = CameraIntrinsics(width=w, height=h, fx=f, fy=f, cx=(w - 1) / 2, cy=(h - 1) / 2)
+    quads, rays = make_scene(0), pixel_rays(intr)
+    for i, x in enumerate((-6.0, 0.0, 6.0)):
+        M = look_at(np.array([x, -16.0, 2.0]), np.array([0.0, 2.0, 1.5]))
+        Image.fromarray(render(quads, intr, M, rays_cam=rays)).save(tmp_path / f"view_{i}.jpg", quality=95)
+    with pytest.raises(InputError, match=r"(?s)different positions \(parallax\).*camera.source = \"sfm\""):
         stitch_photos(sorted(tmp_path.glob("*.jpg")), options=FAST)
 
 
@@ -374,20 +380,21 @@ def test_too_few_photos(tmp_path):
 # ----------------------------------------------------------------------------------------------------------
 # the stage: files, and a true 3D point landing where the panorama image shows it
 # ----------------------------------------------------------------------------------------------------------
-@needs_sample
 def test_stage_writes_panorama_and_exact_model(sample_small, tmp_path):
     from workbench.pipeline import STAGES
     from workbench.project import Project
     from workbench.runner import Runner
-    from workbench.stitch.stage import STAGE
+    from workbench.pipeline import stage
+
+    STAGE = stage("stitch")
 
     d = sample_small
     root = tmp_path / "inc"
     (root / "photos" / "panorama").mkdir(parents=True)
     for p in d["paths"]:
         shutil.copy(p, root / "photos" / "panorama" / p.name)
-    shutil.copy(SAMPLE / "project.toml", root / "project.toml")
-    shutil.copy(SAMPLE / "camera_profile.json", root / "camera_profile.json")  # 1600x1200: scaled by the stage
+    shutil.copy(d["root"] / "project.toml", root / "project.toml")
+    shutil.copy(d["root"] / "camera_profile.json", root / "camera_profile.json")  # 800x600: scaled by the stage
     project = Project(root)
     assert STAGE.applies(project)
     seen = []
@@ -419,7 +426,7 @@ def test_stage_writes_panorama_and_exact_model(sample_small, tmp_path):
                 X = np.asarray(next(c for c in truth["carriages"] if c["number"] == car)["marked_points_enu"][pname])
                 uv = model.project(((X - centre) @ A.T)[None])[0]
                 # the same point seen in the photo (true pixel, reduced like the photo) mapped into the panorama
-                uv_true = (np.asarray(o["uv"]) + 0.5) * (SMALL[0] / 1600) - 0.5
+                uv_true = (np.asarray(o["uv"]) + 0.5) * (SMALL[0] / ph["intrinsics"]["width"]) - 0.5
                 np.testing.assert_allclose(model.from_source(i, uv_true[None])[0], uv, atol=0.6)
                 n_checked += 1
                 if not (20 < uv[0] < model.width - 20 and 20 < uv[1] < model.height - 20):
@@ -445,7 +452,6 @@ def test_stage_writes_panorama_and_exact_model(sample_small, tmp_path):
     assert n_checked >= 10 and n_ncc >= 10
 
 
-@needs_sample
 def test_cli_runs_the_stitch_stage(sample_small, tmp_path):
     """`workbench run PATH --only inputs --only stitch` on a copy of the sample (reduced photos, scaled profile)."""
     import subprocess
@@ -455,8 +461,8 @@ def test_cli_runs_the_stitch_stage(sample_small, tmp_path):
     (root / "photos" / "panorama").mkdir(parents=True)
     for p in sample_small["paths"]:
         shutil.copy(p, root / "photos" / "panorama" / p.name)
-    shutil.copy(SAMPLE / "project.toml", root / "project.toml")
-    shutil.copy(SAMPLE / "camera_profile.json", root / "camera_profile.json")
+    shutil.copy(sample_small["root"] / "project.toml", root / "project.toml")
+    shutil.copy(sample_small["root"] / "camera_profile.json", root / "camera_profile.json")
     exe = Path(sys.executable).parent / "workbench"
     r = subprocess.run([str(exe), "run", str(root), "--only", "inputs", "--only", "stitch"], capture_output=True,
                        text=True, timeout=300)
