@@ -412,7 +412,9 @@ def _camera_adjustment(models, placed: dict, resected: dict, out_views: list[dic
     stated uncertainty: it counts the picks' noise, the residual
     scatter and the intrinsics' uncertainty. The refined intrinsics (the parameter set with the lowest
     two-fold cross-validated residual of held-out picks) replace SfM's, and the photos take their adjusted
-    poses, only when that residual is lower than with SfM's intrinsics kept. A photo placed by its model with
+    poses, only when that residual is lower than with SfM's intrinsics kept, which is scored on the poses it
+    keeps: the photos' poses as placed (by their model's similarity, or their resection refitted on held-out
+    halves; ``held_out_rms_px``: ``sfm``, beside ``sfm_poses_refit``, every pose refitted). A photo placed by its model with
     too few picks to be adjusted states the similarity's covariance plus the scatter of its model's
     adjusted photos about their model poses (the SfM model's own error). ``out_views`` is updated in place."""
     from .solvers import INTRINSIC_SETS, adjust_shared_camera, held_out_errors, held_out_picks, robust_rms
