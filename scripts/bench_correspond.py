@@ -149,7 +149,6 @@ def solve_errors(src: Path, work: Path, obs: list | None, seed: int = 0, reuse: 
     from workbench.correspond import manual as mf
     from workbench.pipeline import STAGES
     from workbench.runner import Runner, StageResult, StageSpec
-    from workbench.solve.stage import STAGE as SOLVE
     from workbench.synth.handpicks import true_correspondences, write_known_cameras
 
     reuse = reuse and (work / "out" / "terrain").is_dir()
@@ -168,7 +167,7 @@ def solve_errors(src: Path, work: Path, obs: list | None, seed: int = 0, reuse: 
     by_name = {s.name: s for s in STAGES}
     stages = [by_name["inputs"], by_name["terrain"],
               StageSpec("georef", "known cameras (cameras.json)", stand_in, applies=lambda p: False),
-              StageSpec("correspond", "points under test", stand_in, depends_on=("inputs",)), SOLVE]
+              StageSpec("correspond", "points under test", stand_in, depends_on=("inputs",)), by_name["solve"]]
     project = Project(root)
     try:
         if reuse:  # the points changed, nothing else: the stand-in and the solve run again, forced

@@ -3,7 +3,7 @@
 # run every stage, and print where the outputs are. Run it again: finished stages are skipped.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/setup.sh
+bash scripts/setup.sh --demo  # what a run needs; scripts/test.sh installs the test clients
 INCIDENT=${1:-projects/spuyten-duyvil}
 case "$INCIDENT" in
   *spuyten-duyvil) SCEN=(--scenario spuyten-duyvil --seed 1 --layers-dir ../../terrain/bronx) ;;

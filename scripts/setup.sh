@@ -7,14 +7,20 @@
 #    ogrinfo, Blender, Node.js with the Khronos glTF validator (npm package gltf-validator); Chromium, which
 #    the picker test drives (through Playwright);
 #  - uv, a virtual environment in .venv, and the package with the locked dependency versions (uv.lock).
-# `scripts/setup.sh --bench` also installs Hugin (hugin-tools, enblend) for scripts/bench_stitch.py.
+# `scripts/setup.sh --demo` installs only what a run needs (rendering and the PDF report: scripts/demo.sh uses
+# it); the clients the tests check the exports with (GDAL, Blender, Node.js, Chromium, Xvfb) come with the plain
+# `scripts/setup.sh` (scripts/test.sh). `scripts/setup.sh --bench` also installs Hugin (hugin-tools, enblend) for
+# scripts/bench_stitch.py.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-APT_PACKAGES=(libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 libgl1 libgomp1 xvfb xauth poppler-utils
-              libpango-1.0-0 libpangoft2-1.0-0 gdal-bin blender chromium)
-if [ "${1:-}" = "--bench" ]; then APT_PACKAGES+=(hugin-tools enblend); fi
-command -v npm >/dev/null 2>&1 || APT_PACKAGES+=(nodejs npm)
+APT_PACKAGES=(libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 libgl1 libgomp1 libpango-1.0-0 libpangoft2-1.0-0)
+PROFILE=${1:-}
+if [ "$PROFILE" != "--demo" ]; then
+  APT_PACKAGES+=(xvfb xauth poppler-utils gdal-bin blender chromium)
+  command -v npm >/dev/null 2>&1 || APT_PACKAGES+=(nodejs npm)
+fi
+if [ "$PROFILE" = "--bench" ]; then APT_PACKAGES+=(hugin-tools enblend); fi
 missing=()
 for p in "${APT_PACKAGES[@]}"; do
   dpkg-query -W -f='${Status}' "$p" 2>/dev/null | grep -q "install ok installed" || missing+=("$p")
@@ -27,7 +33,7 @@ if [ ${#missing[@]} -gt 0 ]; then
 fi
 
 # the Khronos glTF validator (a library; the tests call it through node)
-if [ ! -d "$(npm root -g 2>/dev/null)/gltf-validator" ]; then
+if [ "$PROFILE" != "--demo" ] && [ ! -d "$(npm root -g 2>/dev/null)/gltf-validator" ]; then
   echo "setup: installing the Khronos glTF validator (npm gltf-validator)"
   $SUDO npm install -g --silent --no-fund --no-audit gltf-validator >/dev/null 2>&1 \
     || echo "setup: could not install gltf-validator from npm; the glTF validator test will be skipped"

@@ -1,6 +1,7 @@
 import os
 
 os.environ.setdefault("MPLBACKEND", "Agg")
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the CLI runs (workbench.cli.single_threaded_blas)
 
 
 # --------------------------------------------------------------------------------------------------------------

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import datetime as _dt
 import logging
+import os
 import sys
 from pathlib import Path
 from typing import Optional
@@ -96,23 +97,40 @@ def _runner(path: Path):
     return project, Runner(project, STAGES)
 
 
+LOG_PROGRESS_EVERY_S = 2.0  # without a terminal, a stage's progress is a line at most this often
+
+
 def _execute(path: Path, **kw) -> None:
-    """Run stages with progress bars (a terminal) or one line per stage (a log), then list the outputs."""
+    """Run stages with progress bars (a terminal), or lines in a log: a stage's start, its progress (a line when
+    its step changes, at most every LOG_PROGRESS_EVERY_S), and its end; then list the outputs."""
+    import time
+
     project, runner = _runner(path)
     with _progress() as prog:
         tasks = {}
 
         def factory(spec):
             tasks[spec.name] = prog.add_task(spec.name, total=1.0, msg="")
-            return lambda f, m="": prog.update(tasks[spec.name], completed=f, msg=m)
+            if console.is_terminal:
+                return lambda f, m="": prog.update(tasks[spec.name], completed=f, msg=m)
+            last = {"t": time.monotonic(), "msg": None}
+
+            def log_line(f: float, m: str = "") -> None:
+                now = time.monotonic()
+                if m != last["msg"] and now - last["t"] >= LOG_PROGRESS_EVERY_S:
+                    console.print(f"{spec.name}: {100 * f:3.0f} % {m}")
+                    last.update(t=now, msg=m)
+            return log_line
 
         def event(kind, spec, rec):
             if kind == "done" and spec.name in tasks:
                 prog.update(tasks[spec.name], completed=1.0, msg=f"done in {rec['duration_s']:.1f} s")
             if kind == "skipped":
                 prog.console.print(f"{spec.name}: up to date, skipped")
+            if not console.is_terminal and kind == "start":
+                console.print(f"{spec.name}: running")
             if not console.is_terminal and kind == "done":
-                console.print(f"{spec.name}: {kind}")
+                console.print(f"{spec.name}: done in {rec['duration_s']:.1f} s")
 
         steps = kw.pop("steps", None) or [kw]
         for step in steps:
@@ -264,8 +282,17 @@ def _error(message: str, limit: int = 2000) -> None:
     console.print(Text.assemble(("error:", "red"), " ", message), soft_wrap=True)
 
 
+def single_threaded_blas() -> None:
+    """One BLAS thread unless the user sets ``OPENBLAS_NUM_THREADS``: the workbench's linear algebra is many small
+    matrices (2x2 to a few hundred rows), where OpenBLAS's threads only synchronise, and on a busy 2-core machine
+    they spin: the terrain stage's Delaunay refinement took 90-112 s at load 7 with them, 1.9 s without
+    (docs/performance.md). Must run before numpy is imported (the CLI imports it only inside commands)."""
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
 def main(argv: list[str] | None = None) -> None:
     """The ``workbench`` entry point: every error a user can cause is one line on stderr and exit status 2."""
+    single_threaded_blas()
     try:
         result = app(args=argv, standalone_mode=False)
     except WorkbenchError as exc:

@@ -24,7 +24,7 @@ import numpy as np
 from ..core.camera import CameraIntrinsics
 from ..errors import InputError
 from ..project import Project
-from ..runner import Progress, StageResult, StageSpec
+from ..runner import Progress, StageResult
 from . import manual as mf
 from .assign import find_cars, observations_of
 from .match import MatchOptions, photo_features
@@ -34,46 +34,9 @@ from .transfer import carry
 
 log = logging.getLogger(__name__)
 
-CAMERAS_FILE = "cameras.json"
-
-
-def manual_path(project: Project) -> Path:
-    return project.root / mf.FILE_NAME
-
 
 def output_path(project: Project) -> Path:
     return project.stage_dir("correspond") / mf.FILE_NAME
-
-
-def cameras_file(project: Project) -> Path | None:
-    """The incident's own ``cameras.json`` (known cameras), else the georef stage's, else None."""
-    own = project.root / CAMERAS_FILE
-    if own.is_file():
-        return own
-    out = project.stage_dir("georef") / CAMERAS_FILE
-    return out if out.is_file() else None
-
-
-def _inputs(project: Project) -> dict[str, Path]:
-    files = {f"photo:{p.name}": p for p in project.photo_paths()}
-    if manual_path(project).is_file():
-        files["manual"] = manual_path(project)
-    cams = cameras_file(project)
-    if cams is not None:
-        files["cameras"] = cams
-    if project.settings.camera.profile:
-        files["camera_profile"] = project.path(project.settings.camera.profile)
-    if project.rolling_stock_dir.is_dir():
-        for t in sorted(project.rolling_stock_dir.glob("*.toml")):
-            files[f"rolling_stock:{t.name}"] = t
-    pano = project.stage_dir("stitch") / "panorama.jpg"
-    if pano.is_file():
-        files["panorama"] = pano
-    if project.settings.terrain.dem:  # the pose search's ground
-        from ..terrain.stage import _files as terrain_files
-
-        files.update({k: v for k, v in terrain_files(project).items() if k.startswith("dem")})
-    return files
 
 
 def _read_rgb(path: Path) -> np.ndarray:
@@ -99,7 +62,7 @@ def _image_size(path: Path) -> tuple[int, int]:
 def photo_intrinsics(project: Project, photos: list[Path]) -> tuple[dict[str, CameraIntrinsics], str]:
     """Intrinsics of each photo (name -> CameraIntrinsics of the photo as on disk) and where they came from."""
     sizes = {p.name: _image_size(p) for p in photos}
-    cams = cameras_file(project)
+    cams = project.cameras_path()
     if cams is not None:
         doc = project.read_json(cams)
         views = {v.get("name"): v for v in doc.get("views", []) if isinstance(v, dict)}
@@ -136,7 +99,7 @@ def photo_intrinsics(project: Project, photos: list[Path]) -> tuple[dict[str, Ca
 
 def camera_poses(project: Project, photos: list[Path]) -> dict[str, np.ndarray]:
     """cam_from_world (4, 4) of each photo listed in ``cameras.json`` (the incident's or georef's); {} without."""
-    cams = cameras_file(project)
+    cams = project.cameras_path()
     if cams is None:
         return {}
     doc = project.read_json(cams)
@@ -167,7 +130,7 @@ def _terrain(project: Project):
 
 def load_manual(project: Project, photos: list[Path] | None = None) -> mf.CorrespondenceFile:
     """The incident's manual correspondences (empty if there is no file), validated against the incident."""
-    path = manual_path(project)
+    path = project.manual_picks_path
     if not path.is_file():
         return mf.CorrespondenceFile()
     types = project.carriage_types()
@@ -286,8 +249,4 @@ def run_correspond(project: Project, progress: Progress, opts: MatchOptions | No
                        stats=stats)
 
 
-STAGE = StageSpec("correspond", "marked points in the photos: SIFT against each car's livery, plus manual picks",
-                  run_correspond, inputs=_inputs, settings_sections=("consist", "camera", "terrain"),
-                  depends_on=("inputs",))
-
-__all__ = ["STAGE", "run_correspond", "load_manual", "photo_intrinsics", "automatic", "FACES"]
+__all__ = ["run_correspond", "load_manual", "photo_intrinsics", "automatic", "FACES"]

@@ -1,0 +1,216 @@
+#!/usr/bin/env python
+"""How fast the workbench answers, old and new code side by side in one run (issue 18's table).
+
+Each figure is the wall time of a fresh process, as a user types it, for the code at ``--base`` (a git
+worktree made under the system temp folder, run with PYTHONPATH pointing at it) and for this working tree:
+
+  help         `workbench --help` (median of --repeat runs)
+  status       `workbench status INCIDENT` on a run incident (every input hashed; median)
+  types        `workbench types` (median)
+  run          `workbench run` on a fresh copy of the sample incident (photos there, nothing run), with the
+               run time of every stage from out/state.json
+  stitch       `workbench stitch` on an incident holding one real photo set of ../shared/data/stitching, against
+               cv2.Stitcher (PANORAMA defaults) in a fresh process (imread to the written JPEG): the ratio
+
+The same sample incident (``--incident``, default projects/spuyten-duyvil; generate it with scripts/demo.sh or
+`workbench synth`) is copied for each version, with its terrain layers. Results: printed, and saved as JSON
+(bench_out/performance.json). Run it on an idle machine; it takes a few minutes per version:
+
+    .venv/bin/python scripts/bench_performance.py [--base 9f57319] [--parts help,status,types,run,stitch]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data" / "stitching"
+STITCH_SETS = {
+    "weir": ("opencv_weir", ["weir_1.jpg", "weir_2.jpg", "weir_3.jpg", "weir_noise.jpg"]),
+    "budapest": ("opencv_budapest", [f"budapest{i}.jpg" for i in range(1, 7)]),
+    "arches_9518": ("skimage_pano_arches", ["JDW_9518.jpg", "JDW_9519.jpg", "JDW_9520.jpg"]),
+    "petra": ("skimage_pano_petra", ["DFM_4209.jpg", "DFM_4210.jpg", "DFM_4211.jpg"]),
+}
+TARGETS = {"help": 0.5, "status": 1.0, "types": 1.0, "run": 45.0, "stitch_ratio": 1.5}
+CV2_STITCH = """
+import sys, cv2
+imgs = [cv2.imread(p) for p in sys.argv[2:]]
+status, pano = cv2.Stitcher_create(cv2.Stitcher_PANORAMA).stitch(imgs)
+if status != 0:
+    sys.exit(f"cv2.Stitcher status {status}")
+cv2.imwrite(sys.argv[1], pano)
+"""
+
+
+NEUTRAL_CWD = Path(tempfile.gettempdir())  # not the repository: `python -c` puts the cwd first on sys.path
+
+
+def _timed(cmd: list[str], env: dict, cwd: Path | None = None, check: bool = True) -> float:
+    t0 = time.perf_counter()
+    r = subprocess.run(cmd, env=env, cwd=cwd or NEUTRAL_CWD, capture_output=True, text=True)
+    dt = time.perf_counter() - t0
+    if check and r.returncode != 0:
+        raise RuntimeError(f"{' '.join(cmd)} failed ({r.returncode}): {r.stderr[-2000:]}")
+    return dt
+
+
+def _median(cmd: list[str], env: dict, repeat: int) -> dict:
+    times = [_timed(cmd, env) for _ in range(repeat)]
+    return {"median_s": round(statistics.median(times), 3), "min_s": round(min(times), 3),
+            "max_s": round(max(times), 3), "n": repeat}
+
+
+def _copy_incident(src: Path, dst_root: Path) -> Path:
+    """A copy of ``src`` (without out/) and of the terrain layers its settings name, at the same relative place."""
+    dst = dst_root / "projects" / src.name
+    shutil.copytree(src, dst, ignore=shutil.ignore_patterns("out"), symlinks=True)
+    truth = src / "truth" / "ground_truth.json"
+    layers = json.loads(truth.read_text())["layers"] if truth.is_file() else {}
+    for rel in layers.values():
+        s = (src / rel).resolve().parent
+        d = (dst / rel).resolve().parent
+        if s.is_dir() and not d.exists():
+            shutil.copytree(s, d)
+    return dst
+
+
+def _version(name: str, tree: Path) -> dict:
+    env = dict(os.environ, PYTHONPATH=str(tree))
+    env.pop("OPENBLAS_NUM_THREADS", None)  # each version runs as its own entry point sets up
+    return {"name": name, "tree": str(tree), "env": env,
+            "cli": [sys.executable, "-c", "import sys, workbench; assert workbench.__file__.startswith(sys.argv[1]); "
+                    "from workbench.cli import main; del sys.argv[1]; sys.argv[0] = 'workbench'; main()", str(tree)]}
+
+
+def _bench_version(v: dict, args, work: Path) -> dict:
+    res: dict = {}
+    cli, env = v["cli"], v["env"]
+    parts = args.parts
+    if "help" in parts:
+        res["help"] = _median([*cli, "--help"], env, args.repeat)
+        print(f"  {v['name']}: help {res['help']['median_s']:.2f} s", flush=True)
+    if "types" in parts:
+        res["types"] = _median([*cli, "types"], env, args.repeat)
+        print(f"  {v['name']}: types {res['types']['median_s']:.2f} s", flush=True)
+    if "run" in parts or "status" in parts:
+        inc = _copy_incident(args.incident, work / v["name"])
+        t = _timed([*cli, "run", str(inc)], env)
+        state = json.loads((inc / "out" / "state.json").read_text())
+        res["run"] = {"wall_s": round(t, 2), "stages_s": {k: r.get("duration_s") for k, r in state.items()},
+                      "all_done": all(r.get("status") == "done" for r in state.values())}
+        sol = json.loads((inc / "out" / "solve" / "solution.json").read_text())
+        res["run"]["placed"] = sorted(c["number"] for c in sol["carriages"] if c.get("world_from_carriage"))
+        truth = inc / "truth" / "ground_truth.json"
+        if truth.is_file():
+            res["run"]["centre_errors_m"] = _centre_errors(sol, json.loads(truth.read_text()))
+        print(f"  {v['name']}: run {t:.1f} s {res['run']['stages_s']}", flush=True)
+        if "status" in parts:
+            res["status"] = _median([*cli, "status", str(inc)], env, args.repeat)
+            print(f"  {v['name']}: status {res['status']['median_s']:.2f} s", flush=True)
+    if "stitch" in parts and DATA.is_dir():
+        res["stitch"] = {}
+        for set_name, (folder, files) in STITCH_SETS.items():
+            inc = work / v["name"] / "stitch" / set_name
+            r = subprocess.run([*cli, "init", str(inc), "--lat", "0", "--lon", "0"], env=env, capture_output=True,
+                               cwd=NEUTRAL_CWD)
+            if r.returncode != 0:
+                raise RuntimeError(r.stderr)
+            for f in files:
+                shutil.copy(DATA / folder / f, inc / "photos" / "panorama" / f)
+            t = _timed([*cli, "stitch", str(inc)], env)
+            res["stitch"][set_name] = {"ours_s": round(t, 2)}
+            print(f"  {v['name']}: stitch {set_name} {t:.1f} s", flush=True)
+    return res
+
+
+def _centre_errors(sol: dict, truth: dict) -> dict:
+    import numpy as np
+
+    true_by = {str(c["number"]): c for c in truth.get("carriages", [])}
+    out = {}
+    for c in sol["carriages"]:
+        t = true_by.get(str(c["number"]))
+        if c.get("world_from_carriage") is None or t is None or "world_from_carriage" not in t:
+            continue
+        out[c["number"]] = round(float(np.linalg.norm(np.asarray(c["world_from_carriage"])[:3, 3]
+                                                      - np.asarray(t["world_from_carriage"])[:3, 3])), 3)
+    return out
+
+
+def _cv2_stitch(work: Path) -> dict:
+    out = {}
+    env = dict(os.environ)
+    for set_name, (folder, files) in STITCH_SETS.items():
+        t = _timed([sys.executable, "-c", CV2_STITCH, str(work / f"cv2_{set_name}.jpg"),
+                    *[str(DATA / folder / f) for f in files]], env, check=False)
+        out[set_name] = round(t, 2)
+        print(f"  cv2.Stitcher: {set_name} {t:.1f} s", flush=True)
+    return out
+
+
+def _table(results: dict) -> list[str]:
+    base, head = results["versions"]
+    b, h = results[base], results[head]
+    rows = [f"| what | {base} | {head} | target |", "|---|---|---|---|"]
+    for key, label in (("help", "`workbench --help`"), ("status", "`workbench status` (sample, run)"),
+                       ("types", "`workbench types`")):
+        if key in b:
+            rows.append(f"| {label} | {b[key]['median_s']:.2f} s | {h[key]['median_s']:.2f} s | < {TARGETS[key]} s |")
+    if "run" in b:
+        rows.append(f"| `workbench run` (sample) | {b['run']['wall_s']:.1f} s | {h['run']['wall_s']:.1f} s | "
+                    f"< {TARGETS['run']:.0f} s |")
+        for st in h["run"]["stages_s"]:
+            rows.append(f"| &nbsp; {st} | {b['run']['stages_s'].get(st)} s | {h['run']['stages_s'].get(st)} s | |")
+    if "stitch" in b and "cv2" in results:
+        for set_name, t in results["cv2"].items():
+            rb, rh = b["stitch"][set_name]["ours_s"] / t, h["stitch"][set_name]["ours_s"] / t
+            rows.append(f"| `workbench stitch` / cv2.Stitcher, {set_name} | {rb:.2f} | {rh:.2f} | "
+                        f"<= {TARGETS['stitch_ratio']} |")
+    return rows
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--base", default="9f57319", help="git revision of the old code (default: 9f57319)")
+    ap.add_argument("--incident", type=Path, default=ROOT / "projects" / "spuyten-duyvil")
+    ap.add_argument("--parts", default="help,status,types,run,stitch")
+    ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--out", type=Path, default=ROOT / "bench_out" / "performance.json")
+    args = ap.parse_args()
+    args.parts = set(args.parts.split(","))
+    if ({"run", "status"} & args.parts) and not (args.incident / "truth" / "ground_truth.json").is_file():
+        sys.exit(f"{args.incident}: no generated sample incident; run scripts/demo.sh (or `workbench synth`) first")
+    work = Path(tempfile.mkdtemp(prefix="bench_performance_"))
+    base_tree = work / "base"
+    subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-f", str(base_tree), args.base],
+                   check=True, capture_output=True)
+    try:
+        versions = [_version(f"base {args.base}", base_tree), _version("head", ROOT)]
+        results: dict = {"versions": [v["name"] for v in versions], "machine": {"cpus": os.cpu_count(),
+                         "load_before": os.getloadavg()}, "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+        for v in versions:
+            print(f"{v['name']} ({v['tree']})", flush=True)
+            results[v["name"]] = _bench_version(v, args, work)
+        if "stitch" in args.parts and DATA.is_dir():
+            results["cv2"] = _cv2_stitch(work)
+        results["machine"]["load_after"] = os.getloadavg()
+        print("\n".join(["", *_table(results)]))
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(results, indent=2, default=str) + "\n")
+        print(f"\nsaved {args.out}")
+    finally:
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(base_tree)], capture_output=True)
+        shutil.rmtree(work, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
