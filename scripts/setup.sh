@@ -43,5 +43,9 @@ if ! command -v uv >/dev/null 2>&1; then
   echo "setup: installing uv"
   python3 -m pip install --quiet --disable-pip-version-check uv
 fi
-# --locked: fail rather than silently change versions if uv.lock and pyproject.toml disagree
-uv sync --quiet --locked --extra test --python 3.11
+# --locked: fail rather than silently change versions if uv.lock and pyproject.toml disagree.
+# --compile-bytecode (and compileall for the package): Python then starts from .pyc files even where the
+# environment sets PYTHONDONTWRITEBYTECODE (as this machine's does): without them every command compiled every
+# module it imported from source (1.5 s of the render stage's 20 s; `workbench types` 0.87 -> 0.6 s).
+uv sync --quiet --locked --extra test --python 3.11 --compile-bytecode
+.venv/bin/python -m compileall -q workbench >/dev/null

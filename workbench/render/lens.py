@@ -89,6 +89,8 @@ def render_photo(scene: OffscreenScene, intrinsics: CameraIntrinsics, cam_from_w
     if scene.engine == "raytrace":
         # rays straight through the lens model at supersampled positions inside each pixel: no resampling
         def xy_of_uv(uv):
+            if supersample == 1:  # the pixel centres: the grid computed once per lens (nan where it cannot invert)
+                return xy.reshape(-1, 2)
             return intrinsics.undistort(intrinsics.normalized_from_pixels(uv))
 
         color = scene.raytrace_color(M, xy_of_uv, w, h, supersample)

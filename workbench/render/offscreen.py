@@ -546,13 +546,13 @@ def _raytrace_shade(self: "OffscreenScene", cam_from_world: np.ndarray, xy: np.n
             continue
         sd = self._shading[name]
         p = prim[idx[sel]]
-        ws = w[sel][:, :, None]
-        normal[sel] = np.sum(sd.corner_normals[p] * ws, axis=1)
+        ws = w[sel]  # (n, 3) barycentric weights of the three corners
+        normal[sel] = np.einsum("nij,ni->nj", sd.corner_normals[p], ws)
         if sd.texture is not None:
-            uv = np.sum(sd.corner_uv[p] * ws, axis=1)
+            uv = np.einsum("nij,ni->nj", sd.corner_uv[p], ws)
             albedo[sel] = _sample_bilinear(sd.texture, uv)
         else:
-            albedo[sel] = np.sum(sd.corner_colors[p] * ws, axis=1)
+            albedo[sel] = np.einsum("nij,ni->nj", sd.corner_colors[p], ws)
     normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
     view = dn[idx].astype(np.float32)
     flip = np.sum(normal * view, axis=1) > 0  # seen from behind: shade the side facing the camera
