@@ -20,7 +20,7 @@ if TYPE_CHECKING:  # stages are handed the Project; the registry itself loads no
 
 log = logging.getLogger(__name__)
 
-MAX_PIXELS = 120_000_000  # refuse decompression bombs (a 24 MP photo has 24 M pixels)
+MAX_PIXELS = 120_000_000  # larger photos are refused as decompression bombs (phones take 108 and 200 MP: 200 is)
 
 
 # ---------------------------------------------------------------------------------------------------
@@ -45,25 +45,37 @@ def read_photo_info(path: Path) -> dict:
 
     from .render.exif import read_focal_px
 
+    too_big = (f"{path}: larger than the {MAX_PIXELS // 1_000_000} MP limit (a decompression bomb, or a photo "
+               f"to downscale first)")
     try:
         with warnings.catch_warnings():
-            warnings.simplefilter("error", Image.DecompressionBombWarning)
-            with Image.open(path) as im:
+            # PIL's own bomb check (89 MP) would refuse a 100 MP phone photo: ours is MAX_PIXELS, from the header
+            warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+            limit, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, MAX_PIXELS
+            try:
+                im = Image.open(path)
+            finally:
+                Image.MAX_IMAGE_PIXELS = limit
+            with im:
                 w, h = im.size
                 if w * h > MAX_PIXELS:
-                    raise InputError(f"{path}: {w}x{h} pixels is larger than the {MAX_PIXELS // 1_000_000} MP limit; "
-                                     f"downscale the photo")
+                    raise InputError(f"{too_big}: {w}x{h} pixels")
                 im.load()  # decodes fully: a truncated file fails here
     except InputError:
         raise
+    except Image.DecompressionBombError:  # more than twice the limit: PIL refuses before reading the size to us
+        raise InputError(too_big) from None
     except (UnidentifiedImageError, OSError, SyntaxError, ValueError, Image.DecompressionBombError,
             Image.DecompressionBombWarning) as exc:
         raise InputError(f"{path}: cannot read this photo ({exc}); replace it with an intact copy or remove it "
                          f"from the folder") from None
     from .intrinsics.exif import exif_focal_prior
 
-    prior = exif_focal_prior(path)
-    return {"width": w, "height": h, "exif_focal_px": read_focal_px(path),
+    with warnings.catch_warnings():  # the size is checked above; the EXIF readers open it with PIL's own limit
+        warnings.simplefilter("ignore", Image.DecompressionBombWarning)
+        prior = exif_focal_prior(path)
+        focal_px = read_focal_px(path)
+    return {"width": w, "height": h, "exif_focal_px": focal_px,
             "exif_prior": prior.to_dict() if prior is not None else None}
 
 

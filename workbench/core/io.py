@@ -134,21 +134,29 @@ def matrix_from_json(value, shape: tuple[int, ...], where: str):
     return M
 
 
+def _no_constant(name: str) -> Any:
+    raise ValueError(f"{name} is not a number JSON allows; write a finite number (or leave the key out)")
+
+
 def read_json(path, *, missing: str = ""):
     """The JSON document at ``path``; :class:`InputError` naming the file when it is missing (with ``missing``
-    appended: what to do) or not valid JSON."""
-    import json
-    from pathlib import Path
-
+    appended: what to do), a folder, unreadable, not valid JSON, nested too deeply, or holding NaN or Infinity
+    (which strict JSON does not have and no incident file needs)."""
     from ..errors import InputError
 
     path = Path(path)
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        return json.loads(path.read_text(encoding="utf-8"), parse_constant=_no_constant)
     except FileNotFoundError:
         raise InputError(f"{path}: " + (missing or "file not found")) from None
-    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
-        raise InputError(f"{path}: not valid JSON ({exc})") from None
+    except IsADirectoryError:
+        raise InputError(f"{path}: is a folder, not a JSON file") from None
+    except PermissionError as exc:
+        raise InputError(f"{path}: cannot be read ({exc.strerror}); make it readable") from None
+    except (json.JSONDecodeError, UnicodeDecodeError, ValueError) as exc:
+        raise InputError(f"{path}: not valid JSON ({str(exc)[:200]})") from None
+    except RecursionError:
+        raise InputError(f"{path}: nested too deeply to be an incident file") from None
 
 
 def resolve_dem_sources(value: str | Path, base: Path) -> list[Path]:

@@ -20,12 +20,19 @@ from .layout import SETTINGS_FILE
 
 
 class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True)
+    """Unknown keys are errors; types are strict (``"1.5"`` is not a number, ``"yes"`` not a boolean; an integer
+    is a number); NaN and infinity are refused. Enum choices, dates and coordinate lists are parsed from their TOML
+    forms by the fields that say so."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True, validate_default=True, strict=True, allow_inf_nan=False)
+
+
+_LAX = Field(strict=False)  # an enum from its string, a date from a quoted 'YYYY-MM-DD', a tuple from a TOML array
 
 
 class Incident(_Strict):
     name: Annotated[str, Field(min_length=1)]
-    date: _dt.date
+    date: Annotated[_dt.date, _LAX]
     description: str = ""
     synthetic: bool = False  # true for incidents made by `workbench synth` (their photos are renders)
 
@@ -63,7 +70,7 @@ class Coupling(str, Enum):
 class Car(_Strict):
     number: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9._-]+$")]
     type: Annotated[str, Field(min_length=1)]
-    coupling_to_next: Coupling | None = None  # required for every car but the last; absent on the last
+    coupling_to_next: Annotated[Coupling | None, _LAX] = None  # required for every car but the last; absent on the last
 
 
 class CameraSource(str, Enum):
@@ -74,10 +81,17 @@ class CameraSource(str, Enum):
 
 
 class Camera(_Strict):
-    source: CameraSource = CameraSource.exif
+    source: Annotated[CameraSource, _LAX] = CameraSource.exif
     photos: str = "photos/panorama"  # folder of the photos to use, relative to the project folder
     profile: str | None = None  # camera profile JSON (required when source = "calibrated")
-    position_enu: tuple[float, float, float] | None = None  # known camera centre until georegistration exists
+    position_enu: Annotated[tuple[float, float, float] | None, _LAX] = None  # known camera centre until georef
+
+    @field_validator("position_enu", mode="before")
+    @classmethod
+    def _numbers(cls, v: Any) -> Any:
+        if isinstance(v, (list, tuple)) and any(isinstance(x, (str, bool)) for x in v):
+            raise ValueError("give three numbers (metres east, north, up), not strings")
+        return v
 
     @model_validator(mode="after")
     def _profile_needed(self) -> "Camera":
@@ -98,7 +112,7 @@ FACE_SIGMA_PX = 0.15  # chosen from the coverage on the samples' automatic point
 
 class Solver(_Strict):
     pixel_sigma_px: Annotated[float, Field(gt=0.0)] = 1.0
-    robust_loss: RobustLoss = RobustLoss.linear
+    robust_loss: Annotated[RobustLoss, _LAX] = RobustLoss.linear
     loss_scale_px: Annotated[float, Field(gt=0.0)] = 3.0
     slack_held_m: Annotated[float, Field(gt=0.0, le=1.0)] = 0.05
     slack_broken_m: Annotated[float, Field(gt=0.0)] | None = None  # None: a broken coupling gives no link
@@ -157,6 +171,12 @@ def _format_loc(loc: tuple[Any, ...]) -> str:
     return out
 
 
+def short_repr(value: Any, limit: int = 40) -> str:
+    """``repr(value)`` cut to ``limit`` characters (a message never echoes a whole bad file back)."""
+    r = repr(value)
+    return r if len(r) <= limit else r[:limit] + f"... ({len(r)} characters)"
+
+
 def describe_validation_error(exc: ValidationError, source: str, hint: str = "see docs/formats.md") -> str:
     """One line naming ``source`` (a file), then each bad key with its value and what is wrong."""
     msgs = []
@@ -170,7 +190,7 @@ def describe_validation_error(exc: ValidationError, source: str, hint: str = "se
         else:
             msg = err["msg"].removeprefix("Value error, ")
             if key:
-                msgs.append(f"'{key}' = {err.get('input')!r}: {msg}")
+                msgs.append(f"'{key}' = {short_repr(err.get('input'))}: {msg}")
             else:
                 msgs.append(msg)
     return f"{source}: " + "; ".join(msgs)
