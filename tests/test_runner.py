@@ -148,3 +148,25 @@ def test_until_runs_the_stages_up_to_one(tmp_path):
     assert calls == ["first"]
     with pytest.raises(StageError, match="unknown stage"):
         r.run(until="nope")
+
+
+def test_a_stage_whose_dependency_is_out_of_date_is_stale_not_done(tmp_path):
+    """A run killed after an early stage wrote new outputs leaves the later stages' records saying 'done'; status
+    must not show a stage done while one it depends on is not (two levels down too)."""
+    p = make_project(tmp_path)
+    calls = []
+    specs = stages(calls, {})
+
+    def third(project, progress):
+        return StageResult(outputs={"three": project.write_json(project.stage_dir("third") / "t.json", {})})
+
+    specs.append(StageSpec("third", "after second", third, depends_on=("second",)))
+    r = Runner(p, specs)
+    r.run()
+    assert [s.status for s in r.status()] == ["done", "done", "done"]
+    (p.root / "data.txt").write_text("changed")
+    r.run(only=["first"])  # as if the run had been killed here: second and third keep their old records
+    st = {s.name: s for s in r.status()}
+    assert st["first"].status == "done"
+    assert st["second"].status == "stale" and "upstream" in st["second"].reason
+    assert st["third"].status == "stale" and "'second'" in st["third"].reason

@@ -114,13 +114,15 @@ class Runner:
         }
 
     def status(self) -> list[StageStatus]:
+        """Every stage's status, in order; a stage is done only if every stage it depends on is done (or skipped)
+        now, not merely recorded as done (after a run killed half-way, the later records are out of date)."""
         state = self.project.read_state()
-        out: list[StageStatus] = []
+        out: dict[str, StageStatus] = {}
         for spec in self.stages:
-            out.append(self._status_of(spec, state))
-        return out
+            out[spec.name] = self._status_of(spec, state, out)
+        return list(out.values())
 
-    def _status_of(self, spec: StageSpec, state: dict) -> StageStatus:
+    def _status_of(self, spec: StageSpec, state: dict, known: dict[str, StageStatus] | None = None) -> StageStatus:
         rec = state.get(spec.name)
         if not spec.applies(self.project):
             return StageStatus(spec.name, "skipped", "not applicable to this incident", rec)
@@ -131,6 +133,8 @@ class Runner:
         for d in spec.depends_on:
             if state.get(d, {}).get("status") != "done" and self.by_name[d].applies(self.project):
                 return StageStatus(spec.name, "stale", f"depends on {d!r}, which is not done", rec)
+            if known is not None and d in known and known[d].status not in ("done", "skipped"):
+                return StageStatus(spec.name, "stale", f"depends on {d!r}, which is {known[d].status}", rec)
         try:
             fp = self._fingerprint(spec, state)
         except WorkbenchError as exc:
