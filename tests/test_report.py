@@ -114,6 +114,49 @@ def test_photo_overlay_matches_truth_masks(incident):
     assert checked >= 2
 
 
+def test_overlays_draw_with_the_solved_focal(incident, tmp_path):
+    """A camera whose focal the solve estimated (cameras.json says 0.7x the truth, focal_known false): the photo
+    overlays draw with the solved focal, so the carriages cover their truth masks (drawn with the starting focal,
+    issue 16, they came out at 0.7x their size)."""
+    from workbench.report.scene import load_scene
+
+    work = tmp_path / "inc"
+    shutil.copytree(incident.root, work, ignore=shutil.ignore_patterns("out"))
+    doc = json.loads((work / "cameras.json").read_text())
+    true_fx = {}
+    for v in doc["views"]:
+        true_fx[v["name"]] = v["intrinsics"]["fx"]
+        v["intrinsics"]["fx"] *= 0.7
+        v["intrinsics"]["fy"] *= 0.7
+        v["focal_known"] = False
+    (work / "cameras.json").write_text(json.dumps(doc))
+    project = Project(work)
+    with pytest.MonkeyPatch.context() as mp:
+        for k, v in SMALL.items():
+            mp.setattr(render_stage, k, v)
+        Runner(project, stages()).run(until="render")
+    sol = json.loads(project.solution_path.read_text())
+    for name, f in sol["focal_px"].items():
+        assert 0.97 < f / true_fx[name] < 1.03, (name, f, true_fx[name])
+    cams = {c.name: c for c in load_scene(project, with_terrain=False).cameras}
+    assert {n: c.intrinsics.fx for n, c in cams.items()} == pytest.approx(sol["focal_px"])
+    truth = json.loads((project.truth_dir / "ground_truth.json").read_text())
+    idx = json.loads((project.stage_dir("render") / "renders.json").read_text())
+    checked = 0
+    for r in (r for r in idx["renders"] if r["kind"] == "photo"):
+        ph = next(p for p in truth["photos"] if Path(p["photo"]).name == r["view"])
+        true_ids = np.asarray(Image.open(project.path(ph["mask"])))
+        ids = np.asarray(Image.open(project.path(r["ids"])))
+        for c in truth["carriages"]:
+            t = true_ids == c["instance_id"]
+            if t.sum() < 150:
+                continue
+            mine = ids == c["index"]
+            assert 0.75 < (t & mine).sum() / (t | mine).sum() <= 1.0, (r["view"], c["number"])
+            checked += 1
+    assert checked >= 2
+
+
 def test_terrain_texture_matches_photos(incident):
     """The orthophoto is draped where the synthetic photos saw it: the render from a photo's camera matches the photo
     on terrain pixels, and worse when shifted by 3 px."""

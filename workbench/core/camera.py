@@ -64,6 +64,10 @@ class CameraIntrinsics:
     def without_distortion(self) -> "CameraIntrinsics":
         return replace(self, k1=0.0, k2=0.0, k3=0.0, p1=0.0, p2=0.0)
 
+    def with_focal(self, fx: float) -> "CameraIntrinsics":
+        """The same camera with focal ``fx`` (px) and ``fy`` in the same ratio (the focal the solver estimates)."""
+        return replace(self, fx=float(fx), fy=float(fx) * self.fy / self.fx)
+
     def scaled(self, factor: float) -> "CameraIntrinsics":
         """The same camera for an image resized by ``factor`` (pixel centres kept consistent)."""
         w, h = int(round(self.width * factor)), int(round(self.height * factor))

@@ -9,6 +9,7 @@ files the stages wrote (``out/solve/solution.json``, ``out/georef/cameras.json``
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -140,6 +141,24 @@ def load_cameras(project: Project) -> tuple[dict, list[SceneCamera]]:
     return data, cams
 
 
+def with_solved_focal(cams: list[SceneCamera], solution: dict, where: Path) -> list[SceneCamera]:
+    """The cameras with the focal the solve estimated (``solution.json`` ``focal_px``, per view), so renders,
+    overlays and the viewer draw what the solve saw; a view the solution does not name keeps its own."""
+    focal = solution.get("focal_px") or {}
+    if not isinstance(focal, dict):
+        raise InputError(f"{where}: 'focal_px' must map view names to focal lengths (px)")
+    out = []
+    for c in cams:
+        f = focal.get(c.name)
+        if f is None:
+            out.append(c)
+            continue
+        if not isinstance(f, (int, float)) or isinstance(f, bool) or not math.isfinite(f) or f <= 0:
+            raise InputError(f"{where}: focal_px[{c.name!r}] = {f!r}: not a positive focal length (px)")
+        out.append(SceneCamera(c.name, c.image, c.intrinsics.with_focal(f), c.cam_from_world))
+    return out
+
+
 def _terrain_mesh(project: Project, *, textured: bool) -> trimesh.Trimesh | None:
     """The terrain with the orthophoto draped on it (the DEM read as the terrain stage reads it), else the
     terrain stage's mesh in a plain colour."""
@@ -201,6 +220,7 @@ def load_scene(project: Project, *, textured: bool = True, with_terrain: bool = 
         cars.append(PlacedCarriage(int(rec.get("index", k)), number, ct.id, ct.name, str(rec.get("status", "solved")),
                                    M, mesh, np.asarray(ct.bounding_box(), float), rec))
     cam_data, cams = load_cameras(project)
+    cams = with_solved_focal(cams, solution, sp)
     terrain = _terrain_mesh(project, textured=textured) if with_terrain else None
     buildings = _buildings_mesh(project) if with_terrain else None
     files = {"solution": sp}

@@ -703,9 +703,7 @@ class _Problem:
         return out
 
     def intrinsics(self, v: int, f: float) -> CameraIntrinsics:
-        intr = self.views[v].intrinsics
-        ratio = intr.fy / intr.fx
-        return replace(intr, fx=f, fy=f * ratio)
+        return self.views[v].intrinsics.with_focal(f)
 
     def project(self, R: np.ndarray, t: np.ndarray, f: np.ndarray, jac: bool = False):
         M = len(self.P)
