@@ -74,7 +74,9 @@ def _copy(src: Path, work: Path, truth: dict) -> Path:
             (dst / rel).parent.mkdir(parents=True, exist_ok=True)
             shutil.copy(src / rel, dst / rel)
     (dst / "photos").mkdir()
-    (dst / "photos" / "multiview").symlink_to((src / "photos" / "multiview").resolve())
+    for sub in ("panorama", "multiview"):  # the control points name photos of both sets
+        if (src / "photos" / sub).is_dir():
+            (dst / "photos" / sub).symlink_to((src / "photos" / sub).resolve())
     p = dst / "project.toml"
     p.write_text(p.read_text().replace('source = "calibrated"', 'source = "sfm"')
                  .replace('photos = "photos/panorama"', 'photos = "photos/multiview"'))
@@ -223,11 +225,20 @@ def main(argv=None) -> int:
         if a.sfm:
             from workbench.intrinsics.stage import run_sfm_stage
 
+            from workbench.errors import StageError
+
             t = time.perf_counter()
             real = dst.parent / "real"
             shutil.copytree(dst, real, symlinks=True)
-            run_sfm_stage(Project(real), lambda f, m="": None)
-            rec_path = real / "out" / "sfm" / "reconstruction.json"
+            try:
+                run_sfm_stage(Project(real), lambda f, m="": None)
+                rec_path = real / "out" / "sfm" / "reconstruction.json"
+                keep = Path(a.out).with_suffix(".reconstruction.json")  # to rerun with --reconstruction
+                keep.parent.mkdir(parents=True, exist_ok=True)
+                shutil.copy(rec_path, keep)
+                rows["sfm_reconstruction"] = str(keep)
+            except StageError as exc:
+                rows["real"] = {"sfm_error": str(exc)}
             rows["sfm_time_s"] = time.perf_counter() - t
         if rec_path is not None:
             rec = json.loads(rec_path.read_text())

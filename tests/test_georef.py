@@ -771,7 +771,8 @@ def test_multiview_unchecked_camera_needs_picks_to_check_its_focal(sample, tmp_p
         why = reasons[few]
     except InputError as exc:
         why = str(exc).split(f"{few}: ", 1)[1]
-    assert "checked by no placed SfM model" in why and "5 pick(s) cannot check the focal" in why, why
+    assert "checked by no placed SfM model" in why and "of its 5 picks fit with it: too few to check the focal" \
+        in why, why
     atomic_write_json(dst / "out" / "sfm" / "reconstruction.json",
                       _wrong_camera_reconstruction(dst, names, few, f_scale=1.0, dcx=0.0, dcy=0.0))
     doc = run()

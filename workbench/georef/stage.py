@@ -665,8 +665,9 @@ def _resect_unplaced(project: Project, rdoc: dict, models, placed: dict, cps: li
             # SfM's camera, checked by no placed model (its model failed its checks, or none was placed), and
             # too few picks to check its focal here: a focal 8 % off moved such a photo (5 picks) 2.5 m along
             # its line of sight with small residuals and a 0.41 m 1-sigma that does not count the focal
-            reason = (f"its camera (SfM's) is checked by no placed SfM model, and its {len(res.residuals)} "
-                      f"pick(s) cannot check the focal (6 fitting picks are needed)")
+            n_fit = sum(1 for r in res.residuals if r.get("inlier"))
+            reason = (f"its camera (SfM's) is checked by no placed SfM model, and {n_fit} of its "
+                      f"{len(res.residuals)} picks fit with it: too few to check the focal (6 are needed)")
         elif rms is None or rms > opts.warn_rms_px:
             reason = f"control-point RMS residual {rms} px exceeds {opts.warn_rms_px:g} px"
         elif int(s.get("n_points") or 0) - n_out < opts.resect_min_points:
