@@ -780,3 +780,49 @@ def test_multiview_unchecked_camera_needs_picks_to_check_its_focal(sample, tmp_p
     truth_by = {Path(p["photo"]).name: p for p in truth["photos"]}
     assert 0.001 < np.linalg.norm(np.asarray(v["center_enu"]) - truth_by[few]["center_enu"]) < 0.5
     assert [r["name"] for r in doc["georegistration"]["resected"]] == [few]
+
+
+def test_names_of_photos_that_do_not_exist_are_blamed_on_their_file(sample, tmp_path):
+    """A cameras.json view or a control point's pixels keyed by a photo the incident does not have were accepted
+    (the error came later, blaming correspondences.json, or the point was silently left out) (issue 20)."""
+    from workbench.synth.handpicks import write_known_cameras
+
+    dst = _fresh(sample, tmp_path, "unknown_names")
+    write_known_cameras(dst, "panorama")
+    doc = json.loads((dst / "cameras.json").read_text())
+    good = doc["views"][1]["name"]
+    doc["views"][1]["name"] = "renamed.jpg"
+    (dst / "cameras.json").write_text(json.dumps(doc))
+    with pytest.raises(InputError, match=r"cameras\.json: views\[1\]\.name: view 'renamed\.jpg' is not a photo"):
+        run_georef(Project(dst), _no_progress)
+    doc["views"][1]["name"] = good
+    (dst / "cameras.json").write_text(json.dumps(doc))
+    cps = json.loads((dst / "control_points.json").read_text())
+    point = cps["points"][0]
+    point["pixels"]["no_such_photo.jpg"] = [10.0, 10.0]
+    (dst / "control_points.json").write_text(json.dumps(cps))
+    with pytest.raises(InputError, match=rf"control_points\.json: point '{point['name']}': pixels of photo "
+                                         r"'no_such_photo\.jpg' is not a photo"):
+        run_georef(Project(dst), _no_progress)
+
+
+@pytest.mark.slow
+def test_bench_georef_multiview_script(small_incident, tmp_path):
+    """scripts/bench_georef_multiview.py, which checks the full sample's figures (the suite never reads
+    projects/), runs and meets its bands on the small generated incident (about 11 s)."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("bench_georef_multiview",
+                                                  REPO / "scripts" / "bench_georef_multiview.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    out = tmp_path / "bench.json"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        rc = bench.main(["--incident", str(small_incident[0]), "--out", str(out)])
+    doc = json.loads(out.read_text())
+    assert rc == 0 and doc["failed"] == [], doc["failed"]
+    rows = doc["rows"]
+    assert set(rows) >= {"exact", "two_models", "shared_cam", "wrong_focal", "main_bad"}
+    assert rows["exact"]["chosen"] == "sfm" and 0.001 < rows["exact"]["max_centre_m"] < 0.10
+    assert rows["main_bad"]["status"] != "georegistered"

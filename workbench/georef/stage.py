@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import warnings
 from pathlib import Path
 from typing import Any
@@ -167,10 +168,10 @@ def _view_entry(name: str, image: str, intr: CameraIntrinsics, cam_from_world: n
 def _photo_by_name(project: Project) -> dict[str, Path]:
     out = {}
     photos_root = project.root / "photos"
-    if photos_root.is_dir():
-        for p in sorted(photos_root.rglob("*")):
-            if p.is_file():
-                out.setdefault(p.name, p)
+    if photos_root.is_dir():  # every photo set, following linked folders (Path.rglob does not)
+        for folder, _dirs, files in sorted(os.walk(photos_root, followlinks=True)):
+            for f in sorted(files):
+                out.setdefault(f, Path(folder) / f)
     try:
         for p in project.photo_paths():
             out[p.name] = p
@@ -195,7 +196,27 @@ def _load_cps(project: Project) -> list[ControlPoint]:
     if not path.is_file():
         raise InputError(f"{path}: not found; georegistration needs control points (landmarks with known "
                          f"coordinates picked in the photos, docs/gis.md) or a hand-written {CAMERAS_FILE}")
-    return load_control_points(path, project.frame)
+    return _control_points_of_photos(project, path)
+
+
+def _unknown_photo(project: Project, name: str, where: str, what: str) -> InputError:
+    known = sorted(_photo_by_name(project))
+    listed = ", ".join(known[:8]) + (f" and {len(known) - 8} more" if len(known) > 8 else "")
+    return InputError(f"{where}: {what} {name!r} is not a photo of this incident (under {project.root / 'photos'}: "
+                      f"{listed}); give the photo's file name, or put the photo there")
+
+
+def _control_points_of_photos(project: Project, path: Path) -> list[ControlPoint]:
+    """The control points of ``path``; a pixel keyed by a photo the incident does not have is an error naming the
+    point (a renamed or missing photo would otherwise just leave the point out)."""
+    cps = load_control_points(path, project.frame)
+    photos = _photo_by_name(project)
+    if photos:
+        for cp in cps:
+            for name in cp.pixels:
+                if name != PANORAMA_KEY and name not in photos:
+                    raise _unknown_photo(project, name, f"{path}: point {cp.name!r}", "pixels of photo")
+    return cps
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -248,10 +269,14 @@ def _known(project: Project, opts: GeorefOptions) -> tuple[dict, dict]:
     path = project.root / CAMERAS_FILE
     doc = project.read_json(path)
     views = validate_cameras_doc(doc, str(path))
+    photos = _photo_by_name(project)
+    for i, v in enumerate(views):  # an incident without photo files (hand-written, solved from picks) is allowed
+        if photos and v["name"] not in photos:
+            raise _unknown_photo(project, v["name"], f"{path}: views[{i}].name", "view")
     extra: dict[str, Any] = {"n_views": len(views), "source": project.relative(path)}
     cp_path = project.control_points_path
     if cp_path.is_file():  # check the known cameras against the control points
-        cps = load_control_points(cp_path, project.frame)
+        cps = _control_points_of_photos(project, cp_path)
         resid = []
         for v in views:
             intr = CameraIntrinsics.from_dict(v["intrinsics"])
@@ -724,7 +749,7 @@ def _multiview(project: Project, opts: GeorefOptions, where: str) -> tuple[dict,
                          f"`workbench run {project.root} --only sfm` first (or write a {CAMERAS_FILE} by hand)")
     models, rdoc = read_reconstruction_models(project, rec_path)
     cp_path = project.control_points_path
-    cps = load_control_points(cp_path, project.frame) if cp_path.is_file() else []
+    cps = _control_points_of_photos(project, cp_path) if cp_path.is_file() else []
     photos = _photo_by_name(project)
     all_views = {v.name: v for _, vs in models for v in vs}
     gps = {n: g for n, v in all_views.items() if (g := _gps_enu(project, photos.get(n))) is not None}
