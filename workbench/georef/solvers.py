@@ -145,8 +145,10 @@ def _observations(cps: Sequence[ControlPoint], views: Sequence, where: str) -> l
             if not intr.in_image(np.asarray(uv, float)[None])[0]:
                 raise InputError(f"{where}: control point {cp.name!r} has pixel {list(map(float, uv))} in photo "
                                  f"{photo!r}, outside the {intr.width}x{intr.height} image (u in [-0.5, "
-                                 f"{intr.width - 0.5}], v in [-0.5, {intr.height - 0.5}]); fix the pick (u right, "
-                                 f"v down, origin at the top-left pixel's centre) or remove it")
+                                 f"{intr.width - 0.5}], v in [-0.5, {intr.height - 0.5}]): if the photo was resized "
+                                 f"or cropped after the points were picked in it, pick them again in the photo as it is "
+                                 f"now; else fix the pick (u right, v down, origin at the top-left pixel's centre) or "
+                                 f"remove it")
             obs.append(_Obs(k, i, np.asarray(uv, float)))
     if ignored:
         log.info("%s: pixels in photo(s) %s are not used by this route (its photos: %s)", where, sorted(ignored),
