@@ -284,6 +284,7 @@ class OffscreenScene:
         self._sun = _Sun()
         self._version = 0
         self._rays = None  # (version, RaycastingScene, instance id per geometry id)
+        self._rays_lock = threading.Lock()  # renders of one scene may run in several threads
         if engine not in ("raytrace", "filament"):
             raise ValueError(f"engine={engine!r}: choose 'raytrace' or 'filament'")
         self.engine = engine
@@ -323,6 +324,10 @@ class OffscreenScene:
 
     # -- ray casting (depth, instance) -----------------------------------------------------------------
     def _raycaster(self):
+        with self._rays_lock:
+            return self._build_raycaster()
+
+    def _build_raycaster(self):
         if self._rays is not None and self._rays[0] == self._version:
             return self._rays[1], self._rays[2]
         import open3d as o3d
@@ -508,8 +513,10 @@ def _srgb_from_linear(c: np.ndarray) -> np.ndarray:
     return np.where(c <= 0.0031308, 12.92 * c, 1.055 * np.power(c, 1 / 2.4) - 0.055)
 
 
-def _raytrace_shade(self: "OffscreenScene", cam_from_world: np.ndarray, xy: np.ndarray) -> np.ndarray:
-    """Linear-light colour (n, 3) seen along the rays through undistorted normalised coordinates ``xy`` (n, 2)."""
+def _raytrace_shade(self: "OffscreenScene", cam_from_world: np.ndarray, xy: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """Linear-light colour (n, 3) seen along the rays through undistorted normalised coordinates ``xy`` (n, 2), and
+    which rays hit a surface (n,) bool. Keeps no state: renders may run in several threads."""
     import open3d as o3d
 
     M = np.asarray(cam_from_world, dtype=float)
@@ -520,9 +527,8 @@ def _raytrace_shade(self: "OffscreenScene", cam_from_world: np.ndarray, xy: np.n
     # sky: the background colour (sRGB, linearised; the tone curve below maps it back to itself)
     horizon = _linear_from_srgb(np.asarray(self.background_rgb, dtype=float))
     out = np.broadcast_to(horizon.astype(np.float32), (len(xy), 3)).copy()
-    self._last_hit = np.zeros(len(xy), bool)
     if not self._items:
-        return out
+        return out, np.zeros(len(xy), bool)
     rs, _lut = self._raycaster()
     rays = np.empty((len(d), 6), dtype=np.float32)
     rays[:, :3] = centre
@@ -534,9 +540,8 @@ def _raytrace_shade(self: "OffscreenScene", cam_from_world: np.ndarray, xy: np.n
     bary = ans["primitive_uvs"].numpy().astype(np.float32)  # hit = (1-u-v) v0 + u v1 + v v2
     hit = np.isfinite(thit) & np.isin(gid, list(self._gid_names))
     idx = np.nonzero(hit)[0]
-    self._last_hit = hit
     if len(idx) == 0:
-        return out
+        return out, hit
     w = np.column_stack([1.0 - bary[idx, 0] - bary[idx, 1], bary[idx, 0], bary[idx, 1]]).astype(np.float32)
     albedo = np.zeros((len(idx), 3), np.float32)
     normal = np.zeros((len(idx), 3), np.float32)
@@ -578,7 +583,7 @@ def _raytrace_shade(self: "OffscreenScene", cam_from_world: np.ndarray, xy: np.n
     haze = (1.0 - np.exp(-thit[idx] / 4000.0))[:, None].astype(np.float32)
     radiance = radiance * (1 - haze) + horizon.astype(np.float32) * haze
     out[idx] = radiance
-    return out
+    return out, hit
 
 
 def _raytrace_color(self: "OffscreenScene", cam_from_world: np.ndarray, xy_of_uv, width: int, height: int,
@@ -596,8 +601,7 @@ def _raytrace_color(self: "OffscreenScene", cam_from_world: np.ndarray, xy_of_uv
             ok = np.all(np.isfinite(xy), axis=1)
             col = np.broadcast_to(_linear_from_srgb(np.asarray(self.background_rgb, float)).astype(np.float32),
                                   (len(xy), 3)).copy()
-            shaded = _raytrace_shade(self, cam_from_world, xy[ok])
-            hit = self._last_hit
+            shaded, hit = _raytrace_shade(self, cam_from_world, xy[ok])
             # exposure and a soft shoulder on lit surfaces; the sky keeps its colour
             shaded[hit] = shaded[hit] * 1.15 / (1.0 + 0.22 * shaded[hit])
             col[ok] = shaded

@@ -374,24 +374,32 @@ def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
     photos = []
     all_views = [("panorama", v) for v in pano_views] + [("multiview", v) for v in multi_views]
     date = _dt.datetime.fromisoformat(scn.date + "T07:30:00")
-    for k, (group, view) in enumerate(all_views):
-        progress(0.25 + 0.7 * k / len(all_views), f"photo {k + 1}/{len(all_views)}")
-        res = render_photo(scene, intr, view["cam_from_world"], supersample=opts.supersample)
+    from PIL import Image
+
+    from ..core.io import atomic_write as _aw
+
+    def write_photo(k: int, group: str, view: dict, res) -> dict:
         rel = f"photos/{group}/{view['name']}.jpg"
         stamp = (date + _dt.timedelta(seconds=20 * k)).strftime("%Y:%m:%d %H:%M:%S")
         write_jpeg(root / rel, res.color, focal_length_mm=fx * SENSOR_WIDTH_MM / w, sensor_width_mm=SENSOR_WIDTH_MM,
                    extra={"DateTimeOriginal": stamp})
         mask_rel = f"truth/masks/{view['name']}.png"
-        from PIL import Image
-        from ..core.io import atomic_write as _aw
         _aw(root / mask_rel, lambda p, m=_ids_png(res.instance): Image.fromarray(m).save(p))
         M = view["cam_from_world"]
-        photos.append({
-            "photo": rel, "set": group, "mask": mask_rel,
-            "intrinsics": intr.to_dict(), "cam_from_world": M,
-            "center_enu": -M[:3, :3].T @ M[:3, 3],
-            "observations": observe(placed, intr, M, res.depth),
-        })
+        return {"photo": rel, "set": group, "mask": mask_rel, "intrinsics": intr.to_dict(), "cam_from_world": M,
+                "center_enu": -M[:3, :3].T @ M[:3, 3], "observations": observe(placed, intr, M, res.depth)}
+
+    # two photos at a time: the ray caster is multi-threaded, but the shading is numpy, mostly on one core; the
+    # renders are independent, and each photo is the same as rendered alone
+    from concurrent.futures import ThreadPoolExecutor
+
+    scene._raycaster()  # built once, before the threads share it
+    with ThreadPoolExecutor(max_workers=max(1, min(2, os.cpu_count() or 1))) as pool:
+        renders = pool.map(lambda gv: render_photo(scene, intr, gv[1]["cam_from_world"], supersample=opts.supersample),
+                           all_views)
+        for k, ((group, view), res) in enumerate(zip(all_views, renders)):
+            progress(0.25 + 0.7 * k / len(all_views), f"photo {k + 1}/{len(all_views)}")
+            photos.append(write_photo(k, group, view, res))
 
     progress(0.96, "ground truth")
     cars = []
