@@ -342,6 +342,26 @@ def _closeup_azimuth(c: PlacedCarriage, towards_deg: float) -> tuple[float, floa
     return (base + 35.0) % 360.0, 28.0
 
 
+RENDER_THREADS = 2  # renders in flight at once (ray tracer only): Embree casts on every core, the shading on one
+
+
+def _timed_map(sr: "SceneRenderer", fn, items):
+    """``(fn(item), seconds)`` for each item, in order: two at a time with the CPU ray tracer (its renders keep no
+    state, so each picture is the same as rendered alone), one by one with Filament (one GPU context)."""
+    def timed(item):
+        t0 = time.perf_counter()
+        return fn(item), time.perf_counter() - t0
+
+    items = list(items)
+    if sr.scene.engine != "raytrace" or len(items) < 2:
+        return [timed(x) for x in items]
+    from concurrent.futures import ThreadPoolExecutor
+
+    sr.scene._raycaster()  # built once, before the threads share it
+    with ThreadPoolExecutor(max_workers=RENDER_THREADS) as pool:
+        return list(pool.map(timed, items))
+
+
 def run_render(project: Project, progress: Progress) -> StageResult:
     t_all = time.perf_counter()
     out = project.stage_dir("render")
@@ -396,17 +416,25 @@ def run_render(project: Project, progress: Progress) -> StageResult:
     # every photo with the reconstruction over it
     sr.without_glyphs()
     observed_views = {v for c in sc.solution.get("carriages", []) for v in (c.get("observations") or {})}
+    from ..render.lens import render_photo
+
+    def overlay_intrinsics(cam) -> CameraIntrinsics:
+        scale = min(1.0, PHOTO_MAX_WIDTH / cam.intrinsics.width)
+        return cam.intrinsics.scaled(scale) if scale < 1.0 else cam.intrinsics
+
+    present = []
     for cam in sc.cameras:
-        tick(f"photo {cam.name}")
         if cam.image is None or not cam.image.is_file():
             log.warning("render: photo of view %s not found (%s); no overlay for it", cam.name, cam.image)
             continue
-        t0 = time.perf_counter()
-        from ..render.lens import render_photo
-
+        present.append(cam)
+    overlays = _timed_map(sr, lambda cam: render_photo(sr.scene, overlay_intrinsics(cam), cam.cam_from_world,
+                                                       supersample=1), present)
+    for cam, (res, dt) in zip(present, overlays):
+        tick(f"photo {cam.name}")
+        t0 = time.perf_counter() - dt
+        intr = overlay_intrinsics(cam)
         scale = min(1.0, PHOTO_MAX_WIDTH / cam.intrinsics.width)
-        intr: CameraIntrinsics = cam.intrinsics.scaled(scale) if scale < 1.0 else cam.intrinsics
-        res = render_photo(sr.scene, intr, cam.cam_from_world, supersample=1)
         photo = _read_rgb(cam.image, (intr.width, intr.height))
         blended = blend_photo(photo, res.color, res.instance)
         stem = Path(cam.name).stem
@@ -420,14 +448,16 @@ def run_render(project: Project, progress: Progress) -> StageResult:
                                                                               return_counts=True))})
 
     # close-ups
-    for c in sc.carriages:
-        tick(f"close-up {c.number}")
-        t0 = time.perf_counter()
-        centre = c.body_centre_enu
+    def closeup_view(c):
         r = 0.5 * float(np.linalg.norm(c.bbox_carriage[1] - c.bbox_carriage[0]))
         az, el = _closeup_azimuth(c, az0)
-        M = sr.view_from(centre, r, az, el, CLOSEUP_SIZE, margin=1.0)
-        res = sr.render(M, CLOSEUP_SIZE)
+        return sr.view_from(c.body_centre_enu, r, az, el, CLOSEUP_SIZE, margin=1.0), az, el
+
+    closeups = _timed_map(sr, lambda c: sr.render(closeup_view(c)[0], CLOSEUP_SIZE), sc.carriages)
+    for c, (res, dt) in zip(sc.carriages, closeups):
+        tick(f"close-up {c.number}")
+        t0 = time.perf_counter() - dt
+        _, az, el = closeup_view(c)
         p = _write_png(project, out / f"car_{c.number}.png", res.color)
         record("closeup", f"car_{c.number}", p, t0, carriage=c.number, width=CLOSEUP_SIZE[0],
                height=CLOSEUP_SIZE[1], azimuth_deg=az, elevation_deg=el)
@@ -436,10 +466,14 @@ def run_render(project: Project, progress: Progress) -> StageResult:
     tick("orbit")
     t0 = time.perf_counter()
     frames = []
-    for k in range(ORBIT_FRAMES):
-        progress(min((step[0] + k / ORBIT_FRAMES) / n_steps, 0.99), f"orbit frame {k + 1}/{ORBIT_FRAMES}")
+
+    def orbit_frame(k: int) -> np.ndarray:
         M = sr.view_from(sr.centre, sr.radius, az0 + 360.0 * k / ORBIT_FRAMES, 30.0, ORBIT_SIZE, margin=0.8)
-        frames.append(sr.render(M, ORBIT_SIZE, supersample=1).color)
+        return sr.render(M, ORBIT_SIZE, supersample=1).color
+
+    for k, (frame, _dt) in enumerate(_timed_map(sr, orbit_frame, range(ORBIT_FRAMES))):
+        progress(min((step[0] + k / ORBIT_FRAMES) / n_steps, 0.99), f"orbit frame {k + 1}/{ORBIT_FRAMES}")
+        frames.append(frame)
     from PIL import Image
 
     gif = out / "orbit.gif"
