@@ -92,6 +92,14 @@ def score(truth: dict, obs: list, photo_set: str = "panorama") -> dict:
             "by_carriage": by_car}
 
 
+def _cpu_s() -> float:
+    """CPU seconds of this process and of its finished children (the finder's worker processes)."""
+    import resource
+
+    ch = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return time.process_time() + ch.ru_utime + ch.ru_stime
+
+
 def run_one(root: Path, opts: MatchOptions, cache: Path | None = None) -> tuple[dict, list]:
     """Find the points (or, with ``cache`` an existing file, read those found by an earlier run) and score them."""
     from workbench.correspond import manual as mf
@@ -99,6 +107,7 @@ def run_one(root: Path, opts: MatchOptions, cache: Path | None = None) -> tuple[
     project = Project(root)
     truth = json.loads((root / "truth" / "ground_truth.json").read_text())
     t0 = time.perf_counter()
+    c0 = _cpu_s()
     if cache is not None and cache.is_file():
         doc = json.loads(cache.read_text())
         obs, needs = mf.CorrespondenceFile(**doc).observations, doc.get("needs_manual", [])
@@ -113,7 +122,8 @@ def run_one(root: Path, opts: MatchOptions, cache: Path | None = None) -> tuple[
     by_how: dict[str, int] = {}
     for o in obs:
         by_how[o.method or "manual"] = by_how.get(o.method or "manual", 0) + 1
-    res.update({"incident": str(root), "time_s": round(time.perf_counter() - t0, 1), "needs_manual": needs,
+    res.update({"incident": str(root), "time_s": round(time.perf_counter() - t0, 1),
+                "cpu_s": round(_cpu_s() - c0, 1), "needs_manual": needs,
                 "by_how": by_how})
     return res, obs
 
@@ -272,7 +282,7 @@ def main(argv: list[str] | None = None) -> int:
         results.append(res)
         print(f"{root.name:24s} visible {res['n_visible']:4d}  reported {res['n_reported']:4d}  "
               f"found<=3px {res['found_share']:.1%}  wrong>10px {res['wrong_share']:.1%}  "
-              f"median {res['median_err_px']} px  time {res['time_s']} s", flush=True)
+              f"median {res['median_err_px']} px  time {res['time_s']} s (CPU {res['cpu_s']} s)", flush=True)
         print("   per carriage (visible/found/reported/wrong): " + ", ".join(
             f"{c} {v['visible']}/{v['found']}/{v['reported']}/{v['wrong']}" for c, v in res["by_carriage"].items()),
             flush=True)

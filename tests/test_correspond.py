@@ -200,6 +200,68 @@ def test_ecc_on_the_cropped_photo_agrees_with_the_whole_photo(monkeypatch):
     assert cc_c > 0.9 and abs(cc_c - cc_w) < 1e-3
 
 
+def test_nearest_neighbours_are_the_brute_force_matchers():
+    """The matches from one matrix product (match._nearest) are OpenCV's brute-force matcher's, ties included:
+    the ratio-test / mutual-neighbour matches and the Hough's 2-NN, index for index."""
+    from workbench.correspond.match import PhotoFeatures, _knn_matches, _matches, _nearest
+    from workbench.correspond.references import FaceReference
+
+    rng = np.random.default_rng(3)
+    # SIFT-like descriptors: integers 0..255 of norm about 512; duplicated rows make exact ties
+    ref_d = np.round(np.clip(rng.gamma(1.0, 30.0, (300, 128)), 0, 255)).astype(np.float32)
+    ref_d[50:60] = ref_d[40:50]
+    photo_d = np.round(np.clip(rng.gamma(1.0, 30.0, (900, 128)), 0, 255)).astype(np.float32)
+    photo_d[:100] = ref_d[rng.integers(0, 300, 100)] + rng.integers(0, 3, (100, 128))
+    photo_d[100:110] = photo_d[:10]
+    ref = FaceReference("t", "1", "left", np.zeros((10, 40, 3), np.uint8), 25.0, {}, np.zeros(3), np.eye(3)[0],
+                        np.eye(3)[2], keypoints=rng.random((300, 2)) * 40, descriptors=ref_d)
+    pf = PhotoFeatures("p", CameraIntrinsics(width=100, height=100, fx=100, fy=100, cx=50, cy=50), None,
+                       rng.random((900, 2)) * 100, photo_d)
+    assert _nearest(pf, ref) is not None
+    P, R = _matches(pf, ref, 0.8)
+    qi, ti = _knn_matches(pf, ref, 2)
+    bf = cv2.BFMatcher(cv2.NORM_L2)
+    knn = bf.knnMatch(photo_d, ref_d, k=2)
+    back = {m.queryIdx: m.trainIdx for m in bf.match(ref_d, photo_d)}
+    keep = [(a.queryIdx, a.trainIdx) for a, b in knn
+            if a.distance < 0.8 * b.distance or back.get(a.trainIdx) == a.queryIdx]
+    assert np.array_equal(P, pf.keypoints[[q for q, _ in keep]])
+    assert np.array_equal(R, ref.keypoints[[t for _, t in keep]])
+    assert np.array_equal(qi, [m.queryIdx for ms in knn for m in ms])
+    assert np.array_equal(ti, [m.trainIdx for ms in knn for m in ms])
+    assert np.array_equal(_nearest(pf, ref)[1], [[m.distance for m in ms] for ms in knn])
+
+
+def test_unique_rows_as_numpy():
+    from workbench.correspond.match import _unique_rows
+
+    A = np.random.default_rng(0).integers(-5, 6, (2000, 4))
+    keys, inv = _unique_rows(A)
+    k2, i2 = np.unique(A, axis=0, return_inverse=True)
+    assert np.array_equal(keys, k2) and np.array_equal(inv, i2.ravel())
+
+
+def test_photos_in_parallel_in_order_with_progress():
+    from workbench.correspond.parallel import map_photos
+
+    def work(item, note):
+        note("features", f"item {item}")
+        time.sleep(0.05 * (3 - item))  # the first finishes last
+        note("done", "")
+        return item * item
+
+    for workers in (1, 2):
+        seen = []
+        assert map_photos(work, [0, 1, 2, 3], workers, lambda i, step, msg: seen.append((i, step))) == [0, 1, 4, 9]
+        assert sorted(seen) == sorted((i, s) for i in range(4) for s in ("features", "done"))
+
+    def fails(item, note):
+        raise ValueError(f"photo {item} is bad")
+
+    with pytest.raises(ValueError, match="photo 0 is bad"):
+        map_photos(fails, [0, 1], 2, lambda *a: None)
+
+
 # ---------------------------------------------------------------------------------------------------------
 # a small synthetic incident through the stage
 # ---------------------------------------------------------------------------------------------------------
@@ -325,7 +387,8 @@ def test_manual_file_nan_and_duplicates(manual_file):
     path = manual_file.root / mf.FILE_NAME
     path.write_text('{"observations": [{"carriage": "6100", "point": "coupler_front", "view": "pano_00.jpg", '
                     '"uv": [NaN, 3.0]}]}')
-    with pytest.raises(InputError, match="not finite"):
+    # the reader refuses NaN as JSON (manual.py); an earlier reader let it through to "not finite"
+    with pytest.raises(InputError, match="not finite|NaN is not a number"):
         cs.load_manual(manual_file)
     _write_manual(manual_file, [good, dict(good)])
     with pytest.raises(InputError, match=r"duplicate of observations\[0\]"):
@@ -356,6 +419,41 @@ def test_manual_point_overrides_automatic(incident, manual_file, monkeypatch):
     assert out["needs_manual"] == []  # 6227 has a manual point now
     # leave the fixture's output as the stage wrote it
     cs.output_path(project).write_text(json.dumps(doc))
+
+
+def test_stage_cache_gives_what_it_computes(incident):
+    """The stage keeps each car's references and each photo's features in out/correspond/cache/ (cache.py): an
+    entry read back is what the code computes, array for array, and an entry of another input is never read
+    (its name is the hash of the inputs)."""
+    from workbench.correspond import cache
+
+    project, _, _ = incident
+    cdir = project.stage_dir("correspond") / "cache"
+    names = sorted(f.name for f in cdir.glob("*.npz"))
+    n_photos = len(project.photo_paths())
+    assert len([n for n in names if n.startswith("photo_")]) == n_photos
+    assert len([n for n in names if n.startswith("references_")]) == len(project.settings.consist)
+    opts = MatchOptions()
+    types = project.carriage_types()
+    number = project.settings.consist[0].number
+    used: set[str] = set()
+    cached = cs._cached_references(project, types[number], number, opts, cdir, used)
+    fresh = build_references(types[number], number, px_per_m=opts.px_per_m, tilts=opts.tilts, end_tilts=opts.end_tilts)
+    assert len(used) == 1 and next(iter(used)) in names
+    for a, b in zip(cached, fresh, strict=True):
+        assert (a.type_id, a.car_number, a.face, a.px_per_m) == (b.type_id, b.car_number, b.face, b.px_per_m)
+        assert list(a.points) == list(b.points) and all(np.array_equal(a.points[n], b.points[n]) for n in a.points)
+        for f in ("image", "origin_m", "axis_u_m", "axis_v_m", "keypoints", "descriptors", "frames"):
+            assert np.array_equal(getattr(a, f), getattr(b, f)) and getattr(a, f).dtype == getattr(b, f).dtype, f
+    photo = project.photo_paths()[0]
+    intr, _ = cs.photo_intrinsics(project, [photo])
+    name = cs._photo_cache_name(photo, intr[photo.name], opts)
+    assert name in names and cs._photo_cache_name(photo, intr[photo.name].scaled(1.01), opts) != name
+    a = cs._cached_photo_features(project, photo, intr[photo.name], opts, cdir / name)
+    b = photo_features(photo.name, cs._read_rgb(photo), intr[photo.name], opts)
+    for f in ("gray_undistorted", "keypoints", "descriptors", "frames"):
+        assert np.array_equal(getattr(a, f), getattr(b, f)) and getattr(a, f).dtype == getattr(b, f).dtype, f
+    assert cache.load(cdir / "photo_absent.npz") is None
 
 
 def test_reference_without_texture_needs_manual_points(incident):

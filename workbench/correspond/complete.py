@@ -37,7 +37,7 @@ def predicted_homography(cam_from_carriage: np.ndarray, ref: FaceReference, K: C
     """
     R, t = cam_from_carriage[:3, :3], cam_from_carriage[:3, 3]
     A = np.column_stack([R @ ref.axis_u_m, R @ ref.axis_v_m, R @ ref.origin_m + t])
-    H = K.without_distortion().K @ A
+    H = K.K @ A  # the pinhole matrix (K.without_distortion().K: the same numbers)
     return H / H[2, 2]
 
 

@@ -68,6 +68,9 @@ class MatchOptions:
     # it, where the ground's slope can differ), at the best coarse headings of every roll class (search.py)
     search_broken_pitch_deg: tuple[float, ...] = (-4.0, 0.0, 4.0)
     search_yaw_span_deg: float = 90.0  # the car's heading within this of its neighbour's (a consist folds)
+    # worker processes for the photos of a set (parallel.py; 0: one per CPU this process may use); the
+    # points do not depend on it
+    workers: int = 0
 
     def __post_init__(self) -> None:
         if not self.px_per_m > 0 or not self.photo_upsample > 0 or not 0 < self.ratio < 1:
@@ -158,22 +161,38 @@ def _apply_h(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
         return q[:, :2] / q[:, 2:]
 
 
+_NEXT = np.array([1, 2, 3, 0])  # np.roll(x, -1, axis=0) of a quad's 4 rows
+
+
+def _corners_h(ref: FaceReference) -> np.ndarray:
+    """(4, 3) the reference's corners in homogeneous coordinates (cached on the reference per image size)."""
+    shape = ref.image.shape[:2]
+    v = getattr(ref, "_corners_h", None)
+    if v is None or v[0] != shape:
+        v = (shape, np.column_stack([ref.corners(), np.ones(4)]))
+        ref._corners_h = v  # type: ignore[attr-defined]
+    return v[1]
+
+
 def _plausible(H: np.ndarray, ref: FaceReference, size: tuple[int, int]) -> bool:
     """A homography that keeps orientation, maps the face to a convex quad of sane size, mostly in the image."""
     if H is None or not np.all(np.isfinite(H)):
         return False
-    poly = _apply_h(H, ref.corners())
+    # (the same arithmetic as _apply_h and np.roll, without their overhead: this runs for every hypothesis)
+    c = _corners_h(ref) @ np.asarray(H, float).T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        poly = c[:, :2] / c[:, 2:]
     if not np.all(np.isfinite(poly)):
         return False
     # the face must not cross the vanishing line: the homogeneous scale keeps its sign over the corners
-    c = np.column_stack([ref.corners(), np.ones(4)]) @ np.asarray(H, float).T
     if not (np.all(c[:, 2] > 0) or np.all(c[:, 2] < 0)):
         return False
-    e = np.roll(poly, -1, axis=0) - poly
-    cross = e[:, 0] * np.roll(e, -1, axis=0)[:, 1] - e[:, 1] * np.roll(e, -1, axis=0)[:, 0]
+    e = poly[_NEXT] - poly
+    en = e[_NEXT]
+    cross = e[:, 0] * en[:, 1] - e[:, 1] * en[:, 0]
     if not np.all(cross > 0):  # convex and clockwise in image coordinates (v down), like the reference
         return False
-    area = 0.5 * abs(np.sum(poly[:, 0] * np.roll(poly[:, 1], -1) - np.roll(poly[:, 0], -1) * poly[:, 1]))
+    area = 0.5 * abs(np.sum(poly[:, 0] * poly[_NEXT, 1] - poly[_NEXT, 0] * poly[:, 1]))
     w, h = size
     if area < 100 or area > 4 * w * h:
         return False
@@ -189,6 +208,63 @@ def _plausible(H: np.ndarray, ref: FaceReference, size: tuple[int, int]) -> bool
     return True
 
 
+def _integral(desc: np.ndarray) -> bool:
+    """Whether squared L2 distances between these descriptors are computed exactly in float32 by any
+    summation order: integer values (OpenCV's SIFT rounds its descriptors to 0..255) whose squared norms
+    stay below 2^22 (every partial sum of squares or products then stays an integer below 2^24)."""
+    return bool(desc.dtype == np.float32 and len(desc) and np.all(desc >= 0) and np.array_equal(desc, np.round(desc))
+                and float(np.max(np.einsum("ij,ij->i", desc, desc))) < 2.0 ** 22)
+
+
+def _nearest(photo: PhotoFeatures, ref: FaceReference) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Nearest neighbours between the photo's and the reference's descriptors, as OpenCV's brute-force L2
+    matcher finds them: (knn (n, 2) the two nearest reference descriptors of every photo descriptor, nearest
+    first; their distances (n, 2) float32; back (m,) the nearest photo descriptor of every reference
+    descriptor). Ties go to the lower index, as in ``cv2.BFMatcher``. One matrix product gives both
+    directions (the matcher computes the distances twice, and once more for the Hough's k-NN).
+
+    The squared distances are exact (``_integral``): the same integers the matcher computes, so the same
+    neighbours and the same float32 distances (``sqrt`` of an exact integer). None where that does not hold
+    (the caller uses ``cv2.BFMatcher``). Cached per (photo, reference).
+    """
+    key = ("nn", id(ref))
+    if key in photo.cache:
+        return photo.cache[key]
+    out = None
+    P, R = photo.descriptors, ref.descriptors
+    if len(P) >= 2 and len(R) >= 2 and _integral_cached(photo, P) and _integral_ref(ref):
+        G = P @ R.T  # exact: integer products, partial sums below 2^24
+        D2 = np.einsum("ij,ij->i", P, P)[:, None] + np.einsum("ij,ij->i", R, R)[None, :]
+        D2 -= 2.0 * G
+        rows = np.arange(len(P))
+        j1 = np.argmin(D2, axis=1)  # first index among ties
+        back = np.argmin(D2, axis=0)
+        d1 = D2[rows, j1].copy()
+        D2[rows, j1] = np.inf
+        j2 = np.argmin(D2, axis=1)
+        d2 = D2[rows, j2]
+        knn = np.column_stack([j1, j2])
+        dist = np.sqrt(np.maximum(np.column_stack([d1, d2]), 0.0)).astype(np.float32)
+        out = (knn, dist, back)
+    photo.cache[key] = out
+    return out
+
+
+def _integral_cached(photo: PhotoFeatures, desc: np.ndarray) -> bool:
+    key = ("integral",)
+    if key not in photo.cache:
+        photo.cache[key] = _integral(desc)
+    return photo.cache[key]
+
+
+def _integral_ref(ref: FaceReference) -> bool:
+    v = getattr(ref, "_integral", None)
+    if v is None or v[0] is not ref.descriptors:
+        v = (ref.descriptors, _integral(ref.descriptors))
+        ref._integral = v  # type: ignore[attr-defined]
+    return v[1]
+
+
 def _matches(photo: PhotoFeatures, ref: FaceReference, ratio: float) -> tuple[np.ndarray, np.ndarray]:
     """Matches photo -> reference: (photo px (m, 2), reference px (m, 2)).
 
@@ -202,17 +278,24 @@ def _matches(photo: PhotoFeatures, ref: FaceReference, ratio: float) -> tuple[np
         return photo.cache[key]
     if len(photo.keypoints) < 2 or ref.descriptors is None or len(ref.descriptors) < 2:
         return np.zeros((0, 2)), np.zeros((0, 2))
-    matcher = cv2.BFMatcher(cv2.NORM_L2)
-    knn = matcher.knnMatch(photo.descriptors, ref.descriptors, k=2)
-    back = {m.queryIdx: m.trainIdx for m in matcher.match(ref.descriptors, photo.descriptors)}
-    qi, ti = [], []
-    for pair in knn:
-        if len(pair) < 2:
-            continue
-        a, b = pair
-        if a.distance < ratio * b.distance or back.get(a.trainIdx) == a.queryIdx:
-            qi.append(a.queryIdx)
-            ti.append(a.trainIdx)
+    nn = _nearest(photo, ref)
+    if nn is not None:
+        knn, dist, back = nn
+        a, b = dist[:, 0].astype(np.float64), dist[:, 1].astype(np.float64)
+        qi = np.nonzero((a < ratio * b) | (back[knn[:, 0]] == np.arange(len(knn))))[0]
+        ti = knn[qi, 0]
+    else:
+        matcher = cv2.BFMatcher(cv2.NORM_L2)
+        knn = matcher.knnMatch(photo.descriptors, ref.descriptors, k=2)
+        back = {m.queryIdx: m.trainIdx for m in matcher.match(ref.descriptors, photo.descriptors)}
+        qi, ti = [], []
+        for pair in knn:
+            if len(pair) < 2:
+                continue
+            a, b = pair
+            if a.distance < ratio * b.distance or back.get(a.trainIdx) == a.queryIdx:
+                qi.append(a.queryIdx)
+                ti.append(a.trainIdx)
     out = photo.keypoints[qi], ref.keypoints[ti]
     photo.cache[key] = out
     return out
@@ -224,10 +307,23 @@ def _guided(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray, radius_px: 
     proj = _apply_h(H, ref.keypoints)
     P, R = [], []
     kp = photo.keypoints
+    if len(kp) == 0:
+        return np.zeros((0, 2)), np.zeros((0, 2))
+    ok = np.all(np.isfinite(proj), axis=1)
+    # candidates from a k-d tree (a hair wider than the radius), then the exact test on them, in index order
+    if "kdtree" not in photo.cache:
+        from scipy.spatial import cKDTree
+
+        photo.cache["kdtree"] = cKDTree(kp)
+    cand: list = [None] * len(proj)
+    wider = radius_px * (1 + 1e-9) + 1e-9
+    for j, near_j in zip(np.nonzero(ok)[0], photo.cache["kdtree"].query_ball_point(proj[ok], wider)):
+        cand[j] = near_j
     for j, q in enumerate(proj):
-        if not np.all(np.isfinite(q)):
+        if not ok[j] or not cand[j]:
             continue
-        near = np.nonzero(np.sum((kp - q) ** 2, axis=1) < radius_px ** 2)[0]
+        c = np.sort(np.asarray(cand[j], dtype=np.intp))
+        near = c[np.sum((kp[c] - q) ** 2, axis=1) < radius_px ** 2]
         if len(near) == 0:
             continue
         d = np.linalg.norm(photo.descriptors[near] - ref.descriptors[j], axis=1)
@@ -396,6 +492,9 @@ def _knn_matches(photo: PhotoFeatures, ref: FaceReference, k: int) -> tuple[np.n
         return photo.cache[key]
     if len(photo.keypoints) < 2 or ref.descriptors is None or len(ref.descriptors) < k:
         out = (np.zeros(0, int), np.zeros(0, int))
+    elif k == 2 and _nearest(photo, ref) is not None:  # the ratio test's neighbours (_nearest)
+        knn = _nearest(photo, ref)[0]
+        out = (np.repeat(np.arange(len(knn)), 2), knn.ravel().astype(int))
     else:
         knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(photo.descriptors, ref.descriptors, k=k)
         qi = np.array([m.queryIdx for ms in knn for m in ms], dtype=int)
@@ -403,6 +502,46 @@ def _knn_matches(photo: PhotoFeatures, ref: FaceReference, k: int) -> tuple[np.n
         out = (qi, ti)
     photo.cache[key] = out
     return out
+
+
+def _unique_rows(A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.unique(A, axis=0, return_inverse=True)`` of an integer array (n, c), inverse flattened: the same
+    rows in the same (lexicographic) order, from one int64 key per row (``np.unique`` with ``axis=0`` sorts
+    the rows as structured records, 20-50 times slower)."""
+    A = np.asarray(A)
+    if len(A) and np.issubdtype(A.dtype, np.integer):
+        lo = A.min(0).astype(np.int64)
+        span = A.max(0).astype(np.int64) - lo + 1
+        if float(np.prod(span.astype(float))) < 2.0 ** 62:
+            code = np.zeros(len(A), np.int64)
+            for c in range(A.shape[1]):  # mixed radix: lexicographic order of the rows
+                code = code * span[c] + (A[:, c].astype(np.int64) - lo[c])
+            _, first, inv = np.unique(code, return_index=True, return_inverse=True)
+            return A[first], inv.ravel()
+    keys, inv = np.unique(A, axis=0, return_inverse=True)
+    return keys, inv.ravel()
+
+
+def _row_codes(A: np.ndarray):
+    """One int64 per row of an integer array (n, c) that sorts as the rows do (lexicographically), and the
+    function that turns codes back into rows; (None, None) when the rows' span does not fit in an int64."""
+    lo = A.min(0).astype(np.int64)
+    span = A.max(0).astype(np.int64) - lo + 1
+    if float(np.prod(span.astype(float))) >= 2.0 ** 62:
+        return None, None
+    code = np.zeros(len(A), np.int64)
+    for c in range(A.shape[1]):  # mixed radix
+        code = code * span[c] + (A[:, c].astype(np.int64) - lo[c])
+
+    def decode(codes: np.ndarray) -> np.ndarray:
+        out = np.empty((len(codes), A.shape[1]), dtype=A.dtype)
+        rest = codes.copy()
+        for c in range(A.shape[1] - 1, -1, -1):
+            out[:, c] = rest % span[c] + lo[c]
+            rest //= span[c]
+        return out
+
+    return code, decode
 
 
 def hough_clusters(photo: PhotoFeatures, ref: FaceReference, *, k: int = 4, min_votes: int = 8,
@@ -447,20 +586,32 @@ def hough_clusters(photo: PhotoFeatures, ref: FaceReference, *, k: int = 4, min_
                     it = (np.floor(np.rad2deg(theta) / 30.0 - 0.5).astype(int) + dt) % 12
                     votes.append(np.column_stack([b, ix, iy, it, np.arange(len(qi))])[ok])
     V = np.vstack(votes)
-    keys, inv = np.unique(V[:, :4], axis=0, return_inverse=True)
-    inv = inv.ravel()
-    # a bin's strength: the distinct photo keypoints voting for it
-    order = np.argsort(inv, kind="stable")
-    starts = np.searchsorted(inv[order], np.arange(len(keys)))
+    # the bins (rows of V[:, :4], in lexicographic order, as np.unique(axis=0) gives them), each vote's bin
+    # (inv) and the votes grouped by bin (order, starts, ends): one stable sort of one int64 key per vote
+    code, decode = _row_codes(V[:, :4])
+    if code is None:  # keys too wide for one int64 (not seen): the general way
+        keys, inv = _unique_rows(V[:, :4])
+        order = np.argsort(inv, kind="stable")
+        starts = np.searchsorted(inv[order], np.arange(len(keys)))
+    else:
+        order = np.argsort(code, kind="stable")
+        sc = code[order]
+        first = np.ones(len(sc), dtype=bool)
+        first[1:] = sc[1:] != sc[:-1]
+        starts = np.nonzero(first)[0]
+        keys = decode(sc[starts])
+        inv = np.empty(len(code), dtype=np.intp)
+        inv[order] = np.cumsum(first) - 1
     ends = np.append(starts[1:], len(order))
-    pairs = np.unique(np.column_stack([inv, qi[V[:, 4]]]), axis=0)
-    counts = np.bincount(pairs[:, 0], minlength=len(keys))
+    # a bin's strength: the distinct photo keypoints voting for it
+    nq = np.int64(max(len(photo.keypoints), 1))
+    pair = np.unique(inv.astype(np.int64) * nq + qi[V[:, 4]])
+    counts = np.bincount(pair // nq, minlength=len(keys))
     # rank bins by how far their votes stand above chance: a bin of a large predicted size covers much of
     # the photo and collects many random votes; the chance count is the band's (size, rotation) votes
     # spread over the band's location cells in the photo
     W, Hh = photo.intrinsics.width, photo.intrinsics.height
-    band, band_inv = np.unique(keys[:, [0, 3]], axis=0, return_inverse=True)
-    band_inv = band_inv.ravel()
+    band, band_inv = _unique_rows(keys[:, [0, 3]])
     band_votes = np.bincount(band_inv, weights=counts, minlength=len(band))
     L = 0.25 * 2.0 ** (keys[:, 0] + 0.5)
     cells = np.maximum((W / L + 1) * (Hh / L + 1), 1.0)
@@ -468,18 +619,16 @@ def hough_clusters(photo: PhotoFeatures, ref: FaceReference, *, k: int = 4, min_
     expected = 4.0 * band_votes[band_inv] / 16.0 / cells
     score = (counts - expected) / np.sqrt(expected + 1.0)
     out: list[np.ndarray] = []
-    taken: list[set] = []
-    for kk in np.argsort(-score):
+    taken = np.zeros((max_clusters, len(qi)), dtype=bool)  # the matches of each cluster returned
+    ranked = np.argsort(-score)
+    for kk in ranked[counts[ranked] >= min_votes]:
         if len(out) >= max_clusters:
             break
-        if counts[kk] < min_votes:
-            continue
-        members = V[order[starts[kk]:ends[kk]], 4]
-        m = set(members.tolist())
-        if any(len(m & t) > 0.5 * len(m) for t in taken):
+        m = np.unique(V[order[starts[kk]:ends[kk]], 4])
+        if len(out) and np.any(taken[:len(out), m].sum(axis=1) > 0.5 * len(m)):
             continue  # a neighbouring bin of a cluster already returned
-        taken.append(m)
-        out.append(np.array(sorted(m), dtype=int))
+        taken[len(out), m] = True
+        out.append(m.astype(int))
     return out
 
 

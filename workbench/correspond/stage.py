@@ -25,9 +25,11 @@ from ..core.camera import CameraIntrinsics
 from ..errors import InputError
 from ..project import Project
 from ..runner import Progress, StageResult
+from . import cache
 from . import manual as mf
-from .assign import find_cars, observations_of
-from .match import MatchOptions, photo_features
+from .assign import _reference, find_cars, observations_of
+from .match import MatchOptions, PhotoFeatures, photo_features
+from .parallel import STEPS, PhotoResult, default_workers, map_photos
 from .search import chain_search
 from .references import FACES, build_references
 from .transfer import carry
@@ -142,20 +144,63 @@ def load_manual(project: Project, photos: list[Path] | None = None) -> mf.Corres
     return mf.load(path, points={n: list(t.marked_points) for n, t in types.items()}, image_sizes=sizes)
 
 
+def _cached_references(project: Project, ct, number: str, opts: MatchOptions, cache_dir: Path | None,
+                       used: set[str]) -> list:
+    """The car's face references with their features (:func:`references.build_references`), from the cache
+    (``cache.py``) when it holds them."""
+    if cache_dir is None:
+        return build_references(ct, number, px_per_m=opts.px_per_m, tilts=opts.tilts, end_tilts=opts.end_tilts)
+    name = "references_" + cache.key("references", ct.id, ct.spec.model_dump_json(), number, opts.px_per_m,
+                                     opts.tilts, opts.end_tilts) + ".npz"
+    used.add(name)
+    hit = cache.load(cache_dir / name)
+    if hit is not None:
+        try:
+            return cache.references_from_arrays(hit, ct.id, number)
+        except (KeyError, ValueError, IndexError) as exc:
+            log.info("cache entry %s unusable (%s); computed again", name, exc)
+    rs = build_references(ct, number, px_per_m=opts.px_per_m, tilts=opts.tilts, end_tilts=opts.end_tilts)
+    cache.save(project, cache_dir / name, cache.references_to_arrays(rs))
+    return rs
+
+
+def _photo_cache_name(path: Path, K: CameraIntrinsics, opts: MatchOptions) -> str:
+    return "photo_" + cache.key("photo", cache.file_digest(path), repr(K), opts.photo_upsample,
+                                opts.max_photo_side_px) + ".npz"
+
+
+def _cached_photo_features(project: Project, path: Path, K: CameraIntrinsics, opts: MatchOptions,
+                           cache_file: Path | None) -> PhotoFeatures:
+    """:func:`match.photo_features` of the photo, from the cache (``cache.py``) when it holds them."""
+    if cache_file is not None:
+        hit = cache.load(cache_file)
+        if hit is not None and {"gray", "keypoints", "descriptors", "frames"} <= set(hit):
+            return PhotoFeatures(path.name, K, hit["gray"], hit["keypoints"], hit["descriptors"], hit["frames"])
+    pf = photo_features(path.name, _read_rgb(path), K, opts)
+    if cache_file is not None:
+        cache.save(project, cache_file, {"gray": pf.gray_undistorted, "keypoints": pf.keypoints,
+                                         "descriptors": pf.descriptors, "frames": pf.frames})
+    return pf
+
+
 def automatic(project: Project, photos: list[Path], intrinsics: dict[str, CameraIntrinsics], opts: MatchOptions,
-              progress: Progress, reference_dir: Path | None = None) -> tuple[list[mf.Observation], list[dict], dict]:
-    """SIFT observations of every photo, the carriages needing manual points, and statistics."""
+              progress: Progress, reference_dir: Path | None = None,
+              cache_dir: Path | None = None) -> tuple[list[mf.Observation], list[dict], dict]:
+    """SIFT observations of every photo, the carriages needing manual points, and statistics.
+
+    ``cache_dir``: where the references and the photos' features are kept between runs (``cache.py``;
+    None: computed every time)."""
     s = project.settings
     types = project.carriage_types()
     consist = [(c.number, types[c.number].id, c.coupling_to_next.value if c.coupling_to_next else None)
                for c in s.consist]
+    cache_used: set[str] = set()
     refs = {}
     untextured = []
     ref_doc = {}
     for k, (number, _, _) in enumerate(consist):
         progress(0.05 * k / len(consist), f"references of {number}")
-        rs = build_references(types[number], number, px_per_m=opts.px_per_m, tilts=opts.tilts,
-                              end_tilts=opts.end_tilts)
+        rs = _cached_references(project, types[number], number, opts, cache_dir, cache_used)
         textured = [r for r in rs if r.descriptors is not None and len(r.descriptors) >= opts.min_reference_keypoints]
         if not textured:
             untextured.append(number)
@@ -171,38 +216,68 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
     if reference_dir is not None:
         project.write_json(reference_dir / "references.json", ref_doc)
     obs: list[mf.Observation] = []
-    per_photo = {}
     if len(untextured) == len(consist):
         photos = []  # nothing to match against
-    per_view: dict = {}
-    features: dict = {}  # kept only to carry points between the photos of a panorama set
     ref_cache: dict = {}  # references of faces aligned only (the roof), shared by the photos
+    for number, _, _ in consist:  # built here once: the workers inherit them
+        for face in FACES:
+            if face not in {r.face for r in refs[number]}:
+                _reference(types[number], number, face, opts, ref_cache)
     carry_on = opts.carry_between_photos and len(photos) > 1 and s.camera.source.value != "sfm"
     # the chain/terrain pose search needs each photo's camera in the scene frame, and uses the terrain
     poses = camera_poses(project, photos) if opts.search else {}
     terrain = _terrain(project) if poses else None
-    searched: dict[str, int] = {}
-    for i, p in enumerate(photos):
-        progress(0.05 + 0.9 * i / len(photos), p.name)
+    by_number = {n: {r.face: r for r in rs} for n, rs in refs.items()}
+
+    photo_cache = {}
+    if cache_dir is not None:
+        for p in photos:
+            photo_cache[p.name] = cache_dir / _photo_cache_name(p, intrinsics[p.name], opts)
+            cache_used.add(photo_cache[p.name].name)
+
+    def one_photo(p: Path, note) -> PhotoResult:
         t0 = time.perf_counter()
-        pf = photo_features(p.name, _read_rgb(p), intrinsics[p.name], opts)
+        pf = _cached_photo_features(project, p, intrinsics[p.name], opts, photo_cache.get(p.name))
+        note("features", f"{len(pf.keypoints)} features")
         found = find_cars(pf, refs, consist, types, opts, ref_cache)
+        note("cars", f"faces of {len({c.number for c in found})} cars found")
+        searched = None
         if opts.search and p.name in poses:
-            by_number = {n: {r.face: r for r in rs} for n, rs in refs.items()}
             before = {c.number for c in found}
             found = chain_search(pf, found, consist, types, by_number, poses[p.name], terrain, opts, ref_cache)
-            searched[p.name] = sorted({c.number for c in found} - before)
-        per_view[p.name] = observations_of(found, pf, types, pose_points=opts.pose_points)
-        if carry_on:
-            features[p.name] = pf
-        per_photo[p.name] = {"keypoints": int(len(pf.keypoints)), "time_s": round(time.perf_counter() - t0, 2),
-                             "faces": [{"carriage": c.number, "face": c.detection.ref.face,
-                                        "inliers": c.detection.n_inliers, "support": c.support,
-                                        "rms_px": round(c.detection.rms_px, 2), "guided": c.detection.guided,
-                                        "ecc": None if c.detection.ecc is None else round(c.detection.ecc, 3)}
-                                       for c in found],
-                             "points": len(per_view[p.name]),
-                             "cars_by_pose_search": searched.get(p.name)}
+            searched = sorted({c.number for c in found} - before)
+        note("search", "pose search done" if searched is not None else "no pose search (no camera pose)")
+        points = observations_of(found, pf, types, pose_points=opts.pose_points)
+        stats = {"keypoints": int(len(pf.keypoints)), "time_s": round(time.perf_counter() - t0, 2),
+                 "faces": [{"carriage": c.number, "face": c.detection.ref.face,
+                            "inliers": c.detection.n_inliers, "support": c.support,
+                            "rms_px": round(c.detection.rms_px, 2), "guided": c.detection.guided,
+                            "ecc": None if c.detection.ecc is None else round(c.detection.ecc, 3)}
+                           for c in found],
+                 "points": len(points),
+                 "cars_by_pose_search": searched}
+        note("done", f"{len(points)} points")
+        return PhotoResult(p.name, points, stats, pf.keypoints if carry_on else None,
+                           pf.descriptors if carry_on else None)
+
+    steps_done: set = set()
+
+    def report(index: int, step: str, message: str) -> None:
+        steps_done.add((index, step))
+        progress(0.05 + 0.9 * len(steps_done) / (len(STEPS) * max(len(photos), 1)),
+                 f"{photos[index].name}: {message}")
+
+    workers = opts.workers or default_workers()
+    if photos:
+        progress(0.05, f"matching {len(photos)} photos on {min(workers, len(photos))} processes")
+    results = map_photos(one_photo, photos, workers, report)
+    per_view = {r.name: r.points for r in results}
+    per_photo = {r.name: r.stats for r in results}
+    # kept only to carry points between the photos of a panorama set
+    features = {r.name: PhotoFeatures(r.name, intrinsics[r.name], None, r.keypoints, r.descriptors)
+                for r in results if r.keypoints is not None}
+    if cache_dir is not None:
+        cache.prune(cache_dir, cache_used)
     carried_stats = None
     if carry_on:
         progress(0.95, "carrying points between the photos of the panorama")
@@ -226,7 +301,8 @@ def run_correspond(project: Project, progress: Progress, opts: MatchOptions | No
     man = load_manual(project, photos)  # validate first: a bad file fails before minutes of matching
     intrinsics, intr_source = photo_intrinsics(project, photos)
     out_dir = project.stage_dir("correspond")
-    auto, needs, stats = automatic(project, photos, intrinsics, opts, progress, reference_dir=out_dir / "references")
+    auto, needs, stats = automatic(project, photos, intrinsics, opts, progress, reference_dir=out_dir / "references",
+                                   cache_dir=out_dir / "cache")
     merged = mf.merge(auto, man.observations, man.rejected)
     manual_cars = {o.carriage for o in man.observations}
     needs = [n for n in needs if n["carriage"] not in manual_cars]

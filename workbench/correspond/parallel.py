@@ -1,0 +1,111 @@
+"""The photos of a set matched in parallel: one task per photo, on worker processes.
+
+Each photo's work (SIFT features, the faces of every car, the chain/terrain pose search, the marked points) is
+independent of the other photos': only the panorama carry (``transfer.carry``) needs every photo's features,
+and it runs afterwards in the stage. The work is mostly Python and NumPy between OpenCV calls, so threads
+would share one interpreter lock; the photos go to ``fork``-ed worker processes instead, which inherit the
+references, the carriage types and the terrain without copying them (the parent builds them once). Results
+come back in the photos' order, so the output does not depend on which worker finished first.
+
+OpenCV's own thread pool: each worker runs OpenCV single-threaded (the photos are the parallel work; two
+levels of threads on two cores only contend). ``cv2.setNumThreads(1)`` is set in the parent before the
+fork and restored after: set in a forked child whose parent had already used OpenCV's pthreads pool, it
+hangs (OpenCV 4.14, pthreads backend).
+
+Progress: every worker reports each step of its photo (features, cars found, pose search, done) through a
+queue; the parent passes them on to the stage's ``progress`` while it waits, so a long set is never silent.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing as mp
+import os
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+log = logging.getLogger(__name__)
+
+STEPS = ("features", "cars", "search", "done")  # the steps a photo reports, in order
+
+
+@dataclass
+class PhotoResult:
+    """What the stage keeps of one photo: its points, its statistics and (for the panorama carry) its
+    features without the image."""
+
+    name: str
+    points: list  # assign.PointObservation
+    stats: dict
+    keypoints: np.ndarray | None = None
+    descriptors: np.ndarray | None = None
+
+
+def default_workers() -> int:
+    """Worker processes for the photos: the CPUs this process may run on."""
+    try:
+        n = len(os.sched_getaffinity(0))
+    except AttributeError:  # pragma: no cover - not Linux
+        n = os.cpu_count() or 1
+    return max(1, n)
+
+
+_JOB: dict = {}  # the job of the current map (set before the fork: the workers inherit it)
+
+
+def _run_one(index: int) -> PhotoResult:
+    job = _JOB
+    q = job.get("queue")
+
+    def note(step: str, message: str = "") -> None:
+        if q is not None:
+            q.put((index, step, message))
+        elif job.get("note") is not None:
+            job["note"](index, step, message)
+
+    return job["fn"](job["items"][index], note)
+
+
+def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int, str, str], None]) -> list:
+    """``[fn(item, note) for item in items]``, on up to ``workers`` forked processes (in order).
+
+    ``fn(item, note)`` does one photo and calls ``note(step, message)`` at each of its steps; the parent calls
+    ``progress(index, step, message)`` for each (in the parent's thread). With one worker, one item, or no
+    ``fork`` on this platform, the items run here, one after the other.
+    """
+    import cv2
+
+    n = min(max(1, int(workers)), len(items))
+    if n <= 1 or "fork" not in mp.get_all_start_methods():
+        _JOB.clear()
+        _JOB.update(fn=fn, items=items, note=progress)
+        try:
+            return [_run_one(i) for i in range(len(items))]
+        finally:
+            _JOB.clear()
+    ctx = mp.get_context("fork")
+    q = ctx.SimpleQueue()
+    _JOB.clear()
+    _JOB.update(fn=fn, items=items, queue=q)
+    threads = cv2.getNumThreads()
+    cv2.setNumThreads(1)  # in the workers (set here: in a forked child it hangs)
+    try:
+        with ctx.Pool(n) as pool:
+            pending = [pool.apply_async(_run_one, (i,)) for i in range(len(items))]
+            while True:
+                while not q.empty():
+                    progress(*q.get())
+                if all(r.ready() for r in pending):
+                    break
+                pending[next(i for i, r in enumerate(pending) if not r.ready())].wait(0.2)
+            while not q.empty():
+                progress(*q.get())
+            return [r.get() for r in pending]  # re-raises a worker's exception here
+    finally:
+        cv2.setNumThreads(threads)
+        _JOB.clear()
+
+
+__all__ = ["PhotoResult", "map_photos", "default_workers", "STEPS"]
