@@ -170,3 +170,28 @@ def test_a_stage_whose_dependency_is_out_of_date_is_stale_not_done(tmp_path):
     assert st["first"].status == "done"
     assert st["second"].status == "stale" and "upstream" in st["second"].reason
     assert st["third"].status == "stale" and "'second'" in st["third"].reason
+
+
+def test_correspond_and_solve_are_not_rerun_for_settings_they_do_not_read(tmp_path):
+    """The terrain mesh's simplification, the buildings and the orthophoto are not read by the pose search or the
+    solve: changing them must not re-run those stages (issue 16); the DEM and its extent must."""
+    from workbench.pipeline import stage
+    from workbench.runner import _settings_hash
+
+    p = make_project(tmp_path)
+    text = p.settings_path.read_text()
+    p.settings_path.write_text(text.replace("[terrain]", '[terrain]\ndem = "a.tif"\nsimplify_max_error_m = 0.05', 1))
+    p.reload()
+    hashes = {n: _settings_hash(p, stage(n).settings_sections) for n in ("correspond", "solve", "terrain")}
+    p.settings_path.write_text(p.settings_path.read_text().replace("simplify_max_error_m = 0.05",
+                                                                   "simplify_max_error_m = 0.2"))
+    p.reload()
+    for n in ("correspond", "solve"):
+        assert _settings_hash(p, stage(n).settings_sections) == hashes[n], n
+    assert _settings_hash(p, stage("terrain").settings_sections) != hashes["terrain"]
+    p.settings_path.write_text(p.settings_path.read_text().replace('dem = "a.tif"', 'dem = "b.tif"'))
+    p.reload()
+    for n in ("correspond", "solve", "terrain"):
+        assert _settings_hash(p, stage(n).settings_sections) != hashes[n], n
+    assert p.settings_section("terrain.dem", "solver") == {"terrain.dem": "b.tif",
+                                                          "solver": p.settings.solver.model_dump(mode="json")}

@@ -286,6 +286,11 @@ def _report_inputs(project: Project) -> dict[str, Path]:
     return files
 
 
+# The settings the terrain model is built from (terrain.stage.terrain_model_for), which the pose search and the
+# solve read: changing the mesh's simplification, the buildings or the orthophoto re-runs neither
+TERRAIN_MODEL_KEYS = ("terrain.dem", "terrain.aoi_radius_m", "terrain.dem_vertical_accuracy_m")
+
+
 # ---------------------------------------------------------------------------------------------------
 # The registry. A stage's code is named "module:function" and imported only when the stage runs, so
 # `workbench --help` and `workbench status` start without loading the pipeline.
@@ -307,10 +312,10 @@ STAGES: list[StageSpec] = [
               depends_on=("stitch", "sfm"), applies=_georef_applies),
     StageSpec("correspond", "marked points in the photos: SIFT against each car's livery, plus manual picks",
               "workbench.correspond.stage:run_correspond", inputs=_correspond_inputs,
-              settings_sections=("consist", "camera", "terrain"), depends_on=("inputs",)),
+              settings_sections=("consist", "camera", "location", *TERRAIN_MODEL_KEYS), depends_on=("inputs",)),
     StageSpec("solve", "every carriage's pose from the marked points (chained least squares, four steps)",
               "workbench.solve.stage:run_solve", inputs=_solve_inputs,
-              settings_sections=("consist", "solver", "terrain", "location"),
+              settings_sections=("consist", "solver", "location", *TERRAIN_MODEL_KEYS),
               depends_on=("inputs", "terrain", "georef", "correspond"), applies=_solve_applies),
     StageSpec("export", "the scene as glTF, GeoJSON, KMZ, CityJSON and 3D Tiles, georeferenced",
               "workbench.export.stage:run_export", inputs=_export_inputs,

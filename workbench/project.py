@@ -234,8 +234,15 @@ class Project:
         return SceneFrame(loc.crs, loc.lat, loc.lon, loc.height_m)
 
     def settings_section(self, *sections: str) -> dict:
+        """The settings a stage reads, for its hash: whole sections (``"solver"``) or single keys
+        (``"terrain.dem"``), so a stage is not re-run for a key it does not read."""
         dump = self.settings.model_dump(mode="json")
-        return {s: dump.get(s) for s in sections}
+        out = {}
+        for s in sections:
+            section, _, key = s.partition(".")
+            value = dump.get(section)
+            out[s] = value.get(key) if key and isinstance(value, dict) else value
+        return out
 
     # -- inputs ---------------------------------------------------------------------------------------
     def carriage_types(self) -> dict[str, Any]:
