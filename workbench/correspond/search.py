@@ -48,9 +48,11 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass
+from functools import lru_cache
 
 import cv2
 import numpy as np
+from scipy.ndimage import find_objects
 
 from ..rolling_stock import CarriageType
 from .assign import CarInPhoto, _reference
@@ -170,6 +172,18 @@ def _rest(W: np.ndarray, corners: np.ndarray, terrain) -> np.ndarray:
     return W
 
 
+_KERNEL3 = np.ones((3, 3), np.uint8)
+
+
+@lru_cache(maxsize=64)
+def _outside_disc(r: int) -> np.ndarray:
+    """(2r + 1, 2r + 1) mask of the shifts farther than r from the centre (read-only)."""
+    yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
+    out = (xx ** 2 + yy ** 2) > r * r
+    out.setflags(write=False)
+    return out
+
+
 class _Renderer:
     """The car's faces as a hypothesis shows them, matched against the blurred photo over image shifts."""
 
@@ -180,6 +194,7 @@ class _Renderer:
                      for f, r in refs.items()}
         self.ct = ct
         self.d = down
+        self._label_cache: dict[tuple[str, int, int], np.ndarray] = {}
         img = cv2.GaussianBlur(photo.gray_undistorted.astype(np.float32), (0, 0), BLUR_PX * down / 2)
         img = cv2.resize(img, None, fx=1 / down, fy=1 / down, interpolation=cv2.INTER_AREA) if down > 1 else img
         # padded (by the photo's mean, which correlates with nothing): a search area may reach past the border
@@ -195,6 +210,15 @@ class _Renderer:
             h, w = r.image.shape[:2]
             self.centre_normal[f] = (r.carriage_from_ref(np.array([[(w - 1) / 2, (h - 1) / 2]]))[0],
                                      np.asarray(ct.face_normal(r.face), float))
+
+    def _labels(self, f: str, n: int, tiles: int) -> np.ndarray:
+        """The face's tile labels n + 1 ... n + tiles over its reference (a third of a long face each)."""
+        key = (f, n, tiles)
+        if key not in self._label_cache:
+            hh, ww = self.gray[f].shape
+            self._label_cache[key] = np.repeat(
+                (n + 1 + np.minimum(np.arange(ww) * tiles // ww, tiles - 1))[None].astype(np.uint8), hh, 0)
+        return self._label_cache[key]
 
     def faces(self, cam_from_carriage: np.ndarray, min_cos: float) -> list[tuple[str, np.ndarray]]:
         out = []
@@ -229,12 +253,10 @@ class _Renderer:
         for (f, H), poly in zip(faces, polys):
             M = Tc @ self.D @ H
             w = cv2.warpPerspective(self.gray[f], M, size, flags=cv2.INTER_AREA)
-            hh, ww = self.gray[f].shape
             tiles = TILES if f in ("left", "right", "roof") else 1
-            lab = np.repeat((n + 1 + np.minimum(np.arange(ww) * tiles // ww, tiles - 1))[None].astype(np.uint8), hh, 0)
+            m = cv2.warpPerspective(self._labels(f, n, tiles), M, size, flags=cv2.INTER_NEAREST)
             n += tiles
-            m = cv2.warpPerspective(lab, M, size, flags=cv2.INTER_NEAREST)
-            m = cv2.erode(m, np.ones((3, 3), np.uint8))  # off the face's edges (erosion of labels: min)
+            m = cv2.erode(m, _KERNEL3)  # off the face's edges (erosion of labels: min)
             sel = m > 0
             tmpl[sel] = w[sel]
             label[sel] = m[sel]
@@ -247,11 +269,13 @@ class _Renderer:
         # correlates with nothing and adds nothing, instead of diluting the whole face's correlation
         total = np.zeros((2 * r + 1, 2 * r + 1), np.float32)
         area = 0.0
+        # every tile's pixel count and bounding box in one pass (np.nonzero(label == t) per tile, in effect)
+        counts = np.bincount(label.ravel(), minlength=n + 1)
+        boxes = find_objects(label, max_label=n)
         for t in range(1, n + 1):
-            ys, xs = np.nonzero(label == t)
-            if len(ys) < 20:
+            if counts[t] < 20:
                 continue
-            a0, a1, b0, b1 = xs.min(), xs.max() + 1, ys.min(), ys.max() + 1
+            (b0, b1), (a0, a1) = ((sl.start, sl.stop) for sl in boxes[t - 1])
             tm = tmpl[b0:b1, a0:a1]
             mk = ((label[b0:b1, a0:a1] == t) * 255).astype(np.uint8)
             if float(tm[mk > 0].std()) < 1.0:
@@ -259,13 +283,12 @@ class _Renderer:
             win = self.img[y0 + b0:y0 + b1 + 2 * r, x0 + a0:x0 + a1 + 2 * r]
             res = cv2.matchTemplate(win, tm, cv2.TM_CCOEFF_NORMED, mask=mk)
             res[~np.isfinite(res)] = 0
-            at = float(len(ys)) * self.d ** 2
+            at = float(counts[t]) * self.d ** 2
             total += np.maximum(res, 0) * np.float32(np.sqrt(at))
             area += at
         if area == 0:
             return -np.inf, np.zeros(2), 0.0
-        yy, xx = np.mgrid[-r:r + 1, -r:r + 1]
-        total[(xx ** 2 + yy ** 2) > r * r] = -1
+        total[_outside_disc(r)] = -1
         k = int(np.argmax(total))
         dy, dx = np.unravel_index(k, total.shape)
         return float(total[dy, dx]), np.array([dx - r, dy - r], float) * self.d, area
