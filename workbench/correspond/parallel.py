@@ -68,12 +68,15 @@ def _run_one(index: int) -> PhotoResult:
     return job["fn"](job["items"][index], note)
 
 
-def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int, str, str], None]) -> list:
+def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int, str, str], None],
+               on_result: Callable[[int, object], None] | None = None) -> list:
     """``[fn(item, note) for item in items]``, on up to ``workers`` forked processes (in order).
 
     ``fn(item, note)`` does one photo and calls ``note(step, message)`` at each of its steps; the parent calls
-    ``progress(index, step, message)`` for each (in the parent's thread). With one worker, one item, or no
-    ``fork`` on this platform, the items run here, one after the other.
+    ``progress(index, step, message)`` for each, and ``on_result(index, result)`` as each item finishes (in
+    any order; both in the parent's thread, while the others run). With one worker, one item, or no ``fork``
+    on this platform, the items run here, one after the other. A worker that dies (killed, out of memory)
+    fails the map with a RuntimeError instead of leaving it waiting.
     """
     import cv2
 
@@ -82,28 +85,45 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
         _JOB.clear()
         _JOB.update(fn=fn, items=items, note=progress)
         try:
-            return [_run_one(i) for i in range(len(items))]
+            out = []
+            for i in range(len(items)):
+                out.append(_run_one(i))
+                if on_result is not None:
+                    on_result(i, out[-1])
+            return out
         finally:
             _JOB.clear()
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from concurrent.futures.process import BrokenProcessPool
+
     ctx = mp.get_context("fork")
     q = ctx.SimpleQueue()
     _JOB.clear()
     _JOB.update(fn=fn, items=items, queue=q)
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # in the workers (set here: in a forked child it hangs)
+    ex = ProcessPoolExecutor(max_workers=n, mp_context=ctx)
     try:
-        with ctx.Pool(n) as pool:
-            pending = [pool.apply_async(_run_one, (i,)) for i in range(len(items))]
-            while True:
-                while not q.empty():
-                    progress(*q.get())
-                if all(r.ready() for r in pending):
-                    break
-                pending[next(i for i, r in enumerate(pending) if not r.ready())].wait(0.2)
+        futures = {ex.submit(_run_one, i): i for i in range(len(items))}
+        results: dict[int, object] = {}
+        pending = set(futures)
+        while pending:
+            done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
             while not q.empty():
                 progress(*q.get())
-            return [r.get() for r in pending]  # re-raises a worker's exception here
+            for f in sorted(done, key=futures.get):
+                results[futures[f]] = f.result()  # re-raises a worker's exception here
+                if on_result is not None:
+                    on_result(futures[f], results[futures[f]])
+        while not q.empty():
+            progress(*q.get())
+        ex.shutdown(wait=True)
+        return [results[i] for i in range(len(items))]
+    except BrokenProcessPool as exc:
+        raise RuntimeError(f"a worker process matching the photos died ({exc}); out of memory? Set "
+                           f"MatchOptions.workers lower") from None
     finally:
+        ex.shutdown(wait=False, cancel_futures=True)
         cv2.setNumThreads(threads)
         _JOB.clear()
 

@@ -32,7 +32,7 @@ from .match import MatchOptions, PhotoFeatures, photo_features
 from .parallel import STEPS, PhotoResult, default_workers, map_photos
 from .search import chain_search
 from .references import FACES, build_references
-from .transfer import carry
+from .transfer import PairHomographies, carry
 
 log = logging.getLogger(__name__)
 
@@ -270,18 +270,27 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
     workers = opts.workers or default_workers()
     if photos:
         progress(0.05, f"matching {len(photos)} photos on {min(workers, len(photos))} processes")
-    results = map_photos(one_photo, photos, workers, report)
+    # kept only to carry points between the photos of a panorama set; the homographies between them are
+    # computed in the photos' order as soon as both photos of a pair are done, while the others are matched
+    features: dict[str, PhotoFeatures] = {}
+    pairs = PairHomographies([p.name for p in photos]) if carry_on else None
+
+    def done(index: int, r: PhotoResult) -> None:
+        if r.keypoints is not None:
+            features[r.name] = PhotoFeatures(r.name, intrinsics[r.name], None, r.keypoints, r.descriptors)
+        if pairs is not None:
+            pairs.advance(features)
+
+    results = map_photos(one_photo, photos, workers, report, on_result=done)
     per_view = {r.name: r.points for r in results}
     per_photo = {r.name: r.stats for r in results}
-    # kept only to carry points between the photos of a panorama set
-    features = {r.name: PhotoFeatures(r.name, intrinsics[r.name], None, r.keypoints, r.descriptors)
-                for r in results if r.keypoints is not None}
+    features = {r.name: features[r.name] for r in results if r.name in features}  # in the photos' order
     if cache_dir is not None:
         cache.prune(cache_dir, cache_used)
     carried_stats = None
     if carry_on:
         progress(0.95, "carrying points between the photos of the panorama")
-        per_view, carried_stats = carry(per_view, features)
+        per_view, carried_stats = carry(per_view, features, pairs=pairs)
     for name, pts in per_view.items():
         for o in pts:
             obs.append(mf.Observation(carriage=o.carriage, point=o.point, view=o.view, uv=o.uv, source="sift",

@@ -46,25 +46,49 @@ def photo_homography(a: PhotoFeatures, b: PhotoFeatures) -> tuple[np.ndarray, di
     return H, info
 
 
-def carry(observations: dict[str, list[PointObservation]], photos: dict[str, PhotoFeatures],
-          margin_px: float = 2.0) -> tuple[dict[str, list[PointObservation]], dict]:
-    """Each photo's observations, completed with the points found in the other photos of the set.
+class PairHomographies:
+    """The homographies between every two photos of a set (:func:`photo_homography`), pair after pair in the
+    photos' order: ``advance`` computes the next pairs whose two photos are both given, so the stage can
+    compute them while later photos are still being matched (always in the same order: the FLANN matcher's
+    trees are randomised, and the same order gives the same trees)."""
 
-    A point already found in a photo keeps its own observation; a carried one gets 0.9 x the confidence
-    and 0.3 px more sigma of its source; when several photos could supply it, the most confident does.
-    """
-    names = list(photos)
-    stats: dict[str, dict] = {}
-    Hs: dict[tuple[str, str], np.ndarray] = {}
-    for i, a in enumerate(names):
-        for b in names[i + 1:]:
+    def __init__(self, names: list[str]) -> None:
+        self.pairs = [(a, b) for i, a in enumerate(names) for b in names[i + 1:]]
+        self.k = 0
+        self.Hs: dict[tuple[str, str], np.ndarray] = {}
+        self.stats: dict[str, dict] = {}
+
+    def advance(self, photos: dict[str, PhotoFeatures]) -> None:
+        while self.k < len(self.pairs) and all(n in photos for n in self.pairs[self.k]):
+            a, b = self.pairs[self.k]
+            self.k += 1
             res = photo_homography(photos[a], photos[b])
             if res is None:
                 continue
             H, info = res
-            Hs[(b, a)] = H
-            Hs[(a, b)] = np.linalg.inv(H)
-            stats[f"{a}->{b}"] = info
+            self.Hs[(b, a)] = H
+            self.Hs[(a, b)] = np.linalg.inv(H)
+            self.stats[f"{a}->{b}"] = info
+
+    @property
+    def complete(self) -> bool:
+        return self.k == len(self.pairs)
+
+
+def carry(observations: dict[str, list[PointObservation]], photos: dict[str, PhotoFeatures],
+          margin_px: float = 2.0, pairs: PairHomographies | None = None) -> tuple[dict[str, list[PointObservation]], dict]:
+    """Each photo's observations, completed with the points found in the other photos of the set.
+
+    A point already found in a photo keeps its own observation; a carried one gets 0.9 x the confidence
+    and 0.3 px more sigma of its source; when several photos could supply it, the most confident does.
+    ``pairs``: the photos' homographies computed so far (:class:`PairHomographies` of these photos, in
+    this order); the rest are computed here.
+    """
+    names = list(photos)
+    if pairs is None:
+        pairs = PairHomographies(names)
+    pairs.advance(photos)
+    Hs, stats = pairs.Hs, pairs.stats
     out = {n: list(observations.get(n, [])) for n in names}
     n_carried = 0
     for b in names:
