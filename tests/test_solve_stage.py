@@ -285,3 +285,37 @@ def test_georegistration_uncertainty_widens_the_intervals(incident, tmp_path):
         assert np.all(extra >= s_c - 1e-9) and np.all(extra <= np.hypot(s_c, 2 * lever * s_rot) + 1e-9)
         assert np.allclose(np.asarray(b["ci95_body_centre_m"]) / tot, sol["ci95_factor"], rtol=1e-9)
         assert np.all(np.asarray(b["sigma_hpr_deg"]) >= np.asarray(b["sigma_hpr_fit_deg"]) - 1e-12)
+
+
+def test_a_hand_written_incident_solves_without_photo_files(incident, tmp_path):
+    """cameras.json + correspondences.json written by hand, no photo files (issue 16): `workbench solve` through
+    the CLI places the carriages within their intervals of the truth; the automatic finder does not apply."""
+    import subprocess
+    import sys
+
+    work = tmp_path / "inc"
+    shutil.copytree(incident, work, ignore=shutil.ignore_patterns("out", "photos", "masks"))
+    assert not (work / "photos").exists()
+    r = subprocess.run([sys.executable, "-m", "workbench.cli", "solve", str(work)], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    status = {s.name: s.status for s in Runner(Project(work), STAGES).status()}
+    assert status["correspond"] == "skipped" and status["solve"] == "done" and status["stitch"] == "skipped"
+    sol = json.loads((work / "out" / "solve" / "solution.json").read_text())
+    truth = {c["number"]: c for c in _truth(work)["carriages"]}
+    assert sum(c["status"] == "solved" for c in sol["carriages"]) >= 2
+    for c in sol["carriages"]:
+        if c["status"] != "left_out":
+            err = np.asarray(c["body_centre_enu"]) - np.asarray(truth[c["number"]]["body_centre_enu"])
+            ci = np.asarray(c["ci95_body_centre_m"])
+            assert np.all(ci > 0.005) and np.all(np.abs(err) <= 1.75 * ci + 0.02), (c["number"], err, ci)
+    stats = json.loads((work / "out" / "solve" / "stats.json").read_text())
+    assert stats["correspondences_file"] == "correspondences.json"  # the hand-written file, read directly
+    # a photo-less incident without hand-written cameras is still told where its photos should be
+    (work / "cameras.json").unlink()
+    r = subprocess.run([sys.executable, "-m", "workbench.cli", "status", str(work)], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0
+    r = subprocess.run([sys.executable, "-m", "workbench.cli", "run", str(work)], capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 2 and "camera.photos" in r.stderr and "is not a folder" in r.stderr, r.stderr

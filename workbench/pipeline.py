@@ -28,7 +28,7 @@ MAX_PIXELS = 120_000_000  # larger photos are refused as decompression bombs (ph
 # ---------------------------------------------------------------------------------------------------
 def _inputs_files(project: Project) -> dict[str, Path]:
     files = {"settings": project.settings_path}
-    for p in project.photo_paths():
+    for p in project.photo_paths_if_any():
         files[f"photo:{p.name}"] = p
     cam = project.settings.camera
     if cam.profile:
@@ -82,7 +82,7 @@ def read_photo_info(path: Path) -> dict:
 def run_inputs(project: Project, progress: Progress) -> StageResult:
     s = project.settings
     types = project.carriage_types()
-    photos = project.photo_paths()
+    photos = project.photo_paths_if_any()
     infos = {}
     for i, p in enumerate(photos):
         progress(i / max(len(photos), 1), p.name)
@@ -132,6 +132,13 @@ def _terrain_inputs(project: Project) -> dict[str, Path]:
 
 def _photo_files(project: Project) -> dict[str, Path]:
     return {f"photo:{p.name}": p for p in project.photo_paths()}
+
+
+def _has_photos(project: Project) -> bool:
+    try:
+        return bool(project.photo_paths())
+    except InputError:
+        return False
 
 
 def _stitch_applies(project: Project) -> bool:
@@ -312,7 +319,8 @@ STAGES: list[StageSpec] = [
               depends_on=("stitch", "sfm"), applies=_georef_applies),
     StageSpec("correspond", "marked points in the photos: SIFT against each car's livery, plus manual picks",
               "workbench.correspond.stage:run_correspond", inputs=_correspond_inputs,
-              settings_sections=("consist", "camera", "location", *TERRAIN_MODEL_KEYS), depends_on=("inputs",)),
+              settings_sections=("consist", "camera", "location", *TERRAIN_MODEL_KEYS), depends_on=("inputs",),
+              applies=lambda project: _has_photos(project) or not project.photos_optional),
     StageSpec("solve", "every carriage's pose from the marked points (chained least squares, four steps)",
               "workbench.solve.stage:run_solve", inputs=_solve_inputs,
               settings_sections=("consist", "solver", "location", *TERRAIN_MODEL_KEYS),

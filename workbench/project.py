@@ -269,6 +269,22 @@ class Project:
             raise InputError(f"{d}: no photos (JPEG, PNG or TIFF) in this folder")
         return photos
 
+    @property
+    def photos_optional(self) -> bool:
+        """Whether the incident can do without photo files: its cameras are hand-written (``cameras.json``), so
+        its marked points (``correspondences.json``) can be solved without the pixels."""
+        return self.own_cameras_path.is_file()
+
+    def photo_paths_if_any(self) -> list[Path]:
+        """The photos; [] when there are none and the incident can do without them (:attr:`photos_optional`),
+        else the :meth:`photo_paths` error."""
+        try:
+            return self.photo_paths()
+        except InputError:
+            if self.photos_optional:
+                return []
+            raise
+
     # -- reading and writing --------------------------------------------------------------------------
     def read_json(self, path: Path) -> Any:
         from .core.io import read_json

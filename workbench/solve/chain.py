@@ -1488,7 +1488,7 @@ def _misfit_cars(prob: _Problem, R, t, f, sigma: float, cands: Sequence[int], p_
     (1 - ``p_value``) quantile with 2 n - 6 degrees of freedom, *and* more than ``relative`` times the median
     carriage's per-row misfit (so that a wrongly configured pixel sigma does not flag every carriage); worst
     first."""
-    from scipy.stats import chi2 as _chi2
+    from scipy.special import gammaincinv  # the chi-square quantile as scipy.stats computes it, without its import
 
     c2 = _car_chi2(prob, R, t, f, sigma)
     per = [c2[k][0] / max(c2[k][1], 1) for k in c2]
@@ -1496,7 +1496,7 @@ def _misfit_cars(prob: _Problem, R, t, f, sigma: float, cands: Sequence[int], p_
     out = []
     for k in cands:
         x, m = c2[k]
-        if x > float(_chi2.ppf(1.0 - p_value, max(m - 6, 1))) and x / m > relative * med:
+        if x > 2.0 * float(gammaincinv(max(m - 6, 1) / 2, 1.0 - p_value)) and x / m > relative * med:
             out.append(k)
     return sorted(out, key=lambda k: -c2[k][0] / c2[k][1])
 

@@ -48,7 +48,7 @@ import math
 from typing import Any, Sequence
 
 import numpy as np
-from scipy import stats
+from scipy.special import stdtrit  # the t quantile scipy.stats.t.ppf computes (scipy.stats: 2 s to import)
 
 from ..core.frames import hpr_from_rotation
 from .projection import exp_so3, skew
@@ -197,7 +197,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
                 else sigma_cfg**2
             sig = max(math.sqrt(s2), 0.1 * sigma_cfg)
         sigma = sig
-        q = float(stats.t.ppf(0.975, dof + prior_dof)) if dof + prior_dof > 0 else 1.959963984540054
+        q = float(stdtrit(dof + prior_dof, 0.975)) if dof + prior_dof > 0 else 1.959963984540054
     H, Hi = assemble(sigma)
     G = Gp_unit / sigma**2 + Hprior
     if face_sigma > 0:
