@@ -437,13 +437,18 @@ def test_stage_cache_gives_what_it_computes(incident):
     types = project.carriage_types()
     number = project.settings.consist[0].number
     used: set[str] = set()
-    cached = cs._cached_references(project, types[number], number, opts, cdir, used)
+    cached, aligned = cs._cached_references(project, types[number], number, opts, cdir, used)
     fresh = build_references(types[number], number, px_per_m=opts.px_per_m, tilts=opts.tilts, end_tilts=opts.end_tilts)
     assert len(used) == 1 and next(iter(used)) in names
-    for a, b in zip(cached, fresh, strict=True):
+    assert [r.face for r in aligned] == ["roof"]
+    for a, b in zip(cached + aligned, fresh + [face_reference(types[number], number, "roof", opts.px_per_m)],
+                    strict=True):
         assert (a.type_id, a.car_number, a.face, a.px_per_m) == (b.type_id, b.car_number, b.face, b.px_per_m)
         assert list(a.points) == list(b.points) and all(np.array_equal(a.points[n], b.points[n]) for n in a.points)
         for f in ("image", "origin_m", "axis_u_m", "axis_v_m", "keypoints", "descriptors", "frames"):
+            if getattr(b, f) is None:
+                assert getattr(a, f) is None, f
+                continue
             assert np.array_equal(getattr(a, f), getattr(b, f)) and getattr(a, f).dtype == getattr(b, f).dtype, f
     photo = project.photo_paths()[0]
     intr, _ = cs.photo_intrinsics(project, [photo])

@@ -111,30 +111,33 @@ def prune(directory: Path, keep: set[str]) -> int:
 
 
 # -- the two kinds of entries --------------------------------------------------------------------------------
-def references_to_arrays(refs: list) -> dict[str, np.ndarray]:
-    """A car's face references (``references.FaceReference``, with features) as named arrays."""
-    out: dict[str, np.ndarray] = {"faces": np.array([r.face for r in refs])}
+def references_to_arrays(refs: list, prefix: str = "") -> dict[str, np.ndarray]:
+    """Face references (``references.FaceReference``, with or without features) as named arrays."""
+    out: dict[str, np.ndarray] = {f"{prefix}faces": np.array([r.face for r in refs], dtype=str).reshape(-1)}
     for i, r in enumerate(refs):
         names = list(r.points)  # in their order (the order of the points written)
-        out.update({f"{i}_image": r.image, f"{i}_px_per_m": np.array(r.px_per_m),
-                    f"{i}_point_names": np.array(names, dtype=str).reshape(-1),
-                    f"{i}_points": np.array([r.points[n] for n in names], float).reshape(-1, 2),
-                    f"{i}_frame": np.vstack([r.origin_m, r.axis_u_m, r.axis_v_m]),
-                    f"{i}_keypoints": r.keypoints, f"{i}_descriptors": _pack_descriptors(r.descriptors),
-                    f"{i}_frames": r.frames})
+        k = f"{prefix}{i}_"
+        out.update({k + "image": r.image, k + "px_per_m": np.array(r.px_per_m),
+                    k + "point_names": np.array(names, dtype=str).reshape(-1),
+                    k + "points": np.array([r.points[n] for n in names], float).reshape(-1, 2),
+                    k + "frame": np.vstack([r.origin_m, r.axis_u_m, r.axis_v_m])})
+        if r.keypoints is not None:
+            out.update({k + "keypoints": r.keypoints, k + "descriptors": _pack_descriptors(r.descriptors),
+                        k + "frames": r.frames})
     return out
 
 
-def references_from_arrays(a: dict[str, np.ndarray], type_id: str, car_number: str) -> list:
+def references_from_arrays(a: dict[str, np.ndarray], type_id: str, car_number: str, prefix: str = "") -> list:
     from .references import FaceReference
 
     refs = []
-    for i, face in enumerate(a["faces"].tolist()):
-        d = a[f"{i}_descriptors"]
+    for i, face in enumerate(a[f"{prefix}faces"].tolist()):
+        k = f"{prefix}{i}_"
+        d = a.get(k + "descriptors")
         refs.append(FaceReference(
-            type_id, car_number, face, a[f"{i}_image"], float(a[f"{i}_px_per_m"]),
-            {n: p for n, p in zip(a[f"{i}_point_names"].tolist(), a[f"{i}_points"])},
-            a[f"{i}_frame"][0], a[f"{i}_frame"][1], a[f"{i}_frame"][2],
-            keypoints=a[f"{i}_keypoints"], descriptors=d.astype(np.float32) if d.dtype == np.uint8 else d,
-            frames=a[f"{i}_frames"]))
+            type_id, car_number, face, a[k + "image"], float(a[k + "px_per_m"]),
+            {n: p for n, p in zip(a[k + "point_names"].tolist(), a[k + "points"])},
+            a[k + "frame"][0], a[k + "frame"][1], a[k + "frame"][2],
+            keypoints=a.get(k + "keypoints"), descriptors=None if d is None else
+            (d.astype(np.float32) if d.dtype == np.uint8 else d), frames=a.get(k + "frames")))
     return refs

@@ -27,11 +27,11 @@ from ..project import Project
 from ..runner import Progress, StageResult
 from . import cache
 from . import manual as mf
-from .assign import _reference, find_cars, observations_of
+from .assign import find_cars, observations_of
 from .match import MatchOptions, PhotoFeatures, photo_features
 from .parallel import STEPS, PhotoResult, default_workers, map_photos
 from .search import chain_search
-from .references import FACES, build_references
+from .references import FACES, build_references, face_reference
 from .transfer import PairHomographies, carry
 
 log = logging.getLogger(__name__)
@@ -145,23 +145,31 @@ def load_manual(project: Project, photos: list[Path] | None = None) -> mf.Corres
 
 
 def _cached_references(project: Project, ct, number: str, opts: MatchOptions, cache_dir: Path | None,
-                       used: set[str]) -> list:
-    """The car's face references with their features (:func:`references.build_references`), from the cache
-    (``cache.py``) when it holds them."""
+                       used: set[str]) -> tuple[list, list]:
+    """The car's face references with their features (:func:`references.build_references`), and those of its
+    faces that are only aligned (the roof: no features), from the cache (``cache.py``) when it holds them."""
+
+    def build():
+        rs = build_references(ct, number, px_per_m=opts.px_per_m, tilts=opts.tilts, end_tilts=opts.end_tilts)
+        have = {r.face for r in rs}
+        return rs, [face_reference(ct, number, f, opts.px_per_m) for f in FACES if f not in have]
+
     if cache_dir is None:
-        return build_references(ct, number, px_per_m=opts.px_per_m, tilts=opts.tilts, end_tilts=opts.end_tilts)
+        return build()
     name = "references_" + cache.key("references", ct.id, ct.spec.model_dump_json(), number, opts.px_per_m,
-                                     opts.tilts, opts.end_tilts) + ".npz"
+                                     opts.tilts, opts.end_tilts, FACES) + ".npz"
     used.add(name)
     hit = cache.load(cache_dir / name)
     if hit is not None:
         try:
-            return cache.references_from_arrays(hit, ct.id, number)
+            return (cache.references_from_arrays(hit, ct.id, number),
+                    cache.references_from_arrays(hit, ct.id, number, prefix="aligned_"))
         except (KeyError, ValueError, IndexError) as exc:
             log.info("cache entry %s unusable (%s); computed again", name, exc)
-    rs = build_references(ct, number, px_per_m=opts.px_per_m, tilts=opts.tilts, end_tilts=opts.end_tilts)
-    cache.save(project, cache_dir / name, cache.references_to_arrays(rs))
-    return rs
+    rs, aligned = build()
+    cache.save(project, cache_dir / name, {**cache.references_to_arrays(rs),
+                                           **cache.references_to_arrays(aligned, prefix="aligned_")})
+    return rs, aligned
 
 
 def _photo_cache_name(path: Path, K: CameraIntrinsics, opts: MatchOptions) -> str:
@@ -195,12 +203,15 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
     consist = [(c.number, types[c.number].id, c.coupling_to_next.value if c.coupling_to_next else None)
                for c in s.consist]
     cache_used: set[str] = set()
+    ref_cache: dict = {}  # built here once: the workers inherit them
     refs = {}
     untextured = []
     ref_doc = {}
     for k, (number, _, _) in enumerate(consist):
         progress(0.05 * k / len(consist), f"references of {number}")
-        rs = _cached_references(project, types[number], number, opts, cache_dir, cache_used)
+        rs, aligned = _cached_references(project, types[number], number, opts, cache_dir, cache_used)
+        for r in aligned:  # references of faces aligned only (the roof), shared by the photos
+            ref_cache[(number, r.face)] = r
         textured = [r for r in rs if r.descriptors is not None and len(r.descriptors) >= opts.min_reference_keypoints]
         if not textured:
             untextured.append(number)
@@ -218,11 +229,6 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
     obs: list[mf.Observation] = []
     if len(untextured) == len(consist):
         photos = []  # nothing to match against
-    ref_cache: dict = {}  # references of faces aligned only (the roof), shared by the photos
-    for number, _, _ in consist:  # built here once: the workers inherit them
-        for face in FACES:
-            if face not in {r.face for r in refs[number]}:
-                _reference(types[number], number, face, opts, ref_cache)
     carry_on = opts.carry_between_photos and len(photos) > 1 and s.camera.source.value != "sfm"
     # the chain/terrain pose search needs each photo's camera in the scene frame, and uses the terrain
     poses = camera_poses(project, photos) if opts.search else {}
