@@ -2,10 +2,12 @@
 
 Each photo's work (SIFT features, the faces of every car, the chain/terrain pose search, the marked points) is
 independent of the other photos': only the panorama carry (``transfer.carry``) needs every photo's features,
-and it runs afterwards in the stage. The work is mostly Python and NumPy between OpenCV calls, so threads
-would share one interpreter lock; the photos go to ``fork``-ed worker processes instead, which inherit the
-references, the carriage types and the terrain without copying them (the parent builds them once). Results
-come back in the photos' order, so the output does not depend on which worker finished first.
+and the stage does it in the parent (the pairs' homographies as soon as both photos of a pair are done). The
+work is mostly Python and NumPy between OpenCV calls, so threads would share one interpreter lock; the photos
+go to ``fork``-ed worker processes instead (``concurrent.futures``: a worker that dies fails the stage instead
+of leaving it waiting), which inherit the references, the carriage types and the terrain without copying
+them (the parent builds them once). Results come back in the photos' order, so the output does not depend on
+which worker finished first.
 
 OpenCV's own thread pool: each worker runs OpenCV single-threaded (the photos are the parallel work; two
 levels of threads on two cores only contend). ``cv2.setNumThreads(1)`` is set in the parent before the
