@@ -5,6 +5,7 @@ from __future__ import annotations
 import errno
 import hashlib
 import json
+import math
 import os
 import tempfile
 from pathlib import Path
@@ -134,8 +135,21 @@ def matrix_from_json(value, shape: tuple[int, ...], where: str):
     return M
 
 
-def _no_constant(name: str) -> Any:
-    raise ValueError(f"{name} is not a number JSON allows; write a finite number (or leave the key out)")
+def _first_nonfinite(doc: Any, where: str = "") -> str | None:
+    """The JSON path (``observations[3].uv[0]``) of the first NaN or infinity in a parsed document, or None."""
+    if isinstance(doc, float) and not math.isfinite(doc):
+        return where or "the document"
+    if isinstance(doc, dict):
+        items = ((f"{where}.{k}" if where else str(k), v) for k, v in doc.items())
+    elif isinstance(doc, list):
+        items = ((f"{where}[{i}]", v) for i, v in enumerate(doc))
+    else:
+        return None
+    for w, v in items:
+        found = _first_nonfinite(v, w)
+        if found is not None:
+            return found
+    return None
 
 
 def read_json(path, *, missing: str = ""):
@@ -146,7 +160,8 @@ def read_json(path, *, missing: str = ""):
 
     path = Path(path)
     try:
-        return json.loads(path.read_text(encoding="utf-8"), parse_constant=_no_constant)
+        doc = json.loads(path.read_text(encoding="utf-8"))
+        bad = _first_nonfinite(doc)
     except FileNotFoundError:
         raise InputError(f"{path}: " + (missing or "file not found")) from None
     except IsADirectoryError:
@@ -157,6 +172,10 @@ def read_json(path, *, missing: str = ""):
         raise InputError(f"{path}: not valid JSON ({str(exc)[:200]})") from None
     except RecursionError:
         raise InputError(f"{path}: nested too deeply to be an incident file") from None
+    if bad is not None:
+        raise InputError(f"{path}: {bad} is not finite (NaN or Infinity, which strict JSON does not have); write a "
+                         f"finite number there, or leave the entry out")
+    return doc
 
 
 def resolve_dem_sources(value: str | Path, base: Path) -> list[Path]:
