@@ -73,7 +73,7 @@ def default_workers(bytes_per_worker: float = 0.0) -> int:
 _JOB: dict = {}  # the job of the current map (set before the fork: the workers inherit it)
 
 
-def _run_one(index: int) -> PhotoResult:
+def _run_one(index: int, phase: int = 2, token=None):
     job = _JOB
     q = job.get("queue")
 
@@ -83,29 +83,38 @@ def _run_one(index: int) -> PhotoResult:
         elif job.get("note") is not None:
             job["note"](index, step, message)
 
-    return job["fn"](job["items"][index], note)
+    item = job["items"][index]
+    if job.get("first") is None:
+        return job["fn"](item, note)
+    if phase == 1:
+        return job["first"](item, note)
+    return job["fn"](item, note, token)
 
 
 def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int, str, str], None],
-               on_result: Callable[[int, object], None] | None = None) -> list:
+               on_result: Callable[[int, object], None] | None = None, first: Callable | None = None) -> list:
     """``[fn(item, note) for item in items]``, on up to ``workers`` forked processes (in order).
 
     ``fn(item, note)`` does one photo and calls ``note(step, message)`` at each of its steps; the parent calls
     ``progress(index, step, message)`` for each, and ``on_result(index, result)`` as each item finishes (in
-    any order; both in the parent's thread, while the others run). With one worker, one item, or no ``fork``
-    on this platform, the items run here, one after the other. A worker that dies (killed, out of memory)
-    fails the map with a RuntimeError instead of leaving it waiting.
+    any order; both in the parent's thread, while the others run). With ``first``, every item is done in two
+    tasks: ``token = first(item, note)`` (the photo's features, written where the second task reads them),
+    all of them queued first, then ``fn(item, note, token)``, queued as its first task finishes: the workers
+    share the first, even tasks, and the uneven second ones start as early as they can (the last photo's
+    pose search alone on one core is the imbalance left). With one worker, one item, or no ``fork`` on this
+    platform, the items run here, one after the other. A worker that dies (killed, out of memory) fails the
+    map with a RuntimeError instead of leaving it waiting.
     """
     import cv2
 
     n = min(max(1, int(workers)), len(items))
     if n <= 1 or "fork" not in mp.get_all_start_methods():
         _JOB.clear()
-        _JOB.update(fn=fn, items=items, note=progress)
+        _JOB.update(fn=fn, items=items, note=progress, first=first)
         try:
             out = []
             for i in range(len(items)):
-                out.append(_run_one(i))
+                out.append(_run_one(i, 2, _run_one(i, 1) if first is not None else None))
                 if on_result is not None:
                     on_result(i, out[-1])
             return out
@@ -117,12 +126,13 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
     ctx = mp.get_context("fork")
     q = ctx.SimpleQueue()
     _JOB.clear()
-    _JOB.update(fn=fn, items=items, queue=q)
+    _JOB.update(fn=fn, items=items, queue=q, first=first)
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # in the workers (set here: in a forked child it hangs)
     ex = ProcessPoolExecutor(max_workers=n, mp_context=ctx)
     try:
-        futures = {ex.submit(_run_one, i): i for i in range(len(items))}
+        phase0 = 1 if first is not None else 2
+        futures = {ex.submit(_run_one, i, phase0): (i, phase0) for i in range(len(items))}
         results: dict[int, object] = {}
         pending = set(futures)
         while pending:
@@ -130,9 +140,15 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
             while not q.empty():
                 progress(*q.get())
             for f in sorted(done, key=futures.get):
-                results[futures[f]] = f.result()  # re-raises a worker's exception here
+                i, phase = futures[f]
+                if phase == 1:  # the item's second task, queued behind the first tasks of the others
+                    g = ex.submit(_run_one, i, 2, f.result())
+                    futures[g] = (i, 2)
+                    pending.add(g)
+                    continue
+                results[i] = f.result()  # re-raises a worker's exception here
                 if on_result is not None:
-                    on_result(futures[f], results[futures[f]])
+                    on_result(i, results[i])
         while not q.empty():
             progress(*q.get())
         ex.shutdown(wait=True)

@@ -16,6 +16,8 @@ face's pose. Face references are written to ``out/correspond/references/`` for r
 from __future__ import annotations
 
 import logging
+import shutil
+import tempfile
 import time
 from pathlib import Path
 
@@ -235,16 +237,30 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
     terrain = _terrain(project) if poses else None
     by_number = {n: {r.face: r for r in rs} for n, rs in refs.items()}
 
-    photo_cache = {}
-    if cache_dir is not None:
-        for p in photos:
-            photo_cache[p.name] = cache_dir / _photo_cache_name(p, intrinsics[p.name], opts)
-            cache_used.add(photo_cache[p.name].name)
+    # each photo's features are computed by a first task and written here (the cache, else a folder of this
+    # run), where the photo's second task reads them (parallel.map_photos)
+    work_dir = cache_dir if cache_dir is not None else Path(tempfile.mkdtemp(prefix="correspond-"))
+    photo_file = {}
+    for p in photos:
+        photo_file[p.name] = work_dir / _photo_cache_name(p, intrinsics[p.name], opts)
+        cache_used.add(photo_file[p.name].name)
 
-    def one_photo(p: Path, note) -> PhotoResult:
+    def features_of(p: Path, note) -> float:
         t0 = time.perf_counter()
-        pf = _cached_photo_features(project, p, intrinsics[p.name], opts, photo_cache.get(p.name))
-        note("features", f"{len(pf.keypoints)} features")
+        f = photo_file[p.name]
+        if f.is_file():
+            note("features", "features from the cache")
+        else:
+            pf = photo_features(p.name, _read_rgb(p), intrinsics[p.name], opts)
+            cache.save(project, f, {"gray": pf.gray_undistorted, "keypoints": pf.keypoints,
+                                    "descriptors": pf.descriptors, "frames": pf.frames})
+            note("features", f"{len(pf.keypoints)} features")
+        return time.perf_counter() - t0
+
+    def one_photo(p: Path, note, t_features: float) -> PhotoResult:
+        t0 = time.perf_counter() - t_features
+        # (an entry that cannot be read, or could not be written, is computed here)
+        pf = _cached_photo_features(project, p, intrinsics[p.name], opts, photo_file[p.name])
         found = find_cars(pf, refs, consist, types, opts, ref_cache)
         note("cars", f"faces of {len({c.number for c in found})} cars found")
         searched = None
@@ -291,7 +307,11 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
         if pairs is not None:
             pairs.advance(features)
 
-    results = map_photos(one_photo, photos, workers, report, on_result=done)
+    try:
+        results = map_photos(one_photo, photos, workers, report, on_result=done, first=features_of)
+    finally:
+        if cache_dir is None:
+            shutil.rmtree(work_dir, ignore_errors=True)
     per_view = {r.name: r.points for r in results}
     per_photo = {r.name: r.stats for r in results}
     features = {r.name: features[r.name] for r in results if r.name in features}  # in the photos' order
