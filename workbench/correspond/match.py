@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -99,15 +100,25 @@ class PhotoFeatures:
         return K.pixels_from_normalized(K.undistort(K.normalized_from_pixels(np.asarray(uv, float).reshape(-1, 2))))
 
 
+@lru_cache(maxsize=8)
+def undistortion_maps(K: CameraIntrinsics, w: int, h: int) -> tuple[np.ndarray, np.ndarray]:
+    """``cv2.remap`` maps (h, w) float32 from the pinhole camera's pixels to the photo's (cached per camera:
+    the photos of a set share them; the stage computes them before its workers start)."""
+    u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
+    xy = K.distort(K.normalized_from_pixels(np.column_stack([u.ravel(), v.ravel()])))
+    src = K.pixels_from_normalized(xy).astype(np.float32)
+    mx, my = src[:, 0].reshape(h, w), src[:, 1].reshape(h, w)
+    mx.setflags(write=False)
+    my.setflags(write=False)
+    return mx, my
+
+
 def undistorted_image(image: np.ndarray, K: CameraIntrinsics) -> np.ndarray:
     """The photo resampled to the pinhole camera (same K, no distortion), same size."""
     if not K.has_distortion:
         return image
     h, w = image.shape[:2]
-    u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
-    xy = K.distort(K.normalized_from_pixels(np.column_stack([u.ravel(), v.ravel()])))
-    src = K.pixels_from_normalized(xy).astype(np.float32)
-    mx, my = src[:, 0].reshape(h, w), src[:, 1].reshape(h, w)
+    mx, my = undistortion_maps(K, w, h)
     return cv2.remap(image, mx, my, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
 
 

@@ -30,7 +30,7 @@ from ..runner import Progress, StageResult
 from . import cache
 from . import manual as mf
 from .assign import find_cars, observations_of
-from .match import MatchOptions, PhotoFeatures, photo_features
+from .match import MatchOptions, PhotoFeatures, photo_features, undistortion_maps
 from .parallel import STEPS, PhotoResult, default_workers, map_photos
 from .search import chain_search
 from .references import FACES, build_references, face_reference
@@ -244,6 +244,11 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
     for p in photos:
         photo_file[p.name] = work_dir / _photo_cache_name(p, intrinsics[p.name], opts)
         cache_used.add(photo_file[p.name].name)
+
+    for p in photos:  # the undistortion maps of the photos still to do, once per camera (the workers inherit them)
+        K = intrinsics[p.name]
+        if not photo_file[p.name].is_file() and K.has_distortion:
+            undistortion_maps(K, K.width, K.height)
 
     def features_of(p: Path, note) -> float:
         t0 = time.perf_counter()
