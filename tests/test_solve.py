@@ -605,3 +605,25 @@ def test_a_few_point_carriage_on_a_wrong_branch_is_judged_by_the_chain(seed, car
     for c, M in zip(res.carriages, ml["world_from_carriage"]):
         R = c.world_from_carriage[:3, :3]
         assert np.degrees(np.arccos(np.clip((np.trace(R.T @ M[:3, :3]) - 1) / 2, -1, 1))) < 0.5
+
+
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_telephoto_focal_is_not_clamped(seed):
+    """A 15 deg photo from 6 train lengths, focal unknown (issue 16: railway photos are often telephoto): the
+    default search range (3-120 deg) recovers the focal within 3 sigma, with no warning; the old range (20-100 deg)
+    stuck at its 20 deg limit and the warning named the setting that widens it."""
+    sim = simulate_consist(3, seed=seed, pixel_sigma_px=0.5, focal_px=15000.0, distance_factor=6.0)
+    f_true = sim.views[0].intrinsics.fx
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", SolveWarning)
+        res = solve_consist(sim.carriages, sim.links, sim.views, SolveOptions(pixel_sigma_px=0.5, estimate_focal=True))
+    assert res.converged
+    f, sf = res.focal_px["photo"], res.sigma_focal_px["photo"]
+    assert 200.0 < sf < 4000.0 and abs(f - f_true) < 3.0 * sf, (f, f_true, sf)
+    assert not [w for w in caught if "edge of the search range" in str(w.message)]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", SolveWarning)
+        old = solve_consist(sim.carriages, sim.links, sim.views,
+                            SolveOptions(pixel_sigma_px=0.5, estimate_focal=True, hfov_range_deg=(20.0, 100.0)))
+    assert abs(old.focal_px["photo"] - 2000.0 / np.tan(np.radians(10.0))) < 1.0  # at the 20 deg limit
+    assert [w for w in caught if "solver.hfov_range_deg" in str(w.message)]

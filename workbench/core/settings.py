@@ -134,6 +134,23 @@ class Solver(_Strict):
     # fit, which the intervals describe) and releases them on every car they pulled further than its covariance
     # allows (docs/correspondences.md); 1: no check, they keep their weight
     prediction_release: Annotated[float, Field(ge=1.0)] = 30.0
+    # the horizontal field of view (degrees, [narrowest, widest]) an unknown focal is searched in: telephoto
+    # railway photos reach 3-8 deg, phones' wide cameras 120 (a warning names this key when the focal reaches an end)
+    hfov_range_deg: Annotated[tuple[float, float], _LAX] = (3.0, 120.0)
+
+    @field_validator("hfov_range_deg", mode="before")
+    @classmethod
+    def _hfov_numbers(cls, v: Any) -> Any:
+        if isinstance(v, (list, tuple)) and any(isinstance(x, (str, bool)) for x in v):
+            raise ValueError("give two numbers (degrees), e.g. [3.0, 120.0]")
+        return v
+
+    @field_validator("hfov_range_deg")
+    @classmethod
+    def _hfov_order(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if not (0.5 <= v[0] < v[1] <= 170.0):
+            raise ValueError("must be [narrowest, widest] field of view in degrees, 0.5 <= narrowest < widest <= 170")
+        return v
 
 
 class ProjectSettings(_Strict):
@@ -276,4 +293,5 @@ reject_outliers_sigma = 5.0    # drop a marked point farther than this many pixe
 face_sigma_px = 0.15          # misfit shared by one face's automatic points, pixels (covariance only; 0: none)
 bias_correction = true        # remove the estimate's second-order bias (known focal only; docs/solver.md)
 prediction_release = 30.0     # predictions that pull a car off its measured points' fit: sigma x this (1: no check)
+hfov_range_deg = [3.0, 120.0]  # field of view (deg) an unknown focal is searched in: telephoto to wide angle
 """

@@ -192,8 +192,10 @@ class SolveOptions:
     use_terrain_contact: bool = True
     terrain_sigma_m: float = 0.10
     terrain_samples: int = 400
-    hfov_range_deg: tuple[float, float] = (20.0, 100.0)
-    hfov_steps: int = 41
+    # the horizontal field of view an unknown focal is searched in: railway photos are often telephoto (8-20 deg),
+    # phones' wide cameras reach 100-120 deg. The sweep is log-spaced in focal, a step 6 % (72 steps)
+    hfov_range_deg: tuple[float, float] = (3.0, 120.0)
+    hfov_step_ratio: float = 1.06
     tolerance: float = 1e-10
     check_image_bounds: bool = True
     compute_covariance: bool = True
@@ -243,8 +245,8 @@ class SolveOptions:
         lo, hi = self.hfov_range_deg
         if not (0 < lo < hi < 180):
             bad("hfov_range_deg", "must be (low, high) with 0 < low < high < 180 degrees")
-        if self.hfov_steps < 3:
-            bad("hfov_steps", "must be at least 3")
+        if not (1.001 <= self.hfov_step_ratio <= 2.0):
+            bad("hfov_step_ratio", "must be between 1.001 and 2 (the ratio of neighbouring focals in the sweep)")
         if self.terrain_samples < 8:
             bad("terrain_samples", "must be at least 8")
         if not (self.tolerance > 0):
@@ -1405,14 +1407,21 @@ def _pnp(P: np.ndarray, uv: np.ndarray, intr: CameraIntrinsics, cam_from_world: 
     return Rw @ Rcc, Rw @ tcc + tw, sse
 
 
+def _focal_grid(width_px: int, hfov_range_deg: tuple[float, float], step_ratio: float) -> np.ndarray:
+    """Focals (px) from the widest field of view to the narrowest, log-spaced, neighbours ``step_ratio`` apart."""
+    lo, hi = hfov_range_deg
+    half_w = 0.5 * width_px
+    f_short, f_long = half_w / math.tan(math.radians(hi) / 2.0), half_w / math.tan(math.radians(lo) / 2.0)
+    n = max(3, int(math.ceil(math.log(f_long / f_short) / math.log(step_ratio))) + 1)
+    return np.geomspace(f_short, f_long, n)
+
+
 def _focal_sweep(prob: _Problem, cars: list[_Car], solo: list[int], group: list[int],
                  options: SolveOptions) -> float | None:
     """The focal (px) of least total PnP reprojection error over the views of ``group`` (one camera), swept
     over the horizontal field-of-view range; None when no carriage has 4 points in one of its views."""
     intr0 = prob.views[group[0]].intrinsics
-    lo, hi = options.hfov_range_deg
-    half_w = 0.5 * intr0.width
-    fs = half_w / np.tan(np.deg2rad(np.linspace(hi, lo, options.hfov_steps)) / 2.0)
+    fs = _focal_grid(intr0.width, options.hfov_range_deg, options.hfov_step_ratio)
     members = [(k, v) for v in group for k in solo if np.sum(cars[k].views == v) >= 4]
     if not members:
         return None
@@ -2235,9 +2244,11 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
         if hfov < lo_deg * 1.02 or hfov > hi_deg * 0.98:
             _warn(wl, None, "focal_at_limit",
                   f"view(s) {', '.join(views[v].name for v in grp)}: the estimated focal ({f[grp[0]]:.0f} px, "
-                  f"{hfov:.1f} deg field of view) ran to the edge of the plausible range {lo_deg:g}-{hi_deg:g} deg: "
-                  f"the photo shows too little perspective to tell the focal from the distance, so the positions "
-                  f"along the viewing direction are not determined; give the focal (camera profile or EXIF)")
+                  f"{hfov:.1f} deg field of view) ran to the edge of the search range {lo_deg:g}-{hi_deg:g} deg "
+                  f"(solver.hfov_range_deg in project.toml): if the photo's field of view lies outside it, widen "
+                  f"it; else the photo shows too little perspective to tell the focal from the distance, and the "
+                  f"positions along the viewing direction are not determined: give the focal (a camera profile or "
+                  f"EXIF)")
     status = "converged" if all_ok else "not_converged"
     if not all_ok:
         _warn(wl, None, "not_converged", "solve did not converge: " + "; ".join(messages))

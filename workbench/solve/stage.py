@@ -204,7 +204,8 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
                         estimate_focal=bool(s.solver.estimate_focal or focal_unknown),
                         terrain_sigma_m=s.terrain.dem_vertical_accuracy_m,
                         face_sigma_px=s.solver.face_sigma_px, bias_correction=bool(s.solver.bias_correction),
-                        prediction_release=float(s.solver.prediction_release))
+                        prediction_release=float(s.solver.prediction_release),
+                        hfov_range_deg=tuple(float(x) for x in s.solver.hfov_range_deg))
     terrain = None
     if s.terrain.dem:
         from ..terrain.stage import terrain_model_for
