@@ -82,15 +82,20 @@ def test_renders_index(incident):
     assert stats["terrain_textured"] is True and stats["n_renders"] == len(idx["renders"])
 
 
-def test_photo_overlay_matches_truth_masks(incident):
-    """The carriages rendered from each photo's own camera cover the truth instance masks (solved poses, 1 px noise)."""
-    truth = json.loads((incident.truth_dir / "ground_truth.json").read_text())
-    idx = json.loads((incident.stage_dir("render") / "renders.json").read_text())
-    checked = 0
+def _overlays_and_truth(project: Project):
+    """(render record, truth photo, truth instance mask, rendered carriage ids, truth) of every photo overlay."""
+    truth = json.loads((project.truth_dir / "ground_truth.json").read_text())
+    idx = json.loads((project.stage_dir("render") / "renders.json").read_text())
     for r in (r for r in idx["renders"] if r["kind"] == "photo"):
         ph = next(p for p in truth["photos"] if Path(p["photo"]).name == r["view"])
-        true_ids = np.asarray(Image.open(incident.path(ph["mask"])))
-        ids = np.asarray(Image.open(incident.path(r["ids"])))
+        yield (r, ph, np.asarray(Image.open(project.path(ph["mask"]))), np.asarray(Image.open(project.path(r["ids"]))),
+               truth)
+
+
+def test_photo_overlay_matches_truth_masks(incident):
+    """The carriages rendered from each photo's own camera cover the truth instance masks (solved poses, 1 px noise)."""
+    checked = 0
+    for r, ph, true_ids, ids, truth in _overlays_and_truth(incident):
         assert ids.shape == true_ids.shape
         for c in truth["carriages"]:
             t = true_ids == c["instance_id"]
@@ -140,13 +145,8 @@ def test_overlays_draw_with_the_solved_focal(incident, tmp_path):
         assert 0.97 < f / true_fx[name] < 1.03, (name, f, true_fx[name])
     cams = {c.name: c for c in load_scene(project, with_terrain=False).cameras}
     assert {n: c.intrinsics.fx for n, c in cams.items()} == pytest.approx(sol["focal_px"])
-    truth = json.loads((project.truth_dir / "ground_truth.json").read_text())
-    idx = json.loads((project.stage_dir("render") / "renders.json").read_text())
     checked = 0
-    for r in (r for r in idx["renders"] if r["kind"] == "photo"):
-        ph = next(p for p in truth["photos"] if Path(p["photo"]).name == r["view"])
-        true_ids = np.asarray(Image.open(project.path(ph["mask"])))
-        ids = np.asarray(Image.open(project.path(r["ids"])))
+    for r, _ph, true_ids, ids, truth in _overlays_and_truth(project):
         for c in truth["carriages"]:
             t = true_ids == c["instance_id"]
             if t.sum() < 150:

@@ -134,20 +134,15 @@ def _photo_files(project: Project) -> dict[str, Path]:
     return {f"photo:{p.name}": p for p in project.photo_paths()}
 
 
-def _has_photos(project: Project) -> bool:
+def _n_photos(project: Project) -> int:
     try:
-        return bool(project.photo_paths())
+        return len(project.photo_paths())
     except InputError:
-        return False
+        return 0
 
 
 def _stitch_applies(project: Project) -> bool:
-    if project.settings.camera.source.value == "sfm":
-        return False
-    try:
-        return len(project.photo_paths()) >= 2
-    except InputError:
-        return False
+    return project.settings.camera.source.value != "sfm" and _n_photos(project) >= 2
 
 
 def _stitch_inputs(project: Project) -> dict[str, Path]:
@@ -320,7 +315,7 @@ STAGES: list[StageSpec] = [
     StageSpec("correspond", "marked points in the photos: SIFT against each car's livery, plus manual picks",
               "workbench.correspond.stage:run_correspond", inputs=_correspond_inputs,
               settings_sections=("consist", "camera", "location", *TERRAIN_MODEL_KEYS), depends_on=("inputs",),
-              applies=lambda project: _has_photos(project) or not project.photos_optional),
+              applies=lambda project: _n_photos(project) > 0 or not project.photos_optional),
     StageSpec("solve", "every carriage's pose from the marked points (chained least squares, four steps)",
               "workbench.solve.stage:run_solve", inputs=_solve_inputs,
               settings_sections=("consist", "solver", "location", *TERRAIN_MODEL_KEYS),

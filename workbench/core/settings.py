@@ -30,6 +30,13 @@ class _Strict(BaseModel):
 _LAX = Field(strict=False)  # an enum from its string, a date from a quoted 'YYYY-MM-DD', a tuple from a TOML array
 
 
+def _numbers_only(v: Any, what: str) -> Any:
+    """A lax tuple field still takes numbers only: ``["1.5", 2]`` is refused, not converted."""
+    if isinstance(v, (list, tuple)) and any(isinstance(x, (str, bool)) for x in v):
+        raise ValueError(f"give {what}, not strings or booleans")
+    return v
+
+
 class Incident(_Strict):
     name: Annotated[str, Field(min_length=1)]
     date: Annotated[_dt.date, _LAX]
@@ -89,9 +96,7 @@ class Camera(_Strict):
     @field_validator("position_enu", mode="before")
     @classmethod
     def _numbers(cls, v: Any) -> Any:
-        if isinstance(v, (list, tuple)) and any(isinstance(x, (str, bool)) for x in v):
-            raise ValueError("give three numbers (metres east, north, up), not strings")
-        return v
+        return _numbers_only(v, "three numbers (metres east, north, up)")
 
     @model_validator(mode="after")
     def _profile_needed(self) -> "Camera":
@@ -141,9 +146,7 @@ class Solver(_Strict):
     @field_validator("hfov_range_deg", mode="before")
     @classmethod
     def _hfov_numbers(cls, v: Any) -> Any:
-        if isinstance(v, (list, tuple)) and any(isinstance(x, (str, bool)) for x in v):
-            raise ValueError("give two numbers (degrees), e.g. [3.0, 120.0]")
-        return v
+        return _numbers_only(v, "two numbers (degrees), e.g. [3.0, 120.0]")
 
     @field_validator("hfov_range_deg")
     @classmethod
