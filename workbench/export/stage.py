@@ -88,18 +88,6 @@ def export_scene(project: Project, options: ExportOptions | None = None,
     return paths, stats
 
 
-def export_project(root: str | Path, options: ExportOptions | None = None) -> dict[str, Path]:
-    """``workbench export ROOT``: write every export of the incident at ``root`` (its solve must have run) with
-    ``options`` (default: :class:`ExportOptions`), and ``out/export/stats.json``; returns {name: path}.
-
-    Outside the runner, so ``out/state.json`` does not record it; ``workbench run`` runs the same stage with the
-    default options and records it."""
-    project = Project(root)
-    paths, stats = export_scene(project, options)
-    paths["stats"] = project.write_json(project.stage_dir("export") / "stats.json", {"stage": "export", **stats})
-    return paths
-
-
 def _compact_json(data: Any) -> str:
     """JSON without indentation (large vertex lists), NaN refused."""
     import json

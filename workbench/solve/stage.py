@@ -164,10 +164,8 @@ def _load_panorama(project: Project, doc: dict) -> Any:
     pano = doc.get("panorama")
     if not isinstance(pano, dict) or not pano.get("model"):
         return None
-    try:
-        from ..core.panorama import PanoramaModel
-    except ImportError:  # pragma: no cover - until the stitching stage lands
-        return None
+    from ..core.panorama import PanoramaModel
+
     return PanoramaModel.from_dict(project.read_json(project.require_file(pano["model"], "panorama.model")))
 
 
