@@ -46,22 +46,16 @@ from workbench.errors import InputError  # noqa: E402
 from workbench.georef.solvers import GeorefOptions  # noqa: E402
 from workbench.georef.stage import run_georef  # noqa: E402
 from workbench.project import Project  # noqa: E402
-from workbench.synth.control_points import true_reconstruction  # noqa: E402
+from workbench.synth.control_points import (similarity, split_reconstruction, true_reconstruction,  # noqa: E402
+                                            wrong_camera_reconstruction)
 
 
 def _rot_err_deg(A, B) -> float:
     return float(np.degrees(Rotation.from_matrix(np.asarray(A)[:3, :3] @ np.asarray(B)[:3, :3].T).magnitude()))
 
 
-def _similarity(scale: float, euler_deg, t) -> np.ndarray:
-    S = np.eye(4)
-    S[:3, :3] = scale * Rotation.from_euler("zyx", euler_deg, degrees=True).as_matrix()
-    S[:3, 3] = t
-    return S
-
-
-FRAMES = [_similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0]),
-          _similarity(2.9, [-70.0, 35.0, 160.0], [-300.0, 80.0, 12.0])]
+FRAMES = [similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0]),
+          similarity(2.9, [-70.0, 35.0, 160.0], [-300.0, 80.0, 12.0])]
 
 
 def _copy(src: Path, work: Path, truth: dict) -> Path:
@@ -81,25 +75,6 @@ def _copy(src: Path, work: Path, truth: dict) -> Path:
     p.write_text(p.read_text().replace('source = "calibrated"', 'source = "sfm"')
                  .replace('photos = "photos/panorama"', 'photos = "photos/multiview"'))
     return dst
-
-
-def _split(dst: Path, groups, frames) -> dict:
-    docs = [true_reconstruction(dst, S) for S in frames]
-    pick = [[im for im in d["images"] if im["name"] in g] for d, g in zip(docs, groups)]
-    unreg = [{"name": im["name"], "reason": "registered only in a separate model", "model": k}
-             for k, p in enumerate(pick[1:]) for im in p]
-    return {"images": pick[0], "unregistered": unreg, "points": {"xyz": []}, "intrinsics_source": "sfm",
-            "models": [{"images": p, "points": {"xyz": []}, "stats": {}} for p in pick[1:]]}
-
-
-def _wrong_camera(dst: Path, names, lone, f_scale, dcx, dcy) -> dict:
-    rec = _split(dst, [[n for n in names if n != lone]], FRAMES[:1])
-    for im in rec["images"]:
-        it = im["intrinsics"]
-        im["intrinsics"] = {**it, "fx": it["fx"] * f_scale, "fy": it["fy"] * f_scale, "cx": it["cx"] + dcx,
-                            "cy": it["cy"] + dcy}
-    rec["unregistered"] = [{"name": lone, "reason": "too few verified matches with the registered photos"}]
-    return rec
 
 
 def _run(dst: Path, rec: dict, opts: GeorefOptions = GeorefOptions()) -> dict:
@@ -167,7 +142,7 @@ def main(argv=None) -> int:
         check("exact", _max(e, "rotation_deg") < 0.10, "rotation errors < 0.10 deg")
 
         half = len(names) // 2
-        doc = _run(dst, _split(dst, [names[:half], names[half:]], FRAMES))
+        doc = _run(dst, split_reconstruction(dst, [names[:half], names[half:]], FRAMES))
         e = _errors(doc, truth_by)
         rows["two_models"] = {"placed": len(e), "max_centre_m": _max(e, "centre_m"),
                               "max_rotation_deg": _max(e, "rotation_deg"),
@@ -176,7 +151,7 @@ def main(argv=None) -> int:
         check("two_models", _max(e, "centre_m") < 0.15 and _max(e, "rotation_deg") < 0.15,
               "centre errors < 0.15 m, rotation errors < 0.15 deg")
 
-        rec = _wrong_camera(dst, names, lone, 0.97, -20.0, 13.0)
+        rec = wrong_camera_reconstruction(dst, names, lone, FRAMES[0], f_scale=0.97, dcx=-20.0, dcy=13.0)
         off = _errors(_run(dst, rec, GeorefOptions(adjust_camera=False)), truth_by)
         doc = _run(dst, rec)
         on = _errors(doc, truth_by)
@@ -194,7 +169,7 @@ def main(argv=None) -> int:
         check("shared_cam", len(m2) == len(on) and sum(x < 7.81 for x in m2) >= 0.85 * len(m2),
               "truth inside the stated 95 % ellipsoid for 85 % of the photos")
 
-        rec = _wrong_camera(dst, names, lone, 0.92, 0.0, 0.0)
+        rec = wrong_camera_reconstruction(dst, names, lone, FRAMES[0], f_scale=0.92, dcx=0.0, dcy=0.0)
         try:
             doc = _run(dst, rec, GeorefOptions(adjust_camera=False))
             e = _errors(doc, truth_by)
@@ -207,7 +182,7 @@ def main(argv=None) -> int:
         check("wrong_focal", lone not in e or e[lone]["centre_m"] < 0.5, "the lone photo within 0.5 m or left out")
         check("wrong_focal", all(x["centre_m"] < 0.5 for x in e.values()), "no photo 0.5 m or more off")
 
-        rec = _wrong_camera(dst, names, lone, 0.85, 0.0, 0.0)
+        rec = wrong_camera_reconstruction(dst, names, lone, FRAMES[0], f_scale=0.85, dcx=0.0, dcy=0.0)
         try:
             doc = _run(dst, rec)
             e = _errors(doc, truth_by)

@@ -21,7 +21,8 @@ from workbench.georef.solvers import GeorefOptions, GeorefResidualsLarge, SfmVie
 from workbench.georef.stage import run_georef, validate_cameras_doc
 from workbench.pipeline import stage
 from workbench.project import Project
-from workbench.synth.control_points import true_panorama_model, true_reconstruction, write_control_points
+from workbench.synth.control_points import (similarity, split_reconstruction, true_panorama_model,
+                                            true_reconstruction, wrong_camera_reconstruction, write_control_points)
 
 REPO = Path(__file__).resolve().parents[1]
 BERLIN = REPO.parent / "shared" / "data" / "multiview" / "opensfm_berlin"
@@ -203,7 +204,7 @@ def test_panorama_picks_made_in_the_stitched_image(sample, tmp_path):
 # ----------------------------------------------------------------------------------------------------------
 # Multiview (SfM similarity) and single photo
 # ----------------------------------------------------------------------------------------------------------
-def test_multiview_similarity(sample, tmp_path):
+def test_multiviewsimilarity(sample, tmp_path):
     root, truth = sample
     dst = _fresh(sample, tmp_path, "multiview", lambda t: t.replace('source = "calibrated"', 'source = "sfm"')
                  .replace('photos = "photos/panorama"', 'photos = "photos/multiview"'))
@@ -420,25 +421,6 @@ def test_berlin_gcps_real_data(capsys):
 # ----------------------------------------------------------------------------------------------------------
 # Multiview with separate SfM models (issue 4): each model placed by its own control points
 # ----------------------------------------------------------------------------------------------------------
-def _split_reconstruction(dst: Path, groups: list[list[str]], frames: list[np.ndarray]) -> dict:
-    """A reconstruction.json whose main model holds the photos of groups[0] and whose separate models hold
-    groups[1:], each expressed in its own model frame (world_from_model = frames[i])."""
-    docs = [true_reconstruction(dst, S) for S in frames]
-    pick = [[im for im in d["images"] if im["name"] in g] for d, g in zip(docs, groups)]
-    assert all(len(p) == len(g) for p, g in zip(pick, groups))
-    unreg = [{"name": im["name"], "reason": "registered only in a separate model", "model": k}
-             for k, p in enumerate(pick[1:]) for im in p]
-    return {"images": pick[0], "unregistered": unreg, "points": {"xyz": []}, "intrinsics_source": "sfm",
-            "models": [{"images": p, "points": {"xyz": []}, "stats": {}} for p in pick[1:]]}
-
-
-def _similarity(scale: float, euler_deg, t) -> np.ndarray:
-    S = np.eye(4)
-    S[:3, :3] = scale * Rotation.from_euler("zyx", euler_deg, degrees=True).as_matrix()
-    S[:3, 3] = t
-    return S
-
-
 def _mv_project(sample, tmp_path, name: str) -> tuple[Path, dict, list[str]]:
     root, truth = sample
     dst = _fresh(sample, tmp_path, name, lambda t: t.replace('source = "calibrated"', 'source = "sfm"')
@@ -460,9 +442,9 @@ def test_multiview_separate_models_are_placed(sample, tmp_path):
     dst, truth, names = _mv_project(sample, tmp_path, "mv_two_models")
     half = len(names) // 2
     groups = [names[:half], names[half:]]
-    frames = [_similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0]),
-              _similarity(2.9, [-70.0, 35.0, 160.0], [-300.0, 80.0, 12.0])]
-    atomic_write_json(dst / "out" / "sfm" / "reconstruction.json", _split_reconstruction(dst, groups, frames))
+    frames = [similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0]),
+              similarity(2.9, [-70.0, 35.0, 160.0], [-300.0, 80.0, 12.0])]
+    atomic_write_json(dst / "out" / "sfm" / "reconstruction.json", split_reconstruction(dst, groups, frames))
     doc = json.loads(run_georef(Project(dst), _no_progress).outputs["cameras"].read_text())
     validate_cameras_doc(doc, "cameras.json")
     g = doc["georegistration"]
@@ -502,9 +484,9 @@ def test_multiview_separate_model_without_control_points_stays_unregistered(samp
     cp["points"] = [p for p in cp["points"] if p["pixels"]]
     (dst / "control_points.json").write_text(json.dumps(cp))
     groups = [[n for n in names if n not in lone], lone]
-    frames = [_similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0]),
-              _similarity(1.7, [10.0, -5.0, 90.0], [3.0, 4.0, 5.0])]
-    atomic_write_json(dst / "out" / "sfm" / "reconstruction.json", _split_reconstruction(dst, groups, frames))
+    frames = [similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0]),
+              similarity(1.7, [10.0, -5.0, 90.0], [3.0, 4.0, 5.0])]
+    atomic_write_json(dst / "out" / "sfm" / "reconstruction.json", split_reconstruction(dst, groups, frames))
     doc = json.loads(run_georef(Project(dst), _no_progress).outputs["cameras"].read_text())
     g = doc["georegistration"]
     assert [m["status"] for m in g["models"]] == ["georegistered", "unregistered"]
@@ -521,9 +503,9 @@ def test_multiview_wrong_separate_model_is_rejected(sample, tmp_path):
     dst, truth, names = _mv_project(sample, tmp_path, "mv_sub_wrong")
     half = len(names) // 2
     groups = [names[:half], names[half:]]
-    frames = [_similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0]),
-              _similarity(2.9, [-70.0, 35.0, 160.0], [-300.0, 80.0, 12.0])]
-    rec = _split_reconstruction(dst, groups, frames)
+    frames = [similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0]),
+              similarity(2.9, [-70.0, 35.0, 160.0], [-300.0, 80.0, 12.0])]
+    rec = split_reconstruction(dst, groups, frames)
     # turn the separate model's photo with the most picks by 20 degrees about its own centre: its rays go elsewhere
     picks = _picks_per_photo(dst)
     im = max(rec["models"][0]["images"], key=lambda i: (picks.get(i["name"], 0), i["name"]))
@@ -562,8 +544,8 @@ def test_multiview_photo_left_out_by_sfm_is_resected(sample, tmp_path):
     picks = _picks_per_photo(dst)
     lone = max(names, key=lambda n: (picks.get(n, 0), n))
     assert picks[lone] >= 4
-    rec = _split_reconstruction(dst, [[n for n in names if n != lone]],
-                                [_similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0])])
+    rec = split_reconstruction(dst, [[n for n in names if n != lone]],
+                                [similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0])])
     rec["unregistered"] = [{"name": lone, "reason": "too few verified matches with the registered photos"}]
     atomic_write_json(dst / "out" / "sfm" / "reconstruction.json", rec)
     doc = json.loads(run_georef(Project(dst), _no_progress).outputs["cameras"].read_text())
@@ -588,8 +570,8 @@ def test_multiview_resection_checks_a_wrong_sfm_focal(sample, tmp_path):
     dst, truth, names = _mv_project(sample, tmp_path, "mv_resect_focal")
     picks = _picks_per_photo(dst)
     lone = max(names, key=lambda n: (picks.get(n, 0), n))
-    rec = _split_reconstruction(dst, [[n for n in names if n != lone]],
-                                [_similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0])])
+    rec = split_reconstruction(dst, [[n for n in names if n != lone]],
+                                [similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0])])
     for im in rec["images"]:
         im["intrinsics"] = {**im["intrinsics"], "fx": im["intrinsics"]["fx"] * 0.92,
                             "fy": im["intrinsics"]["fy"] * 0.92}
@@ -626,16 +608,8 @@ def test_multiview_resection_checks_a_wrong_sfm_focal(sample, tmp_path):
 # ----------------------------------------------------------------------------------------------------------
 def _wrong_camera_reconstruction(dst: Path, names: list[str], lone: str, *, f_scale: float, dcx: float,
                                  dcy: float) -> dict:
-    """The true cameras in a model frame, with SfM's shared camera wrong (focal scaled, principal point moved),
-    and one photo left out by SfM."""
-    rec = _split_reconstruction(dst, [[n for n in names if n != lone]],
-                                [_similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0])])
-    for im in rec["images"]:
-        it = im["intrinsics"]
-        im["intrinsics"] = {**it, "fx": it["fx"] * f_scale, "fy": it["fy"] * f_scale, "cx": it["cx"] + dcx,
-                            "cy": it["cy"] + dcy}
-    rec["unregistered"] = [{"name": lone, "reason": "too few verified matches with the registered photos"}]
-    return rec
+    return wrong_camera_reconstruction(dst, names, lone, similarity(0.37, [120.0, 10.0, -20.0], [40.0, -20.0, 5.0]),
+                                       f_scale=f_scale, dcx=dcx, dcy=dcy)
 
 
 def _errors(doc: dict, truth: dict) -> dict[str, tuple[float, float, float | None, float | None]]:

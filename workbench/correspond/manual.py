@@ -23,9 +23,10 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictFloat, ValidationError, field_validator
 
+from ..core.layout import CORRESPONDENCES_FILE
 from ..errors import InputError
 
-FILE_NAME = "correspondences.json"
+FILE_NAME = CORRESPONDENCES_FILE  # the picks file's name (core/layout.py names every incident file)
 PANORAMA = "panorama"
 
 

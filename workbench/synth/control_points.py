@@ -22,6 +22,7 @@ import numpy as np
 from ..core.camera import CameraIntrinsics, project_world
 from ..core.frames import SceneFrame
 from ..core.io import atomic_write_text, to_json
+from ..core.layout import CONTROL_POINTS_FILE as FILE_NAME
 from ..errors import InputError
 
 log = logging.getLogger(__name__)
@@ -29,7 +30,6 @@ log = logging.getLogger(__name__)
 __all__ = ["control_points_document", "write_control_points", "PIXEL_SIGMA_PX"]
 
 PIXEL_SIGMA_PX = 0.5
-FILE_NAME = "control_points.json"
 
 
 def _truth(root: Path) -> dict:
@@ -299,3 +299,43 @@ def true_reconstruction(root: str | Path, world_from_model: np.ndarray, photo_se
     if not images:
         raise InputError(f"{root}: the truth has no {photo_set!r} photos")
     return {"images": images, "points": {"xyz": []}, "intrinsics_source": "sfm"}
+
+
+def similarity(scale: float, euler_zyx_deg, t) -> np.ndarray:
+    """A 4x4 similarity (``world_from_model``): ``scale`` times the rotation of intrinsic z-y-x Euler angles
+    (degrees), then the translation ``t`` (3,)."""
+    from scipy.spatial.transform import Rotation
+
+    S = np.eye(4)
+    S[:3, :3] = scale * Rotation.from_euler("zyx", euler_zyx_deg, degrees=True).as_matrix()
+    S[:3, 3] = t
+    return S
+
+
+def split_reconstruction(root: str | Path, groups: list[list[str]], world_from_models: list[np.ndarray]) -> dict:
+    """A ``reconstruction.json`` (true cameras) whose main model holds the photos of ``groups[0]`` and whose
+    separate models hold ``groups[1:]``, each in its own model frame (``world_from_models[i]``): how SfM reports
+    photos it could not join to the main model."""
+    docs = [true_reconstruction(root, S) for S in world_from_models]
+    pick = [[im for im in d["images"] if im["name"] in g] for d, g in zip(docs, groups)]
+    missing = [sorted(set(g) - {im["name"] for im in p}) for p, g in zip(pick, groups)]
+    if any(missing):
+        raise InputError(f"{root}: photos not in the truth's multi-view set: {missing}")
+    unreg = [{"name": im["name"], "reason": "registered only in a separate model", "model": k}
+             for k, p in enumerate(pick[1:]) for im in p]
+    return {"images": pick[0], "unregistered": unreg, "points": {"xyz": []}, "intrinsics_source": "sfm",
+            "models": [{"images": p, "points": {"xyz": []}, "stats": {}} for p in pick[1:]]}
+
+
+def wrong_camera_reconstruction(root: str | Path, names: list[str], lone: str, world_from_model: np.ndarray, *,
+                                f_scale: float, dcx: float, dcy: float) -> dict:
+    """The true cameras of ``names`` but ``lone`` in one model frame, with SfM's shared camera wrong (focal scaled
+    by ``f_scale``, principal point moved by ``(dcx, dcy)`` px), and ``lone`` left unregistered."""
+    rec = split_reconstruction(root, [[n for n in names if n != lone]], [world_from_model])
+    for im in rec["images"]:
+        it = im["intrinsics"]
+        im["intrinsics"] = {**it, "fx": it["fx"] * f_scale, "fy": it["fy"] * f_scale, "cx": it["cx"] + dcx,
+                            "cy": it["cy"] + dcy}
+    rec["unregistered"] = [{"name": lone, "reason": "too few verified matches with the registered photos"}]
+    return rec
+

@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.io import atomic_write_json
+from ..core.layout import CAMERAS_FILE, CORRESPONDENCES_FILE
 from ..errors import InputError
 
 log = logging.getLogger(__name__)
@@ -59,7 +60,7 @@ def known_cameras(root: str | Path, photo_set: str = "panorama") -> dict:
 def write_known_cameras(root: str | Path, photo_set: str = "panorama") -> Path:
     """Write ``<root>/cameras.json`` with the true cameras of ``photo_set``; returns its path."""
     root = Path(root)
-    path = atomic_write_json(root / "cameras.json", known_cameras(root, photo_set))
+    path = atomic_write_json(root / CAMERAS_FILE, known_cameras(root, photo_set))
     log.info("wrote %s (%s set, true cameras)", path, photo_set)
     return path
 
@@ -97,6 +98,6 @@ def write_true_correspondences(root: str | Path, photo_set: str = "panorama", *,
     """Write ``<root>/correspondences.json`` (see :func:`true_correspondences`); returns its path."""
     root = Path(root)
     doc = true_correspondences(root, photo_set, sigma_px=sigma_px, seed=seed, points_per_car=points_per_car)
-    path = atomic_write_json(root / "correspondences.json", doc)
+    path = atomic_write_json(root / CORRESPONDENCES_FILE, doc)
     log.info("wrote %s (%d observations)", path, len(doc["observations"]))
     return path
