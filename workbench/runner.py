@@ -95,6 +95,7 @@ class Runner:
             raise ValueError(f"duplicate stage names in {names}")
         self.project = project
         self.stages = stages
+        self._hashes: dict[tuple, str] = {}
         self.by_name = {s.name: s for s in stages}
         for s in stages:
             for d in s.depends_on:
@@ -102,13 +103,23 @@ class Runner:
                     raise ValueError(f"stage {s.name!r} depends on {d!r}, which does not run before it")
 
     # -- fingerprints -------------------------------------------------------------------------------------
+    def _hash(self, path: Path) -> str:
+        """SHA-256 of a file, computed once per run for a file that has not changed since (same inode, size and
+        modification time): a run checks every stage's inputs before and while running it, and lists them after,
+        and the photos were hashed at each of those."""
+        st = path.stat()
+        key = (str(path.resolve()), st.st_ino, st.st_size, st.st_mtime_ns)
+        if key not in self._hashes:
+            self._hashes[key] = hash_file(path)
+        return self._hashes[key]
+
     def _fingerprint(self, spec: StageSpec, state: dict) -> dict:
         inputs = spec.inputs(self.project)
         missing = [f"{k} ({p})" for k, p in inputs.items() if not Path(p).is_file()]
         if missing:
             raise StageError(f"stage {spec.name!r}: input file(s) missing: {', '.join(missing)}")
         return {
-            "inputs": {k: hash_file(Path(p)) for k, p in sorted(inputs.items())},
+            "inputs": {k: self._hash(Path(p)) for k, p in sorted(inputs.items())},
             "settings": _settings_hash(self.project, spec.settings_sections),
             "upstream": {d: _outputs_digest(state.get(d, {})) for d in spec.depends_on},
         }
@@ -149,7 +160,7 @@ class Runner:
             return StageStatus(spec.name, "stale", "an upstream stage produced new outputs", rec)
         for name, o in rec.get("outputs", {}).items():
             p = self.project.root / o["path"]
-            if not p.is_file() or hash_file(p) != o["sha256"]:
+            if not p.is_file() or self._hash(p) != o["sha256"]:
                 return StageStatus(spec.name, "stale", f"output {o['path']} missing or modified", rec)
         return StageStatus(spec.name, "done", "", rec)
 
@@ -232,7 +243,8 @@ class Runner:
         rec = {
             "status": "done",
             **fp,
-            "outputs": {k: {"path": self.project.relative(p), "sha256": hash_file(Path(p))} for k, p in outputs.items()},
+            "outputs": {k: {"path": self.project.relative(p), "sha256": self._hash(Path(p))}
+                        for k, p in outputs.items()},
             "started_utc": started.isoformat(timespec="seconds"),
             "duration_s": round(duration, 3),
         }
