@@ -323,6 +323,11 @@ class OffscreenScene:
                          ambient_intensity=float(ambient_intensity), shadows=bool(shadows))
 
     # -- ray casting (depth, instance) -----------------------------------------------------------------
+    def prepare(self) -> None:
+        """Build the ray-casting scene now (it is built on the first render otherwise): call before several threads
+        render the same scene."""
+        self._raycaster()
+
     def _raycaster(self):
         with self._rays_lock:
             return self._build_raycaster()

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.camera import CameraIntrinsics, look_at
+from ..core.camera import look_at
 from ..errors import RenderError
 from ..project import Project
 from ..runner import Progress, StageResult
@@ -357,7 +357,7 @@ def _timed_map(sr: "SceneRenderer", fn, items):
         return [timed(x) for x in items]
     from concurrent.futures import ThreadPoolExecutor
 
-    sr.scene._raycaster()  # built once, before the threads share it
+    sr.scene.prepare()  # built once, before the threads share it
     with ThreadPoolExecutor(max_workers=RENDER_THREADS) as pool:
         return list(pool.map(timed, items))
 
@@ -418,23 +418,17 @@ def run_render(project: Project, progress: Progress) -> StageResult:
     observed_views = {v for c in sc.solution.get("carriages", []) for v in (c.get("observations") or {})}
     from ..render.lens import render_photo
 
-    def overlay_intrinsics(cam) -> CameraIntrinsics:
-        scale = min(1.0, PHOTO_MAX_WIDTH / cam.intrinsics.width)
-        return cam.intrinsics.scaled(scale) if scale < 1.0 else cam.intrinsics
-
-    present = []
+    present = []  # (camera, scale, the photo's camera at the overlay's size)
     for cam in sc.cameras:
         if cam.image is None or not cam.image.is_file():
             log.warning("render: photo of view %s not found (%s); no overlay for it", cam.name, cam.image)
             continue
-        present.append(cam)
-    overlays = _timed_map(sr, lambda cam: render_photo(sr.scene, overlay_intrinsics(cam), cam.cam_from_world,
-                                                       supersample=1), present)
-    for cam, (res, dt) in zip(present, overlays):
+        scale = min(1.0, PHOTO_MAX_WIDTH / cam.intrinsics.width)
+        present.append((cam, scale, cam.intrinsics.scaled(scale) if scale < 1.0 else cam.intrinsics))
+    overlays = _timed_map(sr, lambda p: render_photo(sr.scene, p[2], p[0].cam_from_world, supersample=1), present)
+    for (cam, scale, intr), (res, dt) in zip(present, overlays):
         tick(f"photo {cam.name}")
         t0 = time.perf_counter() - dt
-        intr = overlay_intrinsics(cam)
-        scale = min(1.0, PHOTO_MAX_WIDTH / cam.intrinsics.width)
         photo = _read_rgb(cam.image, (intr.width, intr.height))
         blended = blend_photo(photo, res.color, res.instance)
         stem = Path(cam.name).stem
@@ -453,11 +447,11 @@ def run_render(project: Project, progress: Progress) -> StageResult:
         az, el = _closeup_azimuth(c, az0)
         return sr.view_from(c.body_centre_enu, r, az, el, CLOSEUP_SIZE, margin=1.0), az, el
 
-    closeups = _timed_map(sr, lambda c: sr.render(closeup_view(c)[0], CLOSEUP_SIZE), sc.carriages)
-    for c, (res, dt) in zip(sc.carriages, closeups):
+    views = [closeup_view(c) for c in sc.carriages]
+    closeups = _timed_map(sr, lambda v: sr.render(v[0], CLOSEUP_SIZE), views)
+    for c, (_, az, el), (res, dt) in zip(sc.carriages, views, closeups):
         tick(f"close-up {c.number}")
         t0 = time.perf_counter() - dt
-        _, az, el = closeup_view(c)
         p = _write_png(project, out / f"car_{c.number}.png", res.color)
         record("closeup", f"car_{c.number}", p, t0, carriage=c.number, width=CLOSEUP_SIZE[0],
                height=CLOSEUP_SIZE[1], azimuth_deg=az, elevation_deg=el)

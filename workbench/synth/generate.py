@@ -393,7 +393,7 @@ def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
     # renders are independent, and each photo is the same as rendered alone
     from concurrent.futures import ThreadPoolExecutor
 
-    scene._raycaster()  # built once, before the threads share it
+    scene.prepare()  # built once, before the threads share it
     with ThreadPoolExecutor(max_workers=max(1, min(2, os.cpu_count() or 1))) as pool:
         renders = pool.map(lambda gv: render_photo(scene, intr, gv[1]["cam_from_world"], supersample=opts.supersample),
                            all_views)
