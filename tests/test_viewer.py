@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import signal
 import subprocess
 import sys
 import textwrap
@@ -21,7 +22,8 @@ pytestmark = pytest.mark.skipif(shutil.which("xvfb-run") is None, reason="xvfb-r
 
 W, H = 900, 560
 SCRIPT = textwrap.dedent("""
-    import json, sys
+    import faulthandler, json, sys
+    faulthandler.dump_traceback_later({HANG_S}, exit=True)  # a hang shows where it is, then the process ends
     import numpy as np
     import open3d.visualization.gui as gui
     from workbench.project import Project
@@ -46,7 +48,24 @@ SCRIPT = textwrap.dedent("""
     v.window.close()
     app.run_one_tick()
     print("RESULT " + json.dumps(out))
-""").format(W=W, H=H)
+""").format(W=W, H=H, HANG_S=120)
+
+
+def _run_viewer(args: list[str], out_dir, attempt: int) -> tuple[int, str]:
+    """Run the viewer script under a fresh virtual display; output to a file, not a pipe (an X server that outlives
+    the script would hold a pipe open), the whole process group killed if it is still there after 180 s."""
+    log = out_dir / f"viewer-{attempt}.log"
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    with open(log, "w") as fh:
+        proc = subprocess.Popen(["xvfb-run", "-a", "-s", "-screen 0 1100x700x24", sys.executable, "-c", SCRIPT, *args],
+                                stdout=fh, stderr=subprocess.STDOUT, text=True, env=env, start_new_session=True)
+        try:
+            rc = proc.wait(timeout=180)
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            rc = -9
+    return rc, log.read_text(errors="replace")
 
 
 @pytest.fixture(scope="module")
@@ -60,11 +79,15 @@ def solved(tmp_path_factory):
 def test_viewer_screenshot_and_picking(solved, tmp_path):
     shot = tmp_path / "viewer.png"
     select = solved.settings.consist[1].number
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    proc = subprocess.run(["xvfb-run", "-a", "-s", "-screen 0 1100x700x24", sys.executable, "-c", SCRIPT,
-                           str(solved.root), str(shot), select], capture_output=True, text=True, timeout=240, env=env)
-    line = next((ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")), None)
-    assert proc.returncode == 0 and line, proc.stdout[-2000:] + proc.stderr[-2000:]
+    rc, out = _run_viewer([str(solved.root), str(shot), select], tmp_path, 1)
+    if rc != 0 and ("Timeout (0:" in out or rc == -9):
+        # Seen once on CI and never here (idle or loaded): the script hung for 240 s under the virtual display and
+        # software Vulkan. One more try on a fresh display; a hang that repeats fails, with the first try's
+        # traceback (faulthandler: where it hung) printed in the test's output.
+        print("viewer: the first try hung; trying once more. Its output:\n" + out[-3000:])
+        rc, out = _run_viewer([str(solved.root), str(shot), select], tmp_path, 2)
+    line = next((ln for ln in out.splitlines() if ln.startswith("RESULT ")), None)
+    assert rc == 0 and line, out[-4000:]
     res = json.loads(line[len("RESULT "):])
 
     # the panel shows the selected carriage's numbers, as the solution has them
