@@ -31,6 +31,7 @@ from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from ..core.camera import CameraIntrinsics
+from ..core.geometry import skew
 from ..errors import InputError, WorkbenchWarning
 from .control_points import ControlPoint
 
@@ -500,7 +501,7 @@ class SimilarityResult:
         if self.covariance is None:
             return None
         q = self.scale * self.rotation @ _model_centre_m(cam_from_model)  # world centre minus translation
-        J = np.hstack([q[:, None], -_skew(q), np.eye(3)])
+        J = np.hstack([q[:, None], -skew(q), np.eye(3)])
         C = J @ self.covariance @ J.T
         return float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (C + C.T)).max(), 0.0)))
 
@@ -533,10 +534,6 @@ def _model_centre_m(cam_from_model: np.ndarray) -> np.ndarray:
 
 def _model_centre(v: SfmView) -> np.ndarray:
     return _model_centre_m(v.cam_from_model)
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
 
 
 def solve_similarity(views: Sequence[SfmView], cps: Sequence[ControlPoint], *,

@@ -29,8 +29,9 @@ from typing import Any
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
-from ..errors import InputError, StageError
+from ..core.geometry import skew
 from ..core.layout import CAMERAS_FILE
+from ..errors import InputError, StageError
 from ..project import Project
 from ..runner import Progress, StageResult
 from .control_points import CONTROL_POINTS_FILE, ControlPoint, load_control_points
@@ -565,9 +566,8 @@ def _camera_adjustment(models, placed: dict, resected: dict, out_views: list[dic
             C = np.zeros((3, 3))
             if res.covariance is not None:
                 q = res.scale * res.rotation @ (-sv.cam_from_model[:3, :3].T @ sv.cam_from_model[:3, 3])
-                from .solvers import _skew
 
-                Jc = np.hstack([q[:, None], -_skew(q), np.eye(3)])
+                Jc = np.hstack([q[:, None], -skew(q), np.eye(3)])
                 C = Jc @ res.covariance @ Jc.T
             d2 = []
             for m, c_adj in adjusted_centres.items():

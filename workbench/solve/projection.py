@@ -21,55 +21,9 @@ from typing import Sequence
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
+from ..core.geometry import exp_so3, left_jacobian_so3, log_so3, skew  # noqa: F401 - used here and re-exported
 
 INTRINSIC_NAMES = ("f", "cx", "cy", "k1", "k2")
-
-
-def skew(v: np.ndarray) -> np.ndarray:
-    """(..., 3) -> (..., 3, 3) cross-product matrices: ``skew(a) @ b = a x b``."""
-    v = np.asarray(v, dtype=float)
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1] = -v[..., 2]
-    S[..., 0, 2] = v[..., 1]
-    S[..., 1, 0] = v[..., 2]
-    S[..., 1, 2] = -v[..., 0]
-    S[..., 2, 0] = -v[..., 1]
-    S[..., 2, 1] = v[..., 0]
-    return S
-
-
-def exp_so3(w: np.ndarray) -> np.ndarray:
-    """Rotation vector(s) (..., 3) -> rotation matrices (..., 3, 3) (Rodrigues)."""
-    w = np.asarray(w, dtype=float)
-    th2 = np.sum(w * w, axis=-1)[..., None, None]
-    th = np.sqrt(th2)
-    small = th2 < 1e-16
-    with np.errstate(invalid="ignore", divide="ignore"):
-        a = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / np.where(small, 1.0, th))
-        b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / np.where(small, 1.0, th2))
-    K = skew(w)
-    return np.eye(3) + a * K + b * (K @ K)
-
-
-def log_so3(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) -> rotation vector (3,)."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_rotvec()
-
-
-def left_jacobian_so3(w: np.ndarray) -> np.ndarray:
-    """Left Jacobian of SO(3) (..., 3, 3): ``Exp(w + dw) = Exp(J_l(w) dw) Exp(w)`` to first order."""
-    w = np.asarray(w, dtype=float)
-    th2 = np.sum(w * w, axis=-1)[..., None, None]
-    th = np.sqrt(th2)
-    small = th2 < 1e-10
-    safe = np.where(small, 1.0, th)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        a = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / safe**2)
-        b = np.where(small, 1.0 / 6.0 - th2 / 120.0, (th - np.sin(th)) / safe**3)
-    K = skew(w)
-    return np.eye(3) + a * K + b * (K @ K)
 
 
 def _distort_with_derivs(x: np.ndarray, y: np.ndarray, intr: CameraIntrinsics):

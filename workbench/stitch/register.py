@@ -20,6 +20,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..core.camera import CameraIntrinsics
+from ..core.geometry import exp_and_left_jacobian_so3
 
 log = logging.getLogger(__name__)
 
@@ -379,31 +380,6 @@ def _undistort_radial(xd: np.ndarray, k1: np.ndarray, k2: np.ndarray, iterations
     return np.column_stack([x, y])
 
 
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(n, 3) -> (n, 3, 3) cross-product matrices [v]x."""
-    S = np.zeros(v.shape[:-1] + (3, 3))
-    S[..., 0, 1], S[..., 0, 2], S[..., 1, 2] = -v[..., 2], v[..., 1], -v[..., 0]
-    S[..., 1, 0], S[..., 2, 0], S[..., 2, 1] = v[..., 2], -v[..., 1], v[..., 0]
-    return S
-
-
-def _exp_and_left_jacobian_so3(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(n, 3) rotation vectors -> their rotation matrices exp([phi]x) (Rodrigues) and left Jacobians J_l(phi):
-    exp(phi + d) = exp(J_l(phi) d) exp(phi) to first order; (n, 3, 3) each, from one set of trigonometric terms
-    (the adjustment unpacks its parameters at every evaluation)."""
-    th = np.sqrt(np.einsum("ij,ij->i", phi, phi))
-    K = _skew(phi)
-    KK = K @ K
-    small = th < 1e-6
-    t = np.where(small, 1.0, th)
-    s, c = np.sin(t), np.cos(t)
-    a = np.where(small, 0.5 - th ** 2 / 24.0, (1.0 - c) / t ** 2)
-    b = np.where(small, 1.0 / 6.0 - th ** 2 / 120.0, (t - s) / t ** 3)
-    sinc = np.where(small, 1.0 - th ** 2 / 6.0, s / t)
-    eye = np.eye(3)[None]
-    return eye + sinc[:, None, None] * K + a[:, None, None] * KK, eye + a[:, None, None] * K + b[:, None, None] * KK
-
-
 def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], init: dict[int, CameraIntrinsics],
                   R0: dict[int, np.ndarray], work_scale: dict[int, float], *, fixed_intrinsics: bool,
                   estimate_k1: bool, focal_prior: dict[int, float] | None = None, focal_prior_sigma: float = 0.05,
@@ -476,7 +452,7 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
         Jl = np.zeros((len(kept), 3, 3))
         if free:
             phi = x[:n_rot].reshape(-1, 3)
-            dR, Jf = _exp_and_left_jacobian_so3(phi)
+            dR, Jf = exp_and_left_jacobian_so3(phi)
             Rs[free_pos] = dR @ R0s[free_pos]
             Jl[free_pos] = Jf
         gp = x[n_rot:].reshape(len(gids), n_gp) if n_gp else np.zeros((len(gids), 0))
