@@ -1,0 +1,73 @@
+"""Small rotation geometry used by every solver: cross-product matrices, SO(3) exp/log and its left Jacobian.
+
+Rotation vectors are axis * angle in radians; ``Exp(w)`` is the rotation matrix (Rodrigues). Conventions:
+``docs/conventions.md``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """(..., 3) -> (..., 3, 3) cross-product matrices: ``skew(a) @ b = a x b``."""
+    v = np.asarray(v, dtype=float)
+    S = np.zeros(v.shape[:-1] + (3, 3))
+    S[..., 0, 1] = -v[..., 2]
+    S[..., 0, 2] = v[..., 1]
+    S[..., 1, 0] = v[..., 2]
+    S[..., 1, 2] = -v[..., 0]
+    S[..., 2, 0] = -v[..., 1]
+    S[..., 2, 1] = v[..., 0]
+    return S
+
+
+def exp_so3(w: np.ndarray) -> np.ndarray:
+    """Rotation vector(s) (..., 3) -> rotation matrices (..., 3, 3) (Rodrigues)."""
+    w = np.asarray(w, dtype=float)
+    th2 = np.sum(w * w, axis=-1)[..., None, None]
+    th = np.sqrt(th2)
+    small = th2 < 1e-16
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = np.where(small, 1.0 - th2 / 6.0, np.sin(th) / np.where(small, 1.0, th))
+        b = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / np.where(small, 1.0, th2))
+    K = skew(w)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def log_so3(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) -> rotation vector (3,)."""
+    from scipy.spatial.transform import Rotation
+
+    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_rotvec()
+
+
+def left_jacobian_so3(w: np.ndarray) -> np.ndarray:
+    """Left Jacobian of SO(3) (..., 3, 3): ``Exp(w + dw) = Exp(J_l(w) dw) Exp(w)`` to first order."""
+    w = np.asarray(w, dtype=float)
+    th2 = np.sum(w * w, axis=-1)[..., None, None]
+    th = np.sqrt(th2)
+    small = th2 < 1e-10
+    safe = np.where(small, 1.0, th)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        a = np.where(small, 0.5 - th2 / 24.0, (1.0 - np.cos(th)) / safe**2)
+        b = np.where(small, 1.0 / 6.0 - th2 / 120.0, (th - np.sin(th)) / safe**3)
+    K = skew(w)
+    return np.eye(3) + a * K + b * (K @ K)
+
+
+def exp_and_left_jacobian_so3(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3) rotation vectors -> their rotation matrices exp([phi]x) (Rodrigues) and left Jacobians J_l(phi):
+    exp(phi + d) = exp(J_l(phi) d) exp(phi) to first order; (n, 3, 3) each, from one set of trigonometric terms
+    (the adjustment unpacks its parameters at every evaluation)."""
+    th = np.sqrt(np.einsum("ij,ij->i", phi, phi))
+    K = skew(phi)
+    KK = K @ K
+    small = th < 1e-6
+    t = np.where(small, 1.0, th)
+    s, c = np.sin(t), np.cos(t)
+    a = np.where(small, 0.5 - th ** 2 / 24.0, (1.0 - c) / t ** 2)
+    b = np.where(small, 1.0 / 6.0 - th ** 2 / 120.0, (t - s) / t ** 3)
+    sinc = np.where(small, 1.0 - th ** 2 / 6.0, s / t)
+    eye = np.eye(3)[None]
+    return eye + sinc[:, None, None] * K + a[:, None, None] * KK, eye + a[:, None, None] * K + b[:, None, None] * KK
