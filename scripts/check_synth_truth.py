@@ -10,7 +10,7 @@ import json, sys, numpy as np, trimesh
 from pathlib import Path
 from PIL import Image
 from workbench.project import Project
-from workbench.terrain.dem import TerrainModel
+from workbench.files.dem import TerrainModel
 from workbench.synth.buildings import building_meshes, read_buildings_geojson
 from workbench.synth.generate import visibility_tolerance_m
 from workbench.rolling_stock import get_type

@@ -15,7 +15,7 @@ from rasterio.transform import from_origin
 from workbench.core.frames import SceneFrame
 from workbench.errors import InputError
 from workbench.terrain.buildings import BuildingsDatumMismatch, cityjson_meshes, read_buildings
-from workbench.terrain.dem import TerrainModel
+from workbench.files.dem import TerrainModel
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data" / "buildings"
 DELFT = DATA / "delft_3dfier" / "delft_lod1.city.json"

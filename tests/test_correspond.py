@@ -481,7 +481,8 @@ def test_intrinsics_from_profile_or_known_cameras(incident):
         assert K.to_dict() == pytest.approx(ph[name]["intrinsics"])
     assert src == "camera_profile.json"
     # known cameras (the incident's cameras.json) take precedence over the profile
-    views = [{"name": n, "intrinsics": {**ph[n]["intrinsics"], "fx": 555.0, "fy": 555.0}} for n in intr]
+    views = [{"name": n, "intrinsics": {**ph[n]["intrinsics"], "fx": 555.0, "fy": 555.0},
+              "cam_from_world": np.eye(4).tolist()} for n in intr]
     cams = project.root / "cameras.json"
     cams.write_text(json.dumps({"route": "panorama", "views": views}))
     try:

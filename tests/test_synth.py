@@ -16,7 +16,7 @@ from workbench.project import Project
 from workbench.rolling_stock import get_type
 from workbench.synth.generate import SynthOptions, generate_incident, visibility_tolerance_m
 from workbench.synth.layout import PlacedCar, _Contact, cars_overlap
-from workbench.terrain.dem import TerrainModel
+from workbench.files.dem import TerrainModel
 
 pytestmark = pytest.mark.slow
 

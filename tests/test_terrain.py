@@ -20,7 +20,7 @@ from workbench.synth.buildings import (building_meshes, make_buildings, read_bui
                                        write_buildings_geojson)
 from workbench.synth.terrain import (RAIL_HALF_GAUGE_M, TOP_OF_RAIL_ABOVE_BED_M, make_terrain, scenario_frame,
                                      write_dem_geotiff)
-from workbench.terrain import DemHolesFilled, TerrainModel
+from workbench.files.dem import DemHolesFilled, TerrainModel
 
 SHARED_DEM = Path(__file__).resolve().parents[2] / "shared" / "data" / "dem"  # ../shared beside the repository
 SCENARIOS = ["embankment_river", "cutting_curve"]

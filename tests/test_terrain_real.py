@@ -14,7 +14,7 @@ from rasterio.transform import from_origin
 from workbench.core.frames import SceneFrame
 from workbench.errors import InputError
 from workbench.project import Project
-from workbench.terrain.dem import DemVerticalUnits, TerrainModel, resolve_dem_sources, simplify_terrain_mesh
+from workbench.files.dem import DemVerticalUnits, TerrainModel, resolve_dem_sources, simplify_terrain_mesh
 from workbench.pipeline import stage
 from workbench.terrain.stage import run_terrain
 

@@ -288,7 +288,7 @@ def _report_inputs(project: Project) -> dict[str, Path]:
     return files
 
 
-# The settings the terrain model is built from (terrain.stage.terrain_model_for), which the pose search and the
+# The settings the terrain model is built from (Project.terrain_model), which the pose search and the
 # solve read: changing the mesh's simplification, the buildings or the orthophoto re-runs neither
 TERRAIN_MODEL_KEYS = ("terrain.dem", "terrain.aoi_radius_m", "terrain.dem_vertical_accuracy_m")
 

@@ -34,6 +34,9 @@ if TYPE_CHECKING:  # numpy and the frame are loaded on use: `workbench status` n
     import numpy as np
 
     from .core.frames import SceneFrame
+    from .files.cameras import Cameras
+    from .files.dem import TerrainModel
+    from .files.profile import CameraProfile
 
 log = logging.getLogger(__name__)
 
@@ -132,6 +135,32 @@ class Project:
             return self.own_cameras_path
         out = self.stage_dir("georef") / CAMERAS_FILE
         return out if out.is_file() else None
+
+    def cameras(self) -> "Cameras | None":
+        """The views every stage after georef reads (:meth:`cameras_path`), read and checked; None without."""
+        from .files.cameras import read_cameras
+
+        p = self.cameras_path()
+        return read_cameras(p) if p is not None else None
+
+    def camera_profile(self) -> "CameraProfile | None":
+        """The camera profile that ``camera.profile`` names, read and checked; None when none is named."""
+        from .files.profile import read_profile
+
+        prof = self.settings.camera.profile
+        return read_profile(self.require_file(prof, "camera.profile")) if prof else None
+
+    def terrain_model(self, *, max_cells: int | None = None) -> "TerrainModel":
+        """The incident's terrain model (``terrain.dem``: tiles mosaicked, cropped to ``terrain.aoi_radius_m``,
+        holes filled), built as the terrain stage builds it; ``max_cells`` caps its nodes (for pictures)."""
+        from .files.dem import TerrainModel
+
+        t = self.settings.terrain
+        if t.dem is None:
+            raise InputError(f"{self.settings_path}: terrain.dem is not set")
+        return TerrainModel.from_sources(self.dem_paths(), self.frame, aoi_radius_m=t.aoi_radius_m,
+                                         vertical_accuracy_m=t.dem_vertical_accuracy_m,
+                                         max_cells=max_cells if max_cells is not None else 400_000)
 
     @property
     def manual_picks_path(self) -> Path:

@@ -8,7 +8,7 @@ exactly as OpenCV's ``projectPoints`` (coefficient order k1, k2, p1, p2, k3).
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 

@@ -3,7 +3,7 @@
 A carriage lying on its side shows the camera its roof (few features) and its small, alike ends, so SIFT
 does not find it; yet its neighbours often are found, and the chain and the ground leave it few places to
 be. With the photo's camera in the scene frame (``cameras.json``: ``cam_from_world``) and the terrain
-(``terrain.stage.terrain_model_for``), per photo, for every car not found next to one that is:
+(``Project.terrain_model``), per photo, for every car not found next to one that is:
 
 * **anchors**: the neighbour's coupler (its pose from its found faces, ``CarInPhoto.cam_from_carriage``,
   used only when it rests on two faces or on one matched over 70 % of its length). A held coupling puts the
@@ -56,7 +56,7 @@ from scipy.ndimage import find_objects
 
 from ..rolling_stock import CarriageType
 from .assign import CarInPhoto, _reference
-from .complete import facing_cosine, guided_face, joint_pose, predicted_homography
+from .complete import guided_face, joint_pose, predicted_homography
 from .match import MatchOptions, PhotoFeatures, _apply_h, _overlap, _plausible
 from .references import FACES, FaceReference
 

@@ -66,31 +66,14 @@ def _image_size(path: Path) -> tuple[int, int]:
 def photo_intrinsics(project: Project, photos: list[Path]) -> tuple[dict[str, CameraIntrinsics], str]:
     """Intrinsics of each photo (name -> CameraIntrinsics of the photo as on disk) and where they came from."""
     sizes = {p.name: _image_size(p) for p in photos}
-    cams = project.cameras_path()
-    if cams is not None:
-        doc = project.read_json(cams)
-        views = {v.get("name"): v for v in doc.get("views", []) if isinstance(v, dict)}
-        if all(n in views for n in sizes):
-            out = {}
-            for n in sizes:
-                try:
-                    out[n] = CameraIntrinsics.from_dict(views[n]["intrinsics"])
-                except (KeyError, TypeError, ValueError) as exc:
-                    raise InputError(f"{cams}: views[{n!r}].intrinsics is invalid ({exc}); see docs/pipeline.md") from None
-            return out, project.relative(cams)
-        log.warning("%s does not list every photo of the set; using the camera profile", cams)
-    prof = project.settings.camera.profile
-    if prof:
-        pf = project.require_file(prof, "camera.profile")
-        doc = project.read_json(pf)
-        try:
-            base = CameraIntrinsics.from_dict(doc["intrinsics"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise InputError(f"{pf}: 'intrinsics' is invalid ({exc}); see docs/formats.md (camera_profile.json)") from None
-        out = {}
-        for n, (w, h) in sizes.items():
-            out[n] = base if (w, h) == (base.width, base.height) else base.scaled(w / base.width)
-        return out, project.relative(pf)
+    cameras = project.cameras()
+    if cameras is not None:
+        if all(n in cameras for n in sizes):
+            return {n: cameras[n].intrinsics for n in sizes}, project.relative(cameras.path)
+        log.warning("%s does not list every photo of the set; using the camera profile", cameras.path)
+    prof = project.camera_profile()
+    if prof is not None:
+        return {n: prof.for_size(w, h) for n, (w, h) in sizes.items()}, project.relative(prof.path)
     from ..render.exif import read_focal_px
 
     out = {}
@@ -103,30 +86,19 @@ def photo_intrinsics(project: Project, photos: list[Path]) -> tuple[dict[str, Ca
 
 def camera_poses(project: Project, photos: list[Path]) -> dict[str, np.ndarray]:
     """cam_from_world (4, 4) of each photo listed in ``cameras.json`` (the incident's or georef's); {} without."""
-    cams = project.cameras_path()
-    if cams is None:
+    cameras = project.cameras()
+    if cameras is None:
         return {}
-    doc = project.read_json(cams)
     names = {p.name for p in photos}
-    out = {}
-    for v in doc.get("views", []):
-        if not isinstance(v, dict) or v.get("name") not in names or v.get("cam_from_world") is None:
-            continue
-        M = np.asarray(v["cam_from_world"], dtype=float)
-        if M.shape != (4, 4) or not np.all(np.isfinite(M)):
-            raise InputError(f"{cams}: views[{v.get('name')!r}].cam_from_world is not a finite 4 x 4 matrix")
-        out[v["name"]] = M
-    return out
+    return {v.name: v.cam_from_world for v in cameras.views if v.name in names}
 
 
 def _terrain(project: Project):
     """The incident's terrain model (None without a DEM)."""
     if not project.settings.terrain.dem:
         return None
-    from ..terrain.stage import terrain_model_for
-
     try:
-        return terrain_model_for(project)
+        return project.terrain_model()
     except InputError as exc:
         log.warning("correspond: no terrain for the pose search (%s)", exc)
         return None

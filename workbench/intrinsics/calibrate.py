@@ -20,6 +20,7 @@ import numpy as np
 from ..core.camera import CameraIntrinsics
 from ..core.io import atomic_write_json
 from ..errors import InputError, SettingsError
+from ..files.profile import load_camera_profile, validate_profile, write_camera_profile  # noqa: F401 - re-exported
 
 log = logging.getLogger(__name__)
 
@@ -229,44 +230,6 @@ def calibrate_chessboard(images: list[Path], pattern: tuple[int, int] = (9, 6), 
     log.info("calibrate: %d/%d views, RMS %.3f px, fx=%.2f fy=%.2f cx=%.2f cy=%.2f", len(used), len(images), rms,
              intr.fx, intr.fy, intr.cx, intr.cy)
     return profile, stats
-
-
-def write_camera_profile(path: Path, profile: dict) -> Path:
-    """Check ``profile`` (``docs/formats.md``) and write it atomically as JSON."""
-    validate_profile(profile, str(path))
-    return atomic_write_json(Path(path), profile)
-
-
-def validate_profile(profile: dict, where: str = "camera profile") -> CameraIntrinsics:
-    """The :class:`CameraIntrinsics` of a ``camera_profile.json`` object; :class:`InputError` naming what is wrong."""
-    if not isinstance(profile, dict):
-        raise InputError(f"{where}: a camera profile is a JSON object (see docs/formats.md, camera_profile.json)")
-    unknown = sorted(set(profile) - {"model", "source", "intrinsics", "sensor_width_mm"})
-    if unknown:
-        raise InputError(f"{where}: unknown key(s) {unknown}; see docs/formats.md (camera_profile.json)")
-    if profile.get("model", "brown") != "brown":
-        raise InputError(f"{where}: model = {profile.get('model')!r}; only 'brown' is supported")
-    d = profile.get("intrinsics")
-    if not isinstance(d, dict):
-        raise InputError(f"{where}: no 'intrinsics' object; see docs/formats.md (camera_profile.json)")
-    fields = {"width", "height", "fx", "fy", "cx", "cy", "skew", "k1", "k2", "k3", "p1", "p2"}
-    bad = sorted(set(d) - fields)
-    missing = sorted({"width", "height", "fx", "fy", "cx", "cy"} - set(d))
-    if bad or missing:
-        raise InputError(f"{where}: intrinsics has unknown key(s) {bad} / lacks {missing}; see docs/formats.md")
-    try:
-        return CameraIntrinsics.from_dict(d)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"{where}: intrinsics are invalid ({exc})") from None
-
-
-def load_camera_profile(path: Path) -> tuple[CameraIntrinsics, dict]:
-    """Read a ``camera_profile.json``: (intrinsics, the whole profile)."""
-    from ..core.io import read_json
-
-    path = Path(path)
-    profile = read_json(path, missing="camera profile not found; make one with `workbench calibrate`")
-    return validate_profile(profile, str(path)), profile
 
 
 def run_calibrate(images_dir: Path, out: Path, *, pattern: str = "9x6", square_mm: float = 25.0,

@@ -22,7 +22,7 @@ from ..core.camera import CameraIntrinsics
 from ..errors import InputError
 from ..project import Project
 from ..runner import Progress, StageResult
-from .calibrate import load_camera_profile
+from ..files.profile import load_camera_profile, profile_for_size
 from .exif import FocalPrior, exif_focal_prior
 
 log = logging.getLogger(__name__)
@@ -61,15 +61,6 @@ def _photo_size(path: Path) -> tuple[int, int]:
         raise InputError(f"{path}: cannot read this photo ({exc})") from None
 
 
-def _profile_for(intr: CameraIntrinsics, w: int, h: int, where: str) -> CameraIntrinsics:
-    if (intr.width, intr.height) == (w, h):
-        return intr
-    if abs(intr.width / intr.height - w / h) < 1e-3:
-        return intr.scaled(w / intr.width)
-    raise InputError(f"{where}: the profile is for {intr.width}x{intr.height} photos but a photo is {w}x{h} "
-                     f"(another aspect ratio: cropped or rotated); calibrate this camera at this size")
-
-
 def _centred(w: int, h: int, f: float) -> CameraIntrinsics:
     return CameraIntrinsics(width=w, height=h, fx=f, fy=f, cx=(w - 1) / 2.0, cy=(h - 1) / 2.0)
 
@@ -96,7 +87,7 @@ def resolve_intrinsics(project: Project, photos: list[Path] | None = None) -> In
         pf = project.require_file(s.camera.profile, "camera.profile")
         intr, profile = load_camera_profile(pf)
         for n, (w, h) in sizes.items():
-            per[n] = _profile_for(intr, w, h, str(pf))
+            per[n] = profile_for_size(intr, w, h, str(pf))
             known[n] = True
         detail = {"profile": project.relative(pf), "profile_source": profile.get("source", "")}
         return IntrinsicsChoice("calibrated", per, known, detail)

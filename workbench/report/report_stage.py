@@ -398,7 +398,8 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
                                 f"{project.root}` (or `--only render`)")
     state = project.read_state()
     stats = _stats(project)
-    cams = project.read_json(project.cameras_path()) if project.cameras_path() else {}
+    cameras = project.cameras()
+    cams = cameras.doc if cameras is not None else {}
     cars = solution.get("carriages", [])
 
     progress(0.1, "observations")

@@ -124,21 +124,13 @@ def _matrix(value, where: str) -> np.ndarray:
 
 
 def load_cameras(project: Project) -> tuple[dict, list[SceneCamera]]:
-    p = project.cameras_path()
-    if p is None:
+    """(``cameras.json`` document, its views) of the incident; ({}, []) before georef."""
+    cameras = project.cameras()
+    if cameras is None:
         return {}, []
-    data = project.read_json(p)
-    cams = []
-    for i, v in enumerate(data.get("views", [])):
-        where = f"{p}: views[{i}]"
-        try:
-            intr = CameraIntrinsics.from_dict(v["intrinsics"])
-            M = _matrix(v["cam_from_world"], where + ".cam_from_world")
-        except (KeyError, TypeError, ValueError) as exc:
-            raise InputError(f"{where}: {exc}; see docs/pipeline.md (cameras.json)") from None
-        img = project.path(v["image"]) if v.get("image") else None
-        cams.append(SceneCamera(str(v.get("name", f"view_{i}")), img, intr, M))
-    return data, cams
+    cams = [SceneCamera(v.name, project.path(v.image) if v.image else None, v.intrinsics, v.cam_from_world)
+            for v in cameras.views]
+    return cameras.doc, cams
 
 
 def with_solved_focal(cams: list[SceneCamera], solution: dict, where: Path) -> list[SceneCamera]:
@@ -167,11 +159,7 @@ def _terrain_mesh(project: Project, *, textured: bool) -> trimesh.Trimesh | None
     if ortho is not None and s.dem:
         from PIL import Image
 
-        from ..terrain.dem import TerrainModel
-
-        tm = TerrainModel.from_sources(project.dem_paths(), project.frame,
-                                       aoi_radius_m=s.aoi_radius_m, vertical_accuracy_m=s.dem_vertical_accuracy_m,
-                                       max_cells=MAX_TERRAIN_CELLS)
+        tm = project.terrain_model(max_cells=MAX_TERRAIN_CELLS)
         with Image.open(ortho) as im:
             tex = im.convert("RGB")
             if max(tex.size) > MAX_TEXTURE_PX:  # the renderers linearise every texel: keep it affordable

@@ -364,7 +364,6 @@ def _paint_end(img: Image.Image, atlas: Atlas, end: str, number: str) -> None:
     hw, bb, h, fl = d.width_m / 2, d.body_bottom_m, d.height_m, d.floor_height_m
     eave = spec.profile.eave_height_m
     pen.rect(-hw - 1, hw + 1, -1, bb, fill=under)
-    tc = _rgb(lv.text_color)
     nc = _rgb(lv.number_color)
     for st in lv.stripes:
         if st.on_ends:

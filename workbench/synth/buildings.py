@@ -22,7 +22,7 @@ from shapely.geometry.polygon import orient
 from ..core.frames import SceneFrame
 from ..core.io import atomic_write_text, to_json
 from ..errors import InputError
-from ..terrain.dem import TerrainModel
+from ..files.dem import TerrainModel
 from .terrain import SynthTerrain
 
 __all__ = ["make_buildings", "write_buildings_geojson", "read_buildings_geojson", "building_meshes"]

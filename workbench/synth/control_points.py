@@ -57,7 +57,7 @@ def _scene_meshes(root: Path, truth: dict, frame: SceneFrame):
     import trimesh
 
     from ..rolling_stock import get_type
-    from ..terrain.dem import TerrainModel
+    from ..files.dem import TerrainModel
     from .buildings import building_meshes, read_buildings_geojson
 
     layers = truth.get("layers", {})

@@ -15,7 +15,7 @@ import hashlib
 import json
 import logging
 import os
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -291,7 +291,7 @@ def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
     from ..render.lens import render_photo
     from ..render.offscreen import OffscreenScene, SceneMesh
     from ..rolling_stock import load_library
-    from ..terrain.dem import TerrainModel
+    from ..files.dem import TerrainModel
     from .buildings import building_meshes, make_buildings, write_buildings_geojson
     from .layout import lay_consist
     from .terrain import make_terrain, write_dem_geotiff

@@ -1,5 +1,2 @@
-"""Terrain: DEM reading, the ENU terrain mesh and exact surface queries (:class:`TerrainModel`)."""
-
-from .dem import DemHolesFilled, TerrainModel
-
-__all__ = ["TerrainModel", "DemHolesFilled"]
+"""The ``terrain`` stage: the DEM and the buildings as meshes in the scene frame (the DEM itself is read by
+:mod:`workbench.files.dem`)."""

@@ -18,7 +18,7 @@ import numpy as np
 from ..errors import InputError, WorkbenchWarning
 from ..project import Project
 from ..runner import Progress, StageResult
-from .dem import TerrainModel, simplify_terrain_mesh
+from ..files.dem import TerrainModel, simplify_terrain_mesh
 
 log = logging.getLogger(__name__)
 
@@ -33,12 +33,8 @@ class DemHeightMismatch(WorkbenchWarning):
 
 
 def terrain_model_for(project: Project) -> TerrainModel:
-    """The incident's terrain model (DEM tiles mosaicked, cropped, holes filled) as the terrain stage builds it."""
-    t = project.settings.terrain
-    if t.dem is None:
-        raise InputError(f"{project.settings_path}: terrain.dem is not set")
-    return TerrainModel.from_sources(project.dem_paths(), project.frame, aoi_radius_m=t.aoi_radius_m,
-                                     vertical_accuracy_m=t.dem_vertical_accuracy_m)
+    """The incident's terrain model as the terrain stage builds it (:meth:`Project.terrain_model`)."""
+    return project.terrain_model()
 
 
 class DemPartialCoverage(WorkbenchWarning):
@@ -95,7 +91,7 @@ def run_terrain(project: Project, progress: Progress) -> StageResult:
         warnings.simplefilter("always", WorkbenchWarning)
         progress(0.1, "DEM")
         t0 = time.perf_counter()
-        tm = terrain_model_for(project)
+        tm = project.terrain_model()
         stats["dem_read_s"] = round(time.perf_counter() - t0, 3)
         stats.update(_check_origin_height(project, tm, where))
         stats.update(_check_coverage(project, tm, where))

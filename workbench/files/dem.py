@@ -1,4 +1,4 @@
-"""The terrain model: a DEM converted exactly into the scene ENU frame, its triangle mesh, and surface queries.
+"""The incident's DEM (``terrain.dem``: one GeoTIFF, a folder or a glob of tiles) as a terrain model in the scene frame.
 
 Every later stage (settling carriages, rendering, camera placement) uses :class:`TerrainModel`:
 

@@ -1,0 +1,163 @@
+"""``cameras.json``: every view in the scene frame (format in ``docs/pipeline.md``).
+
+The one reader and writer of the file. ``georef`` writes ``out/georef/cameras.json``; a file of the same format
+written by hand in the incident folder takes its place (known cameras). Every stage reads it through
+:meth:`workbench.project.Project.cameras`, which calls :func:`read_cameras`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..core.camera import CameraIntrinsics
+from ..core.io import atomic_write_json, matrix_from_json, read_json
+from ..errors import InputError
+
+ROUTES = ("panorama", "multiview", "single")
+SEE = "see docs/pipeline.md (cameras.json)"
+
+
+@dataclass(frozen=True)
+class CameraView:
+    """One photo's camera: ``intrinsics`` of the photo as on disk, ``cam_from_world`` (4, 4) from the scene
+    frame (ENU metres) to the camera (x right, y down, z forward); ``focal_known`` False when the focal is only a
+    starting value that the solve estimates."""
+
+    name: str
+    intrinsics: CameraIntrinsics
+    cam_from_world: np.ndarray
+    image: str | None = None
+    focal_known: bool = True
+    record: dict = field(default_factory=dict, compare=False, repr=False)  # the view's entry as written
+
+    @property
+    def center_enu(self) -> np.ndarray:
+        """(3,) the camera centre in the scene frame, metres."""
+        R, t = self.cam_from_world[:3, :3], self.cam_from_world[:3, 3]
+        return -R.T @ t
+
+    def entry(self) -> dict:
+        """The view as a ``cameras.json`` entry (the keys of ``record`` kept, the geometry written anew)."""
+        M = np.asarray(self.cam_from_world, float)
+        out = dict(self.record)
+        out.update({"name": self.name, "image": self.image if self.image is not None else self.name,
+                    "intrinsics": self.intrinsics.to_dict(), "focal_known": bool(self.focal_known),
+                    "cam_from_world": M.tolist(), "center_enu": self.center_enu.tolist()})
+        return out
+
+
+@dataclass(frozen=True)
+class Cameras:
+    """A ``cameras.json``: its views (in file order), the route that placed them and the whole document (for
+    the blocks a stage reads on its own: ``georegistration``, ``panorama``, per-view uncertainty)."""
+
+    path: Path
+    route: str
+    views: tuple[CameraView, ...]
+    doc: dict = field(compare=False, repr=False)
+
+    def __getitem__(self, name: str) -> CameraView:
+        for v in self.views:
+            if v.name == name:
+                return v
+        raise KeyError(name)
+
+    def __contains__(self, name: object) -> bool:
+        return any(v.name == name for v in self.views)
+
+    @property
+    def names(self) -> list[str]:
+        return [v.name for v in self.views]
+
+    @property
+    def focal_unknown(self) -> list[str]:
+        """Names of the views whose focal the solve estimates."""
+        return [v.name for v in self.views if not v.focal_known]
+
+
+def rotation_checked(R: np.ndarray, where: str) -> np.ndarray:
+    """``R`` (3, 3) if it is a rotation (orthonormal, determinant +1); :class:`InputError` naming ``where``."""
+    if not (np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0):
+        raise InputError(f"{where}: not a rotation (orthonormal with determinant +1)")
+    return R
+
+
+def intrinsics_checked(d: Any, where: str) -> CameraIntrinsics:
+    """A :class:`CameraIntrinsics` from a JSON object; :class:`InputError` naming ``where``."""
+    if not isinstance(d, dict):
+        raise InputError(f"{where}: needs an 'intrinsics' object (camera_profile.json model)")
+    try:
+        return CameraIntrinsics.from_dict(d)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{where}: {exc}") from None
+
+
+def _view(v: Any, i: int, where: str, names: set[str]) -> CameraView:
+    w = f"{where}: views[{i}]"
+    if not isinstance(v, dict) or not isinstance(v.get("name"), str) or not v["name"]:
+        raise InputError(f"{w}: needs a 'name' (the photo's file name)")
+    w = f"{where}: views[{i}] ({v['name']!r})"
+    if v["name"] in names:
+        raise InputError(f"{w}: the name is used twice")
+    names.add(v["name"])
+    intr = intrinsics_checked(v.get("intrinsics"), f"{w}.intrinsics")
+    M = matrix_from_json(v.get("cam_from_world"), (4, 4), f"{w}.cam_from_world")
+    rotation_checked(M[:3, :3], f"{w}.cam_from_world")
+    if not np.allclose(M[3], [0, 0, 0, 1]):
+        raise InputError(f"{w}.cam_from_world: last row must be 0 0 0 1")
+    if "center_enu" in v:
+        c = matrix_from_json(v["center_enu"], (3,), f"{w}.center_enu")
+        if np.linalg.norm(c + M[:3, :3].T @ M[:3, 3]) > 1e-3:
+            raise InputError(f"{w}.center_enu = {v['center_enu']} disagrees with cam_from_world (its centre is "
+                             f"{(-M[:3, :3].T @ M[:3, 3]).round(4).tolist()}); fix one of them")
+    known = v.get("focal_known", True)
+    if not isinstance(known, bool):
+        raise InputError(f"{w}.focal_known = {known!r}: give true (the focal is calibrated) or false (the solve "
+                         f"estimates it)")
+    image = v.get("image")
+    if image is not None and (not isinstance(image, str) or not image):
+        raise InputError(f"{w}.image = {image!r}: give the photo's path relative to the incident folder")
+    return CameraView(v["name"], intr, M, image, known, v)
+
+
+def parse_cameras(doc: Any, path: Path | str) -> Cameras:
+    """Check a parsed ``cameras.json`` document; :class:`InputError` naming the file and the entry."""
+    where = str(path)
+    if not isinstance(doc, dict) or not isinstance(doc.get("views"), list) or not doc["views"]:
+        raise InputError(f"{where}: needs a non-empty 'views' list; {SEE}")
+    if doc.get("route") not in ROUTES:
+        raise InputError(f"{where}: route = {doc.get('route')!r}; give 'panorama', 'multiview' or 'single'")
+    names: set[str] = set()
+    views = tuple(_view(v, i, where, names) for i, v in enumerate(doc["views"]))
+    pano = doc.get("panorama")
+    if pano is not None:
+        if not isinstance(pano, dict):
+            raise InputError(f"{where}: 'panorama' must be an object or null")
+        if "world_from_pano" in pano:
+            M = matrix_from_json(pano["world_from_pano"], (4, 4), f"{where}: panorama.world_from_pano")
+            rotation_checked(M[:3, :3], f"{where}: panorama.world_from_pano")
+    return Cameras(Path(path), doc["route"], views, doc)
+
+
+def read_cameras(path: Path) -> Cameras:
+    """Read and check ``cameras.json`` at ``path``."""
+    return parse_cameras(read_json(Path(path)), path)
+
+
+def cameras_document(route: str, views: list[CameraView] | list[dict], **blocks: Any) -> dict:
+    """A ``cameras.json`` document: ``route``, ``views`` (entries, or :class:`CameraView`) and the other blocks
+    (``panorama``, ``georegistration``, ...) as given."""
+    if route not in ROUTES:
+        raise ValueError(f"route {route!r} is not one of {ROUTES}")
+    entries = [v.entry() if isinstance(v, CameraView) else v for v in views]
+    return {"route": route, **blocks, "views": entries}
+
+
+def write_cameras(path: Path, doc: dict) -> Path:
+    """Check ``doc`` as :func:`parse_cameras` does, then write it atomically."""
+    parse_cameras(doc, path)
+    return atomic_write_json(Path(path), doc)
