@@ -42,7 +42,7 @@ sys.path.insert(0, str(ROOT))
 
 from workbench.core.camera import CameraIntrinsics  # noqa: E402
 from workbench.core.io import atomic_write_json  # noqa: E402
-from workbench.intrinsics.exif import exif_focal_prior  # noqa: E402
+from workbench.files.exif import exif_focal_prior  # noqa: E402
 from workbench.intrinsics.sfm import SfmOptions, run_sfm, similarity_align  # noqa: E402
 from workbench.intrinsics.synthetic import write_multiview_set  # noqa: E402
 

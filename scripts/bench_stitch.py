@@ -252,7 +252,7 @@ def _errors(est_R: dict, est_f: dict, truth: dict) -> dict:
 
 
 def truth_ours(truth: dict, route: str) -> dict:
-    from workbench.render.exif import read_focal_px
+    from workbench.files.exif import read_focal_px
     from workbench.stitch import StitchOptions, stitch_photos
 
     kw = {}

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from workbench.render.exif import write_jpeg
+from workbench.files.exif import write_jpeg
 
 WB = [sys.executable, "-m", "workbench.cli"]
 FIRST = ("--only", "inputs", "--only", "terrain")  # noise photos: the later stages rightly refuse them

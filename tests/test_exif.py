@@ -12,8 +12,8 @@ import pytest
 from PIL import Image
 
 from workbench.errors import InputError
-from workbench.intrinsics.exif import exif_focal_prior
-from workbench.render.exif import read_focal_px
+from workbench.files.exif import exif_focal_prior
+from workbench.files.exif import read_focal_px
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data"
@@ -123,7 +123,7 @@ def test_digital_zoom(tmp_path):
 ])
 def test_nonsense_gives_no_prior(tmp_path, tags, why, caplog):
     p = _jpeg(tmp_path / "a.jpg", **tags)
-    with caplog.at_level(logging.INFO, logger="workbench.intrinsics.exif"):
+    with caplog.at_level(logging.INFO, logger="workbench.files.exif"):
         assert exif_focal_prior(p) is None
     assert read_focal_px(p) is None
     if why:
@@ -203,7 +203,7 @@ def _project(tmp_path: Path, source: str, profile: bool = False):
 
 
 def test_route_calibrated_scales_the_profile(tmp_path):
-    from workbench.intrinsics.stage import resolve_intrinsics
+    from workbench.files.intrinsics import resolve_intrinsics
 
     project = _project(tmp_path, "calibrated", profile=True)
     prof = {"model": "brown", "source": "test", "intrinsics": {"width": 800, "height": 600, "fx": 700.0, "fy": 700.0,
@@ -221,7 +221,7 @@ def test_route_calibrated_scales_the_profile(tmp_path):
 
 
 def test_route_exif_and_fallback(tmp_path):
-    from workbench.intrinsics.stage import resolve_intrinsics
+    from workbench.files.intrinsics import resolve_intrinsics
 
     project = _project(tmp_path, "exif")
     _jpeg(project.root / "photos" / "panorama" / "a.jpg", FocalLength=4.25, FocalPlaneXResolution=RES_CM,

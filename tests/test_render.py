@@ -13,7 +13,7 @@ from workbench.core.camera import CameraIntrinsics, look_at, project_world
 from workbench.errors import RenderError
 from workbench.render import OffscreenScene, SceneMesh
 from workbench.render import offscreen as offscreen_mod
-from workbench.render.exif import read_focal_px, write_jpeg
+from workbench.files.exif import read_focal_px, write_jpeg
 from workbench.render.lens import render_photo
 
 BLACK = (0.0, 0.0, 0.0)

@@ -174,7 +174,7 @@ photos = "photos/multiview"
 
 
 def test_sfm_stage_writes_reconstruction(tmp_path, mv_set):
-    from workbench.intrinsics.stage import resolve_intrinsics
+    from workbench.files.intrinsics import resolve_intrinsics
     from workbench.pipeline import stage
     from workbench.project import Project
     from workbench.runner import Runner, StageResult, StageSpec

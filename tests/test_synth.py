@@ -146,7 +146,7 @@ def test_projected_points_land_on_the_rendered_carriage(incident):
 
 def test_panorama_is_pure_rotation_and_exif(incident):
     root, truth = incident
-    from workbench.render.exif import read_focal_px
+    from workbench.files.exif import read_focal_px
 
     pano = [p for p in truth["photos"] if p["set"] == "panorama"]
     multi = [p for p in truth["photos"] if p["set"] == "multiview"]

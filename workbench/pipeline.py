@@ -12,8 +12,9 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from .core.stage_api import Progress, StageResult
 from .errors import InputError
-from .runner import Progress, StageResult, StageSpec
+from .runner import StageSpec
 
 if TYPE_CHECKING:  # stages are handed the Project; the registry itself loads nothing (a CLI that starts at once)
     from .project import Project
@@ -43,7 +44,7 @@ def read_photo_info(path: Path) -> dict:
     """Size and EXIF focal of a photo; :class:`InputError` naming the file if it is corrupt or too large."""
     from PIL import Image, UnidentifiedImageError
 
-    from .render.exif import read_focal_px
+    from .files.exif import read_focal_px
 
     too_big = (f"{path}: larger than the {MAX_PIXELS // 1_000_000} MP limit (a decompression bomb, or a photo "
                f"to downscale first)")
@@ -69,7 +70,7 @@ def read_photo_info(path: Path) -> dict:
             Image.DecompressionBombWarning) as exc:
         raise InputError(f"{path}: cannot read this photo ({exc}); replace it with an intact copy or remove it "
                          f"from the folder") from None
-    from .intrinsics.exif import exif_focal_prior
+    from .files.exif import exif_focal_prior
 
     with warnings.catch_warnings():  # the size is checked above; the EXIF readers open it with PIL's own limit
         warnings.simplefilter("ignore", Image.DecompressionBombWarning)

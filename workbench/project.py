@@ -25,8 +25,8 @@ from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .core.layout import CAMERAS_FILE, CONTROL_POINTS_FILE, CORRESPONDENCES_FILE
 from .core.io import atomic_write, atomic_write_json, atomic_write_text
+from .core.layout import CAMERAS_FILE, CONTROL_POINTS_FILE, CORRESPONDENCES_FILE
 from .core.settings import SETTINGS_FILE, TEMPLATE, ProjectSettings, load_settings, parse_settings
 from .errors import InputError, SettingsError, StageError, UnknownModelType
 

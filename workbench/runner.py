@@ -19,11 +19,12 @@ import json
 import logging
 import time
 import traceback
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Callable, Protocol
+from typing import TYPE_CHECKING, Callable
 
 from .core.io import hash_file
+from .core.stage_api import Progress, StageResult  # noqa: F401 - re-exported for the CLI and tests
 from .errors import StageError, WorkbenchError
 
 if TYPE_CHECKING:  # the runner is handed a Project; importing it here would load the settings models
@@ -32,18 +33,8 @@ if TYPE_CHECKING:  # the runner is handed a Project; importing it here would loa
 log = logging.getLogger(__name__)
 
 
-class Progress(Protocol):
-    def __call__(self, fraction: float, message: str = "") -> None: ...
-
-
 def _no_progress(fraction: float, message: str = "") -> None:  # pragma: no cover - trivial
     pass
-
-
-@dataclass
-class StageResult:
-    outputs: dict[str, Path]  # name -> file written (atomically) by the stage
-    stats: dict = field(default_factory=dict)  # statistics, written to out/<stage>/stats.json by the runner
 
 
 @dataclass(frozen=True)

@@ -24,16 +24,17 @@ from pathlib import Path
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
+from ..core.stage_api import Progress, StageResult
 from ..errors import InputError
+from ..files.intrinsics import photo_size, resolve_intrinsics
 from ..project import Project
-from ..runner import Progress, StageResult
 from . import cache
 from . import manual as mf
 from .assign import find_cars, observations_of
 from .match import MatchOptions, PhotoFeatures, photo_features, undistortion_maps
 from .parallel import STEPS, PhotoResult, default_workers, map_photos
-from .search import chain_search
 from .references import FACES, build_references, face_reference
+from .search import chain_search
 from .transfer import PairHomographies, carry
 
 log = logging.getLogger(__name__)
@@ -53,19 +54,9 @@ def _read_rgb(path: Path) -> np.ndarray:
         raise InputError(f"{path}: cannot read this photo ({exc})") from None
 
 
-def _image_size(path: Path) -> tuple[int, int]:
-    from PIL import Image
-
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read this image ({exc})") from None
-
-
 def photo_intrinsics(project: Project, photos: list[Path]) -> tuple[dict[str, CameraIntrinsics], str]:
     """Intrinsics of each photo (name -> CameraIntrinsics of the photo as on disk) and where they came from."""
-    sizes = {p.name: _image_size(p) for p in photos}
+    sizes = {p.name: photo_size(p) for p in photos}
     cameras = project.cameras()
     if cameras is not None:
         if all(n in cameras for n in sizes):
@@ -74,14 +65,8 @@ def photo_intrinsics(project: Project, photos: list[Path]) -> tuple[dict[str, Ca
     prof = project.camera_profile()
     if prof is not None:
         return {n: prof.for_size(w, h) for n, (w, h) in sizes.items()}, project.relative(prof.path)
-    from ..render.exif import read_focal_px
-
-    out = {}
-    for p in photos:
-        w, h = sizes[p.name]
-        f = read_focal_px(p) or 1.2 * max(w, h)
-        out[p.name] = CameraIntrinsics(width=w, height=h, fx=f, fy=f, cx=(w - 1) / 2, cy=(h - 1) / 2)
-    return out, "exif-or-default"
+    choice = resolve_intrinsics(project, photos)  # EXIF, SfM or the fallback (the solve estimates its focal)
+    return choice.per_photo, choice.source
 
 
 def camera_poses(project: Project, photos: list[Path]) -> dict[str, np.ndarray]:
@@ -111,10 +96,10 @@ def load_manual(project: Project, photos: list[Path] | None = None) -> mf.Corres
         return mf.CorrespondenceFile()
     types = project.carriage_types()
     photos = photos if photos is not None else project.photo_paths()
-    sizes = {p.name: _image_size(p) for p in photos}
+    sizes = {p.name: photo_size(p) for p in photos}
     pano = project.stage_dir("stitch") / "panorama.jpg"
     if pano.is_file():
-        sizes[mf.PANORAMA] = _image_size(pano)
+        sizes[mf.PANORAMA] = photo_size(pano)
     return mf.load(path, points={n: list(t.marked_points) for n, t in types.items()}, image_sizes=sizes)
 
 

@@ -21,8 +21,8 @@ from typing import Any
 import numpy as np
 
 from ..core.io import atomic_write_bytes, to_json
+from ..core.stage_api import Progress, StageResult
 from ..project import Project
-from ..runner import Progress, StageResult
 from .cityjson import cityjson_document
 from .geojson import carriages_geojson
 from .gltf import glb_bytes

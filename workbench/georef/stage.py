@@ -33,7 +33,7 @@ from ..core.geometry import skew
 from ..core.layout import CAMERAS_FILE
 from ..errors import InputError, StageError
 from ..project import Project
-from ..runner import Progress, StageResult
+from ..core.stage_api import Progress, StageResult
 from .control_points import CONTROL_POINTS_FILE, ControlPoint, load_control_points
 from .gps import read_gps
 from .solvers import (GeorefOptions, GeorefResidualsLarge, RigView, SfmView, refine_resection_focal, solve_central,
@@ -951,7 +951,7 @@ def _multiview(project: Project, opts: GeorefOptions, where: str) -> tuple[dict,
 
 
 def _single(project: Project, opts: GeorefOptions, where: str) -> tuple[dict, dict]:
-    from ..render.exif import read_focal_px
+    from ..files.exif import read_focal_px
 
     photo = project.photo_paths()[0]
     cam = project.settings.camera

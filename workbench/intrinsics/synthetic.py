@@ -139,7 +139,7 @@ def write_multiview_set(folder: Path, n: int = 10, *, width: int = 480, height: 
     """
     from PIL import Image
 
-    from ..render.exif import write_jpeg
+    from ..files.exif import write_jpeg
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)

@@ -1,7 +1,6 @@
-"""Off-screen rendering: scenes of ENU meshes (``offscreen``), photos through real lenses (``lens``), EXIF JPEGs (``exif``).
+"""Off-screen rendering: scenes of ENU meshes (``offscreen``), photos through real lenses (``lens``).
 
-The renderer's names are loaded on first use: reading a photo's EXIF (``workbench.render.exif``, which the
-``inputs`` stage does for every photo) must not import trimesh and Open3D.
+The renderer's names are loaded on first use, so importing the package does not import trimesh and Open3D.
 """
 
 from __future__ import annotations

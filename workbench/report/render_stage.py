@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 
 from ..core.camera import look_at
+from ..core.stage_api import Progress, StageResult
 from ..errors import RenderError
 from ..project import Project
-from ..runner import Progress, StageResult
 from .scene import IncidentScene, PlacedCarriage, camera_glyph, car_color, load_scene
 
 log = logging.getLogger(__name__)

@@ -25,9 +25,9 @@ from pathlib import Path
 import numpy as np
 
 from ..core.io import read_json
+from ..core.stage_api import Progress, StageResult
 from ..errors import InputError, StageError
 from ..project import Project
-from ..runner import Progress, StageResult
 from .scene import car_color
 
 log = logging.getLogger(__name__)

@@ -21,7 +21,7 @@ from ..core.camera import CameraIntrinsics
 from ..errors import InputError, StageError
 from ..core.layout import CAMERAS_FILE, CORRESPONDENCES_FILE
 from ..project import Project
-from ..runner import Progress, StageResult
+from ..core.stage_api import Progress, StageResult
 
 log = logging.getLogger(__name__)
 

@@ -23,7 +23,7 @@ import cv2
 from ..core.camera import CameraIntrinsics
 from ..errors import InputError
 from ..project import Project
-from ..runner import Progress, StageResult
+from ..core.stage_api import Progress, StageResult
 from .stitcher import StitchOptions, StitchResult, stitch_photos
 
 log = logging.getLogger(__name__)
@@ -56,7 +56,7 @@ def _photo_size(path: Path) -> tuple[int, int]:
 def stitch_project(project: Project, progress: Progress = lambda f, m="": None,
                    options: StitchOptions = StitchOptions()) -> StitchResult:
     """Stitch the project's photo set along its intrinsics route (no files written)."""
-    from ..render.exif import read_focal_px
+    from ..files.exif import read_focal_px
 
     cam = project.settings.camera
     photos = project.photo_paths()

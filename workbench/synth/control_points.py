@@ -56,8 +56,8 @@ def _scene_meshes(root: Path, truth: dict, frame: SceneFrame):
     """(terrain model, [building meshes], [carriage meshes]) in the scene frame."""
     import trimesh
 
-    from ..rolling_stock import get_type
     from ..files.dem import TerrainModel
+    from ..rolling_stock import get_type
     from .buildings import building_meshes, read_buildings_geojson
 
     layers = truth.get("layers", {})

@@ -287,11 +287,11 @@ def _write_control_points(root: Path) -> None:
 def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
                       progress: Callable[[float, str], None] = lambda f, m="": None) -> dict:
     """Generate (or, when already generated with the same options, keep) a synthetic incident in ``root``."""
-    from ..render.exif import write_jpeg
+    from ..files.dem import TerrainModel
+    from ..files.exif import write_jpeg
     from ..render.lens import render_photo
     from ..render.offscreen import OffscreenScene, SceneMesh
     from ..rolling_stock import load_library
-    from ..files.dem import TerrainModel
     from .buildings import building_meshes, make_buildings, write_buildings_geojson
     from .layout import lay_consist
     from .terrain import make_terrain, write_dem_geotiff

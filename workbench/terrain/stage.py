@@ -15,10 +15,10 @@ import warnings
 
 import numpy as np
 
+from ..core.stage_api import Progress, StageResult
 from ..errors import InputError, WorkbenchWarning
-from ..project import Project
-from ..runner import Progress, StageResult
 from ..files.dem import TerrainModel, simplify_terrain_mesh
+from ..project import Project
 
 log = logging.getLogger(__name__)
 
