@@ -30,6 +30,8 @@ from ..core.camera import CameraIntrinsics
 from ..core.panorama import PanoramaModel, PanoramaSource
 from ..errors import InputError
 from . import register as reg
+from .bundle import BAResult, BundleOptions, bundle_adjust, stack_observations
+from .bundle_problem import Observations, min_work_scale
 from .compose import compose
 
 log = logging.getLogger(__name__)
@@ -294,7 +296,7 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
                 sel = np.sort(np.random.default_rng(opts.seed + 7919 * i + j).choice(
                     len(sel), opts.max_refined_per_pair, replace=False))
             xi, xj = feats[i].keypoints[pm.idx_i[sel]], feats[j].keypoints[pm.idx_j[sel]]
-            J = reg._homography_jacobian(pm.H, lin[i][pm.idx_i[sel]])
+            J = reg.homography_jacobian(pm.H, lin[i][pm.idx_i[sel]])
             # (a patch of 13 x 13 work pixels and a shift of at most 1.5 work pixels, in the refinement copy's pixels)
             r_ref = max(grays[j].shape[1] / sizes[j][0] / feats[j].work_scale, 1.0)
             xj_ref, ok = reg.refine_matches(grays[i], grays[j], xi, xj, sizes[i], sizes[j], J,
@@ -385,7 +387,7 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
     # -- bundle adjustment ------------------------------------------------------------------------------------------
     t0 = time.perf_counter()
     progress(0.45, "bundle adjustment")
-    obs = reg.stack_observations(kept_pairs, feats, kept, seed=opts.seed, max_per_pair=opts.max_refined_per_pair)
+    obs = stack_observations(kept_pairs, feats, kept, seed=opts.seed, max_per_pair=opts.max_refined_per_pair)
     wscale = {k: feats[k].work_scale for k in kept}
     prior = None
     if source == "exif":
@@ -394,8 +396,8 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
     # focal and distortion trade off along a shallow valley: the lens fit starts from the initial focal
     # (EXIF or homographies), not from a pinhole fit, whose focal has absorbed the distortion
     lens = not fixed and opts.estimate_distortion
-    ba = reg.bundle_adjust(obs, root_first, groups, init, R0, wscale, fixed_intrinsics=fixed, estimate_k1=lens,
-                           focal_prior=prior)
+    ba = bundle_adjust(obs, root_first, groups, init, R0, wscale,
+                       BundleOptions(fixed_intrinsics=fixed, estimate_k1=lens), focal_prior=prior)
     focal_model = "fixed" if fixed else "shared"
     if not fixed and len(set(groups.values())) < len(kept) and _rms_work(ba, obs, wscale) > 0.8:
         # one focal per photo when that fits clearly better (zoom changed between photos; no k1 then)
@@ -404,19 +406,20 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
         init_own = {k: replace(init[k], fx=ba.intrinsics[k].fx, fy=ba.intrinsics[k].fx) for k in kept}
         # (its robust pass only: the final pass runs when this model is chosen; the RMS after the robust pass is at
         # least the final one's, so the comparison leans towards the shared camera)
-        ba_own = reg.bundle_adjust(obs, root_first, own, init_own, ba.cam_from_pano, wscale, fixed_intrinsics=False,
-                                   estimate_k1=False, final_pass=False)
+        ba_own = bundle_adjust(obs, root_first, own, init_own, ba.cam_from_pano, wscale,
+                               BundleOptions(fixed_intrinsics=False, estimate_k1=False, final_pass=False))
         rms_shared, rms_own = _rms_work(ba, obs, wscale), _rms_work(ba_own, obs, wscale)
         log.info("stitch: RMS %.3f (one camera: f %.1f, k1 %.4f) vs %.3f work px (one focal per photo)", rms_shared,
                  ba.intrinsics[kept[0]].fx, ba.intrinsics[kept[0]].k1, rms_own)
         if rms_shared > 1.3 * rms_own + 0.2:
-            ba = reg.bundle_adjust(obs, root_first, own, ba_own.intrinsics, ba_own.cam_from_pano, wscale,
-                                   fixed_intrinsics=False, estimate_k1=False, robust_pass=False, used=ba_own.used)
+            ba = bundle_adjust(obs, root_first, own, ba_own.intrinsics, ba_own.cam_from_pano, wscale,
+                               BundleOptions(fixed_intrinsics=False, estimate_k1=False, robust_pass=False),
+                               used=ba_own.used)
             groups, focal_model = own, "per_photo"
     timings["bundle_adjustment_s"] = time.perf_counter() - t0
 
     # -- residuals and the parallax check ------------------------------------------------------------------------
-    s_obs = reg.min_work_scale(obs, wscale)
+    s_obs = min_work_scale(obs, wscale)
     err_full = np.linalg.norm(ba.residuals_px, axis=2)  # (M, 2)
     err_work = err_full * s_obs[:, None]
     f_obs = np.array([ba.intrinsics[a].fx for a in obs.a])
@@ -459,10 +462,10 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
         # outlier threshold, pulls the weakly determined focal of a single row; the parallax check above keeps the
         # least-squares residuals)
         t0 = time.perf_counter()
-        ba = reg.bundle_adjust(obs, root_first, groups, init, ba.cam_from_pano, wscale, fixed_intrinsics=False,
-                               estimate_k1=lens and focal_model == "shared",
-                               focal_prior=prior if focal_model == "shared" else None, robust_pass=False,
-                               used=ba.used, start=ba.intrinsics, final_loss_median=opts.final_loss_median)
+        last = BundleOptions(fixed_intrinsics=False, estimate_k1=lens and focal_model == "shared", robust_pass=False,
+                             final_loss_median=opts.final_loss_median)
+        ba = bundle_adjust(obs, root_first, groups, init, ba.cam_from_pano, wscale, last,
+                           focal_prior=prior if focal_model == "shared" else None, used=ba.used, start=ba.intrinsics)
         timings["last_adjustment_s"] = time.perf_counter() - t0
 
     # -- wave correction, projection, model --------------------------------------------------------------------------
@@ -473,7 +476,7 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
     proj, R_axis, extents = _choose_frame_and_projection(Rs, ba.intrinsics, opts)
     Rs = {k: R @ R_axis.T for k, R in Rs.items()}
     sources = tuple(PanoramaSource(name=names[k], image=image_refs[k], intrinsics=ba.intrinsics[k],
-                                   cam_from_pano=reg._nearest_rotation(Rs[k])) for k in kept)
+                                   cam_from_pano=reg.nearest_rotation(Rs[k])) for k in kept)
     scale = float(np.median([ba.intrinsics[k].fx for k in kept]))
     model = _fit_extent(PanoramaModel(projection=proj, scale=scale, offset=(0.0, 0.0), width=1, height=1,
                                       sources=sources))
@@ -523,8 +526,8 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
                         stats=stats)
 
 
-def _rms_work(ba: "reg.BAResult", obs: "reg.Observations", wscale: dict[int, float]) -> float:
-    e = np.linalg.norm(ba.residuals_px, axis=2) * reg.min_work_scale(obs, wscale)[:, None]
+def _rms_work(ba: BAResult, obs: Observations, wscale: dict[int, float]) -> float:
+    e = np.linalg.norm(ba.residuals_px, axis=2) * min_work_scale(obs, wscale)[:, None]
     return float(np.sqrt(np.mean(e[ba.used] ** 2)))
 
 
