@@ -243,7 +243,8 @@ class RotationBundleProblem:
         if not jac:
             return p, None, None
         n = len(y)
-        # d y / d d = iz [I | -y]; d yd / d y = s I + 2 ds y y^T, so d yd / d d = iz [s I + 2 ds y y^T | -(s + 2 ds r2) y]
+        # d y / d d = iz [I | -y]; d yd / d y = s I + 2 ds y y^T,
+        # so d yd / d d = iz [s I + 2 ds y y^T | -(s + 2 ds r2) y]
         fi = f * iz
         dp_dd = np.empty((n, 2, 3))
         if n_gp == 5:
