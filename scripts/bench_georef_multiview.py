@@ -43,7 +43,7 @@ sys.path.insert(0, str(ROOT))
 
 from workbench.core.io import atomic_write_json  # noqa: E402
 from workbench.errors import InputError  # noqa: E402
-from workbench.georef.solvers import GeorefOptions  # noqa: E402
+from workbench.georef.options import GeorefOptions  # noqa: E402
 from workbench.georef.stage import run_georef  # noqa: E402
 from workbench.project import Project  # noqa: E402
 from workbench.synth.control_points import (similarity, split_reconstruction, true_reconstruction,  # noqa: E402

@@ -157,7 +157,7 @@ def georef_eval(root: Path, res, work: Path, centres: dict, rots: dict, rec: dic
     from workbench.georef.stage import run_georef
     from workbench.project import Project
 
-    from workbench.georef.solvers import GeorefOptions
+    from workbench.georef.options import GeorefOptions
 
     out = {}
     if rec is None:

@@ -17,8 +17,11 @@ from workbench.core.frames import SceneFrame
 from workbench.core.io import atomic_write_json
 from workbench.errors import InputError, StageError
 from workbench.georef.control_points import load_control_points, parse_control_points
-from workbench.georef.solvers import GeorefOptions, GeorefResidualsLarge, SfmView, solve_similarity, umeyama
-from workbench.georef.stage import run_georef, validate_cameras_doc
+from workbench.georef.fitting import umeyama
+from workbench.georef.inputs import validate_cameras_doc
+from workbench.georef.options import GeorefOptions, GeorefResidualsLarge, SfmView
+from workbench.georef.similarity import solve_similarity
+from workbench.georef.stage import run_georef
 from workbench.pipeline import stage
 from workbench.project import Project
 from workbench.synth.control_points import (similarity, split_reconstruction, true_panorama_model,
@@ -387,7 +390,7 @@ def test_berlin_gcps_real_data(capsys):
     for v in views:
         assert np.allclose(gps[v.name], rec["shots"][v.name]["gps_position"], atol=0.05)
     # GCP 0 is picked in two photos: its rays meet in the OpenSfM model (pixel conventions agree)
-    from workbench.georef.solvers import triangulate_rays
+    from workbench.georef.fitting import triangulate_rays
 
     cp0 = next(c for c in cps if c.name == "gcp_0")
     by = {v.name: v for v in views}

@@ -130,7 +130,7 @@ def _project(root):
 
 
 def _read_cameras(project, path):
-    from workbench.georef.stage import validate_cameras_doc
+    from workbench.georef.inputs import validate_cameras_doc
     from workbench.solve.stage import read_views
 
     read_views(project, path)
@@ -157,13 +157,13 @@ def _read_camera_profile(project, path):
 
 
 def _read_panorama_model(project, path):
-    from workbench.georef.stage import read_panorama_model
+    from workbench.georef.inputs import read_panorama_model
 
     read_panorama_model(project, path)
 
 
 def _read_reconstruction(project, path):
-    from workbench.georef.stage import read_reconstruction_models
+    from workbench.georef.inputs import read_reconstruction_models
 
     read_reconstruction_models(project, path)
 

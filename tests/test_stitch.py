@@ -158,7 +158,7 @@ def test_bundle_adjust_jacobian_is_exact(monkeypatch):
     from scipy.optimize._numdiff import approx_derivative
     from scipy.spatial.transform import Rotation
 
-    from workbench.stitch import register as reg
+    from workbench.stitch import bundle as reg
 
     rng = np.random.default_rng(0)
     lens = CameraIntrinsics(width=640, height=480, fx=700.0, fy=700.0, cx=325.0, cy=236.0, k1=-0.1, k2=0.02,
@@ -196,7 +196,7 @@ def test_compressed_least_squares_takes_the_same_steps(monkeypatch):
     norms as on the m rows, and the same adjustment as without the compression."""
     from scipy.spatial.transform import Rotation
 
-    from workbench.stitch import register as reg
+    from workbench.stitch import bundle as reg
 
     rng = np.random.default_rng(3)
     J, r = rng.normal(size=(500, 7)) * np.array([1.0, 10.0, 0.1, 1.0, 3.0, 1e3, 1e-2]), rng.normal(size=500)
@@ -233,7 +233,7 @@ def test_last_adjustment_weighs_the_tail_less():
     inside the 4 px outlier threshold) pulls the focal far less from the fit without them."""
     from scipy.spatial.transform import Rotation
 
-    from workbench.stitch import register as reg
+    from workbench.stitch import bundle as reg
 
     rng = np.random.default_rng(5)
     lens = CameraIntrinsics(width=640, height=480, fx=700.0, fy=700.0, cx=319.5, cy=239.5, k1=-0.1)

@@ -29,6 +29,7 @@ from pyproj import CRS, Transformer
 from pyproj.exceptions import CRSError
 
 from ..core.frames import SceneFrame
+from ..core.io import read_json
 from ..core.layout import CONTROL_POINTS_FILE
 from ..core.settings import describe_validation_error
 from ..errors import InputError
@@ -143,7 +144,5 @@ def parse_control_points(data: Any, frame: SceneFrame, where: str = CONTROL_POIN
 
 def load_control_points(path: str | Path, frame: SceneFrame) -> list[ControlPoint]:
     """Read ``control_points.json``; :class:`InputError` naming the file, the point and the value on bad input."""
-    from ..core.io import read_json
-
     path = Path(path)
     return parse_control_points(read_json(path), frame, str(path))

@@ -5,6 +5,8 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
+from PIL import Image, UnidentifiedImageError
+
 log = logging.getLogger(__name__)
 
 _GPS_IFD = 0x8825
@@ -20,8 +22,6 @@ def _deg(value) -> float | None:
 
 def read_gps(path: str | Path) -> tuple[float, float, float | None] | None:
     """``(lon_deg, lat_deg, altitude_m or None)`` from a photo's EXIF GPS tags, or None when it has none."""
-    from PIL import Image, UnidentifiedImageError
-
     try:
         with Image.open(path) as im:
             gps = im.getexif().get_ifd(_GPS_IFD)

@@ -4,7 +4,7 @@ Applies when ``camera.source`` is not ``sfm`` and the photo folder holds two or 
 intrinsics route follows ``camera.source``:
 
 * ``calibrated``: the camera profile's intrinsics (with distortion) are fixed; only rotations are estimated.
-* ``exif``: the EXIF focal (``workbench.render.exif.read_focal_px``) is the starting value and a weak prior;
+* ``exif``: the EXIF focal (``workbench.files.exif.read_focal_px``) is the starting value and a weak prior;
   focal, k1, k2 and the principal point are estimated. Photos without EXIF focal make the route ``fallback``.
 * ``unknown``: everything estimated (``fallback``).
 
@@ -19,12 +19,15 @@ import logging
 from pathlib import Path
 
 import cv2
+from PIL import Image
 
 from ..core.camera import CameraIntrinsics
 from ..errors import InputError
 from ..project import Project
+from ..files.exif import read_focal_px
 from ..core.stage_api import Progress, StageResult
-from .stitcher import StitchOptions, StitchResult, stitch_photos
+from .options import StitchOptions, StitchResult
+from .stitcher import stitch_photos
 
 log = logging.getLogger(__name__)
 
@@ -44,8 +47,6 @@ def load_profile_intrinsics(project: Project) -> CameraIntrinsics:
 
 
 def _photo_size(path: Path) -> tuple[int, int]:
-    from PIL import Image
-
     try:
         with Image.open(path) as im:
             return im.size
@@ -56,8 +57,6 @@ def _photo_size(path: Path) -> tuple[int, int]:
 def stitch_project(project: Project, progress: Progress = lambda f, m="": None,
                    options: StitchOptions = StitchOptions()) -> StitchResult:
     """Stitch the project's photo set along its intrinsics route (no files written)."""
-    from ..files.exif import read_focal_px
-
     cam = project.settings.camera
     photos = project.photo_paths()
     names = [p.name for p in photos]

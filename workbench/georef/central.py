@@ -1,0 +1,334 @@
+"""Placing a *central* rig from control points: one projection centre, several photos that only turned (a
+panorama, its frame ``pano`` = ``rig``), or a single photo (``rig`` = the camera).
+
+Unknowns: ``rig_from_world`` (rotation) and the centre (3). Start: P3P (OpenCV) on the control-point rays in the
+rig frame, each triple seen through a virtual pinhole looking along their mean direction; with a centre prior
+(``camera.position_enu`` or EXIF GPS) also the rotation that best aligns the rays with the directions to the
+points (Kabsch). Refinement: reprojection error in every source photo (its own intrinsics and distortion), each
+residual divided by ``sqrt(sigma_px^2 + (f sigma_m / depth)^2)``, plus the prior; robust loss (docs/gis.md).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Sequence
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from ..core.camera import CameraIntrinsics
+from ..errors import InputError
+from .control_points import ControlPoint
+from .fitting import orthonormal, point_line_distance, rotation_kabsch
+from .options import GeorefOptions, RigView
+from .picks import Pick, pick_sigma, picks_in_views, summarize_residuals, warn_residuals
+
+__all__ = ["CentralResult", "solve_central", "refine_resection_focal"]
+
+
+@dataclass
+class CentralResult:
+    """``rig_from_world`` rotation (3, 3), ``centre_enu`` (3,), residuals and statistics."""
+
+    rig_from_world: np.ndarray
+    centre_enu: np.ndarray
+    residuals: list[dict]
+    stats: dict
+    warnings: list[str]
+
+    @property
+    def world_from_rig(self) -> np.ndarray:
+        """(4, 4) ``world_from_rig``."""
+        M = np.eye(4)
+        M[:3, :3] = self.rig_from_world.T
+        M[:3, 3] = self.centre_enu
+        return M
+
+    def cam_from_world(self, cam_from_rig: np.ndarray) -> np.ndarray:
+        """(4, 4) ``cam_from_world`` of a photo of the rig with ``cam_from_rig`` (3, 3)."""
+        R = np.asarray(cam_from_rig, float) @ self.rig_from_world
+        M = np.eye(4)
+        M[:3, :3] = R
+        M[:3, 3] = -R @ self.centre_enu
+        return M
+
+
+def _p3p_candidates(bearings: np.ndarray, X: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``(rig_from_world R, centre)`` candidates from 3 bearings (3, 3) in the rig frame and 3 world points."""
+    m = bearings.sum(axis=0)
+    if np.linalg.norm(m) < 1e-6:
+        return []
+    z = m / np.linalg.norm(m)
+    x = np.cross([0.0, 1.0, 0.0] if abs(z[1]) < 0.9 else [1.0, 0.0, 0.0], z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    Q = np.vstack([x, y, z])  # virtual_from_rig
+    b = bearings @ Q.T
+    if np.any(b[:, 2] <= 1e-3):
+        return []
+    img = np.ascontiguousarray(b[:, :2] / b[:, 2:3])
+    try:
+        n, rvecs, tvecs = cv2.solveP3P(np.ascontiguousarray(X, dtype=np.float64), img, np.eye(3), None,
+                                       flags=cv2.SOLVEPNP_P3P)
+    except cv2.error:
+        return []
+    out = []
+    for rv, tv in zip(rvecs or [], tvecs or []):
+        Rv = cv2.Rodrigues(np.asarray(rv, float))[0]
+        R = Q.T @ Rv
+        t = Q.T @ np.asarray(tv, float).reshape(3)
+        out.append((R, -R.T @ t))
+    return out
+
+
+def _central_errors(R: np.ndarray, c: np.ndarray, views: Sequence[RigView], obs: list[Pick],
+                    X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Reprojection errors (n,) px (inf when behind) and the residual vectors (n, 2) of every observation."""
+    err = np.full(len(obs), np.inf)
+    vec = np.full((len(obs), 2), np.nan)
+    vi = np.array([o.view for o in obs])
+    P = (X[[o.point for o in obs]] - c) @ R.T  # rig frame
+    UV = np.array([o.uv for o in obs]).reshape(-1, 2)
+    for i in np.unique(vi):
+        k = np.nonzero(vi == i)[0]
+        v = views[i]
+        q = P[k] @ np.asarray(v.cam_from_rig, float).T
+        front = q[:, 2] > 1e-6
+        if not front.any():
+            continue
+        kk = k[front]
+        vec[kk] = v.intrinsics.project(q[front]) - UV[kk]
+        err[kk] = np.hypot(vec[kk, 0], vec[kk, 1])
+    return err, vec
+
+
+def _start_candidates(bear: np.ndarray, pts: np.ndarray, X: np.ndarray, n_pts: int, prior_centre: np.ndarray | None,
+                      opts: GeorefOptions, rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``(rig_from_world, centre)`` starts: with a centre prior, Kabsch on all picks and on random pairs; with 3
+    or more points, P3P on random triples of distinct points."""
+    candidates: list[tuple[np.ndarray, np.ndarray]] = []
+    if prior_centre is not None:
+        c0 = np.asarray(prior_centre, float)
+        u = X[pts] - c0
+        ok = np.linalg.norm(u, axis=1) > 1e-3
+        u[ok] /= np.linalg.norm(u[ok], axis=1, keepdims=True)
+        if ok.sum() >= 2:
+            candidates.append((rotation_kabsch(u[ok], bear[ok]), c0))  # rig_from_world maps world dirs to bearings
+            for _ in range(min(opts.ransac_iterations, 100)):
+                i, j = rng.choice(np.nonzero(ok)[0], 2, replace=False)
+                if pts[i] != pts[j]:
+                    candidates.append((rotation_kabsch(u[[i, j]], bear[[i, j]]), c0))
+    if n_pts >= 3:
+        by_point: dict[int, list[int]] = {}
+        for k, p in enumerate(pts):
+            by_point.setdefault(int(p), []).append(k)
+        keys = sorted(by_point)
+        for _ in range(opts.ransac_iterations):
+            trip = rng.choice(len(keys), 3, replace=False)
+            ks = [by_point[keys[t]][rng.integers(len(by_point[keys[t]]))] for t in trip]
+            candidates.extend(_p3p_candidates(bear[ks], X[pts[ks]]))
+    return candidates
+
+
+def _best_candidate(candidates: list[tuple[np.ndarray, np.ndarray]], views: Sequence[RigView], obs: list[Pick],
+                    X: np.ndarray, prior_centre: np.ndarray | None, prior_sigma_m: np.ndarray | float | None,
+                    opts: GeorefOptions) -> tuple[np.ndarray, np.ndarray]:
+    """The candidate with the best bounded (MSAC-like) score, less a small penalty for leaving the prior."""
+    best, best_score = None, -np.inf
+    thr = opts.ransac_threshold_px
+    for R, c in candidates:
+        err, _ = _central_errors(R, c, views, obs, X)
+        score = float(np.sum(np.maximum(0.0, 1.0 - (np.minimum(err, thr) / thr) ** 2)))  # MSAC-like, bounded
+        if prior_centre is not None:
+            sig = np.broadcast_to(np.asarray(prior_sigma_m if prior_sigma_m is not None else opts.prior_sigma_m,
+                                             float), (3,))
+            score -= 0.01 * float(np.sum(((c - np.asarray(prior_centre, float)) / sig) ** 2)) / max(len(obs), 1)
+        if score > best_score:
+            best, best_score = (R, c), score
+    return best
+
+
+def _refine_central(views: Sequence[RigView], obs: list[Pick], X: np.ndarray, cps: Sequence[ControlPoint],
+                    R_init: np.ndarray, c_init: np.ndarray, use: np.ndarray, prior_centre: np.ndarray | None,
+                    sig_prior: np.ndarray | None, opts: GeorefOptions):
+    """Rotation, centre and their (6, 6) covariance (rig-frame rotation vector, centre; None when singular)
+    refined on the picks ``use`` (robust loss ``opts.loss``), with the centre prior when given."""
+    sel = [o for o, u_ in zip(obs, use) if u_]
+    depths = []
+    for o in sel:
+        v = views[o.view]
+        depths.append(max(float((v.cam_from_rig @ (R_init @ (X[o.point] - c_init)))[2]), 1e-3))
+    sig = np.array([pick_sigma(views[o.view].intrinsics, opts.sigma_px, cps[o.point].sigma_m, d)
+                    for o, d in zip(sel, depths)])
+
+    def fun(p):
+        R = Rotation.from_rotvec(p[:3]).as_matrix() @ R_init
+        c = p[3:]
+        res = []
+        for o, s in zip(sel, sig):
+            v = views[o.view]
+            q = v.cam_from_rig @ (R @ (X[o.point] - c))
+            z = max(q[2], 1e-6)
+            xy = v.intrinsics.distort(np.array([[q[0] / z, q[1] / z]]))
+            uv = v.intrinsics.pixels_from_normalized(xy)[0]
+            res.extend((uv - o.uv) / s)
+        if sig_prior is not None:
+            res.extend((c - np.asarray(prior_centre, float)) / sig_prior)
+        return np.asarray(res)
+
+    x0 = np.concatenate([np.zeros(3), c_init])
+    sol = least_squares(fun, x0, loss=opts.loss, f_scale=opts.loss_scale, x_scale="jac", max_nfev=200)
+    R = Rotation.from_rotvec(sol.x[:3]).as_matrix() @ R_init
+    cov = None
+    try:
+        J = sol.jac
+        cov = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        pass
+    return R, sol.x[3:].copy(), cov
+
+
+def _central_residuals(R: np.ndarray, c: np.ndarray, views: Sequence[RigView], obs: list[Pick], X: np.ndarray,
+                       bear: np.ndarray, cps: Sequence[ControlPoint], opts: GeorefOptions) -> list[dict]:
+    """Every pick's residual (px, and the point's distance from its ray in metres) and whether it is an inlier."""
+    err, vec = _central_errors(R, c, views, obs, X)
+    residuals = []
+    for k, o in enumerate(obs):
+        v = views[o.view]
+        d_world = R.T @ bear[k]
+        residuals.append({"point": cps[o.point].name, "view": v.name, "uv": o.uv.tolist(),
+                          "residual_px": vec[k].tolist() if np.isfinite(err[k]) else None,
+                          "error_px": float(err[k]) if np.isfinite(err[k]) else None,
+                          "error_m": point_line_distance(X[o.point], c, d_world),
+                          "inlier": bool(err[k] < opts.ransac_threshold_px)})
+    return residuals
+
+
+def _covariance_stats(R: np.ndarray, cov: np.ndarray) -> dict:
+    """1-sigma rotation (deg) and centre (m), and the covariance in the scene frame, for the solve to carry into
+    the carriages' poses: the rotation was perturbed in the rig frame (rig_from_world <- Exp(x) rig_from_world),
+    i.e. by R^T x in the scene frame (world_from_rig <- Exp(R^T x) world_from_rig); order: rotation vector
+    (rad), centre (m), ENU."""
+    sd = np.sqrt(np.clip(np.diag(cov), 0, None))
+    T = np.zeros((6, 6))
+    T[:3, :3] = R.T
+    T[3:, 3:] = np.eye(3)
+    cw = T @ cov @ T.T
+    return {"sigma_rotation_deg": [float(np.degrees(x)) for x in sd[:3]],
+            "sigma_centre_m": [float(x) for x in sd[3:]],
+            "covariance_world_rotation_centre": (0.5 * (cw + cw.T)).tolist()}
+
+
+def solve_central(views: Sequence[RigView], cps: Sequence[ControlPoint], *, prior_centre: np.ndarray | None = None,
+                  prior_sigma_m: np.ndarray | float | None = None, opts: GeorefOptions = GeorefOptions(),
+                  where: str = "control_points.json") -> CentralResult:
+    """Place a central rig (panorama or single photo) from control points; see the module docstring.
+
+    ``prior_centre`` (3,) ENU metres with ``prior_sigma_m`` (scalar or (3,)): a soft prior on the centre.
+    Needs 3 control points (4 or more to be safe) seen in the photos, or 2 with a centre prior.
+    """
+    obs = picks_in_views(cps, views, where)
+    X = np.array([cp.enu for cp in cps], float)
+    n_pts = len({o.point for o in obs})
+    has_prior = prior_centre is not None
+    if n_pts < 3 and not (has_prior and n_pts >= 2):
+        raise InputError(f"{where}: {n_pts} control point(s) are picked in the photos {[v.name for v in views]}; "
+                         f"placing the camera needs at least 3 (4 or more to check them), or 2 with the camera "
+                         f"position known (camera.position_enu or GPS in the photos); add points to the file")
+    bear = np.array([views[o.view].cam_from_rig.T @ views[o.view].intrinsics.rays(o.uv[None])[0] for o in obs])
+    pts = np.array([o.point for o in obs])
+    rng = np.random.default_rng(opts.seed)
+    candidates = _start_candidates(bear, pts, X, n_pts, prior_centre, opts, rng)
+    if not candidates:
+        raise InputError(f"{where}: the control points give no camera pose (degenerate geometry: are the points "
+                         f"on one line, or all picked at the same place?); add points spread over the view")
+    thr = opts.ransac_threshold_px
+    R0, c0_est = _best_candidate(candidates, views, obs, X, prior_centre, prior_sigma_m, opts)
+    err0, _ = _central_errors(R0, c0_est, views, obs, X)
+    inl = err0 < thr
+    if inl.sum() < min(3, len(obs)) and not has_prior:
+        raise InputError(f"{where}: no camera pose agrees with more than {int(inl.sum())} of the {len(obs)} picks "
+                         f"(threshold {thr} px); check the point names, coordinates and pixels")
+    sig_prior = None
+    if has_prior:
+        sig_prior = np.broadcast_to(np.asarray(prior_sigma_m if prior_sigma_m is not None else opts.prior_sigma_m,
+                                               float), (3,)).copy()
+    R1, c1, _ = _refine_central(views, obs, X, cps, R0, c0_est, np.ones(len(obs), bool), prior_centre, sig_prior,
+                                opts)
+    err1, _ = _central_errors(R1, c1, views, obs, X)
+    inl = err1 < thr
+    if inl.sum() >= (2 if has_prior else 3):
+        R1, c1, cov = _refine_central(views, obs, X, cps, R1, c1, inl, prior_centre, sig_prior, opts)
+    else:
+        cov = None
+    R1 = orthonormal(R1)
+    residuals = _central_residuals(R1, c1, views, obs, X, bear, cps, opts)
+    stats = summarize_residuals(residuals, opts)
+    stats.update({"n_points": n_pts, "n_observations": len(obs), "prior": "yes" if has_prior else "no",
+                  "ransac_candidates": len(candidates)})
+    if cov is not None and np.all(np.isfinite(cov)):
+        stats.update(_covariance_stats(R1, cov))
+    if has_prior:
+        stats["centre_minus_prior_m"] = (c1 - np.asarray(prior_centre, float)).tolist()
+    warns = warn_residuals(residuals, stats, opts, where)
+    return CentralResult(R1, c1, residuals, stats, warns)
+
+
+def refine_resection_focal(intr: CameraIntrinsics, res: CentralResult, cps: Sequence[ControlPoint], name: str,
+                           opts: GeorefOptions = GeorefOptions()) -> dict | None:
+    """One photo's pose *and focal* (fx, fy scaled together; principal point and distortion kept) refined from
+    its inlier control-point picks, starting from a fixed-focal resection ``res`` of that photo alone.
+
+    Returns ``{"intrinsics", "cam_from_world" (4, 4), "focal_px", "sigma_focal_px", "sigma_centre_max_m",
+    "rms_px", "n_observations"}`` or None (fewer than 6 inlier picks: the focal is not determined)."""
+    obs = [(cps[k], np.asarray(cp_uv, float)) for k in range(len(cps)) for ph, cp_uv in cps[k].pixels.items()
+           if ph == name]
+    inl = {(r["point"], r["view"]) for r in res.residuals if r.get("inlier")}
+    obs = [(cp, uv) for cp, uv in obs if (cp.name, name) in inl]
+    if len(obs) < 6:
+        return None
+    X = np.array([cp.enu for cp, _ in obs])
+    UV = np.array([uv for _, uv in obs])
+    R0, c0 = res.rig_from_world, res.centre_enu
+    depth = np.maximum((X - c0) @ R0.T, 1e-3)[:, 2]
+    sig = np.array([pick_sigma(intr, opts.sigma_px, cp.sigma_m, d) for (cp, _), d in zip(obs, depth)])
+    base = intr.to_dict()
+
+    def intr_of(logf):
+        k = math.exp(logf)
+        return CameraIntrinsics.from_dict({**base, "fx": intr.fx * k, "fy": intr.fy * k})
+
+    def fun(p):
+        R = Rotation.from_rotvec(p[:3]).as_matrix() @ R0
+        q = (X - p[3:6]) @ R.T
+        z = np.maximum(q[:, 2], 1e-6)
+        it = intr_of(p[6])
+        uv = it.pixels_from_normalized(it.distort(q[:, :2] / z[:, None]))
+        return ((uv - UV) / sig[:, None]).ravel()
+
+    sol = least_squares(fun, np.concatenate([np.zeros(3), c0, [0.0]]), loss=opts.loss, f_scale=opts.loss_scale,
+                        x_scale="jac", max_nfev=300)
+    try:
+        cov = np.linalg.inv(sol.jac.T @ sol.jac)
+    except np.linalg.LinAlgError:
+        return None
+    dof = len(sol.fun) - 7
+    if dof > 0:
+        cov *= max(1.0, 2.0 * float(sol.cost) / dof)
+    if not np.all(np.isfinite(cov)):
+        return None
+    R = orthonormal(Rotation.from_rotvec(sol.x[:3]).as_matrix() @ R0)
+    c = sol.x[3:6]
+    it = intr_of(sol.x[6])
+    M = np.eye(4)
+    M[:3, :3], M[:3, 3] = R, -R @ c
+    q = (X - c) @ R.T
+    e = np.hypot(*(it.project(q) - UV).T)
+    Cc = cov[3:6, 3:6]
+    return {"intrinsics": it, "cam_from_world": M, "focal_px": float(it.fx),
+            "sigma_focal_px": float(it.fx * math.sqrt(max(cov[6, 6], 0.0))),
+            "sigma_centre_max_m": float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (Cc + Cc.T)).max(), 0.0))),
+            "rms_px": float(np.sqrt(np.mean(e ** 2))), "n_observations": len(obs)}

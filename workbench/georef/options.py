@@ -1,0 +1,99 @@
+"""The georegistration solvers' options, their residual warning, and the photos they place (docs/gis.md).
+
+Frames and names follow docs/conventions.md: ``cam_from_rig`` (3, 3) rotations, ``cam_from_model`` (4, 4),
+``p_b = b_from_a @ p_a``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..core.camera import CameraIntrinsics
+from ..errors import WorkbenchWarning
+
+__all__ = ["GeorefOptions", "GeorefResidualsLarge", "RigView", "SfmView", "LOSSES"]
+
+LOSSES = ("linear", "huber", "soft_l1", "cauchy")
+
+
+class GeorefResidualsLarge(WorkbenchWarning):
+    """Control-point residuals after georegistration are larger than expected: a point or a pick is wrong."""
+
+
+@dataclass(frozen=True, kw_only=True)
+class GeorefOptions:
+    """Options of the georegistration solvers (units in the names)."""
+
+    sigma_px: float = 1.0  # a priori pixel noise of a pick
+    loss: str = "soft_l1"  # robust loss of the refinement (scipy least_squares)
+    loss_scale: float = 3.0  # in units of the residuals' sigma
+    ransac_threshold_px: float = 12.0  # an observation is an inlier below this reprojection error
+    ransac_iterations: int = 400
+    prior_sigma_m: float = 1.0  # camera.position_enu
+    gps_sigma_m: tuple[float, float, float] = (5.0, 5.0, 10.0)  # EXIF GPS, east/north/up 1-sigma
+    warn_rms_px: float = 3.0
+    warn_point_px: float = 6.0
+    warn_point_m: float = 0.5
+    min_triangulation_angle_deg: float = 2.0
+    seed: int = 0
+    # a separate SfM model (photos SfM could not join to the main model) is placed only when its own control
+    # points fix it: this many triangulated in it and fitting (all their picks inliers), spread this far from
+    # the line through them (RMS, metres), an RMS pick residual within ``warn_rms_px``, at most this fraction of
+    # its picks outliers, and every camera centre within this 1-sigma (from the fit's covariance, metres)
+    model_min_points: int = 3
+    # a photo in no placed model (SfM left it out, or its model could not be placed) is placed on its own from
+    # its control points (resection, as the single-photo route) when ``resect_unplaced``, it has picks of this
+    # many points, and the same residual and 1-sigma checks pass; intrinsics: SfM's for that photo, else the
+    # main model's camera when all photos share one (``single_camera``) and the photo has its size
+    resect_unplaced: bool = True
+    # leave out of a placed SfM model every photo whose own picks mostly disagree with it (2 or more, and more
+    # than half, beyond ``ransac_threshold_px``): SfM placed it wrongly
+    reject_disagreeing_views: bool = True
+    resect_min_points: int = 4
+    # with 6 or more fitting picks the photo's focal is refined too (fx, fy scaled together): when it differs
+    # from SfM's by more than this many sigma, the photo takes the refined focal (and the 1-sigma check then
+    # counts the focal's uncertainty)
+    resect_focal_disagree_sigma: float = 2.0
+    # multiview: the photos sharing one SfM camera adjusted together with its intrinsics (focal, principal point,
+    # k1) from their picks; their stated uncertainty then counts the intrinsics' (docs/gis.md)
+    adjust_camera: bool = True
+    # its covariance is scaled by the reduced chi-square when above 1, and also when below with this many
+    # degrees of freedom or more
+    variance_factor_min_dof: int = 50
+    model_min_spread_m: float = 1.0
+    model_max_outlier_fraction: float = 0.25
+    model_max_sigma_centre_m: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.loss not in LOSSES:
+            raise ValueError(f"loss={self.loss!r}; choose one of {LOSSES}")
+        if not (isinstance(self.model_min_points, int) and self.model_min_points >= 3):
+            raise ValueError(f"model_min_points={self.model_min_points} must be an integer >= 3")
+        if not (isinstance(self.resect_min_points, int) and self.resect_min_points >= 3):
+            raise ValueError(f"resect_min_points={self.resect_min_points} must be an integer >= 3")
+        if not (0.0 <= self.model_max_outlier_fraction < 1.0):
+            raise ValueError(f"model_max_outlier_fraction={self.model_max_outlier_fraction} must be in [0, 1)")
+        for name in ("sigma_px", "loss_scale", "ransac_threshold_px", "prior_sigma_m", "warn_rms_px",
+                     "warn_point_px", "warn_point_m", "model_min_spread_m", "model_max_sigma_centre_m"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name}={getattr(self, name)} must be positive")
+
+
+@dataclass(frozen=True)
+class RigView:
+    """A photo of a central rig: its name, intrinsics and ``cam_from_rig`` rotation (3, 3)."""
+
+    name: str
+    intrinsics: CameraIntrinsics
+    cam_from_rig: np.ndarray = field(default_factory=lambda: np.eye(3))
+
+
+@dataclass(frozen=True)
+class SfmView:
+    """A photo of an SfM model: its name, intrinsics and ``cam_from_model`` (4, 4), model units."""
+
+    name: str
+    intrinsics: CameraIntrinsics
+    cam_from_model: np.ndarray

@@ -1,0 +1,129 @@
+"""The central routes: the ``panorama`` route (the stitch stage's panorama model placed by ``world_from_pano``)
+and the ``single`` route (one photo, intrinsics from the camera profile or the EXIF focal), both solved by
+:func:`~workbench.georef.central.solve_central` from the control points, with ``camera.position_enu`` or EXIF GPS
+as a prior on the centre."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from PIL import Image
+
+from ..core.camera import CameraIntrinsics
+from ..core.layout import CAMERAS_FILE
+from ..core.panorama import PanoramaModel
+from ..errors import InputError, StageError
+from ..project import Project
+from ..files.exif import read_focal_px
+from .central import solve_central
+from .control_points import ControlPoint
+from .documents import georeg_block, view_entry
+from .inputs import PANORAMA_KEY, gps_enu, photos_by_name, read_intrinsics, read_panorama_model, require_control_points
+from .options import GeorefOptions, RigView
+
+__all__ = ["panorama_route", "single_route"]
+
+
+def _prior(project: Project, photo_paths: list[Path | None], opts: GeorefOptions) -> tuple[np.ndarray | None, Any, str]:
+    """(centre prior, its 1-sigma, its source): ``camera.position_enu``, else the photos' mean EXIF GPS."""
+    pos = project.settings.camera.position_enu
+    if pos is not None:
+        return np.asarray(pos, float), opts.prior_sigma_m, "camera.position_enu"
+    gps = [g for g in (gps_enu(project, p) for p in photo_paths) if g is not None]
+    if gps:
+        return np.mean(gps, axis=0), np.asarray(opts.gps_sigma_m, float), "exif_gps"
+    return None, None, "none"
+
+
+def panorama_route(project: Project, opts: GeorefOptions, where: str) -> tuple[dict, dict]:
+    """(cameras.json document, stage statistics) of the panorama route."""
+    pano_path = project.panorama_model_path
+    if not pano_path.is_file():
+        raise StageError(f"{pano_path}: not found; the panorama route needs the stitch stage's panorama model: run "
+                         f"`workbench run {project.root} --only stitch` first (or write a {CAMERAS_FILE} by hand)")
+    views, pdoc = read_panorama_model(project, pano_path)
+    cps = _panorama_pixels_to_sources(require_control_points(project), pdoc, pano_path, where)
+    photos = photos_by_name(project)
+    prior, prior_sigma, prior_src = _prior(project, [photos.get(v.name) for v in views], opts)
+    res = solve_central(views, cps, prior_centre=prior, prior_sigma_m=prior_sigma, opts=opts, where=where)
+    src = str(pdoc.get("intrinsics_source", project.settings.camera.source.value))
+    focal_known = src in ("calibrated", "sfm")
+    images = {s["name"]: s.get("image", "") for s in pdoc["sources"]}
+    out_views = [view_entry(v.name, images.get(v.name) or (project.relative(photos[v.name]) if v.name in photos
+                                                           else v.name),
+                            v.intrinsics, res.cam_from_world(v.cam_from_rig), focal_known) for v in views]
+    pano_image = project.stage_dir("stitch") / "panorama.jpg"
+    doc = {"route": "panorama", "intrinsics_source": src,
+           "georegistration": georeg_block("control_points", res, {"prior_source": prior_src}),
+           "views": out_views,
+           "panorama": {"model": project.relative(pano_path), "image": project.relative(pano_image),
+                        "world_from_pano": res.world_from_rig.tolist()}}
+    return doc, {**dict(res.stats), "prior_source": prior_src, "centre_enu": res.centre_enu.tolist()}
+
+
+def _panorama_pixels_to_sources(cps: list[ControlPoint], pdoc: dict, pano_path: Path,
+                                where: str) -> list[ControlPoint]:
+    """Picks made in the stitched panorama (pixel key ``"panorama"``) mapped exactly into the source photo."""
+    if not any(PANORAMA_KEY in cp.pixels for cp in cps):
+        return cps
+    try:
+        model = PanoramaModel.from_dict(pdoc)
+    except (ValueError, KeyError, TypeError) as exc:
+        raise InputError(f"{where}: has picks in the panorama image, but {pano_path} cannot be read as a panorama "
+                         f"model ({exc}); pick the points in the source photos instead") from None
+    out = []
+    for cp in cps:
+        if PANORAMA_KEY not in cp.pixels:
+            out.append(cp)
+            continue
+        pix = dict(cp.pixels)
+        uv = pix.pop(PANORAMA_KEY)
+        idx, uv_src = model.to_source(np.asarray(uv, float)[None])
+        if idx[0] < 0:
+            raise InputError(f"{where}: control point {cp.name!r}: panorama pixel {list(map(float, uv))} is outside "
+                             f"every source photo (the panorama is {model.width}x{model.height}); fix the pick")
+        pix.setdefault(model.sources[int(idx[0])].name, uv_src[0])
+        out.append(replace(cp, pixels=pix))
+    return out
+
+
+def _single_intrinsics(project: Project, photo: Path) -> tuple[CameraIntrinsics, str]:
+    """The photo's intrinsics and their source: the camera profile (scaled to the photo) or the EXIF focal."""
+    cam = project.settings.camera
+    with Image.open(photo) as im:
+        w, h = im.size
+    if cam.profile:
+        prof_path = project.require_file(cam.profile, "camera.profile")
+        prof = project.read_json(prof_path)
+        intr = read_intrinsics(prof.get("intrinsics") if isinstance(prof, dict) else None, f"{prof_path}: intrinsics")
+        if (intr.width, intr.height) != (w, h):
+            if abs(intr.width / w - intr.height / h) > 1e-3:
+                raise InputError(f"{prof_path}: intrinsics are for {intr.width}x{intr.height} but {photo} is {w}x{h} "
+                                 f"(another aspect ratio); use the profile of this camera")
+            intr = intr.scaled(w / intr.width)
+        return intr, "calibrated"
+    f = read_focal_px(photo)
+    if f is None:
+        raise InputError(f"{photo}: no EXIF focal length and no camera.profile; single-photo georegistration "
+                         f"needs the focal: calibrate the camera (camera.profile) or use a photo with EXIF")
+    return CameraIntrinsics(width=w, height=h, fx=f, fy=f, cx=(w - 1) / 2.0, cy=(h - 1) / 2.0), "exif"
+
+
+def single_route(project: Project, opts: GeorefOptions, where: str) -> tuple[dict, dict]:
+    """(cameras.json document, stage statistics) of the single-photo route."""
+    photo = project.photo_paths()[0]
+    intr, src = _single_intrinsics(project, photo)
+    cps = require_control_points(project)
+    prior, prior_sigma, prior_src = _prior(project, [photo], opts)
+    view = RigView(photo.name, intr, np.eye(3))
+    res = solve_central([view], cps, prior_centre=prior, prior_sigma_m=prior_sigma, opts=opts, where=where)
+    doc = {"route": "single", "intrinsics_source": src,
+           "georegistration": georeg_block("control_points", res, {"solver": "p3p_ransac_refined",
+                                                                   "prior_source": prior_src}),
+           "views": [view_entry(photo.name, project.relative(photo), intr, res.cam_from_world(np.eye(3)),
+                                src == "calibrated")],
+           "panorama": None}
+    return doc, {**dict(res.stats), "prior_source": prior_src, "centre_enu": res.centre_enu.tolist()}

@@ -1,0 +1,283 @@
+"""Placing an SfM model (its own frame, arbitrary scale) by a similarity ``world_from_model`` (scale, rotation,
+translation) from control points triangulated in the model and/or SfM camera centres with GPS.
+
+Start: Umeyama on triples (RANSAC); refinement: reprojection error of every control-point pixel (single-view
+points count too) plus the GPS centres in metres, robust loss (docs/gis.md).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Sequence
+
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from ..core.geometry import skew
+from ..errors import InputError
+from .control_points import ControlPoint
+from .fitting import orthonormal, point_line_distance, triangulate_rays, umeyama
+from .options import GeorefOptions, SfmView
+from .picks import Pick, pick_sigma, picks_in_views, summarize_residuals, warn_residuals
+
+log = logging.getLogger(__name__)
+
+__all__ = ["SimilarityResult", "solve_similarity", "model_centre"]
+
+
+@dataclass
+class SimilarityResult:
+    """``world_from_model``: ``p_world = scale * R @ p_model + t``; residuals and statistics."""
+
+    scale: float
+    rotation: np.ndarray
+    translation: np.ndarray
+    residuals: list[dict]
+    stats: dict
+    warnings: list[str]
+    # (7, 7) covariance of (log scale, rotation vector applied on the left in the scene frame, translation),
+    # scaled by the reduced chi-square when above 1; None when the fit leaves it undetermined
+    covariance: np.ndarray | None = None
+    triangulated: dict[str, np.ndarray] = field(default_factory=dict)  # control point -> (3,) model frame
+
+    def centre_sigma_m(self, cam_from_model: np.ndarray) -> float | None:
+        """1-sigma (square root of the largest eigenvalue, metres) of an SfM camera's centre in the scene, from
+        the similarity's covariance (the model's own uncertainty not included)."""
+        if self.covariance is None:
+            return None
+        q = self.scale * self.rotation @ model_centre(cam_from_model)  # world centre minus translation
+        J = np.hstack([q[:, None], -skew(q), np.eye(3)])
+        C = J @ self.covariance @ J.T
+        return float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (C + C.T)).max(), 0.0)))
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """(4, 4) similarity ``world_from_model`` (scale in the upper-left block)."""
+        M = np.eye(4)
+        M[:3, :3] = self.scale * self.rotation
+        M[:3, 3] = self.translation
+        return M
+
+    def apply(self, p_model: np.ndarray) -> np.ndarray:
+        return self.scale * np.asarray(p_model, float) @ self.rotation.T + self.translation
+
+    def cam_from_world(self, cam_from_model: np.ndarray) -> np.ndarray:
+        """(4, 4) rigid, metric ``cam_from_world`` of an SfM camera."""
+        M = np.asarray(cam_from_model, float)
+        Rc, tc = M[:3, :3], M[:3, 3]
+        R = Rc @ self.rotation.T
+        out = np.eye(4)
+        out[:3, :3] = R
+        out[:3, 3] = self.scale * tc - R @ self.translation
+        return out
+
+
+def model_centre(cam_from_model: np.ndarray) -> np.ndarray:
+    """The camera centre (3,) in the model frame of a ``cam_from_model`` (4, 4)."""
+    M = np.asarray(cam_from_model, float)
+    return -M[:3, :3].T @ M[:3, 3]
+
+
+def _triangulate_point(lst: list[Pick], views: Sequence[SfmView], opts: GeorefOptions) -> tuple[np.ndarray, float,
+                                                                                                  float]:
+    """A control point's rays intersected in the model frame: (point, angle deg, worst reprojection error px);
+    a ray from a wrongly posed photo (or a wrong pick) is dropped while 3 or more remain."""
+    cs, ds = [], []
+    for o in lst:
+        v = views[o.view]
+        M = np.asarray(v.cam_from_model, float)
+        cs.append(model_centre(v.cam_from_model))
+        ds.append(M[:3, :3].T @ v.intrinsics.rays(o.uv[None])[0])
+    cs_a, ds_a = np.array(cs), np.array(ds)
+    use = list(range(len(lst)))
+    while True:
+        Xm, angle = triangulate_rays(cs_a[use], ds_a[use])
+        errs = []
+        for i in use:
+            M = np.asarray(views[lst[i].view].cam_from_model, float)
+            q = M[:3, :3] @ Xm + M[:3, 3]
+            errs.append(float(np.hypot(*(views[lst[i].view].intrinsics.project(q[None])[0] - lst[i].uv)))
+                        if q[2] > 1e-9 else np.inf)
+        worst = int(np.argmax(errs))
+        if errs[worst] <= opts.ransac_threshold_px or len(use) <= 2:
+            break
+        use.pop(worst)
+    return Xm, angle, errs[worst]
+
+
+def _triangulate_control_points(obs: list[Pick], views: Sequence[SfmView], cps: Sequence[ControlPoint],
+                                opts: GeorefOptions, where: str) -> tuple[dict[int, list[Pick]], dict[int, np.ndarray]]:
+    """The picks per point, and the control points seen in two or more photos whose rays meet, triangulated in
+    the model frame (point index -> (3,), in point order)."""
+    by_point: dict[int, list[Pick]] = {}
+    for o in obs:
+        by_point.setdefault(o.point, []).append(o)
+    tri_model: dict[int, np.ndarray] = {}
+    for k, lst in sorted(by_point.items()):
+        if len({o.view for o in lst}) < 2:
+            continue
+        Xm, angle, worst = _triangulate_point(lst, views, opts)
+        if worst > opts.ransac_threshold_px:
+            log.info("%s: control point %s: its rays do not meet (%.1f px apart); not triangulated", where,
+                     cps[k].name, worst)
+            continue
+        if angle < opts.min_triangulation_angle_deg:
+            log.info("%s: control point %s: rays meet at %.2f deg; not triangulated", where, cps[k].name, angle)
+            continue
+        tri_model[k] = Xm
+    return by_point, tri_model
+
+
+def _robust_start(src_a: np.ndarray, dst_a: np.ndarray, sig_a: np.ndarray,
+                  opts: GeorefOptions) -> tuple[float, np.ndarray, np.ndarray]:
+    """Weighted Umeyama on every correspondence; with 4 or more, RANSAC on triples and Umeyama on the inliers."""
+    rng = np.random.default_rng(opts.seed)
+    w = 1.0 / sig_a ** 2
+    best = umeyama(src_a, dst_a, w)
+    if len(src_a) < 4:
+        return best
+
+    def n_in(s, R, t):
+        d = np.linalg.norm(s * src_a @ R.T + t - dst_a, axis=1)
+        return int(np.sum(d < 3.0 * sig_a + 0.05)), float(np.sum(np.minimum(d / (3 * sig_a + 0.05), 1.0)))
+
+    bs = n_in(*best)
+    for _ in range(min(opts.ransac_iterations, 200)):
+        idx = rng.choice(len(src_a), 3, replace=False)
+        if np.linalg.svd(dst_a[idx] - dst_a[idx].mean(axis=0), compute_uv=False)[1] < 1e-3:
+            continue
+        cand = umeyama(src_a[idx], dst_a[idx])
+        sc = n_in(*cand)
+        if sc[0] > bs[0] or (sc[0] == bs[0] and sc[1] < bs[1]):
+            best, bs = cand, sc
+    d = np.linalg.norm(best[0] * src_a @ best[1].T + best[2] - dst_a, axis=1)
+    inl = d < 3.0 * sig_a + 0.05
+    if inl.sum() >= 3:
+        best = umeyama(src_a[inl], dst_a[inl], w[inl])
+    return best
+
+
+def _refine_similarity(start: tuple[float, np.ndarray, np.ndarray], obs: list[Pick], views: Sequence[SfmView],
+                       X: np.ndarray, cps: Sequence[ControlPoint], gps_items: list[tuple[SfmView, np.ndarray]],
+                       opts: GeorefOptions):
+    """(s, R, t, covariance (7, 7) or None) refined on every pick's pixels and the GPS centres (metres)."""
+    s0, R0, t0 = start
+    gsig = np.asarray(opts.gps_sigma_m, float)
+
+    def sim_from(p):
+        return s0 * math.exp(p[0]), Rotation.from_rotvec(p[1:4]).as_matrix() @ R0, t0 + p[4:7]
+
+    obs_sig = []
+    for o in obs:
+        v = views[o.view]
+        Xm = R0.T @ (X[o.point] - t0) / s0
+        depth = float((np.asarray(v.cam_from_model)[:3, :3] @ Xm + np.asarray(v.cam_from_model)[:3, 3])[2]) * s0
+        obs_sig.append(pick_sigma(v.intrinsics, opts.sigma_px, cps[o.point].sigma_m, abs(depth)))
+
+    def fun(p):
+        s, R, t = sim_from(p)
+        res = []
+        for o, sg in zip(obs, obs_sig):
+            v = views[o.view]
+            M = np.asarray(v.cam_from_model, float)
+            q = M[:3, :3] @ (R.T @ (X[o.point] - t) / s) + M[:3, 3]
+            z = q[2] if q[2] > 1e-9 else 1e-9
+            uv = v.intrinsics.pixels_from_normalized(v.intrinsics.distort(np.array([[q[0] / z, q[1] / z]])))[0]
+            res.extend((uv - o.uv) / sg)
+        for v, g in gps_items:
+            res.extend((s * R @ model_centre(v.cam_from_model) + t - g) / gsig)
+        return np.asarray(res)
+
+    sol = least_squares(fun, np.zeros(7), loss=opts.loss, f_scale=opts.loss_scale, x_scale="jac", max_nfev=300)
+    s, R, t = sim_from(sol.x)
+    R = orthonormal(R)
+    cov = None
+    dof = len(sol.fun) - 7
+    try:
+        J = np.asarray(sol.jac, float)
+        cov = np.linalg.inv(J.T @ J)
+        if dof > 0:
+            cov *= max(1.0, 2.0 * float(sol.cost) / dof)
+        if not np.all(np.isfinite(cov)):
+            cov = None
+    except np.linalg.LinAlgError:
+        cov = None
+    if cov is not None:  # d(log s), d(rotvec), d(t) of the parametrisation at the solution
+        cov = cov.copy()
+    return s, R, t, cov
+
+
+def _similarity_residuals(result: SimilarityResult, obs: list[Pick], views: Sequence[SfmView], X: np.ndarray,
+                          cps: Sequence[ControlPoint], tri_model: dict[int, np.ndarray],
+                          opts: GeorefOptions) -> list[dict]:
+    """Every pick's residual (px; the known point's distance from the observed ray, m; the triangulated point's
+    distance from the known one, m) and whether it is an inlier."""
+    residuals = []
+    for o in obs:
+        v = views[o.view]
+        Mw = result.cam_from_world(v.cam_from_model)
+        q = Mw[:3, :3] @ X[o.point] + Mw[:3, 3]
+        if q[2] > 1e-6:
+            vec = v.intrinsics.project(q[None])[0] - o.uv
+            e_px = float(np.hypot(*vec))
+        else:
+            vec, e_px = None, None
+        c_w = -Mw[:3, :3].T @ Mw[:3, 3]
+        d_w = Mw[:3, :3].T @ v.intrinsics.rays(o.uv[None])[0]
+        e_m = point_line_distance(X[o.point], c_w, d_w)  # the known point's distance from the observed ray
+        tri_m = float(np.linalg.norm(result.apply(tri_model[o.point]) - X[o.point])) if o.point in tri_model else None
+        residuals.append({"point": cps[o.point].name, "view": v.name, "uv": o.uv.tolist(),
+                          "residual_px": None if vec is None else vec.tolist(), "error_px": e_px, "error_m": e_m,
+                          "triangulated_error_m": tri_m,
+                          "inlier": e_px is not None and e_px < opts.ransac_threshold_px})
+    return residuals
+
+
+def solve_similarity(views: Sequence[SfmView], cps: Sequence[ControlPoint], *,
+                     gps_centres: dict[str, np.ndarray] | None = None, opts: GeorefOptions = GeorefOptions(),
+                     where: str = "control_points.json") -> SimilarityResult:
+    """``world_from_model`` of an SfM model from control points and/or GPS camera centres (module docstring).
+
+    ``gps_centres``: photo name -> (3,) ENU metres of the camera centre (EXIF GPS), 1-sigma ``opts.gps_sigma_m``.
+    """
+    obs = picks_in_views(cps, views, where) if cps else []
+    gps_centres = dict(gps_centres or {})
+    X = np.array([cp.enu for cp in cps], float).reshape(-1, 3)
+    by_point, tri_model = _triangulate_control_points(obs, views, cps, opts, where)
+    src = list(tri_model.values())
+    dst = [X[k] for k in tri_model]
+    sig = [max(cps[k].sigma_m, 0.01) for k in tri_model]
+    gsig = np.asarray(opts.gps_sigma_m, float)
+    name_to_view = {v.name: v for v in views}
+    for name, g in sorted(gps_centres.items()):  # camera centres with GPS
+        if name in name_to_view:
+            src.append(model_centre(name_to_view[name].cam_from_model))
+            dst.append(np.asarray(g, float))
+            sig.append(float(np.mean(gsig)))
+    if len(src) < 3:
+        raise InputError(f"{where}: {len(src)} correspondence(s) between the SfM model and the scene (control points "
+                         f"picked in two or more photos: {len(tri_model)}, photos with GPS: {len(gps_centres)}); the "
+                         f"similarity needs at least 3 not on one line; pick each control point in two or more "
+                         f"photos, or add points")
+    src_a, dst_a, sig_a = np.array(src), np.array(dst), np.array(sig)
+    spread = np.linalg.svd(dst_a - dst_a.mean(axis=0), compute_uv=False)
+    if spread[1] < 1e-3 * max(spread[0], 1e-9):
+        raise InputError(f"{where}: the {len(src)} correspondences lie on one line; the rotation about it is unknown; "
+                         f"add a control point off that line")
+    gps_items = [(name_to_view[n], np.asarray(g, float)) for n, g in sorted(gps_centres.items()) if n in name_to_view]
+    s, R, t, cov = _refine_similarity(_robust_start(src_a, dst_a, sig_a, opts), obs, views, X, cps, gps_items, opts)
+    result = SimilarityResult(s, R, t, [], {}, [], covariance=cov,
+                              triangulated={cps[k].name: Xm for k, Xm in tri_model.items()})
+    residuals = _similarity_residuals(result, obs, views, X, cps, tri_model, opts)
+    gps_res = {v.name: (result.apply(model_centre(v.cam_from_model)) - g).tolist() for v, g in gps_items}
+    stats = summarize_residuals(residuals, opts)
+    stats.update({"n_points": len(by_point), "n_triangulated": len(tri_model), "n_observations": len(obs),
+                  "n_gps_centres": len(gps_items), "scale": s, "gps_residuals_m": gps_res,
+                  "gps_rms_m": float(np.sqrt(np.mean([np.sum(np.square(r)) for r in gps_res.values()])))
+                  if gps_res else None})
+    warns = warn_residuals(residuals, stats, opts, where) if residuals else []
+    result.residuals, result.stats, result.warnings = residuals, stats, warns
+    return result
