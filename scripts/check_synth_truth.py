@@ -11,7 +11,8 @@ from pathlib import Path
 from PIL import Image
 from workbench.project import Project
 from workbench.files.dem import TerrainModel
-from workbench.synth.buildings import building_meshes, read_buildings_geojson
+from workbench.files.buildings import read_buildings_geojson
+from workbench.terrain.extrude import building_meshes
 from workbench.synth.generate import visibility_tolerance_m
 from workbench.rolling_stock import get_type
 from workbench.core.camera import CameraIntrinsics

@@ -151,7 +151,7 @@ def test_cityjson_bad_input(tmp_path):
 
 
 def test_geojson_footprints(tmp_path):
-    from workbench.synth.buildings import write_buildings_geojson
+    from workbench.files.buildings import write_buildings_geojson
 
     frame = SceneFrame("EPSG:32618", 40.878, -73.9215, 0.0)
     o = frame.origin_crs

@@ -16,7 +16,7 @@ from workbench.core.camera import CameraIntrinsics
 from workbench.core.frames import SceneFrame
 from workbench.core.io import atomic_write_json
 from workbench.errors import InputError, StageError
-from workbench.georef.control_points import load_control_points, parse_control_points
+from workbench.files.control_points import load_control_points, parse_control_points
 from workbench.georef.fitting import umeyama
 from workbench.georef.inputs import validate_cameras_doc
 from workbench.georef.options import GeorefOptions, GeorefResidualsLarge, SfmView

@@ -145,7 +145,7 @@ def _read_correspondences(project, path):
 
 
 def _read_control_points(project, path):
-    from workbench.georef.control_points import load_control_points
+    from workbench.files.control_points import load_control_points
 
     load_control_points(path, project.frame)
 

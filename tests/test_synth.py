@@ -102,7 +102,8 @@ def test_projected_points_land_on_the_rendered_carriage(incident):
     root, truth = incident
     p = Project(root)
     tm = TerrainModel.from_geotiff(p.path(p.settings.terrain.dem), p.frame)
-    from workbench.synth.buildings import building_meshes, read_buildings_geojson
+    from workbench.files.buildings import read_buildings_geojson
+    from workbench.terrain.extrude import building_meshes
 
     meshes = [tm.mesh(), *building_meshes(read_buildings_geojson(p.path(p.settings.terrain.buildings)), tm, p.frame)]
     for car in truth["carriages"]:

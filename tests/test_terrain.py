@@ -16,8 +16,9 @@ from shapely.geometry import Point, Polygon
 
 from workbench.core.frames import SceneFrame
 from workbench.errors import InputError
-from workbench.synth.buildings import (building_meshes, make_buildings, read_buildings_geojson,
-                                       write_buildings_geojson)
+from workbench.files.buildings import read_buildings_geojson, write_buildings_geojson
+from workbench.synth.buildings import make_buildings
+from workbench.terrain.extrude import building_meshes
 from workbench.synth.terrain import (RAIL_HALF_GAUGE_M, TOP_OF_RAIL_ABOVE_BED_M, make_terrain, scenario_frame,
                                      write_dem_geotiff)
 from workbench.files.dem import DemHolesFilled, TerrainModel

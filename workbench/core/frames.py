@@ -20,9 +20,13 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Any
 
 import numpy as np
 from pyproj import CRS, Transformer
+from pyproj.exceptions import CRSError
+
+from ..errors import InputError
 
 from .crs import parse_projected_crs  # noqa: F401 - re-exported
 
@@ -241,3 +245,39 @@ class SceneFrame:
         p = self.enu_from_crs(np.array([[o[0], o[1], o[2]], [o[0], o[1] + 100.0, o[2]]]))
         d = p[1] - p[0]
         return float(np.rad2deg(np.arctan2(d[0], d[1])))
+
+
+def horizontal_crs(crs: CRS) -> CRS:
+    """The horizontal part of a compound CRS (e.g. EPSG:7415 = RD New + NAP height), else ``crs``."""
+    if crs.is_compound and crs.sub_crs_list:
+        return crs.sub_crs_list[0]
+    return crs
+
+
+def enu_from_layer_coords(coords: np.ndarray, crs_value: Any, frame: SceneFrame, where: str) -> np.ndarray:
+    """(n, 3) coordinates of a GIS layer in ``crs_value`` (x/lon first, height in the DEM datum) -> (n, 3) ENU.
+
+    The project CRS goes through :meth:`SceneFrame.enu_from_crs`; any other projected CRS and geographic CRSs
+    through WGS84 (horizontal only; heights are kept). ``where`` names the file in error messages.
+    """
+    try:
+        crs = CRS.from_user_input(crs_value)
+    except CRSError as exc:
+        raise InputError(f"{where}: crs = {crs_value!r} is not a CRS pyproj knows ({exc}); give an EPSG code such "
+                         f"as 'EPSG:4326' (lon, lat, h) or the project CRS {frame.crs.to_string()}") from None
+    P = np.asarray(coords, dtype=float).reshape(-1, 3)
+    h = horizontal_crs(crs)
+    if h.equals(frame.crs, ignore_axis_order=True) or (h.to_epsg() is not None and h.to_epsg() == frame.crs.to_epsg()):
+        return frame.enu_from_crs(P)
+    if h.is_geographic:
+        if np.any(np.abs(P[:, 1]) > 90.0):
+            raise InputError(f"{where}: latitude {P[np.argmax(np.abs(P[:, 1])), 1]!r} is beyond +-90 in a "
+                             f"geographic CRS ({crs_value}); coordinates are [longitude, latitude, height], "
+                             f"longitude first")
+        lon, lat = Transformer.from_crs(h, "EPSG:4326", always_xy=True).transform(P[:, 0], P[:, 1])
+    elif h.is_projected:
+        lon, lat = Transformer.from_crs(h, "EPSG:4326", always_xy=True).transform(P[:, 0], P[:, 1])
+    else:
+        raise InputError(f"{where}: crs = {crs_value!r} ({crs.name}) is neither projected nor geographic; give an "
+                         f"EPSG code")
+    return frame.enu_from_wgs84(np.column_stack([lon, lat, P[:, 2]]))

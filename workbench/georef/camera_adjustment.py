@@ -21,7 +21,7 @@ import numpy as np
 
 from ..core.camera import CameraIntrinsics
 from ..core.geometry import skew
-from .control_points import ControlPoint
+from ..files.control_points import ControlPoint
 from .documents import cov_report
 from .options import GeorefOptions
 from .shared_camera import INTRINSIC_SETS, adjust_shared_camera, held_out_errors, held_out_picks, robust_rms

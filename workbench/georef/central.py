@@ -21,7 +21,7 @@ from scipy.spatial.transform import Rotation
 
 from ..core.camera import CameraIntrinsics
 from ..errors import InputError
-from .control_points import ControlPoint
+from ..files.control_points import ControlPoint
 from .fitting import orthonormal, point_line_distance, rotation_kabsch
 from .options import GeorefOptions, RigView
 from .picks import Pick, pick_sigma, picks_in_views, summarize_residuals, warn_residuals

@@ -14,7 +14,7 @@ from ..core.io import matrix_from_json
 from ..core.layout import CAMERAS_FILE
 from ..errors import InputError, StageError
 from ..project import Project
-from .control_points import ControlPoint, load_control_points
+from ..files.control_points import ControlPoint, load_control_points
 from .gps import read_gps
 from .options import RigView, SfmView
 

@@ -13,7 +13,7 @@ import numpy as np
 
 from ..core.camera import CameraIntrinsics
 from ..errors import InputError
-from .control_points import ControlPoint
+from ..files.control_points import ControlPoint
 from .options import GeorefOptions, GeorefResidualsLarge
 
 log = logging.getLogger(__name__)

@@ -14,7 +14,7 @@ from ..core.camera import CameraIntrinsics
 from ..errors import InputError
 from .camera_adjustment import intrinsics_key
 from .central import CentralResult, refine_resection_focal, solve_central
-from .control_points import ControlPoint
+from ..files.control_points import ControlPoint
 from .documents import view_entry
 from .options import GeorefOptions, GeorefResidualsLarge, RigView
 

@@ -19,7 +19,7 @@ from ..errors import InputError, StageError
 from ..project import Project
 from ..files.exif import read_focal_px
 from .central import solve_central
-from .control_points import ControlPoint
+from ..files.control_points import ControlPoint
 from .documents import georeg_block, view_entry
 from .inputs import PANORAMA_KEY, gps_enu, photos_by_name, read_intrinsics, read_panorama_model, require_control_points
 from .options import GeorefOptions, RigView

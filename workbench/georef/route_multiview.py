@@ -18,7 +18,7 @@ from ..core.layout import CAMERAS_FILE, CONTROL_POINTS_FILE
 from ..errors import InputError, StageError
 from ..project import Project
 from .camera_adjustment import adjust_cameras
-from .control_points import ControlPoint
+from ..files.control_points import ControlPoint
 from .documents import georeg_block, view_entry
 from .inputs import (control_points_of_photos, gps_enu, image_in_reconstruction, photos_by_name,
                      read_reconstruction_models)

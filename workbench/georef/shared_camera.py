@@ -12,7 +12,7 @@ from scipy.sparse import lil_matrix
 from scipy.spatial.transform import Rotation
 
 from ..core.camera import CameraIntrinsics
-from .control_points import ControlPoint
+from ..files.control_points import ControlPoint
 from .fitting import orthonormal
 from .options import GeorefOptions
 from .picks import pick_sigma

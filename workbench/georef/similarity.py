@@ -18,7 +18,7 @@ from scipy.spatial.transform import Rotation
 
 from ..core.geometry import skew
 from ..errors import InputError
-from .control_points import ControlPoint
+from ..files.control_points import ControlPoint
 from .fitting import orthonormal, point_line_distance, triangulate_rays, umeyama
 from .options import GeorefOptions, SfmView
 from .picks import Pick, pick_sigma, picks_in_views, summarize_residuals, warn_residuals

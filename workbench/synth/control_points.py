@@ -58,7 +58,8 @@ def _scene_meshes(root: Path, truth: dict, frame: SceneFrame):
 
     from ..files.dem import TerrainModel
     from ..rolling_stock import get_type
-    from .buildings import building_meshes, read_buildings_geojson
+    from ..files.buildings import read_buildings_geojson
+    from ..terrain.extrude import building_meshes
 
     layers = truth.get("layers", {})
     dem = root / layers["dem"]

@@ -292,7 +292,9 @@ def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
     from ..render.lens import render_photo
     from ..render.offscreen import OffscreenScene, SceneMesh
     from ..rolling_stock import load_library
-    from .buildings import building_meshes, make_buildings, write_buildings_geojson
+    from ..files.buildings import write_buildings_geojson
+    from ..terrain.extrude import building_meshes
+    from .buildings import make_buildings
     from .layout import lay_consist
     from .terrain import make_terrain, write_dem_geotiff
 

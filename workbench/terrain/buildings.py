@@ -28,9 +28,8 @@ from typing import Any
 import numpy as np
 import trimesh
 
-from ..core.frames import SceneFrame
+from ..core.frames import SceneFrame, enu_from_layer_coords
 from ..errors import InputError, WorkbenchWarning
-from ..georef.control_points import enu_from_layer_coords
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +84,8 @@ def read_buildings(path: str | Path, frame: SceneFrame, terrain_model=None, *, l
 # ----------------------------------------------------------------------------------------------------------
 def geojson_meshes(path: Path, frame: SceneFrame, terrain_model) -> BuildingsResult:
     """GeoJSON footprints with heights (docs/formats.md) -> extruded meshes standing on ``terrain_model``."""
-    from ..synth.buildings import building_meshes, read_buildings_geojson
+    from ..files.buildings import read_buildings_geojson
+    from .extrude import building_meshes
 
     if terrain_model is None:
         raise InputError(f"buildings file {path}: GeoJSON footprints need a terrain to stand on; set terrain.dem")

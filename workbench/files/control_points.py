@@ -25,10 +25,8 @@ from typing import Annotated, Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
-from pyproj import CRS, Transformer
-from pyproj.exceptions import CRSError
 
-from ..core.frames import SceneFrame
+from ..core.frames import SceneFrame, enu_from_layer_coords
 from ..core.io import read_json
 from ..core.layout import CONTROL_POINTS_FILE
 from ..core.settings import describe_validation_error
@@ -38,8 +36,7 @@ log = logging.getLogger(__name__)
 
 MAX_DISTANCE_M = 20_000.0  # a control point farther than this from the scene origin is a CRS or axis-order mistake
 
-__all__ = ["CONTROL_POINTS_FILE", "ControlPoint", "ControlPointsDoc", "load_control_points", "parse_control_points",
-           "enu_from_layer_coords"]
+__all__ = ["CONTROL_POINTS_FILE", "ControlPoint", "ControlPointsDoc", "load_control_points", "parse_control_points"]
 
 
 class _Strict(BaseModel):
@@ -70,42 +67,6 @@ class ControlPoint:
     pixels: dict[str, np.ndarray] = field(default_factory=dict)
     kind: str = ""
     coords: tuple[float, float, float] = (0.0, 0.0, 0.0)  # as written in the file, in its CRS
-
-
-def _horizontal(crs: CRS) -> CRS:
-    """The horizontal part of a compound CRS (e.g. EPSG:7415 = RD New + NAP height), else ``crs``."""
-    if crs.is_compound and crs.sub_crs_list:
-        return crs.sub_crs_list[0]
-    return crs
-
-
-def enu_from_layer_coords(coords: np.ndarray, crs_value: Any, frame: SceneFrame, where: str) -> np.ndarray:
-    """(n, 3) coordinates of a GIS layer in ``crs_value`` (x/lon first, height in the DEM datum) -> (n, 3) ENU.
-
-    The project CRS goes through :meth:`SceneFrame.enu_from_crs`; any other projected CRS and geographic CRSs
-    through WGS84 (horizontal only; heights are kept). ``where`` names the file in error messages.
-    """
-    try:
-        crs = CRS.from_user_input(crs_value)
-    except CRSError as exc:
-        raise InputError(f"{where}: crs = {crs_value!r} is not a CRS pyproj knows ({exc}); give an EPSG code such "
-                         f"as 'EPSG:4326' (lon, lat, h) or the project CRS {frame.crs.to_string()}") from None
-    P = np.asarray(coords, dtype=float).reshape(-1, 3)
-    h = _horizontal(crs)
-    if h.equals(frame.crs, ignore_axis_order=True) or (h.to_epsg() is not None and h.to_epsg() == frame.crs.to_epsg()):
-        return frame.enu_from_crs(P)
-    if h.is_geographic:
-        if np.any(np.abs(P[:, 1]) > 90.0):
-            raise InputError(f"{where}: latitude {P[np.argmax(np.abs(P[:, 1])), 1]!r} is beyond +-90 in a "
-                             f"geographic CRS ({crs_value}); coordinates are [longitude, latitude, height], "
-                             f"longitude first")
-        lon, lat = Transformer.from_crs(h, "EPSG:4326", always_xy=True).transform(P[:, 0], P[:, 1])
-    elif h.is_projected:
-        lon, lat = Transformer.from_crs(h, "EPSG:4326", always_xy=True).transform(P[:, 0], P[:, 1])
-    else:
-        raise InputError(f"{where}: crs = {crs_value!r} ({crs.name}) is neither projected nor geographic; give an "
-                         f"EPSG code")
-    return frame.enu_from_wgs84(np.column_stack([lon, lat, P[:, 2]]))
 
 
 def parse_control_points(data: Any, frame: SceneFrame, where: str = CONTROL_POINTS_FILE) -> list[ControlPoint]:
