@@ -83,7 +83,7 @@ def test_hough_finds_a_small_side_among_clutter():
     """A coach side 200 px long (its wall 16 px high), rotated by 50 degrees, in a photo whose other
     features (three other coaches' sides, large) outnumber its own: the Hough clustering of k-NN matches
     finds it, within a pixel after the ECC refinement the stage applies."""
-    from workbench.correspond.match import _apply_h, _knn_matches, hough_clusters, hough_detections
+    from workbench.correspond.match import apply_h, _knn_matches, hough_clusters, hough_detections
 
     ct = get_type("shoreliner")
     opts = MatchOptions()
@@ -109,17 +109,17 @@ def test_hough_finds_a_small_side_among_clutter():
     K = CameraIntrinsics(width=1280, height=720, fx=1400.0, fy=1400.0, cx=639.5, cy=359.5)
     pf = photo_features("clutter.png", photo, K, opts)
     qi, ti = _knn_matches(pf, ref, opts.hough_k)
-    right = np.linalg.norm(_apply_h(H, ref.keypoints[ti]) - pf.keypoints[qi], axis=1) < 2.0
+    right = np.linalg.norm(apply_h(H, ref.keypoints[ti]) - pf.keypoints[qi], axis=1) < 2.0
     assert 0 < right.mean() < 0.2, right.mean()  # a small share of the matches is right
     clusters = hough_clusters(pf, ref, k=opts.hough_k, min_votes=opts.hough_min_votes)
     assert clusters and max(right[c].sum() for c in clusters) >= 8
     dets = [d for d in hough_detections(pf, ref, opts) if d.hough]
     corners = ref.corners()
-    errs = [np.abs(d.polygon() - _apply_h(H, corners)).max() for d in dets]
+    errs = [np.abs(d.polygon() - apply_h(H, corners)).max() for d in dets]
     assert errs and 0.0 <= min(errs) < 3.0, errs  # the outline's corners, from matches on a 16 px wall
     best = refine_detection(pf, dets[int(np.argmin(errs))], opts)  # as the stage does: ECC on the whole face
     assert best.ecc is not None and best.ecc >= opts.hough_min_ecc
-    assert 0.0 <= np.abs(best.polygon() - _apply_h(H, corners)).max() < 1.0
+    assert 0.0 <= np.abs(best.polygon() - apply_h(H, corners)).max() < 1.0
 
 
 def test_guided_completion_aligns_the_other_faces():
@@ -128,7 +128,7 @@ def test_guided_completion_aligns_the_other_faces():
     aligned by ECC to within a pixel at its corners, the joint pose is closer to the truth than the start, and a face
     that is not in the photo (the roof, left blank) is not reported."""
     from workbench.correspond.complete import guided_face, joint_pose, predicted_homography
-    from workbench.correspond.match import FaceDetection, _apply_h
+    from workbench.correspond.match import FaceDetection, apply_h
 
     ct = get_type("shoreliner")
     opts = MatchOptions()
@@ -158,14 +158,14 @@ def test_guided_completion_aligns_the_other_faces():
     front = guided_face(pf, refs["front"], start, ct, opts)
     assert front is not None and front.guided and front.ecc >= opts.guided_min_ecc
     corners = refs["front"].corners()
-    err = np.abs(front.polygon() - _apply_h(predicted_homography(M, refs["front"], K), corners)).max()
+    err = np.abs(front.polygon() - apply_h(predicted_homography(M, refs["front"], K), corners)).max()
     assert 0.0 <= err < 1.0, err  # the outline's corners: the face's edges, blurred by the warp
     assert guided_face(pf, refs["roof"], start, ct, opts) is None
     # the left side as a detection at its true homography, then the joint pose from both faces
     g = np.stack(np.meshgrid(np.linspace(0, refs["left"].image.shape[1] - 1, 9),
                              np.linspace(0, refs["left"].image.shape[0] - 1, 3)), -1).reshape(-1, 2)
     Hl = predicted_homography(M, refs["left"], K)
-    left = FaceDetection(refs["left"], "posed.png", Hl, len(g), 0.0, 1.0, _apply_h(Hl, g), g)
+    left = FaceDetection(refs["left"], "posed.png", Hl, len(g), 0.0, 1.0, apply_h(Hl, g), g)
     J = joint_pose([left, front], K, start)
     assert J is not None
     ang = lambda A: np.degrees(np.arccos(np.clip((np.trace(A[:3, :3].T @ M[:3, :3]) - 1) / 2, -1, 1)))  # noqa: E731
@@ -173,11 +173,11 @@ def test_guided_completion_aligns_the_other_faces():
 
 
 def test_ecc_on_the_cropped_photo_agrees_with_the_whole_photo(monkeypatch):
-    """``match._ecc_refine`` aligns on the photo cropped around the face (ECC filters its whole input image
+    """``match.ecc_refine`` aligns on the photo cropped around the face (ECC filters its whole input image
     on every call): from a start 2 px off, the face lands where the known warp put it, and where ECC on the
     whole photo puts it (the crop's offset carried back), with the same correlation."""
     from workbench.correspond import match as mm
-    from workbench.correspond.match import PhotoFeatures, _apply_h, _ecc_refine, undistorted_image
+    from workbench.correspond.match import PhotoFeatures, apply_h, ecc_refine, undistorted_image
 
     ct = get_type("shoreliner")
     ref = face_reference(ct, "6100", "left", MatchOptions().px_per_m)
@@ -190,13 +190,13 @@ def test_ecc_on_the_cropped_photo_agrees_with_the_whole_photo(monkeypatch):
     pf = PhotoFeatures("warp.png", K, undistorted_image(cv2.cvtColor(photo, cv2.COLOR_RGB2GRAY), K),
                        np.zeros((0, 2)), np.zeros((0, 128), np.float32))
     start = np.array([[1.0, 0.0, 2.0], [0.0, 1.0, -1.5], [0.0, 0.0, 1.0]]) @ H
-    Hc, cc_c = _ecc_refine(pf, ref, start)
+    Hc, cc_c = ecc_refine(pf, ref, start)
     monkeypatch.setattr(mm, "ECC_CROP_MARGIN_PX", 1e6)  # the crop is the whole photo
-    Hw, cc_w = _ecc_refine(pf, ref, start)
+    Hw, cc_w = ecc_refine(pf, ref, start)
     corners = ref.corners()
-    truth = _apply_h(H, corners)
-    assert 0.0 <= np.abs(_apply_h(Hc, corners) - truth).max() < 0.5
-    assert 0.0 <= np.abs(_apply_h(Hc, corners) - _apply_h(Hw, corners)).max() < 0.05
+    truth = apply_h(H, corners)
+    assert 0.0 <= np.abs(apply_h(Hc, corners) - truth).max() < 0.5
+    assert 0.0 <= np.abs(apply_h(Hc, corners) - apply_h(Hw, corners)).max() < 0.05
     assert cc_c > 0.9 and abs(cc_c - cc_w) < 1e-3
 
 
@@ -559,14 +559,14 @@ def test_pose_search_finds_a_coach_on_its_side():
     anchor = se.Anchor("front", anchor_at, "6100", "held", float(np.arctan2(Wa[1, 0], Wa[0, 0])))
     # the neighbour's faces, as the stage passes them: a face there is not the coach searched for
     from workbench.correspond.complete import facing_cosine, predicted_homography
-    from workbench.correspond.match import _apply_h
+    from workbench.correspond.match import apply_h
 
     Ma = cam_from_world @ Wa
     taken = []
     for f in FACES:
         ref = face_reference(ct, "6100", f, opts.px_per_m)
         if facing_cosine(Ma, ct, ref) > 0.05:
-            taken.append(_apply_h(predicted_homography(Ma, ref, K), ref.corners()))
+            taken.append(apply_h(predicted_homography(Ma, ref, K), ref.corners()))
     t0 = time.perf_counter()
     found = se.search_car(pf, "6223", ct, refs, [anchor], cam_from_world, ground, opts, taken)
     print(f"pose search {time.perf_counter() - t0:.1f} s")
@@ -621,10 +621,10 @@ def test_coupler_in_sight_from_the_side():
     h, w = ref.image.shape[:2]
     g = np.stack(np.meshgrid(np.linspace(0, w - 1, 9), np.linspace(0, h - 1, 3)), -1).reshape(-1, 2)
     from workbench.correspond.complete import predicted_homography
-    from workbench.correspond.match import _apply_h
+    from workbench.correspond.match import apply_h
 
     H = predicted_homography(oblique, ref, K)
-    det = FaceDetection(ref, "p.png", H, len(g), 0.3, 0.99, _apply_h(H, g), g)
+    det = FaceDetection(ref, "p.png", H, len(g), 0.3, 0.99, apply_h(H, g), g)
     pf = PhotoFeatures("p.png", K, np.zeros((1200, 1600), np.uint8), np.zeros((0, 2)), np.zeros((0, 128), np.float32))
     obs = {o.point: o for o in observations_of([CarInPhoto("6100", det, 30, oblique)], pf, {"6100": ct})}
     assert "coupler_front" in obs and obs["coupler_front"].how == "pose"
@@ -639,7 +639,7 @@ def test_pose_of_an_aligned_face_rests_on_its_homography():
     from workbench.core.camera import look_at
     from workbench.correspond.assign import _pose
     from workbench.correspond.complete import predicted_homography
-    from workbench.correspond.match import FaceDetection, _apply_h
+    from workbench.correspond.match import FaceDetection, apply_h
 
     ct = get_type("shoreliner")
     K = CameraIntrinsics(width=1600, height=1200, fx=1800.0, fy=1800.0, cx=799.5, cy=599.5)
@@ -649,7 +649,7 @@ def test_pose_of_an_aligned_face_rests_on_its_homography():
     H = predicted_homography(M, ref, K)
     rng = np.random.default_rng(1)
     R_px = rng.uniform([0, 0], [w - 1, h - 1], (300, 2))
-    P_px = _apply_h(H, R_px) + rng.normal(0.0, 1.0, (300, 2))
+    P_px = apply_h(H, R_px) + rng.normal(0.0, 1.0, (300, 2))
     X = ct.coupler_rear
     truth = K.project((M[:3, :3] @ X + M[:3, 3])[None])[0]
 

@@ -20,7 +20,7 @@ from scipy.optimize import linear_sum_assignment
 
 from ..rolling_stock import CarriageType
 from .complete import guided_face, joint_pose
-from .match import FaceDetection, MatchOptions, PhotoFeatures, _overlap, detect_faces, refine_detection, support
+from .match import FaceDetection, MatchOptions, PhotoFeatures, quad_overlap, detect_faces, refine_detection, support
 from .references import FACES, FaceReference, face_reference
 
 log = logging.getLogger(__name__)
@@ -116,7 +116,7 @@ def find_cars(photo: PhotoFeatures, refs: dict[str, list[FaceReference]], consis
         for reg in regions:
             r0 = reg[0]
             if r0.ref.type_id == d.ref.type_id and _group(r0.ref.face) == _group(d.ref.face) \
-                    and _overlap(poly, r0.polygon()) > 0.3:
+                    and quad_overlap(poly, r0.polygon()) > 0.3:
                 reg.append(d)
                 break
         else:
@@ -216,7 +216,7 @@ def _complete(found: list[CarInPhoto], photo: PhotoFeatures, types: dict[str, Ca
         for face in FACES:
             if face in have:
                 continue
-            ref = by_face.get(face) or _reference(ct, number, face, opts, ref_cache)
+            ref = by_face.get(face) or face_reference_cached(ct, number, face, opts, ref_cache)
             det = guided_face(photo, ref, best.cam_from_carriage, ct, opts)
             if det is not None:
                 added.append(det)
@@ -235,7 +235,7 @@ def _complete(found: list[CarInPhoto], photo: PhotoFeatures, types: dict[str, Ca
     return out
 
 
-def _reference(ct: CarriageType, number: str, face: str, opts: MatchOptions,
+def face_reference_cached(ct: CarriageType, number: str, face: str, opts: MatchOptions,
                cache: dict[tuple[str, str], FaceReference]) -> FaceReference:
     """A face reference for alignment (no features), cached per (car, face) in ``cache``."""
     key = (number, face)

@@ -21,7 +21,7 @@ import numpy as np
 
 from ..core.camera import CameraIntrinsics
 from ..rolling_stock import CarriageType
-from .match import FaceDetection, MatchOptions, PhotoFeatures, _apply_h, _ecc_refine, _plausible
+from .match import FaceDetection, MatchOptions, PhotoFeatures, apply_h, ecc_refine, plausible_homography
 from .references import FaceReference
 
 log = logging.getLogger(__name__)
@@ -59,27 +59,27 @@ def guided_face(photo: PhotoFeatures, ref: FaceReference, cam_from_carriage: np.
         return None
     H0 = predicted_homography(cam_from_carriage, ref, K)
     size = (K.width, K.height)
-    if not _plausible(H0, ref, size):
+    if not plausible_homography(H0, ref, size):
         return None
-    poly0 = _apply_h(H0, ref.corners())
+    poly0 = apply_h(H0, ref.corners())
     if not np.all(K.without_distortion().in_image(poly0, margin=2.0)):
         return None  # a face cut by the image border: ECC would align what is not there
     e = np.linalg.norm(np.roll(poly0, -1, axis=0) - poly0, axis=1)
     if min(e) < opts.guided_min_edge_px:
         return None
-    res = _ecc_refine(photo, ref, H0, min_cc=opts.guided_min_ecc)
+    res = ecc_refine(photo, ref, H0, min_cc=opts.guided_min_ecc)
     if res is None:
         return None
     H, cc = res
-    if cc < opts.guided_min_ecc or not _plausible(H, ref, size):
+    if cc < opts.guided_min_ecc or not plausible_homography(H, ref, size):
         return None
     # ECC must have refined the prediction, not wandered off: the corners stay within a share of the face
-    moved = np.linalg.norm(_apply_h(H, ref.corners()) - poly0, axis=1)
+    moved = np.linalg.norm(apply_h(H, ref.corners()) - poly0, axis=1)
     if moved.max() > max(opts.guided_max_shift_px, 0.25 * min(e)):
         return None
     h, w = ref.image.shape[:2]
     g = np.stack(np.meshgrid(np.linspace(0, w - 1, GRID), np.linspace(0, h - 1, GRID)), -1).reshape(-1, 2)
-    return FaceDetection(ref, photo.name, H / H[2, 2], 0, 0.0, float(cc), _apply_h(H, g), g, guided=True)
+    return FaceDetection(ref, photo.name, H / H[2, 2], 0, 0.0, float(cc), apply_h(H, g), g, guided=True)
 
 
 def joint_pose(detections: list[FaceDetection], K: CameraIntrinsics, start: np.ndarray) -> np.ndarray | None:

@@ -159,13 +159,13 @@ class FaceDetection:
 
     def polygon(self) -> np.ndarray:
         """(4, 2) undistorted photo px of the face's outline."""
-        return _apply_h(self.photo_from_ref, self.ref.corners())
+        return apply_h(self.photo_from_ref, self.ref.corners())
 
     def transfer(self, ref_px: np.ndarray) -> np.ndarray:
-        return _apply_h(self.photo_from_ref, ref_px)
+        return apply_h(self.photo_from_ref, ref_px)
 
 
-def _apply_h(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
+def apply_h(H: np.ndarray, pts: np.ndarray) -> np.ndarray:
     p = np.asarray(pts, dtype=float).reshape(-1, 2)
     q = np.column_stack([p, np.ones(len(p))]) @ np.asarray(H, float).T
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -185,11 +185,11 @@ def _corners_h(ref: FaceReference) -> np.ndarray:
     return v[1]
 
 
-def _plausible(H: np.ndarray, ref: FaceReference, size: tuple[int, int]) -> bool:
+def plausible_homography(H: np.ndarray, ref: FaceReference, size: tuple[int, int]) -> bool:
     """A homography that keeps orientation, maps the face to a convex quad of sane size, mostly in the image."""
     if H is None or not np.all(np.isfinite(H)):
         return False
-    # (the same arithmetic as _apply_h and np.roll, without their overhead: this runs for every hypothesis)
+    # (the same arithmetic as apply_h and np.roll, without their overhead: this runs for every hypothesis)
     c = _corners_h(ref) @ np.asarray(H, float).T
     with np.errstate(divide="ignore", invalid="ignore"):
         poly = c[:, :2] / c[:, 2:]
@@ -315,7 +315,7 @@ def _matches(photo: PhotoFeatures, ref: FaceReference, ratio: float) -> tuple[np
 def _guided(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray, radius_px: float,
             ratio: float) -> tuple[np.ndarray, np.ndarray]:
     """Matches restricted to photo keypoints within ``radius_px`` of where ``H`` puts each reference keypoint."""
-    proj = _apply_h(H, ref.keypoints)
+    proj = apply_h(H, ref.keypoints)
     P, R = [], []
     kp = photo.keypoints
     if len(kp) == 0:
@@ -348,7 +348,7 @@ def _guided(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray, radius_px: 
     return np.array(P).reshape(-1, 2), np.array(R).reshape(-1, 2)
 
 
-def _ecc_refine(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray,
+def ecc_refine(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray,
                 min_cc: float | None = None) -> tuple[np.ndarray, float] | None:
     """Dense alignment of the reference to the photo (ECC, homography), started from ``H``.
 
@@ -359,7 +359,7 @@ def _ecc_refine(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray,
     """
     from .references import resize_linear_light
 
-    poly = _apply_h(H, ref.corners())
+    poly = apply_h(H, ref.corners())
     h_ref, w_ref = ref.image.shape[:2]
     # photo pixels per reference pixel along the face (mean edge ratio)
     e = np.linalg.norm(np.roll(poly, -1, axis=0) - poly, axis=1)
@@ -435,9 +435,9 @@ def detect_faces(photo: PhotoFeatures, refs: list[FaceReference], opts: MatchOpt
             break
         inl = idx[mask.ravel() > 0]
         remaining[inl] = False
-        if len(inl) < opts.min_inliers or not _plausible(H, ref, size):
+        if len(inl) < opts.min_inliers or not plausible_homography(H, ref, size):
             continue
-        resid = np.linalg.norm(_apply_h(H, R[inl]) - P[inl], axis=1)
+        resid = np.linalg.norm(apply_h(H, R[inl]) - P[inl], axis=1)
         out.append(FaceDetection(ref, photo.name, H / H[2, 2], int(len(inl)), float(np.sqrt(np.mean(resid ** 2))),
                                  None, P[inl], R[inl]))
     # sides drowned in the photo's other features (match.hough_detections); not the ends, whose few
@@ -448,7 +448,7 @@ def detect_faces(photo: PhotoFeatures, refs: list[FaceReference], opts: MatchOpt
                 # where RANSAC over the distinctive matches found the face, a Hough face overlapping it is
                 # the same face or an alias shifted by a window pitch
                 if det.n_inliers >= opts.min_inliers and \
-                        not any(_overlap(det.polygon(), o.polygon()) > 0.3 for o in out):
+                        not any(quad_overlap(det.polygon(), o.polygon()) > 0.3 for o in out):
                     out.append(det)
     out.sort(key=lambda d: -d.n_inliers)
     return out
@@ -460,12 +460,12 @@ def support(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray, opts: Match
     P, R = _matches(photo, ref, opts.ratio)
     if len(P) == 0:
         return 0
-    return int(np.sum(np.linalg.norm(_apply_h(H, R) - P, axis=1) < opts.ransac_px))
+    return int(np.sum(np.linalg.norm(apply_h(H, R) - P, axis=1) < opts.ransac_px))
 
 
 def _agrees(Ha: np.ndarray, Hb: np.ndarray, ref_px: np.ndarray, tol_px: float = 4.0) -> bool:
     """Two homographies agree where the evidence is: 90 % of the reference points move by less than tol_px."""
-    d = np.linalg.norm(_apply_h(Ha, ref_px) - _apply_h(Hb, ref_px), axis=1)
+    d = np.linalg.norm(apply_h(Ha, ref_px) - apply_h(Hb, ref_px), axis=1)
     return bool(len(d) and np.percentile(d, 90) < tol_px)
 
 
@@ -481,16 +481,16 @@ def refine_detection(photo: PhotoFeatures, det: FaceDetection, opts: MatchOption
     Pg, Rg = _guided(photo, ref, H, radius_px=3.0, ratio=0.8)
     if len(Pg) >= len(Pi):
         H2, m2 = cv2.findHomography(Rg, Pg, cv2.RANSAC, opts.ransac_px)
-        if H2 is not None and _plausible(H2, ref, size) and m2.sum() >= len(Pi) and _agrees(H2, H, Ri):
+        if H2 is not None and plausible_homography(H2, ref, size) and m2.sum() >= len(Pi) and _agrees(H2, H, Ri):
             H, Pi, Ri = H2, Pg[m2.ravel() > 0], Rg[m2.ravel() > 0]
     ecc = None
-    res = _ecc_refine(photo, ref, H)
+    res = ecc_refine(photo, ref, H)
     if res is not None:
         Hn, cc = res
-        resid = np.linalg.norm(_apply_h(Hn, Ri) - Pi, axis=1)
-        if _agrees(Hn, H, Ri) and np.median(resid) < 2.0 and _plausible(Hn, ref, size):
+        resid = np.linalg.norm(apply_h(Hn, Ri) - Pi, axis=1)
+        if _agrees(Hn, H, Ri) and np.median(resid) < 2.0 and plausible_homography(Hn, ref, size):
             H, ecc = Hn, cc
-    resid = np.linalg.norm(_apply_h(H, Ri) - Pi, axis=1)
+    resid = np.linalg.norm(apply_h(H, Ri) - Pi, axis=1)
     return FaceDetection(ref, det.photo, H / H[2, 2], det.n_inliers, float(np.sqrt(np.mean(resid ** 2))), ecc,
                          Pi, Ri, hough=det.hough)
 
@@ -658,10 +658,10 @@ def hough_detections(photo: PhotoFeatures, ref: FaceReference, opts: MatchOption
             continue
         H, mask = cv2.findHomography(R[members], P[members], cv2.USAC_MAGSAC, opts.ransac_px, maxIters=5000,
                                      confidence=0.999)
-        if H is None or not _plausible(H, ref, size):
+        if H is None or not plausible_homography(H, ref, size):
             continue
         for _ in range(2):  # all matches that agree, and a refit on them
-            d = np.linalg.norm(_apply_h(H, R) - P, axis=1)
+            d = np.linalg.norm(apply_h(H, R) - P, axis=1)
             inl = np.nonzero(d < opts.ransac_px)[0]
             # one photo keypoint, one reference keypoint: keep the closest pairing of each
             inl = inl[np.argsort(d[inl])]
@@ -672,21 +672,21 @@ def hough_detections(photo: PhotoFeatures, ref: FaceReference, opts: MatchOption
             if len(inl) < 6:
                 break
             H2, _ = cv2.findHomography(R[inl], P[inl], 0)
-            if H2 is None or not _plausible(H2, ref, size):
+            if H2 is None or not plausible_homography(H2, ref, size):
                 break
             H = H2
-        if len(inl) < opts.min_inliers or not _plausible(H, ref, size):
+        if len(inl) < opts.min_inliers or not plausible_homography(H, ref, size):
             continue
-        resid = np.linalg.norm(_apply_h(H, R[inl]) - P[inl], axis=1)
+        resid = np.linalg.norm(apply_h(H, R[inl]) - P[inl], axis=1)
         det = FaceDetection(ref, photo.name, H / H[2, 2], int(len(inl)), float(np.sqrt(np.mean(resid ** 2))),
                             None, P[inl], R[inl], hough=True)
-        if any(_overlap(det.polygon(), o.polygon()) > 0.7 for o in out):
+        if any(quad_overlap(det.polygon(), o.polygon()) > 0.7 for o in out):
             continue
         out.append(det)
     return out
 
 
-def _overlap(a: np.ndarray, b: np.ndarray) -> float:
+def quad_overlap(a: np.ndarray, b: np.ndarray) -> float:
     """Intersection over the smaller area of two convex quads (4, 2)."""
     a32, b32 = a.astype(np.float32), b.astype(np.float32)
     inter, _ = cv2.intersectConvexConvex(a32, b32)

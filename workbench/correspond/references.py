@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from ..rolling_stock import CarriageType
-from ..rolling_stock.geometry import _nose_x
+from ..rolling_stock.geometry import nose_x
 from ..rolling_stock.livery import Atlas
 
 log = logging.getLogger(__name__)
@@ -86,17 +86,17 @@ def _face_window(ct: CarriageType, face: str) -> tuple[float, float, float, floa
     if face in ("left", "right"):
         z0, z1 = wall_bottom, p.eave_height_m
         # the whole body length (a nose end cuts a corner off the wall: painted background there, harmless)
-        xf = max(_nose_x(ct.spec, "front", z0), _nose_x(ct.spec, "front", z1))
-        xr = min(_nose_x(ct.spec, "rear", z0), _nose_x(ct.spec, "rear", z1))
+        xf = max(nose_x(ct.spec, "front", z0), nose_x(ct.spec, "front", z1))
+        xr = min(nose_x(ct.spec, "rear", z0), nose_x(ct.spec, "rear", z1))
         return xr, xf, z0, z1, (hw if face == "left" else -hw)
     if face == "roof":
         top = hw - p.roof_edge_inset_m if p.roof_edge_inset_m > 0 else hw
         h = d.height_m
-        return float(_nose_x(ct.spec, "rear", h)), float(_nose_x(ct.spec, "front", h)), -top, top, h
+        return float(nose_x(ct.spec, "rear", h)), float(nose_x(ct.spec, "front", h)), -top, top, h
     end = getattr(ct.spec, face)
     z0 = d.body_bottom_m
     z1 = end.nose_base_height_m if end.shape == "nose" else p.eave_height_m
-    return -hw, hw, z0, z1, float(_nose_x(ct.spec, face, z0))
+    return -hw, hw, z0, z1, float(nose_x(ct.spec, face, z0))
 
 
 _SRGB_TO_LINEAR = np.where(np.arange(256) / 255.0 <= 0.04045, np.arange(256) / 255.0 / 12.92,

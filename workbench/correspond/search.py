@@ -55,9 +55,9 @@ import numpy as np
 from scipy.ndimage import find_objects
 
 from ..rolling_stock import CarriageType
-from .assign import CarInPhoto, _reference
+from .assign import CarInPhoto, face_reference_cached
 from .complete import guided_face, joint_pose, predicted_homography
-from .match import MatchOptions, PhotoFeatures, _apply_h, _overlap, _plausible
+from .match import MatchOptions, PhotoFeatures, apply_h, quad_overlap, plausible_homography
 from .references import FACES, FaceReference
 
 log = logging.getLogger(__name__)
@@ -229,7 +229,7 @@ class _Renderer:
             if -float((R @ nrm) @ Xc) / max(float(np.linalg.norm(Xc)), 1e-9) < min_cos:
                 continue
             H = predicted_homography(cam_from_carriage, r, self.K)
-            if not _plausible(H, r, (self.K.width, self.K.height)):
+            if not plausible_homography(H, r, (self.K.width, self.K.height)):
                 continue
             out.append((f, H))
         return out
@@ -240,7 +240,7 @@ class _Renderer:
         faces = self.faces(cam_from_carriage, min_cos)
         if not faces:
             return -np.inf, np.zeros(2), 0.0
-        polys = [_apply_h(self.D @ H, self.refs[f].corners()) for f, H in faces]
+        polys = [apply_h(self.D @ H, self.refs[f].corners()) for f, H in faces]
         allp = np.vstack(polys)
         lo, hi = np.floor(allp.min(0)).astype(int) - 1, np.ceil(allp.max(0)).astype(int) + 1
         size = (int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1))
@@ -529,7 +529,7 @@ def _verify(photo: PhotoFeatures, number: str, ct: CarriageType, refs: dict[str,
         if d is not None:
             # a face of another car already found there: the search locked on a neighbour (identical
             # coaches); rejected at once, before the car's other faces are aligned
-            if any(_overlap(d.polygon(), q) > 0.3 for q in taken):
+            if any(quad_overlap(d.polygon(), q) > 0.3 for q in taken):
                 log.info("%s: car %s: search face %s lies on a face of another car; rejected", photo.name, number,
                          d.ref.face)
                 return None
@@ -560,7 +560,7 @@ def _verify(photo: PhotoFeatures, number: str, ct: CarriageType, refs: dict[str,
     K = photo.intrinsics.without_distortion()
     for d in dets:
         Hp = predicted_homography(M, d.ref, K)
-        moved = np.linalg.norm(_apply_h(Hp, d.ref.corners()) - d.polygon(), axis=1)
+        moved = np.linalg.norm(apply_h(Hp, d.ref.corners()) - d.polygon(), axis=1)
         if moved.max() > 3.0:
             return None
     return M, dets
@@ -619,7 +619,7 @@ def chain_search(photo: PhotoFeatures, found: list[CarInPhoto], consist: list[tu
                 continue
             tried.add(key)
             ct = types[number]
-            refs = {f: by_number.get(number, {}).get(f) or _reference(ct, number, f, opts, ref_cache) for f in FACES}
+            refs = {f: by_number.get(number, {}).get(f) or face_reference_cached(ct, number, f, opts, ref_cache) for f in FACES}
             taken = [c.detection.polygon() for c in out]
             new = search_car(photo, number, ct, refs, anchors, cam_from_world, terrain, opts, taken)
             if new:

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 from .assign import PointObservation
-from .match import PhotoFeatures, _apply_h
+from .match import PhotoFeatures, apply_h
 
 log = logging.getLogger(__name__)
 
@@ -39,7 +39,7 @@ def photo_homography(a: PhotoFeatures, b: PhotoFeatures) -> tuple[np.ndarray, di
     if H is None:
         return None
     inl = mask.ravel() > 0
-    res = np.linalg.norm(_apply_h(H, pa[inl]) - pb[inl], axis=1)
+    res = np.linalg.norm(apply_h(H, pa[inl]) - pb[inl], axis=1)
     info = {"matches": len(good), "inliers": int(inl.sum()), "median_residual_px": float(np.median(res))}
     if inl.sum() < MIN_INLIERS or info["median_residual_px"] > MAX_MEDIAN_RESIDUAL_PX:
         return None
@@ -103,7 +103,7 @@ def carry(observations: dict[str, list[PointObservation]], photos: dict[str, Pho
                 k = (o.carriage, o.point)
                 if k in have:
                     continue
-                uv_b = pb.distort_px(_apply_h(H, photos[a].undistort_px(np.array([o.uv]))))[0]
+                uv_b = pb.distort_px(apply_h(H, photos[a].undistort_px(np.array([o.uv]))))[0]
                 if not np.all(np.isfinite(uv_b)) or not pb.intrinsics.in_image(uv_b[None], margin_px)[0]:
                     continue
                 c = PointObservation(o.carriage, o.point, b, (float(uv_b[0]), float(uv_b[1])),

@@ -69,20 +69,20 @@ def _pinhole(width: int, height: int, hfov_deg: float = HFOV_DEG) -> np.ndarray:
     return np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
 
 
-def _fit_distance(radius: float, width: int, height: int, hfov_deg: float = HFOV_DEG, margin: float = 1.1) -> float:
+def fit_distance(radius: float, width: int, height: int, hfov_deg: float = HFOV_DEG, margin: float = 1.1) -> float:
     """Distance at which a sphere of ``radius`` fills the narrower field of view."""
     hf = math.radians(hfov_deg) / 2.0
     vf = math.atan(math.tan(hf) * height / width)
     return margin * radius / math.sin(min(hf, vf))
 
 
-def _direction(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
+def view_direction(azimuth_deg: float, elevation_deg: float) -> np.ndarray:
     """Unit vector from the target towards the eye: compass azimuth (clockwise from north), elevation above horizon."""
     a, e = math.radians(azimuth_deg), math.radians(elevation_deg)
     return np.array([math.sin(a) * math.cos(e), math.cos(a) * math.cos(e), math.sin(e)])
 
 
-def _viewer_azimuth(sc: IncidentScene, centre: np.ndarray) -> float:
+def viewer_azimuth(sc: IncidentScene, centre: np.ndarray) -> float:
     """Compass azimuth from the scene centre towards the photo cameras (where people stood), else south-east."""
     if not sc.cameras:
         return 135.0
@@ -133,7 +133,7 @@ class SceneRenderer:
     def view_from(self, target: np.ndarray, radius: float, azimuth_deg: float, elevation_deg: float,
                   size: tuple[int, int], *, margin: float = 1.1) -> np.ndarray:
         """``cam_from_world`` of a camera looking at ``target`` from (azimuth, elevation), framing ``radius``."""
-        eye = np.asarray(target, float) + _direction(azimuth_deg, elevation_deg) * _fit_distance(radius, *size,
+        eye = np.asarray(target, float) + view_direction(azimuth_deg, elevation_deg) * fit_distance(radius, *size,
                                                                                                   margin=margin)
         return look_at(eye, target)
 
@@ -371,7 +371,7 @@ def run_render(project: Project, progress: Progress) -> StageResult:
     index: list[dict] = []
     timings: dict[str, float] = {}
     outputs: dict[str, Path] = {}
-    az0 = _viewer_azimuth(sc, sr.centre)
+    az0 = viewer_azimuth(sc, sr.centre)
     n_steps = 3 + len(sc.carriages) + len(sc.cameras)
     step = [0]
 

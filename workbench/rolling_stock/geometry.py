@@ -17,7 +17,7 @@ import numpy as np
 if TYPE_CHECKING:  # trimesh takes seconds to import: loaded when a mesh is built, not to list or check types
     import trimesh
 
-from .spec import CarriageSpec, _ANCHOR_RE
+from .spec import CarriageSpec, ANCHOR_RE
 
 FACE_NORMALS = {
     "left": np.array([0.0, 1.0, 0.0]),
@@ -67,7 +67,7 @@ def profile_yz(spec: CarriageSpec) -> np.ndarray:
     return np.array(pts, dtype=float)
 
 
-def _nose_x(spec: CarriageSpec, end: str, z: np.ndarray | float) -> np.ndarray | float:
+def nose_x(spec: CarriageSpec, end: str, z: np.ndarray | float) -> np.ndarray | float:
     """x of the body end surface at height z (flat: the end face; nose: vertical below the base, sloped above)."""
     d = spec.dimensions
     sign = 1.0 if end == "front" else -1.0
@@ -88,11 +88,11 @@ def body_points(spec: CarriageSpec) -> np.ndarray:
     hw = spec.dimensions.width_m / 2
     pts = []
     for end in ("front", "rear"):
-        xs = _nose_x(spec, end, prof[:, 1])
+        xs = nose_x(spec, end, prof[:, 1])
         pts.append(np.column_stack([xs, prof[:, 0], prof[:, 1]]))
         e = getattr(spec, end)
         if e.shape == "nose":
-            xe = _nose_x(spec, end, 0.0)
+            xe = nose_x(spec, end, 0.0)
             pts.append(np.array([[xe, hw, e.nose_base_height_m], [xe, -hw, e.nose_base_height_m]]))
     return np.vstack(pts)
 
@@ -189,7 +189,7 @@ def build_parts(spec: CarriageSpec) -> list[Part]:
 # --------------------------------------------------------------------------------------------------------
 def anchor_point(spec: CarriageSpec, anchor: str) -> tuple[np.ndarray, tuple[str, ...]]:
     """Carriage-frame position and faces of a named anchor (see :mod:`.spec`)."""
-    m = _ANCHOR_RE.match(anchor)
+    m = ANCHOR_RE.match(anchor)
     if not m:
         raise ValueError(f"unknown anchor {anchor!r}")
     d, p = spec.dimensions, spec.profile
@@ -203,14 +203,14 @@ def anchor_point(spec: CarriageSpec, anchor: str) -> tuple[np.ndarray, tuple[str
         ys = 1.0 if side == "left" else -1.0
         if which == "top":
             z = p.eave_height_m
-            return np.array([_nose_x(spec, end, z), ys * hw, z]), (side, end)
+            return np.array([nose_x(spec, end, z), ys * hw, z]), (side, end)
         z = d.body_bottom_m
-        return np.array([_nose_x(spec, end, z), ys * (hw - p.bottom_inset_m), z]), (side, end)
+        return np.array([nose_x(spec, end, z), ys * (hw - p.bottom_inset_m), z]), (side, end)
     if m.group(5):
         end, side = m.group(5), m.group(6)
         ys = 1.0 if side == "left" else -1.0
         z = getattr(spec, end).nose_base_height_m
-        return np.array([_nose_x(spec, end, z), ys * hw, z]), (side, end)
+        return np.array([nose_x(spec, end, z), ys * hw, z]), (side, end)
     k, which, xend, side = int(m.group(7)), m.group(8), m.group(9), m.group(10)
     door = spec.doors[k - 1]
     ys = 1.0 if side == "left" else -1.0

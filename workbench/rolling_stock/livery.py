@@ -17,7 +17,7 @@ from functools import lru_cache
 import numpy as np
 from PIL import Image, ImageDraw, ImageFilter, ImageFont
 
-from .geometry import _nose_x, bogie_boxes, equipment_box, wall_bottom
+from .geometry import nose_x, bogie_boxes, equipment_box, wall_bottom
 from .spec import CarriageSpec
 
 ATLAS_WIDTH = 2048
@@ -235,7 +235,7 @@ def _paint_side(img: Image.Image, atlas: Atlas, side: str, number: str) -> None:
         if not e.cab:
             continue
         sgn = 1.0 if end == "front" else -1.0
-        xt = _nose_x(spec, end, eave)
+        xt = nose_x(spec, end, eave)
         x_in = xt - sgn * 0.25
         z_top = eave - 0.2
         z_bot = max(wb + 0.3, z_top - 0.75)

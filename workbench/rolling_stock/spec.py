@@ -212,7 +212,7 @@ def _bad(path: Path, key: str, value, why: str) -> SettingsError:
     return SettingsError(f"{path}: '{key}' = {value!r}: {why}")
 
 
-_ANCHOR_RE = re.compile(
+ANCHOR_RE = re.compile(
     r"^(?:coupler_(front|rear)"
     r"|body_(top|bottom)_(front|rear)_(left|right)"
     r"|nose_(front|rear)_(left|right)"
@@ -294,7 +294,7 @@ def check_consistency(spec: CarriageSpec, path: Path) -> None:
             raise _bad(path, f"{key}.name", mp.name, "duplicate marked-point name")
         seen.add(mp.name)
         if mp.anchor is not None:
-            m = _ANCHOR_RE.match(mp.anchor)
+            m = ANCHOR_RE.match(mp.anchor)
             if not m:
                 raise _bad(path, f"{key}.anchor", mp.anchor,
                            "unknown anchor; use coupler_front|rear, body_top|bottom_<end>_<side>, "

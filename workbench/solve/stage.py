@@ -206,10 +206,8 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
                         hfov_range_deg=tuple(float(x) for x in s.solver.hfov_range_deg))
     terrain = None
     if s.terrain.dem:
-        from ..terrain.stage import terrain_model_for
-
         progress(0.15, "terrain")
-        terrain = terrain_model_for(project)
+        terrain = project.terrain_model()
     progress(0.3, f"solving {len(carriages)} carriages")
     res, rejected = _solve_rejecting(carriages, links, views, opts, terrain, s.solver, progress)
     progress(0.9, "writing the solution")

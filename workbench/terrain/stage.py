@@ -22,7 +22,7 @@ from ..project import Project
 
 log = logging.getLogger(__name__)
 
-__all__ = ["run_terrain", "terrain_model_for", "DEFAULT_SIMPLIFY_MAX_ERROR_M", "DemHeightMismatch",
+__all__ = ["run_terrain", "DEFAULT_SIMPLIFY_MAX_ERROR_M", "DemHeightMismatch",
            "DemPartialCoverage"]
 
 DEFAULT_SIMPLIFY_MAX_ERROR_M = 0.05
@@ -30,11 +30,6 @@ DEFAULT_SIMPLIFY_MAX_ERROR_M = 0.05
 
 class DemHeightMismatch(WorkbenchWarning):
     """The DEM's height at the reference point differs much from ``location.height_m``."""
-
-
-def terrain_model_for(project: Project) -> TerrainModel:
-    """The incident's terrain model as the terrain stage builds it (:meth:`Project.terrain_model`)."""
-    return project.terrain_model()
 
 
 class DemPartialCoverage(WorkbenchWarning):

@@ -69,7 +69,7 @@ class IncidentViewer:
     """The viewer window of one incident (create it after ``gui.Application.instance.initialize()``)."""
 
     def __init__(self, project: Project, *, width: int = 1280, height: int = 800) -> None:
-        from ..report.render_stage import SUN_AZIMUTH_DEG, SUN_ELEVATION_DEG, _direction, _fit_distance, _viewer_azimuth
+        from ..report.render_stage import SUN_AZIMUTH_DEG, SUN_ELEVATION_DEG, view_direction, fit_distance, viewer_azimuth
         from ..report.report_stage import carriage_rows
         from ..report.scene import camera_glyph, load_scene
 
@@ -124,8 +124,8 @@ class IncidentViewer:
         # camera: the report's overview
         bbox = o3d.geometry.AxisAlignedBoundingBox(self.centre - self.radius, self.centre + self.radius)
         self.widget.setup_camera(50.0, bbox, self.centre.astype(np.float32))
-        self.home_eye = self.centre + _direction(_viewer_azimuth(self.sc, self.centre) + 25.0, 32.0) * \
-            _fit_distance(self.radius, width, height, 50.0, margin=0.9)
+        self.home_eye = self.centre + view_direction(viewer_azimuth(self.sc, self.centre) + 25.0, 32.0) * \
+            fit_distance(self.radius, width, height, 50.0, margin=0.9)
         self.reset_view()
 
         # panel
