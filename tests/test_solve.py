@@ -12,7 +12,7 @@ from workbench.core.camera import CameraIntrinsics
 from workbench.errors import InputError
 from workbench.solve import (CarriageInput, ChainLink, SolveOptions, SolveWarning, crb, project_with_jacobians,
                              refine_from, rest_on_terrain, solve_consist)
-from workbench.solve.projection import exp_so3
+from workbench.core.geometry import exp_so3
 from workbench.solve.simulate import PlaneTerrain, simulate_consist
 from workbench.rolling_stock import get_type
 
@@ -266,7 +266,7 @@ def test_30_car_chain_converges_quickly():
 def test_dense_and_sparse_trust_region_systems_give_the_same_solution(monkeypatch):
     """The small-system dense path (``chain.DENSE_KKT_MAX``) solves the same KKT system as SuperLU: a 6-car solve
     (steps 1-4, terrain contact, bias correction) ends at the same poses to rounding either way."""
-    from workbench.solve import chain
+    from workbench.solve import trust_region as chain
 
     sim = simulate_consist(6, seed=11, pixel_sigma_px=1.0, max_distance_m=400.0)
     opts = SolveOptions(pixel_sigma_px=1.0)
@@ -320,7 +320,7 @@ def test_points_with_their_own_sigma_weigh_less():
     """A point declared with a larger sigma_px is down-weighted: with one badly placed point per carriage
     (6 px off), declaring their sigma brings the poses closer to the truth, and declaring every point's sigma
     equal to the solve's pixel sigma changes nothing."""
-    from workbench.solve.chain import Observation
+    from workbench.solve.model import Observation
 
     sim = simulate_consist(6, seed=3, pixel_sigma_px=0.5)
     rng = np.random.default_rng(9)
@@ -431,7 +431,7 @@ def _brute_force_bias(prob, cars, R, t, f, chains, slacks, sigma, focal=False, h
     """Second-order bias of the free-pose parameters (and the focal, px) by the textbook expansion with every
     row's Hessian taken by finite differences of the whole residual vector (independent of the sigma-point
     implementation)."""
-    from workbench.solve.chain import SQRT5
+    from workbench.solve.problem import SQRT5
 
     N = len(R)
 
@@ -478,7 +478,7 @@ def test_bias_estimate_matches_the_second_order_expansion(weighting, points, foc
     pixel sigma the sigma points are small and the two agree closely; with unequal counts the cross term is a
     visible part of the bias (it is zero for the per-point weighting). ``focal``: the focal estimated too."""
     from workbench.solve.bias import estimate_bias
-    from workbench.solve.chain import _prepare, _Problem, carriage_weights, held_chains
+    from workbench.solve.problem import Problem as _Problem, carriage_weights, held_chains, prepare_cars as _prepare
     from workbench.solve.uncertainty import covariance_model
 
     sigma = 0.1

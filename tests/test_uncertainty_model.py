@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from workbench.errors import SettingsError
-from workbench.solve.chain import Observation, SolveOptions, solve_consist
+from workbench.solve import Observation, SolveOptions, solve_consist
 from workbench.solve.simulate import simulate_consist
 
 
@@ -175,7 +175,7 @@ def test_predictions_check_is_repeated_on_the_mixed_fit(monkeypatch):
     predictions were within the limit while its neighbour's pulled the other way, and beyond it once that
     neighbour's are released, is released too (Spuyten Duyvil's 6234 next to 6231: 1.7 and 2.5 m off, 4-5 sigma,
     before this). The shift statistics are scripted here; the fits are real."""
-    import workbench.solve.chain as chain
+    import workbench.solve.steps as chain
 
     def predictions(v, obs, clean):
         names = sorted(obs)

@@ -1,14 +1,7 @@
 """The multi-view route's camera adjustment: every placed photo's stated uncertainty, and each shared SfM
-camera's intrinsics refined from the control-point picks when that predicts held-out picks better (docs/gis.md).
-
-Photos that share one SfM camera (identical SfM intrinsics) and have ``resect_min_points`` fitting picks are
-adjusted together (:func:`~workbench.georef.shared_camera.adjust_shared_camera`): focal, principal point and k1
-free (loose prior at SfM's values), every photo's pose free. Its covariance is each such photo's stated
-uncertainty. The refined intrinsics (the parameter set with the lowest two-fold cross-validated residual of
-held-out picks) replace SfM's, and the photos take their adjusted poses, only when that residual is lower than
-with SfM's intrinsics kept, scored on the poses as placed. A photo placed by its model with too few picks to be
-adjusted states the similarity's covariance plus the scatter of its model's adjusted photos about their model
-poses (the SfM model's own error).
+camera's intrinsics refined from the control-point picks where that predicts held-out picks better than SfM's
+(the photos then take the adjusted poses). Method and figures: docs/gis.md (the shared camera adjusted from the
+control points; stated uncertainty).
 """
 
 from __future__ import annotations
@@ -88,15 +81,10 @@ def _fitting_poses(names: list[str], by_name: dict[str, dict], cps: list[Control
 
 def _held_out_as_placed(base: CameraIntrinsics, poses: dict[str, np.ndarray], picks_use: list[ControlPoint],
                         placed: dict, resected: dict, refit: dict[str, np.ndarray]) -> dict[str, np.ndarray]:
-    """The held-out errors of SfM's camera kept with the photos' poses as placed (``sfm``).
-
-    "sfm" keeps the photos' poses as placed, so it is scored on those poses: a photo placed by its SfM model by
-    its picks' errors under the model pose (the similarity's 7 parameters are fitted to all the model's picks,
-    so these are nearly held out: inflated by sqrt(m / (m - 7)), m the fit's residuals); a resected photo (its
-    pose fitted to these very picks) by its pose refitted on held-out halves (``refit``). Scoring "sfm" by poses
-    refitted to each photo's own picks would compare the alternatives with poses "sfm" does not deliver: an
-    exact SfM model lost to a refined focal on noise, and its photos took poses from their few own picks (a
-    5-pick photo 0.14 m and 0.25 deg off where its model pose was within 0.01 m)."""
+    """The held-out errors of SfM's camera kept (``sfm``), scored on the poses it keeps (docs/gis.md): a photo
+    placed by its model by its picks' errors under the model pose (nearly held out: the similarity's 7
+    parameters are fitted to all the model's picks; inflated by sqrt(m / (m - 7)), m the fit's residuals), a
+    resected photo by its pose refitted on held-out halves (``refit``)."""
     hp = held_out_picks(poses, picks_use)
     cps_by = {cp.name: cp for cp in picks_use}
     as_placed = {}

@@ -71,8 +71,8 @@ def _disagreeing_views(res: SimilarityResult, views: list[SfmView], opts: Georef
     return rejected
 
 
-def _fit_model(label: str, views: list[SfmView], cps: list[ControlPoint], gps: dict, opts: GeorefOptions,
-               where: str, report: dict) -> tuple[SimilarityResult, list, dict[str, str], str | None, InputError | None]:
+def _fit_model(label: str, views: list[SfmView], cps: list[ControlPoint], gps: dict, opts: GeorefOptions, where: str,
+               report: dict) -> tuple[SimilarityResult, list, dict[str, str], str | None, InputError | None]:
     """One model's similarity: (result, its warnings, rejected photos, why it is not placed (None: placed), the
     error that stops the route if it is the main model). Raises InputError when no similarity can be fitted.
 

@@ -1,64 +1,10 @@
 """Second-order bias of the chained least-squares estimate, and its correction (``SolveOptions.bias_correction``).
 
-Why
-    The least-squares (maximum-likelihood) estimate of a nonlinear model is biased at second order in the noise:
-    for a far consist the depth of each carriage enters the pixels as ``1 / Z`` and a nearly side-on carriage's
-    yaw at second order, and the benchmark shows the estimate pulled towards the camera by an amount that grows
-    as sigma^2 (docs/solver.md). The bias is a property of the model at the solution, so it can be estimated
-    there and subtracted.
-
-The formula (Box 1971, "Bias in nonlinear estimation"; Cook, Tsai & Wei 1986)
-    Rows ``rho_i(theta)`` whitened by their assumed noise (the weighted pixel rows over the pixel sigma, the
-    couplers' offset prior ``T / sigma_T``, the terrain contact ``clearance / sigma_z``), Jacobian ``J``,
-    ``H = J^T J``, true row covariance ``S`` (diagonal: ``w_noise^2`` for the pixel rows, 1 for the others), the
-    estimator's covariance ``C = H^-1 J^T S J H^-1`` (the sandwich of :mod:`.uncertainty`; ``H^-1`` when
-    ``S = I``) and ``H_i`` the Hessian of row ``i``. Expanding the normal equations to second order,
-
-        E[theta_hat] - theta = -H^-1 ( 1/2 J^T d + sum_i H_i c_i ),   d_i = trace(C H_i),
-        c_i = E[(M e)_i delta_1] = -H^-1 J^T S M[:, i],   M = I - J H^-1 J^T.
-
-    With every row weighted by its inverse noise variance (``S = I``: the per-point weighting, or equal point
-    counts) ``J^T S M = 0`` and this is Box's ``-1/2 H^-1 J^T d``; the second term is the per-carriage
-    weighting's own (its cross term between the residual and the first-order error).
-
-Second derivatives without an analytic Hessian
-    Each row depends on few parameters (a pixel row on its carriage's rotation, origin and the focal of its
-    photo; a coupler row on the two carriages of its link; a contact row on its carriage). With ``L`` a square
-    root of the local block of ``C`` (``L L^T = C_loc``), ``d_i = sum_j L_j^T H_i L_j`` and
-    ``L_j^T H_i L_j = rho_i(theta + L_j) + rho_i(theta - L_j) - 2 rho_i(theta)`` up to fourth-order terms: central
-    differences with a one-sigma step (sigma points), exact for a quadratic row and averaging the curvature over
-    the scale the estimate actually spreads. All rows are evaluated together per column ``j``: 2 x (6 or 7)
-    evaluations of the pixel residuals, whatever the number of carriages. The second term's ``H_i c_i`` comes
-    from the same differences by polarisation, ``a^T H b = (D(a + b) - D(a - b)) / 4`` with ``D(u) = u^T H u``.
-
-Parametrisation
-    The free-pose parameters of :mod:`.uncertainty` (per carriage a scene-frame rotation vector ``R <- Exp(w)
-    R`` and the origin's translation, plus the focal in pixels): the bias is that of these parameters, so the
-    corrected body centres (``R c_body + t``, a 2 m lever) are corrected to the same order, and every carriage's
-    translation is its own (not the sum of its predecessors' rotations, as in the solver's chain
-    parametrisation, where the correction would need every predecessor's second-order term).
-
-Constraints
-    The corrected poses are put back on the chain: each link's offset ``T`` is recomputed from them, clipped to
-    the ball ``|T| <= slack`` when the correction would take it out (the followers then move with the clip, so
-    that every other offset is kept), and the chain's translations are recomposed from its first carriage. The
-    terrain contact term is one of the rows (its curvature counts); step 2's placement is not redone.
-
-Limits
-    Second order only (an expansion in sigma^2; where the estimate's spread is not small against the curvature,
-    as a carriage barely determined along the line of sight, it is a first correction, not an unbiased
-    estimate). The shared misfit of a face (``face_sigma_px``) enters ``C`` but not ``S`` (the cross term assumes
-    independent rows). Not applied with a robust loss (the IRLS weights are not a fixed noise model) nor with an
-    estimated focal (:func:`.chain._bias_skip_reason`: there the expansion fails, docs/solver.md); the code
-    handles a focal parameter (and the tests check it against the expansion) for diagnostics.
-
-Safeguard
-    The expansion is valid only where the bias is small against the estimate's spread. A carriage whose predicted
-    bias exceeds ``max_over_sd`` (``SolveOptions.bias_max_over_sd``, 1) standard deviations in any of its six
-    pose components is left uncorrected (:func:`correct`; ``BiasCorrection.skipped`` and the step's note name
-    it); when every carriage is, nothing is applied. On the benchmark at a known focal no carriage reached it
-    in 150 trials per cell, but the far, noisy cell comes close (12 cars at 2 px: largest ratio 0.94 in 40
-    trials; 0.32 at 6 cars, 2 px); it guards a real scene's poorly observed carriage.
+The least-squares estimate of a nonlinear model is biased at second order in the noise (a far carriage is pulled
+towards the camera by an amount growing as sigma^2). Box's (1971) formula estimates the bias at the solution
+from sigma-point differences of the whitened rows (no analytic Hessian), in the free-pose parameters of
+:mod:`.uncertainty`; :func:`correct` subtracts it where it is small against the spread and puts the poses back
+on the chain. Formula, derivation and limits: ``docs/solver.md``, "Second-order bias correction".
 """
 
 from __future__ import annotations
@@ -69,8 +15,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .projection import _distort_with_derivs, exp_so3
-from .uncertainty import _contact_rows, _inv, _prior_rows, _rows
+from ..core.geometry import exp_so3
+from .problem import Chains, Poses
+from .projection import distort_with_derivs
+from .uncertainty import CovarianceModel, contact_rows, inverse_psd, pixel_rows, prior_rows
 
 log = logging.getLogger(__name__)
 
@@ -106,7 +54,7 @@ class BiasCorrection:
 
 
 def _project_rows(prob, idx: np.ndarray, R_rows: np.ndarray, t_rows: np.ndarray, f_rows: np.ndarray) -> np.ndarray:
-    """Pixels of the observation rows ``idx`` with a pose and a focal per row (as ``_Problem.project``: the
+    """Pixels of the observation rows ``idx`` with a pose and a focal per row (as ``Problem.project``: the
     view's intrinsics with fx = f, fy = f * fy/fx, skew, principal point and distortion kept)."""
     Xw = np.einsum("nij,nj->ni", R_rows, prob.P[idx]) + t_rows
     uv = np.empty((len(idx), 2))
@@ -117,7 +65,7 @@ def _project_rows(prob, idx: np.ndarray, R_rows: np.ndarray, t_rows: np.ndarray,
         M = np.asarray(prob.views[v].cam_from_world, dtype=float)
         Pc = Xw[sel] @ M[:3, :3].T + M[:3, 3]
         x, y = Pc[:, 0] / Pc[:, 2], Pc[:, 1] / Pc[:, 2]
-        _, xd, yd, *_ = _distort_with_derivs(x, y, intr)
+        _, xd, yd, *_ = distort_with_derivs(x, y, intr)
         fr = f_rows[sel]
         uv[sel, 0] = fr * xd + intr.skew * yd + intr.cx
         uv[sel, 1] = fr * (intr.fy / intr.fx) * yd + intr.cy
@@ -131,41 +79,26 @@ def _sqrt_psd(C: np.ndarray) -> np.ndarray:
 
 
 class _Units:
-    """Groups of whitened rows that share their parameters: ``S`` (n, m) global parameter indices per unit,
-    ``rows`` (n, q) the rows of each unit in the stacked whitened row vector, ``evaluate(delta)`` (n, m) local
-    perturbations -> (n, q) whitened row values."""
+    """Groups of whitened rows that share their parameters: ``S`` (n, m) global parameter indices per unit, ``J``
+    the rows' whitened Jacobian (n q, P), ``noise`` their true variance factors (n q,), ``evaluate(delta)`` (n, m)
+    local perturbations -> (n, q) whitened row values; ``rows`` (n, q) their place in the stacked rows."""
 
-    def __init__(self, S: np.ndarray, rows: np.ndarray, evaluate):
-        self.S, self.rows, self.evaluate = S, rows, evaluate
+    def __init__(self, S: np.ndarray, J: np.ndarray, noise: np.ndarray, q: int, evaluate):
+        self.S, self.J, self.noise, self.q, self.evaluate = S, J, noise, q, evaluate
+        self.rows = np.zeros((len(S), q), dtype=int)
 
     def second(self, u: np.ndarray, r0: np.ndarray) -> np.ndarray:
         """``D(u) = rho(theta + u) + rho(theta - u) - 2 rho(theta)`` per unit and row."""
         return self.evaluate(u) + self.evaluate(-u) - 2.0 * r0
 
 
-def estimate_bias(prob, cars, R, t, f, focal_views, chains, slacks, contact, model: dict,
-                  sigma_cfg: float) -> tuple[np.ndarray, dict]:
-    """Second-order bias (see the module doc) of the free-pose parameters at the solution ``R, t, f``: a vector in
-    the order of ``model`` (per active carriage ``omega (3), origin (3)``, then each focal group's focal in px).
-    ``model``: :func:`.uncertainty.covariance_model` at this solution (its ``cov`` and pixel ``sigma``). Also
-    returns diagnostics (the two terms' sizes)."""
-    act = prob.active
-    col, P = model["col"], model["P"]
-    sigma = float(model["sigma"])
-    C = model["cov"]
-    nA = len(act)
-    units: list[_Units] = []
-    Jblocks = []
-    row0 = 0
-    noise = []
-
-    # -- pixel rows (measured points only, as in the covariance) ------------------------------------------------
-    J, _, _, _ = _rows(prob, R, t, f, focal_views)
+def _pixel_units(prob, R, t, f, focal_views, col, sigma: float) -> _Units:
+    """The pixel rows (measured points only, as in the covariance): one unit per point."""
+    nA = len(prob.active)
+    J, _, _, _ = pixel_rows(prob, R, t, f, focal_views)
     meas = getattr(prob, "measured", None)
     idx = np.arange(len(prob.P)) if meas is None or len(meas) != len(prob.P) else np.nonzero(meas)[0]
     keep = np.stack([2 * idx, 2 * idx + 1], axis=1).reshape(-1)
-    Jblocks.append(J[keep] / sigma)
-    noise.append(np.repeat(prob.w_noise[idx] ** 2, 2))
     gi_of_view = {v: i for i, grp in enumerate(focal_views) for v in grp}
     m_pix = 7 if focal_views else 6
     S = np.zeros((len(idx), m_pix), dtype=int)
@@ -177,56 +110,95 @@ def estimate_bias(prob, cars, R, t, f, focal_views, chains, slacks, contact, mod
     Rr0, tr0, fr0, w_idx = R[car], t[car], f[prob.view[idx]], prob.w[idx]
     uv_obs = prob.uv[idx]
 
-    def eval_pix(delta, Rr0=Rr0, tr0=tr0, fr0=fr0, idx=idx):
+    def eval_pix(delta):
         Rr = exp_so3(delta[:, :3]) @ Rr0
         fr = fr0 + delta[:, 6] if delta.shape[1] > 6 else fr0
         uv = _project_rows(prob, idx, Rr, tr0 + delta[:, 3:6], fr)
         return (uv - uv_obs) * w_idx[:, None] / sigma
 
-    units.append(_Units(S, row0 + np.arange(2 * len(idx)).reshape(-1, 2), eval_pix))
-    row0 += 2 * len(idx)
+    return _Units(S, J[keep] / sigma, np.repeat(prob.w_noise[idx] ** 2, 2), 2, eval_pix)
 
-    # -- the couplers' offset prior -------------------------------------------------------------------------
-    Jp = _prior_rows(cars, R, t, chains, slacks, col, P)
+
+def _link_units(cars, R, t, chains, slacks, col, P) -> _Units | None:
+    """The couplers' offset prior: one unit per link (the two carriages' poses)."""
+    Jp = prior_rows(cars, R, t, chains, slacks, col, P)
     links = [(ch[j], ch[j + 1], sl[j]) for ch, sl in zip(chains, slacks) for j in range(len(ch) - 1)]
-    if links:
-        Jblocks.append(Jp)
-        noise.append(np.ones(len(Jp)))
-        a_, b_ = np.array([L[0] for L in links]), np.array([L[1] for L in links])
-        sT = np.array([L[2] for L in links]) / math.sqrt(5.0)
-        S = np.concatenate([np.array([col[k] for k in a_])[:, None] + np.arange(6),
-                            np.array([col[k] for k in b_])[:, None] + np.arange(6)], axis=1)
-        cr = np.array([cars[k].c_rear for k in a_])
-        cf = np.array([cars[k].c_front for k in b_])
+    if not links:
+        return None
+    a_, b_ = np.array([L[0] for L in links]), np.array([L[1] for L in links])
+    sT = np.array([L[2] for L in links]) / math.sqrt(5.0)
+    S = np.concatenate([np.array([col[k] for k in a_])[:, None] + np.arange(6),
+                        np.array([col[k] for k in b_])[:, None] + np.arange(6)], axis=1)
+    cr = np.array([cars[k].c_rear for k in a_])
+    cf = np.array([cars[k].c_front for k in b_])
 
-        def eval_link(delta, a_=a_, b_=b_, sT=sT, cr=cr, cf=cf):
-            Ra = exp_so3(delta[:, 0:3]) @ R[a_]
-            Rb = exp_so3(delta[:, 6:9]) @ R[b_]
-            T = (t[b_] + delta[:, 9:12] + np.einsum("nij,nj->ni", Rb, cf)) - \
-                (t[a_] + delta[:, 3:6] + np.einsum("nij,nj->ni", Ra, cr))
-            return T / sT[:, None]
+    def eval_link(delta):
+        Ra = exp_so3(delta[:, 0:3]) @ R[a_]
+        Rb = exp_so3(delta[:, 6:9]) @ R[b_]
+        T = (t[b_] + delta[:, 9:12] + np.einsum("nij,nj->ni", Rb, cf)) - \
+            (t[a_] + delta[:, 3:6] + np.einsum("nij,nj->ni", Ra, cr))
+        return T / sT[:, None]
 
-        units.append(_Units(S, row0 + np.arange(3 * len(links)).reshape(-1, 3), eval_link))
-        row0 += 3 * len(links)
+    return _Units(S, Jp, np.ones(len(Jp)), 3, eval_link)
 
-    # -- terrain contact ---------------------------------------------------------------------------------------
-    Jc, ck = _contact_rows(contact, R, t, col, P, sigma_cfg)
-    if ck:
-        Jblocks.append(Jc)
-        noise.append(np.ones(len(Jc)))
-        sz = sigma_cfg / contact.scale
-        S = np.array([col[k] for k in ck])[:, None] + np.arange(6)
 
-        def eval_contact(delta, ck=ck, sz=sz):
-            d, _, _ = contact.clearances(exp_so3(delta[:, :3]) @ R[ck], t[ck] + delta[:, 3:6], ck)
-            return (d / sz)[:, None]
+def _contact_units(contact, R, t, col, P, sigma_cfg: float) -> _Units | None:
+    """The terrain contact rows: one unit per carriage on the terrain."""
+    Jc, ck = contact_rows(contact, R, t, col, P, sigma_cfg)
+    if not ck:
+        return None
+    sz = sigma_cfg / contact.scale
+    S = np.array([col[k] for k in ck])[:, None] + np.arange(6)
 
-        units.append(_Units(S, row0 + np.arange(len(ck))[:, None], eval_contact))
-        row0 += len(ck)
+    def eval_contact(delta):
+        d, _, _ = contact.clearances(exp_so3(delta[:, :3]) @ R[ck], t[ck] + delta[:, 3:6], ck)
+        return (d / sz)[:, None]
 
-    Jw = np.vstack(Jblocks)
-    Sdiag = np.concatenate(noise)
-    Hi = _inv(Jw.T @ Jw)
+    return _Units(S, Jc, np.ones(len(Jc)), 1, eval_contact)
+
+
+def _cross_term(units: list[_Units], r0s: list[np.ndarray], Jw: np.ndarray, Hi: np.ndarray, Sdiag: np.ndarray,
+                C: np.ndarray, P: int) -> np.ndarray:
+    """``sum_i H_i c_i``, the weighting's cross term (zero when every row is weighted by its inverse noise
+    variance), by polarisation of the same sigma-point differences."""
+    g2 = np.zeros(P)
+    Sm = Sdiag - 1.0
+    if not np.abs(Sm).max() > 1e-12:
+        return g2
+    A = Jw.T * Sm  # J^T (S - I); J^T M = 0, so J^T S M = J^T (S - I) M
+    JTSM = A - (A @ Jw) @ Hi @ Jw.T
+    Cc = -Hi @ JTSM  # column i: c_i
+    for u, r0 in zip(units, r0s):
+        m = u.S.shape[1]
+        eps = np.sqrt(np.maximum(C[u.S, u.S], 1e-30))  # (n, m): one sd per local axis
+        for q in range(u.rows.shape[1]):
+            ci = Cc[u.S, u.rows[:, q][:, None]]  # (n, m): row q's direction, local
+            for j in range(m):
+                a = np.zeros_like(ci)
+                a[:, j] = eps[:, j]
+                Hc = (u.second(a + ci, r0)[:, q] - u.second(a - ci, r0)[:, q]) / (4.0 * eps[:, j])
+                np.add.at(g2, u.S[:, j], np.nan_to_num(Hc))
+    return g2
+
+
+def estimate_bias(prob, cars, R, t, f, focal_views, chains, slacks, contact, model: CovarianceModel,
+                  sigma_cfg: float) -> tuple[np.ndarray, dict]:
+    """Second-order bias (see the module doc) of the free-pose parameters at the solution ``R, t, f``: a vector in
+    the order of ``model`` (per active carriage ``omega (3), origin (3)``, then each focal group's focal in px).
+    ``model``: :func:`.uncertainty.covariance_model` at this solution (its ``cov`` and pixel ``sigma``). Also
+    returns diagnostics (the two terms' sizes)."""
+    col, P = model.col, model.P
+    C = model.cov
+    units = [u for u in (_pixel_units(prob, R, t, f, focal_views, col, float(model.sigma)),
+                         _link_units(cars, R, t, chains, slacks, col, P),
+                         _contact_units(contact, R, t, col, P, sigma_cfg)) if u is not None]
+    row0 = 0
+    for u in units:
+        u.rows = row0 + np.arange(u.q * len(u.S)).reshape(-1, u.q)
+        row0 += u.q * len(u.S)
+    Jw = np.vstack([u.J for u in units])
+    Sdiag = np.concatenate([u.noise for u in units])
+    Hi = inverse_psd(Jw.T @ Jw)
 
     # d_i = trace(C H_i) by sigma-point differences along the columns of sqrt(C_loc)
     d = np.zeros(row0)
@@ -241,42 +213,27 @@ def estimate_bias(prob, cars, R, t, f, focal_views, chains, slacks, contact, mod
             D += u.second(L[:, :, j], r0)
         d[u.rows.reshape(-1)] = np.nan_to_num(D).reshape(-1)
     g1 = 0.5 * (Jw.T @ d)
-
-    # the weighting's cross term (zero when every row is weighted by its inverse noise variance)
-    g2 = np.zeros(P)
-    Sm = Sdiag - 1.0
-    if np.abs(Sm).max() > 1e-12:
-        A = Jw.T * Sm  # J^T (S - I); J^T M = 0, so J^T S M = J^T (S - I) M
-        JTSM = A - (A @ Jw) @ Hi @ Jw.T
-        Cc = -Hi @ JTSM  # column i: c_i
-        for u, r0 in zip(units, r0s):
-            m = u.S.shape[1]
-            eps = np.sqrt(np.maximum(C[u.S, u.S], 1e-30))  # (n, m): one sd per local axis
-            for q in range(u.rows.shape[1]):
-                ci = Cc[u.S, u.rows[:, q][:, None]]  # (n, m): row q's direction, local
-                for j in range(m):
-                    a = np.zeros_like(ci)
-                    a[:, j] = eps[:, j]
-                    Hc = (u.second(a + ci, r0)[:, q] - u.second(a - ci, r0)[:, q]) / (4.0 * eps[:, j])
-                    np.add.at(g2, u.S[:, j], np.nan_to_num(Hc))
+    g2 = _cross_term(units, r0s, Jw, Hi, Sdiag, C, P)
     bias = -Hi @ (g1 + g2)
     return bias, {"box_term_norm": float(np.linalg.norm(Hi @ g1)), "cross_term_norm": float(np.linalg.norm(Hi @ g2))}
 
 
-def correct(prob, cars, R, t, f, focal_views, chains, slacks, contact, model: dict, sigma_cfg: float,
-            views, max_over_sd: float = 1.0) -> BiasCorrection:
+def correct(prob, cars, poses: Poses, focal_views, chains: Chains, contact, model: CovarianceModel,
+            sigma_cfg: float, max_over_sd: float = 1.0) -> BiasCorrection:
     """The bias-corrected poses (and focal) put back on the chain (see the module doc), with what moved.
 
     The safeguard: a second-order expansion is valid only where the bias is small against the estimate's spread.
     A carriage whose predicted bias exceeds ``max_over_sd`` standard deviations in any of its six pose components
     (rotation vector, origin) is left uncorrected (its bias set to zero; ``skipped`` names it); a focal whose
     bias exceeds it leaves the focal uncorrected. When every carriage is skipped nothing is applied."""
-    bias, diag = estimate_bias(prob, cars, R, t, f, focal_views, chains, slacks, contact, model, sigma_cfg)
+    R, t, f = poses.R, poses.t, poses.f
+    bias, diag = estimate_bias(prob, cars, R, t, f, focal_views, chains.members, chains.slacks, contact, model,
+                               sigma_cfg)
     if not np.all(np.isfinite(bias)):
         log.warning("bias correction: the estimated bias is not finite; not applied")
         return BiasCorrection(False, note="not applied: the estimated bias is not finite")
-    col = model["col"]
-    sd = np.sqrt(np.maximum(np.diag(model["cov"]), 1e-300))
+    col = model.col
+    sd = np.sqrt(np.maximum(np.diag(model.cov), 1e-300))
     ratio = float(np.max(np.abs(bias) / sd)) if len(bias) else 0.0
     bias = bias.copy()
     skipped = []
@@ -308,10 +265,10 @@ def correct(prob, cars, R, t, f, focal_views, chains, slacks, contact, model: di
         df = -float(bias[6 * nA + i])
         for v in grp:
             fn[v] = f[v] + df
-            focal_shift[views[v].name] = df
+            focal_shift[prob.views[v].name] = df
     # back onto the chain: offsets from the corrected poses, clipped to the ball, translations recomposed
     clipped = 0
-    for ch, sl in zip(chains, slacks):
+    for ch, sl in zip(chains.members, chains.slacks):
         for j in range(len(ch) - 1):
             a, b = ch[j], ch[j + 1]
             T = tn[b] + Rn[b] @ cars[b].c_front - tn[a] - Rn[a] @ cars[a].c_rear

@@ -8,7 +8,7 @@ Conventions: ``docs/conventions.md``. A point ``p`` in the carriage frame goes t
 Pose parametrisation of the Jacobian: ``(omega, tau)`` with
 ``R_wc <- Exp(omega) R_wc`` (a rotation-vector increment in the **scene** frame, left-multiplied) and
 ``t_wc <- t_wc + tau``; the Jacobian is taken at ``omega = 0, tau = 0``. For a finite rotation-vector
-offset ``Exp(delta) R0`` chain with :func:`left_jacobian_so3` (``d/d delta = J_pose_rot @ J_l(delta)``).
+offset ``Exp(delta) R0`` chain with :func:`workbench.core.geometry.left_jacobian_so3` (``d/d delta = J_pose_rot @ J_l(delta)``).
 
 Intrinsic parameters (columns of ``J_intr``, in the order asked): ``"f"`` (fx = fy = f, moved together),
 ``"cx"``, ``"cy"``, ``"k1"``, ``"k2"``.
@@ -21,12 +21,13 @@ from typing import Sequence
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
-from ..core.geometry import exp_so3, left_jacobian_so3, log_so3, skew  # noqa: F401 - used here and re-exported
+from ..core.geometry import skew
 
 INTRINSIC_NAMES = ("f", "cx", "cy", "k1", "k2")
 
 
-def _distort_with_derivs(x: np.ndarray, y: np.ndarray, intr: CameraIntrinsics):
+def distort_with_derivs(x: np.ndarray, y: np.ndarray, intr: CameraIntrinsics):
+    """Brown-Conrady distortion of normalised (x, y): r^2, the distorted (xd, yd) and d(xd, yd) / d(x, y)."""
     k1, k2, k3, p1, p2 = intr.k1, intr.k2, intr.k3, intr.p1, intr.p2
     r2 = x * x + y * y
     radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
@@ -53,7 +54,7 @@ def project_world_points_with_jacobians(
     iz = 1.0 / Z
     x = P[:, 0] * iz
     y = P[:, 1] * iz
-    r2, xd, yd, a, b, c, d = _distort_with_derivs(x, y, intrinsics)
+    r2, xd, yd, a, b, c, d = distort_with_derivs(x, y, intrinsics)
     fx, fy, s = intrinsics.fx, intrinsics.fy, intrinsics.skew
     uv = np.column_stack([fx * xd + s * yd + intrinsics.cx, fy * yd + intrinsics.cy])
     # d uv / d (xd, yd)

@@ -26,8 +26,9 @@ import numpy as np
 
 from ..core.camera import CameraIntrinsics, look_at, project_world
 from ..core.frames import rot_z
+from ..core.geometry import exp_so3
 from ..rolling_stock import get_type
-from .chain import CarriageInput, ChainLink, View
+from .model import CarriageInput, ChainLink, View
 
 TYPE_CYCLE = ("shoreliner", "p32ac-dm", "amfleet-i", "acs-64")
 
@@ -68,8 +69,6 @@ def _plane_rotation(terrain: PlaneTerrain) -> np.ndarray:
     s, c = np.linalg.norm(v), float(z @ n)
     if s < 1e-12:
         return np.eye(3)
-    from .projection import exp_so3
-
     return exp_so3(v / s * np.arctan2(s, c))
 
 

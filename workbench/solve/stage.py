@@ -3,7 +3,7 @@
 Reads the views (``cameras.json`` written by hand in the incident folder, else ``out/georef/cameras.json``),
 the correspondences (``out/correspond/correspondences.json`` when the ``correspond`` stage wrote it, else the
 incident's hand-written ``correspondences.json``), the consist and its couplings, and the terrain; runs
-:func:`workbench.solve.chain.solve_consist`; writes ``out/solve/solution.json``. A solve that does not converge
+:func:`workbench.solve.solve_consist`; writes ``out/solve/solution.json``. A solve that does not converge
 raises (the runner keeps the previous solution) after writing the attempt to ``out/solve/attempt.json``.
 """
 
@@ -18,10 +18,15 @@ from typing import Any
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
-from ..errors import InputError, StageError
+from ..core.frames import hpr_from_rotation
+from ..core.io import matrix_from_json
 from ..core.layout import CAMERAS_FILE, CORRESPONDENCES_FILE
+from ..errors import InputError, StageError
 from ..project import Project
 from ..core.stage_api import Progress, StageResult
+from .model import CarriageInput, ChainLink, Observation, SolveOptions, SolveWarning, View
+from .solver import solve_consist
+from .uncertainty import add_camera_uncertainty
 
 log = logging.getLogger(__name__)
 
@@ -30,15 +35,11 @@ log = logging.getLogger(__name__)
 # Reading and checking
 # ---------------------------------------------------------------------------------------------------------
 def _matrix(value: Any, shape: tuple[int, ...], where: str) -> np.ndarray:
-    from ..core.io import matrix_from_json
-
     return matrix_from_json(value, shape, where)
 
 
 def read_views(project: Project, path: Path) -> tuple[list, dict]:
     """``(views, document)`` from a ``cameras.json`` (docs/pipeline.md); errors name the file and the entry."""
-    from .chain import View
-
     doc = project.read_json(path)
     if not isinstance(doc, dict) or not isinstance(doc.get("views"), list) or not doc["views"]:
         raise InputError(f"{path}: needs a non-empty 'views' list; see docs/pipeline.md (cameras.json)")
@@ -80,8 +81,6 @@ def _group(o: dict, method: str | None, where: str) -> str | None:
 def read_correspondences(project: Project, path: Path, views: list, panorama: Any = None) -> tuple[dict, dict]:
     """``({car number: {view name: {point: Observation}}}, stats)``; every bad item is an :class:`InputError`
     naming it. ``view == "panorama"`` pixels are mapped into their source photo with the panorama model."""
-    from .chain import Observation
-
     doc = project.read_json(path)
     if not isinstance(doc, dict) or not isinstance(doc.get("observations"), list):
         raise InputError(f"{path}: needs an 'observations' list; see docs/pipeline.md (correspondences.json)")
@@ -173,8 +172,6 @@ def _load_panorama(project: Project, doc: dict) -> Any:
 # The stage
 # ---------------------------------------------------------------------------------------------------------
 def run_solve(project: Project, progress: Progress) -> StageResult:
-    from .chain import CarriageInput, ChainLink, SolveOptions
-
     s = project.settings
     cam_path = project.cameras_path()
     if cam_path is None:
@@ -214,8 +211,6 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
     fit_sigmas = {c.number: (c.sigma_body_centre_m, c.sigma_hpr_deg) for c in res.carriages}
     camera_unc = camera_uncertainty(cam_doc)
     if camera_unc is not None:
-        from .uncertainty import add_camera_uncertainty
-
         camera_unc["carriages"] = add_camera_uncertainty(res, camera_unc["centre_enu"], camera_unc["cov"])
     used = {c.number: c.observations for c in carriages}
     doc = solution_document(project, res, views, cam_doc, used)
@@ -257,8 +252,6 @@ def _solve_rejecting(carriages: list, links: list, views: list, opts: Any, terra
                      progress: Progress) -> tuple[Any, list[dict]]:
     """Solve; while a marked point lies farther than ``reject_outliers_sigma`` pixel sigmas from the fit, drop the
     worst point of each such carriage and solve again (a wrong automatic match must not bend the consist)."""
-    from .chain import SolveWarning, solve_consist
-
     rejected: list[dict] = []
     thr = float(solver.reject_outliers_sigma) * float(solver.pixel_sigma_px)
     for rnd in range(int(solver.max_rejection_rounds) + 1):
@@ -352,8 +345,6 @@ def _num(x: Any) -> float | None:
 
 def solution_document(project: Project, res: Any, views: list, cam_doc: dict, obs: dict) -> dict:
     """The ``solution.json`` document (docs/pipeline.md) of a :class:`SolveResult`."""
-    from ..core.frames import hpr_from_rotation
-
     frame = project.frame
     d = res.to_dict()
     s = project.settings

@@ -1,61 +1,29 @@
 """Covariance of the chained pose solution, and the Cramér-Rao bound of the same model.
 
-Parametrisation of the covariance
-    free per-carriage poses: a scene-frame rotation vector increment and the origin translation (6 per
-    carriage), plus the focal (px) of each view whose focal was estimated. The solver's chain parametrisation
-    (eliminated translations, offsets on the sphere |T| = s when the constraint is active) is **not** used
-    here: an active constraint would make the covariance collapse onto the sphere, a hard statement the
-    data rarely support. Instead each held coupling enters as a soft prior on its offset,
-    ``T ~ N(0, sigma_T^2 I)`` with ``sigma_T = slack / sqrt(5)`` — the per-axis standard deviation of an
-    offset spread uniformly over the ball ``|T| <= slack`` (the constraint's own statement of ignorance).
-    The Cramér-Rao bound used by the benchmark (:func:`crb`) models the held coupling in exactly this way
-    (a Bayesian / Van Trees bound with that prior), so the solver and its bound share one model.
-
-Weights (sandwich)
-    The solver weights carriage i's residuals by ``w_i`` (the seed's per-carriage normalisation). With pixel
-    noise sigma on every coordinate, weighted rows have variance ``w_i^2 sigma^2``; the estimator's
-    information ``H = sum J_w^T J_w / sigma^2 + priors`` and the gradient's covariance
-    ``G = sum w^2 J_w^T J_w / sigma^2 + priors`` give ``Cov = H^-1 G H^-1`` (equal to ``H^-1`` when all
-    weights are 1). A robust loss enters through its IRLS weights rho'(z) at the solution, held fixed.
-
-Predictions
-    Rows of observations marked ``derived`` (a point projected from a face's pose, or carried into another
-    photo of a panorama set) are left out of ``H``, ``G`` and the pixel sigma: they are functions of measured
-    points, so they steer the fit but carry no information of their own. The covariance is then that of the
-    fit from the measured points alone, which the predictions only keep in the right basin.
-
-Shared misfit of a face
-    The points the homographies place on one face of a carriage (``Observation.group``) share its misfit: a
-    sub-pixel offset or stretch of the whole face (a livery not quite where the model has it) moves them
-    together, in every photo, so they do not average out as independent noise does. With
-    ``face_sigma_px = tau`` each group's pixels get a common affine displacement ``B_g a_g``,
-    ``a_g ~ N(0, tau^2 I_6)`` (:func:`_shared_misfit`); the fit is unchanged and the gradient's covariance
-    gains ``tau^2 sum_g J_g^T W_g B_g B_g^T W_g J_g`` (a sandwich: the estimator ignores the correlation, its
-    covariance does not).
-
-Pixel sigma
-    ``sigma_hat^2 = sum r_w^2 / (sum w^2 (m - p_eff) / m)`` with ``m`` pixel coordinates and ``p_eff`` the
-    effective number of parameters the pixels determine (``tr(H^-1 H_pixels)``; the priors take the rest).
-    With few redundancies sigma_hat is unreliable, so it is pooled with the configured pixel sigma as a prior
-    worth ``prior_dof`` degrees of freedom: ``sigma^2 = (dof sigma_hat^2 + nu0 sigma_cfg^2) / (dof + nu0)``
-    (dof = 0 gives the configured sigma), floored at 0.1 sigma_cfg; the 95 % half widths use Student's t with
-    ``dof + nu0`` degrees of freedom.
+Parameters: per carriage a scene-frame rotation vector and the origin (6), plus each estimated focal (px).
+Held couplings enter as the soft prior ``T ~ N(0, (slack / sqrt 5)^2 I)`` (not the solver's hard bound), the
+weighting through the sandwich ``H^-1 G H^-1``, predictions not at all, a face's shared misfit in ``G``; the
+pixel sigma is pooled with the configured one. Derivations: ``docs/solver.md``, "Covariance".
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
 from scipy.special import stdtrit  # the t quantile scipy.stats.t.ppf computes (scipy.stats: 2 s to import)
 
 from ..core.frames import hpr_from_rotation
-from .projection import exp_so3, skew
+from ..core.geometry import exp_so3, skew
+from .model import SolveOptions
+from .problem import Chains, Poses, Problem, carriage_weights, focal_groups, held_chains, prepare_cars
 
 
-def _rows(prob, R, t, f, focal_views):
-    """Weighted pixel Jacobian (2M, P) in free-pose parameters and the per-point weights."""
+def pixel_rows(prob, R, t, f, focal_views):
+    """Weighted pixel Jacobian (2M, P) in free-pose parameters, the weighted residuals (2M,), each carriage's
+    first column and P."""
     act = prob.active
     col = {k: 6 * i for i, k in enumerate(act)}
     P = 6 * len(act) + len(focal_views)
@@ -80,7 +48,7 @@ def _rows(prob, R, t, f, focal_views):
     return J, r, col, P
 
 
-def _prior_rows(cars, R, t, chains, slacks, col, P) -> np.ndarray:
+def prior_rows(cars, R, t, chains, slacks, col, P) -> np.ndarray:
     """Whitened Jacobian rows (3 per held link, ``T / sigma_T``) of the couplers' offset prior in free-pose
     parameters; ``T = t_b + R_b c_front - t_a - R_a c_rear``."""
     rows = []
@@ -100,11 +68,11 @@ def _prior_rows(cars, R, t, chains, slacks, col, P) -> np.ndarray:
 
 
 def _prior_info(cars, R, t, chains, slacks, col, P):
-    Jp = _prior_rows(cars, R, t, chains, slacks, col, P)
+    Jp = prior_rows(cars, R, t, chains, slacks, col, P)
     return Jp.T @ Jp
 
 
-def _contact_rows(contact, R, t, col, P, sigma_cfg) -> tuple[np.ndarray, list[int]]:
+def contact_rows(contact, R, t, col, P, sigma_cfg) -> tuple[np.ndarray, list[int]]:
     """Whitened Jacobian rows (one per carriage in contact, ``clearance / sigma_z``) of the terrain contact term,
     and the carriages they belong to (a carriage off the terrain has none)."""
     if contact is None or not contact.cars:
@@ -121,7 +89,7 @@ def _contact_rows(contact, R, t, col, P, sigma_cfg) -> tuple[np.ndarray, list[in
 
 
 def _contact_info(contact, R, t, col, P, sigma_cfg):
-    Jc, _ = _contact_rows(contact, R, t, col, P, sigma_cfg)
+    Jc, _ = contact_rows(contact, R, t, col, P, sigma_cfg)
     return Jc.T @ Jc
 
 
@@ -138,7 +106,8 @@ def _robust_weights(r2: np.ndarray, loss: str, scale: float) -> np.ndarray:
     raise ValueError(loss)
 
 
-def _inv(H: np.ndarray) -> np.ndarray:
+def inverse_psd(H: np.ndarray) -> np.ndarray:
+    """Inverse of a symmetric positive (semi-)definite matrix: by Cholesky, else the pseudo-inverse."""
     try:
         L = np.linalg.cholesky(H)
         Li = np.linalg.solve(L, np.eye(len(H)))
@@ -147,12 +116,28 @@ def _inv(H: np.ndarray) -> np.ndarray:
         return np.linalg.pinv(H)
 
 
+@dataclass
+class CovarianceModel:
+    """The covariance ``cov`` (P, P) of the free-pose parameters (carriage ``k``'s six from ``col[k]``, then the
+    focal groups'), the pixel sigma used and estimated, its degrees of freedom, the 95 % factor ``q`` (Student's
+    t) and the inverse information ``H_inv``."""
+
+    cov: np.ndarray
+    col: dict[int, int]
+    sigma: float
+    sigma_hat: float
+    dof: float
+    q: float
+    P: int
+    H_inv: np.ndarray
+
+
 def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_cfg: float,
                      loss: str = "linear", loss_scale: float = 1.0, prior_dof: float = 5.0,
-                     sigma_fixed: float | None = None, face_sigma: float = 0.0) -> dict:
-    """Covariance in free-pose parameters (see the module doc). ``sigma_fixed``: use that pixel sigma (CRB);
-    ``face_sigma``: pixels of the misfit shared by each group of points (see the module doc)."""
-    J, r, col, P = _rows(prob, R, t, f, focal_views)
+                     sigma_fixed: float | None = None, face_sigma: float = 0.0) -> CovarianceModel:
+    """Covariance in free-pose parameters at ``R, t, f`` (see the module doc). ``sigma_fixed``: use that pixel
+    sigma (CRB); ``face_sigma``: pixels of the misfit shared by each group of points."""
+    J, r, col, P = pixel_rows(prob, R, t, f, focal_views)
     groups = getattr(prob, "group", None)
     if groups is None or len(groups) != len(prob.P):
         groups = np.full(len(prob.P), -1)
@@ -177,7 +162,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
 
     def assemble(sig):
         H = Hp_unit / sig**2 + Hprior
-        Hi = _inv(H)
+        Hi = inverse_psd(H)
         return H, Hi
 
     if sigma_fixed is not None:
@@ -204,7 +189,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         G = G + face_sigma**2 / sigma**4 * _shared_misfit(J * rho[:, None], groups, views, uv_obs, w_row)
     cov = Hi @ G @ Hi
     cov = 0.5 * (cov + cov.T)
-    return {"cov": cov, "col": col, "sigma": sigma, "sigma_hat": sigma_hat, "dof": dof, "q": q, "P": P, "H_inv": Hi}
+    return CovarianceModel(cov, col, sigma, sigma_hat, dof, q, P, Hi)
 
 
 def _shared_misfit(J: np.ndarray, groups: np.ndarray, views: np.ndarray, uv: np.ndarray,
@@ -241,7 +226,7 @@ def _shared_misfit(J: np.ndarray, groups: np.ndarray, views: np.ndarray, uv: np.
 
 
 def _hpr_jac(Rk: np.ndarray, eps: float = 1e-6) -> np.ndarray:
-    h0 = np.array(hpr_from_rotation(Rk))
+    """d (heading, pitch, roll) / d scene rotation vector (degrees per radian), central differences."""
     J = np.zeros((3, 3))
     for i in range(3):
         d = np.zeros(3)
@@ -255,16 +240,19 @@ def _hpr_jac(Rk: np.ndarray, eps: float = 1e-6) -> np.ndarray:
     return J  # degrees per radian
 
 
-def body_centre_cov(model: dict, cars, R, k: int) -> np.ndarray:
-    c = model["col"][k]
+def body_centre_cov(model: CovarianceModel, cars, R, k: int) -> np.ndarray:
+    """(3, 3) covariance of carriage ``k``'s body centre."""
+    c = model.col[k]
     Jb = np.hstack([-skew(R[k] @ cars[k].c_body), np.eye(3)])
-    C = model["cov"][c:c + 6, c:c + 6]
+    C = model.cov[c:c + 6, c:c + 6]
     return Jb @ C @ Jb.T
 
 
-def solution_model(prob, R, t, f, focal_views, chains, slacks, contact, options) -> dict:
+def solution_model(prob: Problem, poses: Poses, focal_views, chains: Chains, contact,
+                   options: SolveOptions) -> CovarianceModel:
     """:func:`covariance_model` at a solution with the solve's options."""
-    return covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, options.pixel_sigma_px,
+    return covariance_model(prob, poses.R, poses.t, poses.f, focal_views, chains.members, chains.slacks, contact,
+                            options.pixel_sigma_px,
                             options.robust_loss, options.loss_scale_px, options.prior_dof,
                             face_sigma=options.face_sigma_px)
 
@@ -286,17 +274,18 @@ def _set_pose_covariance(cr: Any, C: np.ndarray, R: np.ndarray, lever: np.ndarra
     return Jb
 
 
-def attach_covariance(res, prob, R, t, f, focal_views, chains, slacks, contact, options,
-                      model: dict | None = None) -> None:
+def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Chains, contact, options: SolveOptions,
+                      model: CovarianceModel | None = None) -> None:
     """Fill the covariance fields of a :class:`SolveResult` in place. ``model``: a :func:`solution_model` already
-    computed (at the least-squares minimum, when the reported poses ``R, t`` are bias-corrected: the pixel sigma
-    is estimated from the minimum's residuals and the intervals are centred on the reported poses)."""
+    computed (at the least-squares minimum, when the reported ``poses`` are bias-corrected: the pixel sigma is
+    estimated from the minimum's residuals and the intervals are centred on the reported poses)."""
     if model is None:
-        model = solution_model(prob, R, t, f, focal_views, chains, slacks, contact, options)
-    cov, col, q = model["cov"], model["col"], model["q"]
-    res.sigma_px = model["sigma"]
-    res.sigma_px_estimated = model["sigma_hat"]
-    res.dof = model["dof"]
+        model = solution_model(prob, poses, focal_views, chains, contact, options)
+    R = poses.R
+    cov, col, q = model.cov, model.col, model.q
+    res.sigma_px = model.sigma
+    res.sigma_px_estimated = model.sigma_hat
+    res.dof = model.dof
     res.ci95_factor = q
     res.covariance = cov
     order = []
@@ -314,7 +303,7 @@ def attach_covariance(res, prob, R, t, f, focal_views, chains, slacks, contact, 
         j = 6 * len(prob.active) + i
         for v in grp:
             res.sigma_focal_px[prob.views[v].name] = float(math.sqrt(max(cov[j, j], 0.0)))
-    for ch in chains:
+    for ch in chains.members:
         for j in range(len(ch) - 1):
             a, b = ch[j], ch[j + 1]
             ca, cb = col[a], col[b]
@@ -345,13 +334,11 @@ def crb(carriages: Sequence[Any], links: Sequence[Any], views: Sequence[Any], wo
     Returns ``{"body_centre_cov": [(3, 3)] per carriage, "rotation_cov": [(3, 3)], "origin_cov": [(3, 3)],
     "focal_sigma": [...], "weighting": weighting}``.
     """
-    from .chain import SolveOptions, _Problem, _prepare, carriage_weights, focal_groups, held_chains
-
     opts = SolveOptions(check_image_bounds=False, weighting=weighting)  # validates ``weighting``
-    cars = _prepare(carriages, views, opts)
+    cars = prepare_cars(carriages, views, opts)
     N = len(cars)
     active = list(range(N))
-    prob = _Problem(cars, active, views, carriage_weights(cars, active, opts.weighting))
+    prob = Problem(cars, active, views, carriage_weights(cars, active, opts.weighting))
     R = np.array([np.asarray(M, float)[:3, :3] for M in world_from_carriage])
     t = np.array([np.asarray(M, float)[:3, 3] for M in world_from_carriage])
     f = np.array([v.intrinsics.fx for v in views], dtype=float)
@@ -362,13 +349,13 @@ def crb(carriages: Sequence[Any], links: Sequence[Any], views: Sequence[Any], wo
     model = covariance_model(prob, R, t, f, fv, chains, slacks, None, sigma_px, sigma_fixed=sigma_px)
     out = {"body_centre_cov": [], "rotation_cov": [], "origin_cov": [], "focal_sigma": [], "weighting": weighting}
     for k in active:
-        c = model["col"][k]
+        c = model.col[k]
         out["body_centre_cov"].append(body_centre_cov(model, cars, R, k))
-        out["rotation_cov"].append(model["cov"][c:c + 3, c:c + 3])
-        out["origin_cov"].append(model["cov"][c + 3:c + 6, c + 3:c + 6])
+        out["rotation_cov"].append(model.cov[c:c + 3, c:c + 3])
+        out["origin_cov"].append(model.cov[c + 3:c + 6, c + 3:c + 6])
     for i in range(len(fv)):
         j = 6 * N + i
-        out["focal_sigma"].append(float(math.sqrt(model["cov"][j, j])))
+        out["focal_sigma"].append(float(math.sqrt(model.cov[j, j])))
     return out
 
 

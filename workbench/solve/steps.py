@@ -1,0 +1,332 @@
+"""The steps of a solve, settling the consist on its photos and the terrain (``docs/solver.md``, "The steps").
+
+1. each carriage alone (PnP, then a joint refinement; an unknown focal from a sweep or the chained profile);
+2. each carriage rested on the terrain along gravity;
+3. couplers on, rotations held; 4. everything (with the terrain contact term), then the branch check;
+4b. the predicted points checked against the measured ones; 5. the second-order bias removed.
+Each step appends its :class:`StepStats` to the :class:`SolveContext`.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import numpy as np
+
+from .active_set import ChainedFit, ChainedProblem
+from .bias import correct
+from .branches import retry_branches
+from .focal import FocalProfile, chained_focal_profile, focal_sweep
+from .layout import full_cost
+from .model import SolveOptions, StepStats, View
+from .plan import Plan
+from .pnp import place_carried, pnp_start, refine_alone
+from .problem import Car, Poses, Problem, chain_cost, pixel_cost, pose_changes, record_warning
+from .terrain import Contact, rest_on_terrain, surface_samples
+from .uncertainty import CovarianceModel, solution_model
+
+CHI2_6_95 = 12.5916  # 95 % point of the chi-square distribution with 6 degrees of freedom
+
+
+@dataclass
+class SolveContext:
+    """One solve's inputs and its running record (steps, warnings, evaluations, failure messages)."""
+
+    cars: list[Car]
+    views: list[View]
+    plan: Plan
+    prob: Problem
+    weights: dict[int, float]
+    focal_views: list[list[int]]
+    options: SolveOptions
+    terrain: Any
+    warnings: list[dict]
+    steps: list[StepStats] = field(default_factory=list)
+    nfev: int = 0
+    failures: list[str] = field(default_factory=list)
+    samples: dict[int, np.ndarray] = field(default_factory=dict)  # step 2: each carriage's surface samples
+    contact: Contact | None = None  # step 4's terrain contact term
+
+    def chained(self, prob: Problem | None = None, contact: Contact | None = None) -> ChainedProblem:
+        return ChainedProblem(self.prob if prob is None else prob, self.cars, self.plan.chains, self.focal_views,
+                              contact, self.options)
+
+    def changes(self, before: Poses, after: Poses) -> list[dict]:
+        return pose_changes(self.cars, self.plan.active, before, after)
+
+
+def _initial_focal(s: SolveContext, f: np.ndarray) -> tuple[np.ndarray, FocalProfile | None, str]:
+    """An unknown focal's start: the per-carriage sweep, then on a chained consist the chained profile."""
+    views, plan, options = s.views, s.plan, s.options
+    for grp in s.focal_views:
+        fb = focal_sweep(s.prob, s.cars, plan.solo, grp, options)
+        names = ", ".join(views[v].name for v in grp)
+        if fb is not None:
+            f[grp] = fb
+        else:
+            record_warning(s.warnings, None, "focal", f"view(s) {names}: no carriage with 4 points in one photo; the "
+                                                      f"focal sweep kept the given focal {f[grp[0]]:.1f} px")
+    note = "focal sweep: " + ", ".join(f"{'+'.join(views[v].name for v in grp)}={f[grp[0]]:.1f}px"
+                                       for grp in s.focal_views)
+    profile = None
+    if s.focal_views and any(len(ch) > 1 for ch in plan.chains.members):
+        profile = chained_focal_profile(s.prob, s.cars, plan.chains, plan.solo, s.focal_views, f, options)
+        f = profile.poses.f.copy()
+        note += "; chained focal profile: " + ", ".join(
+            f"{'+'.join(views[v].name for v in grp)}={f[grp[0]]:.1f}px" for grp in s.focal_views) + \
+            f" ({profile.evaluations} fixed-focal chained solves)"
+    return f, profile, note
+
+
+def step_alone(s: SolveContext) -> tuple[Poses, FocalProfile | None]:
+    """Step 1: every carriage observable alone from PnP, then refined on its own pixels (and the focal); the
+    carried ones placed from their neighbours. Returns the poses and the chained focal profile (or None)."""
+    t1 = time.perf_counter()
+    cars, plan, options = s.cars, s.plan, s.options
+    N = len(cars)
+    f = np.array([v.intrinsics.fx for v in s.views], dtype=float)
+    note, profile = "", None
+    if options.estimate_focal:
+        f, profile, note = _initial_focal(s, f)
+    poses = Poses(np.tile(np.eye(3), (N, 1, 1)), np.zeros((N, 3)), f)
+    pnp_start(s.prob, cars, plan.solo, poses)
+    place_carried(poses, cars, plan.chains.members, plan.solo)
+    init = poses.copy()
+    cost0 = pixel_cost(s.prob, poses)
+    # after a chained focal profile the focal is held here: unchained, the cost would pull it to the affine limit
+    solo_prob = Problem(cars, plan.solo, s.views, s.weights)
+    poses, nfev, msg, ok = refine_alone(solo_prob, cars, plan.solo, poses,
+                                        s.focal_views if profile is None else [], options)
+    s.nfev += nfev
+    place_carried(poses, cars, plan.chains.members, plan.solo)  # carried ones follow their refined neighbours
+    s.steps.append(StepStats("1_alone", True, (note + "; " if note else "") + "PnP (SQPnP) then joint refinement, "
+                             "constraints off" + ("; carried cars placed from their neighbours"
+                                                  if len(plan.solo) < len(plan.active) else ""),
+                             cost0, pixel_cost(s.prob, poses), nfev, msg, time.perf_counter() - t1,
+                             s.changes(init, poses)))
+    return poses, profile
+
+
+def step_terrain(s: SolveContext, poses: Poses) -> None:
+    """Step 2 (in place): every carriage moved along gravity until it rests on the terrain."""
+    t2 = time.perf_counter()
+    cars, options, terrain = s.cars, s.options, s.terrain
+    if terrain is None:
+        s.steps.append(StepStats("2_terrain", False, "skipped: no terrain given"))
+        return
+    s.samples = {k: surface_samples(cars[k].ctype, options.terrain_samples) for k in s.plan.active}
+    before = poses.copy()
+    c0 = pixel_cost(s.prob, poses)
+    for k in s.plan.active:
+        M = np.eye(4)
+        M[:3, :3], M[:3, 3] = poses.R[k], poses.t[k]
+        M, dz = rest_on_terrain(M, cars[k].ctype, terrain, options.terrain_samples)
+        if not np.isfinite(dz):
+            record_warning(s.warnings, cars[k], "terrain", f"car {cars[k].number}: outside the terrain; not moved "
+                                                           f"in step 2")
+            continue
+        poses.t[k] = M[:3, 3]
+    s.steps.append(StepStats("2_terrain", True, "lowered/raised along gravity (-z) onto the terrain", c0,
+                             pixel_cost(s.prob, poses), 0, "done", time.perf_counter() - t2,
+                             s.changes(before, poses)))
+
+
+def step_translations(s: SolveContext, poses: Poses) -> ChainedFit:
+    """Step 3: couplers on, rotations held, translations (and focal) optimised. It only starts step 4: with the
+    rotations held (noisy) offsets often sit on the sphere where it converges slowly, so it is capped at 40."""
+    t3 = time.perf_counter()
+    c0 = pixel_cost(s.prob, poses)
+    opt3 = replace(s.options, max_iterations=min(int(s.options.max_iterations), 40))
+    fit = s.chained().solve(poses, rot_free=False, options=opt3)
+    s.nfev += fit.nfev
+    s.steps.append(StepStats("3_chain_translations", True, "couplers on, rotations held, translations"
+                             + (" and focal" if s.focal_views else "") + f" optimised ({fit.rounds} active-set "
+                             f"round(s), {fit.n_active} coupler(s) at the slack)", c0, pixel_cost(s.prob, fit.poses),
+                             fit.nfev, fit.message, time.perf_counter() - t3, s.changes(poses, fit.poses)))
+    return fit
+
+
+def _profile_check(s: SolveContext, cp: ChainedProblem, fit: ChainedFit,
+                   profile: FocalProfile) -> tuple[ChainedFit, str]:
+    """The solution (focal free) can cost no more than the profile's best fixed-focal solve; if it does, step 4
+    ended in another basin: restart from the profile's, keep the cheaper. Returns the fit and a note."""
+    c_sol = chain_cost(s.prob, fit.poses, fit.links, s.plan.chains.slacks, s.options.pixel_sigma_px)
+    if not c_sol > profile.cost * (1.0 + 1e-6) + 1e-9:
+        return fit, ""
+    fit2 = cp.solve(profile.poses)
+    s.nfev += fit2.nfev
+    c_old, c2 = cp.cost(fit.poses), cp.cost(fit2.poses)
+    note = (f"; ended at cost {c_sol:.1f} above the focal profile's best {profile.cost:.1f}: restarted from it, "
+            f"cost {c2:.1f} (was {c_old:.1f})")
+    return (fit2 if c2 < c_old else fit), note
+
+
+def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalProfile | None) -> ChainedFit:
+    """Step 4: everything optimised (with the terrain contact term), the profile's basin check, then the branch
+    check (:func:`.branches.retry_branches`, restarting from step 3's start ``start3``)."""
+    t4 = time.perf_counter()
+    options, terrain = s.options, s.terrain
+    c0 = pixel_cost(s.prob, fit3.poses)
+    if terrain is not None and options.use_terrain_contact:
+        s.contact = Contact(terrain, s.samples, options.pixel_sigma_px / options.terrain_sigma_m)
+    cp = s.chained(contact=s.contact)
+    fit = cp.solve(fit3.poses)
+    s.nfev += fit.nfev
+    nfev = fit.nfev
+    nfev_34 = fit3.nfev + fit.nfev
+    note = ""
+    if profile is not None:
+        fit, note = _profile_check(s, cp, fit, profile)
+    retry = retry_branches(cp, s.plan.solo, start3, fit.poses, terrain, max_nfev=max(200, nfev_34))
+    s.nfev += retry.nfev
+    nfev += retry.nfev
+    if retry.fit is not None:
+        fit = retry.fit
+    if retry.notes:
+        note += "; " + "; ".join(retry.notes)
+    note += (f"; soft terrain contact (sigma_z = {options.terrain_sigma_m} m)" if s.contact is not None else
+             ("; no terrain contact term (no terrain)" if terrain is None else "; terrain contact term off"))
+    s.steps.append(StepStats("4_all", True, f"everything optimised ({fit.rounds} active-set round(s), "
+                             f"{fit.n_active} coupler(s) at the slack)" + note, c0, pixel_cost(s.prob, fit.poses),
+                             nfev, fit.message, time.perf_counter() - t4, s.changes(fit3.poses, fit.poses)))
+    if not fit.ok:
+        s.failures.append(f"step 4: {fit.message}")
+    return fit
+
+
+def _prediction_shift(released: Problem, R, t, f, R_kept, t_kept, model: CovarianceModel) -> dict[int, float]:
+    """Per carriage with predicted points: the squared Mahalanobis length of the shift from the fit with the
+    predictions released (``R, t, f``: the measured points' fit, where ``model`` was taken) to the fit with them
+    kept, in the released fit's pose covariance. About chi-square with 6 degrees of freedom or less under the
+    noise model; larger: the predictions pulled the car where its measured points do not put it."""
+    from scipy.spatial.transform import Rotation  # costly to import; only a solve with predictions needs it
+
+    cov, col = model.cov, model.col
+    out = {}
+    for k in released.active:
+        if released.measured[released.by_car[k]].all():
+            continue
+        d = np.concatenate([Rotation.from_matrix(R_kept[k] @ R[k].T).as_rotvec(), t_kept[k] - t[k]])
+        C = cov[col[k]:col[k] + 6, col[k]:col[k] + 6]
+        out[k] = float(d @ np.linalg.pinv(C, rcond=1e-12) @ d) if np.all(np.isfinite(C)) else float("inf")
+    return out
+
+
+def _release_in_turn(s: SolveContext, kept: ChainedFit, d2: dict[int, float], shift) -> tuple:
+    """With some cars' predictions released and the others kept, the kept ones can pull further: the mixed fit
+    is checked in turn and a car it moves beyond the limit is released too. Returns (cars released, the mixed
+    problem and fit (None if not fitted), evaluations, the rounds' notes)."""
+    off = sorted(k for k, v in d2.items() if not v <= CHI2_6_95)
+    prob_m, fit_m, nfev, notes = None, None, 0, []
+    while off and len(off) < len(d2):
+        prob_m = s.prob.with_predictions_scaled(s.options.prediction_release, off)
+        fit_m = s.chained(prob_m, s.contact).solve(kept.poses)
+        nfev += fit_m.nfev
+        d2m = shift(fit_m.poses)
+        more = sorted(k for k, v in d2m.items() if k not in off and not v <= CHI2_6_95)
+        if not more:
+            break
+        notes.append(", ".join(f"{s.cars[k].number} {d2m[k]:.1f}" for k in more))
+        off = sorted(set(off) | set(more))
+    return off, prob_m, fit_m, nfev, notes
+
+
+def step_predictions(s: SolveContext, fit: ChainedFit) -> tuple[ChainedFit, Problem]:
+    """Step 4b: fit again with the predictions' sigmas x ``prediction_release``; a car whose predictions moved it
+    beyond its covariance from that fit (chi-square, 6 dof, 95 %) keeps them released. Returns the fit and the
+    problem (rows weighted as chosen)."""
+    prob, options, cars = s.prob, s.options, s.cars
+    n_pred = int((~prob.measured).sum())
+    if n_pred == 0 or options.prediction_release <= 1.0:
+        s.steps.append(StepStats("4b_predictions_checked", False, "skipped: no predicted points" if n_pred == 0
+                                 else "skipped: solver.prediction_release = 1 (predictions keep their weight)"))
+        return fit, prob
+    t4b = time.perf_counter()
+    kept = replace(fit, poses=fit.poses.copy())
+    released = prob.with_predictions_scaled(options.prediction_release)
+    rel = s.chained(released, s.contact).solve(fit.poses)
+    nfev = rel.nfev
+    s.nfev += rel.nfev
+    rel_model = solution_model(released, rel.poses, s.focal_views, s.plan.chains, s.contact, options)
+    rel_sol = replace(rel, poses=rel.poses.copy())
+
+    def shift(p: Poses) -> dict[int, float]:
+        return _prediction_shift(released, rel_sol.poses.R, rel_sol.poses.t, rel_sol.poses.f, p.R, p.t, rel_model)
+
+    d2 = shift(kept.poses)
+    listed = ", ".join(f"{cars[k].number} {d2[k]:.1f}" for k in sorted(d2))
+    off, prob_m, fit_m, nfev_m, rounds_note = _release_in_turn(s, kept, d2, shift)
+    nfev += nfev_m
+    s.nfev += nfev_m
+    extra = (f"; then, with those released, the remaining predictions moved car(s) beyond the limit too "
+             f"(chi-square {'; '.join(rounds_note)}): released") if rounds_note else ""
+    if not off:  # every car's predictions agree with its measured points: step 4's fit stands
+        fit = kept
+        note = f"predictions agree with the measured points on every car (shift chi-square {listed}): kept"
+    elif len(off) == len(d2):
+        prob, fit = released, rel_sol
+        note = (f"predictions released on every car with some (shift chi-square {listed}, 95 % limit "
+                f"{CHI2_6_95:.1f}){extra}")
+    else:
+        prob, fit = prob_m, fit_m
+        note = (f"predictions released on car(s) {', '.join(cars[k].number for k in off)}, kept on the others "
+                f"(shift chi-square {listed}, 95 % limit {CHI2_6_95:.1f}){extra}")
+    s.steps.append(StepStats("4b_predictions_checked", True, f"{n_pred} predicted point(s) checked: fitted again "
+                             f"with their sigmas x {options.prediction_release:g}; " + note,
+                             pixel_cost(prob, kept.poses), pixel_cost(prob, fit.poses), nfev, fit.message,
+                             time.perf_counter() - t4b, s.changes(kept.poses, fit.poses)))
+    if not fit.ok:
+        s.failures.append(f"step 4b: {fit.message}")
+    return fit, prob
+
+
+def bias_skip_reason(options: SolveOptions, focal_views) -> str:
+    """Why the bias correction is not applied ("" when it is): a robust loss (its IRLS weights are not a fixed
+    noise model); an estimated focal (there the second-order expansion fails, docs/solver.md)."""
+    if options.robust_loss != "linear":
+        return "not applied: a robust loss is not a fixed noise model"
+    if focal_views:
+        return ("not applied: with the focal estimated the second-order expansion does not hold (positions along "
+                "the line of sight scale with the focal; see docs/solver.md)")
+    return ""
+
+
+@dataclass
+class BiasStep:
+    """Step 5's outcome: the reported fit, its cost, the covariance model of the minimum (None if not taken) and
+    ``SolveResult.bias_correction``."""
+
+    fit: ChainedFit
+    final_cost: float
+    model: CovarianceModel | None = None
+    summary: dict = field(default_factory=dict)
+
+
+def step_bias(s: SolveContext, prob: Problem, fit: ChainedFit, cost_at_minimum: float) -> BiasStep:
+    """Step 5: the second-order bias of the least-squares estimate removed (:mod:`.bias`), the corrected poses
+    put back on the chain; the covariance model is the minimum's."""
+    out = BiasStep(fit, cost_at_minimum)
+    if not (s.options.bias_correction and s.plan.active):
+        return out
+    t5 = time.perf_counter()
+    skip = bias_skip_reason(s.options, s.focal_views)
+    if skip:
+        out.summary = {"applied": False, "note": skip}
+        s.steps.append(StepStats("5_bias_correction", False, skip))
+        return out
+    chains, cars = s.plan.chains, s.cars
+    out.model = solution_model(prob, fit.poses, s.focal_views, chains, s.contact, s.options)
+    bc = correct(prob, cars, fit.poses, s.focal_views, chains, s.contact, out.model, s.options.pixel_sigma_px,
+                 max_over_sd=s.options.bias_max_over_sd)
+    out.summary = bc.summary()
+    if bc.applied:
+        R, t = bc.R, bc.t
+        links = [[t[b] + R[b] @ cars[b].c_front - t[a] - R[a] @ cars[a].c_rear for a, b in zip(ch[:-1], ch[1:])]
+                 for ch in chains.members]
+        out.fit = replace(fit, poses=Poses(bc.R, bc.t, bc.f), links=links)
+        out.final_cost = full_cost(prob, cars, chains, out.fit.poses, s.contact, s.options)
+    s.steps.append(StepStats("5_bias_correction", bc.applied, bc.note, cost_at_minimum, out.final_cost, 0,
+                             "done" if bc.applied else "skipped", time.perf_counter() - t5, bc.per_carriage))
+    return out
