@@ -15,15 +15,18 @@ import hashlib
 import json
 import logging
 import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
 import numpy as np
+import tomli_w
+from PIL import Image
 
 from ..core.camera import CameraIntrinsics, look_at, project_world
 from ..core.frames import SceneFrame, hpr_from_rotation, rot_z
-from ..core.io import atomic_write_text, to_json
+from ..core.io import atomic_write, atomic_write_text, to_json
 from ..core.settings import SETTINGS_FILE, parse_settings
 from ..errors import WorkbenchError
 from .scenarios import SCENARIOS, plan_consist
@@ -284,40 +287,41 @@ def _write_control_points(root: Path) -> None:
     write_control_points(root)
 
 
-def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
-                      progress: Callable[[float, str], None] = lambda f, m="": None) -> dict:
-    """Generate (or, when already generated with the same options, keep) a synthetic incident in ``root``."""
-    from ..files.dem import TerrainModel
-    from ..files.exif import write_jpeg
-    from ..render.lens import render_photo
-    from ..render.offscreen import OffscreenScene, SceneMesh
-    from ..rolling_stock import load_library
+def _keep_if_generated(root: Path, truth_path: Path, opts: SynthOptions) -> bool:
+    """When ``root`` is generated with these options, every photo in place: refresh its control points, True."""
+    try:
+        old = json.loads(truth_path.read_text())
+        photos_ok = all((root / ph["photo"]).is_file() for ph in old.get("photos", []))
+        if old.get("generator", {}).get("spec_hash") == opts.spec_hash() and photos_ok:
+            log.info("synth: %s is already generated with these options; nothing to do", root)
+            _write_control_points(root)
+            return True
+    except (json.JSONDecodeError, KeyError, TypeError):
+        pass  # an unreadable old truth file: generate afresh
+    return False
+
+
+@dataclass
+class _Layers:
+    """The site's layers as generated and written: terrain, buildings, and the scene frame they set."""
+
+    st: object  # the SynthTerrain
+    frame: SceneFrame
+    h0: float  # the height of the scene origin
+    tm: object  # the TerrainModel read back from the written DEM
+    buildings: list
+    dem_path: Path
+    bld_path: Path
+    ortho_path: Path
+
+
+def _make_layers(root: Path, scn, opts: SynthOptions) -> _Layers:
+    """The DEM, the building footprints and the orthophoto, written under ``opts.layers_dir``."""
     from ..files.buildings import write_buildings_geojson
-    from ..terrain.extrude import building_meshes
+    from ..files.dem import TerrainModel
     from .buildings import make_buildings
-    from .layout import lay_consist
     from .terrain import make_terrain, write_dem_geotiff
 
-    root = Path(root)
-    truth_path = root / "truth" / "ground_truth.json"
-    settings_path = root / SETTINGS_FILE
-    if truth_path.is_file() and not force:
-        try:
-            old = json.loads(truth_path.read_text())
-            photos_ok = all((root / ph["photo"]).is_file() for ph in old.get("photos", []))
-            if old.get("generator", {}).get("spec_hash") == opts.spec_hash() and photos_ok:
-                log.info("synth: %s is already generated with these options; nothing to do", root)
-                _write_control_points(root)
-                return {"skipped": True, "truth": str(truth_path)}
-        except (json.JSONDecodeError, KeyError, TypeError):
-            pass  # an unreadable old truth file: generate afresh
-    if settings_path.is_file() and not truth_path.is_file() and not force and not _is_synthetic(settings_path):
-        raise WorkbenchError(f"{settings_path}: exists and is not a synthetic incident; `workbench synth` will not "
-                             f"overwrite it (use an empty folder, or --force)")
-
-    scn = SCENARIOS[opts.scenario]
-    rng = np.random.default_rng(opts.seed)
-    progress(0.02, "terrain")
     frame0 = SceneFrame(scn.crs, scn.lat, scn.lon, 0.0)
     st = make_terrain(scn.terrain, frame0, size_m=opts.terrain_size_m, resolution_m=opts.terrain_resolution_m,
                       seed=opts.seed)
@@ -332,32 +336,44 @@ def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
     tm = TerrainModel.from_geotiff(dem_path, frame)
     buildings = make_buildings(scn.terrain, st, frame, seed=opts.seed)
     write_buildings_geojson(bld_path, buildings, scn.crs)
-    from ..core.io import atomic_write
     atomic_write(ortho_path, lambda p: st.texture.convert("RGB").save(p, quality=90))
+    return _Layers(st, frame, h0, tm, buildings, dem_path, bld_path, ortho_path)
 
-    progress(0.10, "consist")
+
+def _lay_out_consist(scn, lay: _Layers, opts: SynthOptions, rng) -> list:
+    """The scenario's consist, derailed along the track, coming to rest around the scene origin."""
+    from ..rolling_stock import load_library
+    from .layout import lay_consist
+
     types = load_library()
     plans = plan_consist(scn, types, rng, opts.n_cars)
-    track = np.asarray(st.track_enu, float)
-    # the consist comes to rest around the scene origin
+    track = np.asarray(lay.st.track_enu, float)
     seg = np.linalg.norm(np.diff(track[:, :2], axis=0), axis=1)
     s = np.concatenate([[0.0], np.cumsum(seg)])
     s_origin = float(s[np.argmin(np.linalg.norm(track[:, :2], axis=1))])
     total = sum(p.ctype.length_m for p in plans)
     front_s = float(np.clip(s_origin + 0.3 * total, 0.0, s[-1]))
     lateral = float(rng.uniform(*scn.lateral_m) * rng.choice([-1.0, 1.0]))
-    placed = lay_consist(plans, tm, track, front_s_m=front_s, lateral_m=lateral, rng=rng)
+    return lay_consist(plans, lay.tm, track, front_s_m=front_s, lateral_m=lateral, rng=rng)
 
-    progress(0.2, "cameras")
+
+def _camera_intrinsics(opts: SynthOptions) -> CameraIntrinsics:
+    """The synthetic camera: ``opts.hfov_deg`` across, principal point a little off centre, real distortion."""
     w, h = opts.photo_width, opts.photo_height
     fx = (w / 2.0) / np.tan(np.deg2rad(opts.hfov_deg) / 2.0)
     k1, k2, p1, p2, k3 = opts.distortion
-    intr = CameraIntrinsics(width=w, height=h, fx=fx, fy=fx, cx=(w - 1) / 2.0 + 0.013 * w, cy=(h - 1) / 2.0 - 0.011 * h,
-                            k1=k1, k2=k2, k3=k3, p1=p1, p2=p2)
-    progress(0.25, "scene")
+    return CameraIntrinsics(width=w, height=h, fx=fx, fy=fx, cx=(w - 1) / 2.0 + 0.013 * w,
+                            cy=(h - 1) / 2.0 - 0.011 * h, k1=k1, k2=k2, k3=k3, p1=p1, p2=p2)
+
+
+def _build_scene(lay: _Layers, placed, w: int, h: int):
+    """The scene to render: textured terrain, buildings, the carriages (each its instance id), the sun."""
+    from ..render.offscreen import OffscreenScene, SceneMesh
+    from ..terrain.extrude import building_meshes
+
     scene = OffscreenScene(w, h)
-    scene.add(SceneMesh("terrain", tm.mesh(texture=st.texture)))
-    for i, m in enumerate(building_meshes(buildings, tm, frame)):
+    scene.add(SceneMesh("terrain", lay.tm.mesh(texture=lay.st.texture)))
+    for i, m in enumerate(building_meshes(lay.buildings, lay.tm, lay.frame)):
         scene.add(SceneMesh(f"building_{i}", m))
     for i, p in enumerate(placed):
         mesh = p.ctype.mesh(car_number=p.number).copy()
@@ -366,19 +382,24 @@ def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
     # low winter/spring sun from the south-east
     az, el = np.deg2rad(150.0), np.deg2rad(35.0)
     scene.set_sun(-np.array([np.sin(az) * np.cos(el), np.cos(az) * np.cos(el), np.sin(el)]))
+    return scene
 
-    bpolys = [frame.enu_from_crs(np.column_stack([np.asarray(b["footprint_crs"]),
-                                                  np.zeros(len(b["footprint_crs"]))]))[:, :2] for b in buildings]
-    site = _Site(tm, st.water_polygon_enu, bpolys, opts.terrain_size_m / 2.0)
-    pano_centre, pano_views = plan_panorama(placed, site, scene, opts, rng)
-    multi_views = plan_multiview(placed, site, scene, opts, rng) if opts.n_multiview else []
 
-    photos = []
-    all_views = [("panorama", v) for v in pano_views] + [("multiview", v) for v in multi_views]
+def _site(lay: _Layers, opts: SynthOptions) -> _Site:
+    bpolys = [lay.frame.enu_from_crs(np.column_stack([np.asarray(b["footprint_crs"]),
+                                                      np.zeros(len(b["footprint_crs"]))]))[:, :2]
+              for b in lay.buildings]
+    return _Site(lay.tm, lay.st.water_polygon_enu, bpolys, opts.terrain_size_m / 2.0)
+
+
+def _render_photos(root: Path, scn, scene, intr: CameraIntrinsics, all_views: list, placed, opts: SynthOptions,
+                   progress: Callable[[float, str], None]) -> list:
+    """Render, write (photo with EXIF, instance mask) and observe every view; their truth records, in order."""
+    from ..files.exif import write_jpeg
+    from ..render.lens import render_photo
+
     date = _dt.datetime.fromisoformat(scn.date + "T07:30:00")
-    from PIL import Image
-
-    from ..core.io import atomic_write as _aw
+    w, fx = intr.width, intr.fx
 
     def write_photo(k: int, group: str, view: dict, res) -> dict:
         rel = f"photos/{group}/{view['name']}.jpg"
@@ -386,15 +407,14 @@ def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
         write_jpeg(root / rel, res.color, focal_length_mm=fx * SENSOR_WIDTH_MM / w, sensor_width_mm=SENSOR_WIDTH_MM,
                    extra={"DateTimeOriginal": stamp})
         mask_rel = f"truth/masks/{view['name']}.png"
-        _aw(root / mask_rel, lambda p, m=_ids_png(res.instance): Image.fromarray(m).save(p))
+        atomic_write(root / mask_rel, lambda p, m=_ids_png(res.instance): Image.fromarray(m).save(p))
         M = view["cam_from_world"]
         return {"photo": rel, "set": group, "mask": mask_rel, "intrinsics": intr.to_dict(), "cam_from_world": M,
                 "center_enu": -M[:3, :3].T @ M[:3, 3], "observations": observe(placed, intr, M, res.depth)}
 
     # two photos at a time: the ray caster is multi-threaded, but the shading is numpy, mostly on one core; the
     # renders are independent, and each photo is the same as rendered alone
-    from concurrent.futures import ThreadPoolExecutor
-
+    photos = []
     scene.prepare()  # built once, before the threads share it
     with ThreadPoolExecutor(max_workers=max(1, min(2, os.cpu_count() or 1))) as pool:
         renders = pool.map(lambda gv: render_photo(scene, intr, gv[1]["cam_from_world"], supersample=opts.supersample),
@@ -402,8 +422,11 @@ def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
         for k, ((group, view), res) in enumerate(zip(all_views, renders)):
             progress(0.25 + 0.7 * k / len(all_views), f"photo {k + 1}/{len(all_views)}")
             photos.append(write_photo(k, group, view, res))
+    return photos
 
-    progress(0.96, "ground truth")
+
+def _carriages_truth(placed, frame: SceneFrame) -> list:
+    """Each carriage's true pose (matrix, ENU, CRS, WGS84, heading/pitch/roll), coupler gap and marked points."""
     cars = []
     for i, p in enumerate(placed):
         M = p.world_from_carriage.matrix
@@ -424,19 +447,12 @@ def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
             "min_terrain_clearance_m": p.min_clearance_m,
             "marked_points_enu": {n: p.world_from_carriage.apply(x) for n, x in p.ctype.marked_points.items()},
         })
-    truth = {
-        "generator": {"name": "workbench synth", "version": GENERATOR_VERSION, "spec_hash": opts.spec_hash(),
-                      "options": asdict(opts)},
-        "scenario": {"id": scn.id, "title": scn.title},
-        "frame": {"crs": scn.crs, "lat": scn.lat, "lon": scn.lon, "height_m": h0},
-        "layers": {"dem": os.path.relpath(dem_path, root), "buildings": os.path.relpath(bld_path, root),
-                   "ortho": os.path.relpath(ortho_path, root)},
-        "carriages": cars,
-        "panorama_center_enu": pano_centre,
-        "photos": photos,
-    }
+    return cars
 
-    # settings and camera profile
+
+def _write_settings(root: Path, settings_path: Path, scn, opts: SynthOptions, lay: _Layers, intr: CameraIntrinsics,
+                    placed, pano_centre: np.ndarray) -> None:
+    """camera_profile.json and project.toml (validated before it is written)."""
     profile = {"model": "brown", "source": "synthetic camera (known exactly)", "intrinsics": intr.to_dict(),
                "sensor_width_mm": SENSOR_WIDTH_MM}
     atomic_write_text(root / "camera_profile.json", to_json(profile))
@@ -444,8 +460,8 @@ def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
         "incident": {"name": scn.title, "date": _dt.date.fromisoformat(scn.date), "synthetic": True,
                      "description": f"Synthetic incident: scenario {scn.id}, seed {opts.seed}. Photos are renders; "
                                     f"the truth is in truth/ground_truth.json."},
-        "location": {"lat": scn.lat, "lon": scn.lon, "height_m": h0, "crs": scn.crs},
-        "terrain": {"dem": os.path.relpath(dem_path, root), "buildings": os.path.relpath(bld_path, root),
+        "location": {"lat": scn.lat, "lon": scn.lon, "height_m": lay.h0, "crs": scn.crs},
+        "terrain": {"dem": os.path.relpath(lay.dem_path, root), "buildings": os.path.relpath(lay.bld_path, root),
                     "dem_vertical_accuracy_m": 0.25, "aoi_radius_m": opts.terrain_size_m / 2.0 - 5.0},
         "consist": [{"number": p.number, "type": p.ctype.id,
                      **({"coupling_to_next": p.coupling_to_next} if p.coupling_to_next else {})} for p in placed],
@@ -453,10 +469,53 @@ def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
                    "position_enu": [float(x) for x in pano_centre]},
     }
     parse_settings(settings, str(settings_path))  # what we write must validate
-    import tomli_w
     header = ("# Incident settings written by `workbench synth` (see docs/formats.md).\n"
               f"# scenario = {scn.id}, seed = {opts.seed}\n\n")
     atomic_write_text(settings_path, header + tomli_w.dumps(settings))
+
+
+def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
+                      progress: Callable[[float, str], None] = lambda f, m="": None) -> dict:
+    """Generate (or, when already generated with the same options, keep) a synthetic incident in ``root``."""
+    root = Path(root)
+    truth_path = root / "truth" / "ground_truth.json"
+    settings_path = root / SETTINGS_FILE
+    if truth_path.is_file() and not force and _keep_if_generated(root, truth_path, opts):
+        return {"skipped": True, "truth": str(truth_path)}
+    if settings_path.is_file() and not truth_path.is_file() and not force and not _is_synthetic(settings_path):
+        raise WorkbenchError(f"{settings_path}: exists and is not a synthetic incident; `workbench synth` will not "
+                             f"overwrite it (use an empty folder, or --force)")
+
+    scn = SCENARIOS[opts.scenario]
+    rng = np.random.default_rng(opts.seed)
+    progress(0.02, "terrain")
+    lay = _make_layers(root, scn, opts)
+    progress(0.10, "consist")
+    placed = _lay_out_consist(scn, lay, opts, rng)
+    progress(0.2, "cameras")
+    intr = _camera_intrinsics(opts)
+    progress(0.25, "scene")
+    scene = _build_scene(lay, placed, intr.width, intr.height)
+    site = _site(lay, opts)
+    pano_centre, pano_views = plan_panorama(placed, site, scene, opts, rng)
+    multi_views = plan_multiview(placed, site, scene, opts, rng) if opts.n_multiview else []
+    all_views = [("panorama", v) for v in pano_views] + [("multiview", v) for v in multi_views]
+    photos = _render_photos(root, scn, scene, intr, all_views, placed, opts, progress)
+
+    progress(0.96, "ground truth")
+    cars = _carriages_truth(placed, lay.frame)
+    truth = {
+        "generator": {"name": "workbench synth", "version": GENERATOR_VERSION, "spec_hash": opts.spec_hash(),
+                      "options": asdict(opts)},
+        "scenario": {"id": scn.id, "title": scn.title},
+        "frame": {"crs": scn.crs, "lat": scn.lat, "lon": scn.lon, "height_m": lay.h0},
+        "layers": {"dem": os.path.relpath(lay.dem_path, root), "buildings": os.path.relpath(lay.bld_path, root),
+                   "ortho": os.path.relpath(lay.ortho_path, root)},
+        "carriages": cars,
+        "panorama_center_enu": pano_centre,
+        "photos": photos,
+    }
+    _write_settings(root, settings_path, scn, opts, lay, intr, placed, pano_centre)
     atomic_write_text(truth_path, to_json(truth))  # last: its presence marks a complete incident
     progress(0.98, "control points")
     _write_control_points(root)
