@@ -18,8 +18,9 @@ from workbench.core.io import atomic_write_json
 from workbench.errors import InputError, StageError
 from workbench.files.control_points import load_control_points, parse_control_points
 from workbench.georef.fitting import umeyama
-from workbench.georef.inputs import validate_cameras_doc
-from workbench.georef.options import GeorefOptions, GeorefResidualsLarge, SfmView
+from workbench.files.cameras import parse_cameras
+from workbench.files.reconstruction import SfmView
+from workbench.georef.options import GeorefOptions, GeorefResidualsLarge
 from workbench.georef.similarity import solve_similarity
 from workbench.georef.stage import run_georef
 from workbench.pipeline import stage
@@ -449,7 +450,7 @@ def test_multiview_separate_models_are_placed(sample, tmp_path):
               similarity(2.9, [-70.0, 35.0, 160.0], [-300.0, 80.0, 12.0])]
     atomic_write_json(dst / "out" / "sfm" / "reconstruction.json", split_reconstruction(dst, groups, frames))
     doc = json.loads(run_georef(Project(dst), _no_progress).outputs["cameras"].read_text())
-    validate_cameras_doc(doc, "cameras.json")
+    parse_cameras(doc, "cameras.json")
     g = doc["georegistration"]
     assert [m["model"] for m in g["models"]] == ["main", "models[0]"]
     assert [m["status"] for m in g["models"]] == ["georegistered", "georegistered"], g["models"]

@@ -130,11 +130,11 @@ def _project(root):
 
 
 def _read_cameras(project, path):
-    from workbench.georef.inputs import validate_cameras_doc
+    from workbench.files.cameras import read_cameras
     from workbench.solve.stage import read_views
 
     read_views(project, path)
-    validate_cameras_doc(json.loads(path.read_text()), str(path))
+    read_cameras(path)
 
 
 def _read_correspondences(project, path):
@@ -151,21 +151,21 @@ def _read_control_points(project, path):
 
 
 def _read_camera_profile(project, path):
-    from workbench.intrinsics.calibrate import load_camera_profile
+    from workbench.files.profile import read_profile
 
-    load_camera_profile(path)
+    read_profile(path)
 
 
 def _read_panorama_model(project, path):
-    from workbench.georef.inputs import read_panorama_model
+    from workbench.files.panorama import read_panorama
 
-    read_panorama_model(project, path)
+    read_panorama(path).model()
 
 
 def _read_reconstruction(project, path):
-    from workbench.georef.inputs import read_reconstruction_models
+    from workbench.files.reconstruction import read_reconstruction
 
-    read_reconstruction_models(project, path)
+    read_reconstruction(path)
 
 
 JSON_READERS = {"cameras": _read_cameras, "correspondences": _read_correspondences,

@@ -363,24 +363,47 @@ def _distinct(poses: list[tuple[float, np.ndarray]], k: int, min_sep_m: float, c
     return out
 
 
-def search_car(photo: PhotoFeatures, number: str, ct: CarriageType, refs: dict[str, FaceReference],
-               anchors: list[Anchor], cam_from_world: np.ndarray, terrain, opts: MatchOptions,
-               taken: list[np.ndarray] | None = None) -> list[CarInPhoto]:
-    """The car's faces found by the chain- and terrain-guided pose search, or [] (not convincingly there)."""
-    K = photo.intrinsics.without_distortion()
-    L = float(np.linalg.norm(ct.coupler_front - ct.coupler_rear))
-    min_cos = opts.guided_min_cosine
-    corners = _corners(ct)
-    cands: list[tuple[float, np.ndarray]] = []
-    for a in anchors:
+class _PoseSearch:
+    """One car's pose search in one photo: per anchor, the coarse grid of hypotheses scored against the photo,
+    and the best of every roll class refined at full resolution (``candidates``)."""
+
+    def __init__(self, photo: PhotoFeatures, ct: CarriageType, refs: dict[str, FaceReference],
+                 cam_from_world: np.ndarray, terrain, opts: MatchOptions):
+        self.photo, self.ct, self.refs = photo, ct, refs
+        self.cam_from_world, self.terrain, self.opts = cam_from_world, terrain, opts
+        self.K = photo.intrinsics.without_distortion()
+        self.L = float(np.linalg.norm(ct.coupler_front - ct.coupler_rear))
+        self.min_cos = opts.guided_min_cosine
+        self.corners = _corners(ct)
+
+    def candidates(self, a: Anchor) -> list[tuple[float, np.ndarray, float]]:
+        """(score, cam_from_carriage, roll class) of the refined hypotheses coupled at anchor ``a``."""
+        cam_from_world, opts, ct = self.cam_from_world, self.opts, self.ct
         Xc = cam_from_world[:3, :3] @ a.world + cam_from_world[:3, 3]
         if Xc[2] <= 1.0:
-            continue
-        px_per_m = K.fx / Xc[2]
+            return []
+        px_per_m = self.K.fx / Xc[2]
         radius_m = opts.search_held_radius_m if a.coupling == "held" else opts.search_broken_radius_m
-        down = int(np.clip(np.floor(L * px_per_m / 150.0), 1, 4))
-        coarse = _Renderer(photo, refs, ct, down)
+        down = int(np.clip(np.floor(self.L * px_per_m / 150.0), 1, 4))
+        coarse = _Renderer(self.photo, self.refs, ct, down)
         c = ct.coupler_front if a.end == "front" else ct.coupler_rear
+        hyps = self._coarse(a, c, coarse, px_per_m, radius_m)
+        if not hyps:
+            return []
+        hyps.sort(key=lambda h: -h[0])
+        # the best of every roll class (upright, on either side, ...): a partly hidden face scores low, and
+        # the verification, not the score, decides
+        seed_ids = set()
+        for roll in {round(h[4], 3) for h in hyps}:
+            cls = [(h[0], h[1]) for h in hyps if round(h[4], 3) == roll]
+            seed_ids |= {id(M) for _, M in _distinct(cls, SEEDS_PER_ROLL, 1.0, ct)}
+        fine = _Renderer(self.photo, self.refs, ct, 1)
+        return [self._refine(fine, a, c, h, down, radius_m) for h in hyps if id(h[1]) in seed_ids]
+
+    def _coarse(self, a: Anchor, c: np.ndarray, coarse: _Renderer, px_per_m: float, radius_m: float) -> list[tuple]:
+        """The coarse hypotheses (score, cam_from_carriage, yaw, pitch, roll) with a finite score, in the order
+        scored: heading and roll on the grid, pitch from the terrain (and, over a broken coupling, about it)."""
+        ct, cam_from_world, terrain, opts, L = self.ct, self.cam_from_world, self.terrain, self.opts, self.L
         hyps = []
         yaws = np.deg2rad(np.arange(0.0, 360.0, COARSE_HEADING_DEG) if a.yaw is None else
                           np.rad2deg(a.yaw) + np.arange(-opts.search_yaw_span_deg, opts.search_yaw_span_deg + 1e-6,
@@ -397,11 +420,11 @@ def search_car(photo: PhotoFeatures, number: str, ct: CarriageType, refs: dict[s
         def trial(i: int, j: int, dp: float) -> float:
             if i not in pitches:
                 pitches[i] = _pitch_on_terrain(a, float(yaws[i]), L, terrain)
-            M0 = cam_from_world @ _rest(_pose_at(ct, a, float(yaws[i]), pitches[i] + dp, float(rolls[j])), corners,
-                                        terrain)
-            sc, sh, _ = coarse.match(M0, min_cos, radius_m * px_per_m)
+            M0 = cam_from_world @ _rest(_pose_at(ct, a, float(yaws[i]), pitches[i] + dp, float(rolls[j])),
+                                        self.corners, terrain)
+            sc, sh, _ = coarse.match(M0, self.min_cos, radius_m * px_per_m)
             if np.isfinite(sc):
-                hyps.append((sc, _shifted(M0, c, sh, K), float(yaws[i]), pitches[i] + dp, float(rolls[j])))
+                hyps.append((sc, _shifted(M0, c, sh, self.K), float(yaws[i]), pitches[i] + dp, float(rolls[j])))
             return sc
 
         def evaluate(i: int, j: int, dp: float = 0.0) -> None:
@@ -426,42 +449,46 @@ def search_car(photo: PhotoFeatures, number: str, ct: CarriageType, refs: dict[s
                 for di in range(-(HEADING_STRIDE - 1), HEADING_STRIDE):
                     if 0 <= i + di < n_y:
                         evaluate(int(i + di), j, float(best_dp[i, j]))
-        if not hyps:
-            continue
-        hyps.sort(key=lambda h: -h[0])
-        # the best of every roll class (upright, on either side, ...): a partly hidden face scores low, and
-        # the verification, not the score, decides
-        seed_ids = set()
-        for roll in {round(h[4], 3) for h in hyps}:
-            cls = [(h[0], h[1]) for h in hyps if round(h[4], 3) == roll]
-            seed_ids |= {id(M) for _, M in _distinct(cls, SEEDS_PER_ROLL, 1.0, ct)}
-        fine = _Renderer(photo, refs, ct, 1)
-        for sc0, M0, yaw, pitch, roll in (h for h in hyps if id(h[1]) in seed_ids):
-            # finer orientations around the seed, each at its best shift (full resolution)
-            M0 = _rest_on_ray(M0, c, cam_from_world, corners, terrain, radius_m)
-            world0 = np.linalg.inv(cam_from_world) @ M0
-            cw = world0[:3, :3] @ c + world0[:3, 3]
-            a0 = Anchor(a.end, cw, a.neighbour, a.coupling)
-            best = (-np.inf, M0)
+        return hyps
 
-            def refine(dy: float, dr: float) -> None:
-                nonlocal best
-                # about the seed's coupler, where the photo put it (not rested again: a vertical move is an
-                # image shift at a grazing view)
-                M1 = cam_from_world @ _pose_at(ct, a0, yaw + dy, pitch, roll + dr)
-                sc, sh, _ = fine.match(M1, min_cos, 2.0 * down + 2.0)
-                if sc > best[0]:
-                    best = (sc, _shifted(M1, c, sh, K))
-                    best_at[:] = [dy, dr]
+    def _refine(self, fine: _Renderer, a: Anchor, c: np.ndarray, hyp: tuple, down: int, radius_m: float
+                ) -> tuple[float, np.ndarray, float]:
+        """Finer orientations around a seed hypothesis, each at its best shift (full resolution); the best,
+        rested on the terrain along its coupler's line of sight, with the seed's roll class."""
+        ct, cam_from_world, K = self.ct, self.cam_from_world, self.K
+        _, M0, yaw, pitch, roll = hyp
+        M0 = _rest_on_ray(M0, c, cam_from_world, self.corners, self.terrain, radius_m)
+        world0 = np.linalg.inv(cam_from_world) @ M0
+        cw = world0[:3, :3] @ c + world0[:3, 3]
+        a0 = Anchor(a.end, cw, a.neighbour, a.coupling)
+        best = (-np.inf, M0)
 
-            # roll first (+-10 deg in 5 deg steps), then the heading (+-1 deg) at the best roll
-            best_at = [0.0, 0.0]
-            for dr in np.deg2rad(np.arange(-10.0, 10.1, 5.0)):
-                refine(0.0, float(dr))
-            dr_best = best_at[1]
-            for dy in np.deg2rad([-FINE_HEADING_DEG, FINE_HEADING_DEG]):
-                refine(float(dy), dr_best)
-            cands.append((best[0], _rest_on_ray(best[1], c, cam_from_world, corners, terrain, radius_m), round(roll, 3)))
+        def refine(dy: float, dr: float) -> None:
+            nonlocal best
+            # about the seed's coupler, where the photo put it (not rested again: a vertical move is an
+            # image shift at a grazing view)
+            M1 = cam_from_world @ _pose_at(ct, a0, yaw + dy, pitch, roll + dr)
+            sc, sh, _ = fine.match(M1, self.min_cos, 2.0 * down + 2.0)
+            if sc > best[0]:
+                best = (sc, _shifted(M1, c, sh, K))
+                best_at[:] = [dy, dr]
+
+        # roll first (+-10 deg in 5 deg steps), then the heading (+-1 deg) at the best roll
+        best_at = [0.0, 0.0]
+        for dr in np.deg2rad(np.arange(-10.0, 10.1, 5.0)):
+            refine(0.0, float(dr))
+        dr_best = best_at[1]
+        for dy in np.deg2rad([-FINE_HEADING_DEG, FINE_HEADING_DEG]):
+            refine(float(dy), dr_best)
+        return best[0], _rest_on_ray(best[1], c, cam_from_world, self.corners, self.terrain, radius_m), round(roll, 3)
+
+
+def search_car(photo: PhotoFeatures, number: str, ct: CarriageType, refs: dict[str, FaceReference],
+               anchors: list[Anchor], cam_from_world: np.ndarray, terrain, opts: MatchOptions,
+               taken: list[np.ndarray] | None = None) -> list[CarInPhoto]:
+    """The car's faces found by the chain- and terrain-guided pose search, or [] (not convincingly there)."""
+    search = _PoseSearch(photo, ct, refs, cam_from_world, terrain, opts)
+    cands = [cand for a in anchors for cand in search.candidates(a)]
     if not cands:
         return []
     # verified: the best refined candidates of every roll class, best first
@@ -473,17 +500,30 @@ def search_car(photo: PhotoFeatures, number: str, ct: CarriageType, refs: dict[s
     for sc, M in chosen:
         res = _verify(photo, number, ct, refs, anchors, M, cam_from_world, opts, taken or [])
         if log.isEnabledFor(logging.DEBUG):
-            W = np.linalg.inv(cam_from_world) @ M
-            R = W[:3, :3]
-            log.debug("%s: car %s: candidate score %.1f origin %s heading %.1f pitch %.1f roll %.1f -> %s", photo.name,
-                      number, sc, np.round(W[:3, 3], 2).tolist(), (90 - np.degrees(np.arctan2(R[1, 0], R[0, 0]))) % 360,
-                      np.degrees(np.arcsin(np.clip(R[2, 0], -1, 1))), np.degrees(np.arctan2(R[2, 1], R[2, 2])),
-                      None if res is None else [d.ref.face for d in res[1]])
+            _log_candidate(photo, number, sc, M, cam_from_world, res)
         if res is not None:
             accepted.append(res)
-    if not accepted:
+    if not accepted or _ambiguous(photo, number, ct, accepted):
         return []
-    # poses that both pass but put the car's marked points in different places: ambiguous, left out
+    M, dets = accepted[0]
+    log.info("%s: car %s found by the chain/terrain pose search: faces %s (ECC %s)", photo.name, number,
+             [d.ref.face for d in dets], [round(d.ecc, 3) for d in dets])
+    return [CarInPhoto(number, d, 0, M) for d in dets]
+
+
+def _log_candidate(photo: PhotoFeatures, number: str, sc: float, M: np.ndarray, cam_from_world: np.ndarray,
+                   res: tuple[np.ndarray, list] | None) -> None:
+    W = np.linalg.inv(cam_from_world) @ M
+    R = W[:3, :3]
+    log.debug("%s: car %s: candidate score %.1f origin %s heading %.1f pitch %.1f roll %.1f -> %s", photo.name,
+              number, sc, np.round(W[:3, 3], 2).tolist(), (90 - np.degrees(np.arctan2(R[1, 0], R[0, 0]))) % 360,
+              np.degrees(np.arcsin(np.clip(R[2, 0], -1, 1))), np.degrees(np.arctan2(R[2, 1], R[2, 2])),
+              None if res is None else [d.ref.face for d in res[1]])
+
+
+def _ambiguous(photo: PhotoFeatures, number: str, ct: CarriageType, accepted: list[tuple[np.ndarray, list]]) -> bool:
+    """Do two verified poses put the car's faces or marked points in different places (then it is left out)?"""
+    K = photo.intrinsics.without_distortion()
     probe = np.array(list(ct.marked_points.values()))
 
     def where(M):
@@ -504,11 +544,8 @@ def search_car(photo: PhotoFeatures, number: str, ct: CarriageType, refs: dict[s
             log.info("%s: car %s: the pose search found %d different poses (faces %s and %s, %.1f px apart); left out",
                      photo.name, number, len(accepted), [d.ref.face for d in first[1]], [d.ref.face for d in other[1]],
                      np.max(np.linalg.norm(where(first[0]) - where(other[0]), axis=1)))
-            return []
-    M, dets = first
-    log.info("%s: car %s found by the chain/terrain pose search: faces %s (ECC %s)", photo.name, number,
-             [d.ref.face for d in dets], [round(d.ecc, 3) for d in dets])
-    return [CarInPhoto(number, d, 0, M) for d in dets]
+            return True
+    return False
 
 
 def _verify(photo: PhotoFeatures, number: str, ct: CarriageType, refs: dict[str, FaceReference],

@@ -23,7 +23,8 @@ from ..core.camera import CameraIntrinsics
 from ..errors import InputError
 from ..files.control_points import ControlPoint
 from .fitting import orthonormal, point_line_distance, rotation_kabsch
-from .options import GeorefOptions, RigView
+from ..files.panorama import RigView
+from .options import GeorefOptions
 from .picks import Pick, pick_sigma, picks_in_views, summarize_residuals, warn_residuals
 
 __all__ = ["CentralResult", "solve_central", "refine_resection_focal"]

@@ -4,7 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .options import GeorefOptions, SfmView
+from ..files.reconstruction import SfmView
+from .options import GeorefOptions
 from .similarity import SimilarityResult
 
 __all__ = ["model_verdict"]

@@ -6,14 +6,12 @@ Frames and names follow docs/conventions.md: ``cam_from_rig`` (3, 3) rotations, 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
-import numpy as np
 
-from ..core.camera import CameraIntrinsics
 from ..errors import WorkbenchWarning
 
-__all__ = ["GeorefOptions", "GeorefResidualsLarge", "RigView", "SfmView", "LOSSES"]
+__all__ = ["GeorefOptions", "GeorefResidualsLarge", "LOSSES"]
 
 LOSSES = ("linear", "huber", "soft_l1", "cauchy")
 
@@ -79,21 +77,3 @@ class GeorefOptions:
                      "warn_point_px", "warn_point_m", "model_min_spread_m", "model_max_sigma_centre_m"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}={getattr(self, name)} must be positive")
-
-
-@dataclass(frozen=True)
-class RigView:
-    """A photo of a central rig: its name, intrinsics and ``cam_from_rig`` rotation (3, 3)."""
-
-    name: str
-    intrinsics: CameraIntrinsics
-    cam_from_rig: np.ndarray = field(default_factory=lambda: np.eye(3))
-
-
-@dataclass(frozen=True)
-class SfmView:
-    """A photo of an SfM model: its name, intrinsics and ``cam_from_model`` (4, 4), model units."""
-
-    name: str
-    intrinsics: CameraIntrinsics
-    cam_from_model: np.ndarray

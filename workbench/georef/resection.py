@@ -16,7 +16,8 @@ from .camera_adjustment import intrinsics_key
 from .central import CentralResult, refine_resection_focal, solve_central
 from ..files.control_points import ControlPoint
 from .documents import view_entry
-from .options import GeorefOptions, GeorefResidualsLarge, RigView
+from ..files.panorama import RigView
+from .options import GeorefOptions, GeorefResidualsLarge
 
 __all__ = ["IncidentPhotos", "resect_unplaced"]
 

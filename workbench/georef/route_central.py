@@ -14,15 +14,15 @@ from PIL import Image
 
 from ..core.camera import CameraIntrinsics
 from ..core.layout import CAMERAS_FILE
-from ..core.panorama import PanoramaModel
 from ..errors import InputError, StageError
 from ..project import Project
 from ..files.exif import read_focal_px
 from .central import solve_central
 from ..files.control_points import ControlPoint
 from .documents import georeg_block, view_entry
-from .inputs import PANORAMA_KEY, gps_enu, photos_by_name, read_intrinsics, read_panorama_model, require_control_points
-from .options import GeorefOptions, RigView
+from ..files.panorama import PanoramaFile, RigView, read_panorama
+from .inputs import PANORAMA_KEY, gps_enu, photos_by_name, require_control_points
+from .options import GeorefOptions
 
 __all__ = ["panorama_route", "single_route"]
 
@@ -44,14 +44,15 @@ def panorama_route(project: Project, opts: GeorefOptions, where: str) -> tuple[d
     if not pano_path.is_file():
         raise StageError(f"{pano_path}: not found; the panorama route needs the stitch stage's panorama model: run "
                          f"`workbench run {project.root} --only stitch` first (or write a {CAMERAS_FILE} by hand)")
-    views, pdoc = read_panorama_model(project, pano_path)
-    cps = _panorama_pixels_to_sources(require_control_points(project), pdoc, pano_path, where)
+    pano = read_panorama(pano_path)
+    views, pdoc = list(pano.sources), pano.doc
+    cps = _panorama_pixels_to_sources(require_control_points(project), pano, where)
     photos = photos_by_name(project)
     prior, prior_sigma, prior_src = _prior(project, [photos.get(v.name) for v in views], opts)
     res = solve_central(views, cps, prior_centre=prior, prior_sigma_m=prior_sigma, opts=opts, where=where)
     src = str(pdoc.get("intrinsics_source", project.settings.camera.source.value))
     focal_known = src in ("calibrated", "sfm")
-    images = {s["name"]: s.get("image", "") for s in pdoc["sources"]}
+    images = pano.images
     out_views = [view_entry(v.name, images.get(v.name) or (project.relative(photos[v.name]) if v.name in photos
                                                            else v.name),
                             v.intrinsics, res.cam_from_world(v.cam_from_rig), focal_known) for v in views]
@@ -64,16 +65,15 @@ def panorama_route(project: Project, opts: GeorefOptions, where: str) -> tuple[d
     return doc, {**dict(res.stats), "prior_source": prior_src, "centre_enu": res.centre_enu.tolist()}
 
 
-def _panorama_pixels_to_sources(cps: list[ControlPoint], pdoc: dict, pano_path: Path,
-                                where: str) -> list[ControlPoint]:
+def _panorama_pixels_to_sources(cps: list[ControlPoint], pano: PanoramaFile, where: str) -> list[ControlPoint]:
     """Picks made in the stitched panorama (pixel key ``"panorama"``) mapped exactly into the source photo."""
     if not any(PANORAMA_KEY in cp.pixels for cp in cps):
         return cps
     try:
-        model = PanoramaModel.from_dict(pdoc)
-    except (ValueError, KeyError, TypeError) as exc:
-        raise InputError(f"{where}: has picks in the panorama image, but {pano_path} cannot be read as a panorama "
-                         f"model ({exc}); pick the points in the source photos instead") from None
+        model = pano.model()
+    except InputError as exc:
+        raise InputError(f"{where}: has picks in the panorama image, but {exc}; or pick the points in the source "
+                         f"photos instead") from None
     out = []
     for cp in cps:
         if PANORAMA_KEY not in cp.pixels:
@@ -92,18 +92,11 @@ def _panorama_pixels_to_sources(cps: list[ControlPoint], pdoc: dict, pano_path: 
 
 def _single_intrinsics(project: Project, photo: Path) -> tuple[CameraIntrinsics, str]:
     """The photo's intrinsics and their source: the camera profile (scaled to the photo) or the EXIF focal."""
-    cam = project.settings.camera
     with Image.open(photo) as im:
         w, h = im.size
-    if cam.profile:
-        prof_path = project.require_file(cam.profile, "camera.profile")
-        prof = project.read_json(prof_path)
-        intr = read_intrinsics(prof.get("intrinsics") if isinstance(prof, dict) else None, f"{prof_path}: intrinsics")
-        if (intr.width, intr.height) != (w, h):
-            if abs(intr.width / w - intr.height / h) > 1e-3:
-                raise InputError(f"{prof_path}: intrinsics are for {intr.width}x{intr.height} but {photo} is {w}x{h} "
-                                 f"(another aspect ratio); use the profile of this camera")
-            intr = intr.scaled(w / intr.width)
+    prof = project.camera_profile()
+    if prof is not None:
+        intr = prof.for_size(w, h)
         return intr, "calibrated"
     f = read_focal_px(photo)
     if f is None:

@@ -20,10 +20,11 @@ from ..project import Project
 from .camera_adjustment import adjust_cameras
 from ..files.control_points import ControlPoint
 from .documents import georeg_block, view_entry
-from .inputs import (control_points_of_photos, gps_enu, image_in_reconstruction, photos_by_name,
-                     read_reconstruction_models)
+from ..files.reconstruction import Reconstruction, read_reconstruction
+from .inputs import control_points_of_photos, gps_enu, photos_by_name
 from .model_checks import model_verdict
-from .options import GeorefOptions, GeorefResidualsLarge, SfmView
+from ..files.reconstruction import SfmView
+from .options import GeorefOptions, GeorefResidualsLarge
 from .picks import picks_in_views
 from .resection import IncidentPhotos, resect_unplaced
 from .similarity import SimilarityResult, solve_similarity
@@ -186,7 +187,7 @@ def _no_placement_error(p: _Placement, models, resect_reasons: dict[str, str], w
                          if resect_reasons else ""))
 
 
-def _incident_photos(project: Project, rdoc: dict) -> IncidentPhotos:
+def _incident_photos(project: Project, rec: Reconstruction) -> IncidentPhotos:
     """The run's photos (none when the incident has no photo files) as :func:`resect_unplaced` needs them."""
     try:
         photo_paths = {p.name: p for p in project.photo_paths()}
@@ -200,10 +201,10 @@ def _incident_photos(project: Project, rdoc: dict) -> IncidentPhotos:
             return im.size
 
     def image_of(name: str) -> str:
-        return (image_in_reconstruction(rdoc, name)
+        return (rec.image_of(name)
                 or (project.relative(photo_paths[name]) if name in photo_paths else name))
 
-    return IncidentPhotos(frozenset(photo_paths), bool(rdoc.get("stats", {}).get("single_camera", True)), size_of,
+    return IncidentPhotos(frozenset(photo_paths), bool(rec.doc.get("stats", {}).get("single_camera", True)), size_of,
                           image_of)
 
 
@@ -322,7 +323,8 @@ def multiview_route(project: Project, opts: GeorefOptions, where: str) -> tuple[
     if not rec_path.is_file():
         raise StageError(f"{rec_path}: not found; the multiview route needs the sfm stage's reconstruction: run "
                          f"`workbench run {project.root} --only sfm` first (or write a {CAMERAS_FILE} by hand)")
-    models, rdoc = read_reconstruction_models(project, rec_path)
+    rec = read_reconstruction(rec_path)
+    models, rdoc = [(label, list(vs)) for label, vs in rec.models], rec.doc
     cp_path = project.control_points_path
     cps = control_points_of_photos(project, cp_path) if cp_path.is_file() else []
     photos = photos_by_name(project)
@@ -336,7 +338,7 @@ def multiview_route(project: Project, opts: GeorefOptions, where: str) -> tuple[
         for s_ in m.get("images", []):
             images.setdefault(s_["name"], s_.get("image", ""))
     p = _place_models(models, cps, gps, opts, where)
-    photos_to_resect = _incident_photos(project, rdoc) if opts.resect_unplaced and cps else None
+    photos_to_resect = _incident_photos(project, rec) if opts.resect_unplaced and cps else None
     resected, resect_reasons, out_views, uncertainty, adjustments = _resect_and_adjust(
         photos_to_resect, models, p, cps, gps, images, src, opts, where)
     done = set(p.placed) | set(resected)

@@ -20,7 +20,8 @@ from ..core.geometry import skew
 from ..errors import InputError
 from ..files.control_points import ControlPoint
 from .fitting import orthonormal, point_line_distance, triangulate_rays, umeyama
-from .options import GeorefOptions, SfmView
+from ..files.reconstruction import SfmView
+from .options import GeorefOptions
 from .picks import Pick, pick_sigma, picks_in_views, summarize_residuals, warn_residuals
 
 log = logging.getLogger(__name__)

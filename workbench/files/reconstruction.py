@@ -1,0 +1,88 @@
+"""``out/sfm/reconstruction.json``: the sfm stage's cameras in the SfM model frames (format in
+``docs/intrinsics.md``), the one reader.
+
+The main model's images are ``images``; separate smaller models (each in its own frame) are ``models``, largest
+first; photos left out are ``unregistered``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..core.camera import CameraIntrinsics
+from ..core.io import matrix_from_json, read_json
+from ..errors import StageError
+from .cameras import intrinsics_checked, rotation_checked
+
+__all__ = ["SfmView", "Reconstruction", "read_reconstruction"]
+
+
+@dataclass(frozen=True)
+class SfmView:
+    """A photo of an SfM model: its name, intrinsics and ``cam_from_model`` (4, 4), model units."""
+
+    name: str
+    intrinsics: CameraIntrinsics
+    cam_from_model: np.ndarray
+
+
+@dataclass(frozen=True)
+class Reconstruction:
+    """A read ``reconstruction.json``: every model as ``(label, views)`` — ``("main", ...)`` first, then
+    ``("models[0]", ...)`` and so on in the file's order — and the whole document."""
+
+    path: Path
+    models: tuple[tuple[str, tuple[SfmView, ...]], ...]
+    doc: dict = field(compare=False, repr=False)
+
+    @property
+    def main(self) -> tuple[SfmView, ...]:
+        return self.models[0][1]
+
+    def image_of(self, name: str) -> str | None:
+        """The image path the file gives for photo ``name`` (any of its models), or None."""
+        for images in [self.doc.get("images", [])] + [m.get("images", []) for m in self.doc.get("models", [])]:
+            for s in images:
+                if s.get("name") == name:
+                    return s.get("image")
+        return None
+
+
+def _views(images: Any, where: str) -> tuple[SfmView, ...]:
+    if not isinstance(images, list) or not images:
+        raise StageError(f"{where}: no 'images' list; run the sfm stage again")
+    views = []
+    for i, s in enumerate(images):
+        w = f"{where}[{i}]"
+        if not isinstance(s, dict) or not isinstance(s.get("name"), str):
+            raise StageError(f"{w}: needs 'name'")
+        intr = intrinsics_checked(s.get("intrinsics"), f"{w}.intrinsics")
+        M = matrix_from_json(s.get("cam_from_model"), (4, 4), f"{w}.cam_from_model")
+        rotation_checked(M[:3, :3], f"{w}.cam_from_model")
+        views.append(SfmView(s["name"], intr, M))
+    return tuple(views)
+
+
+def parse_reconstruction(doc: Any, path: Path | str) -> Reconstruction:
+    """Check a parsed ``reconstruction.json``; :class:`StageError` naming the file and the entry. A file written
+    before separate models were kept has the main model only."""
+    if not isinstance(doc, dict):
+        raise StageError(f"{path}: not a reconstruction; run the sfm stage again")
+    models = [("main", _views(doc.get("images"), f"{path}: images"))]
+    extra = doc.get("models", [])
+    if not isinstance(extra, list):
+        raise StageError(f"{path}: 'models' must be a list; run the sfm stage again")
+    for k, m in enumerate(extra):
+        if not isinstance(m, dict):
+            raise StageError(f"{path}: models[{k}] must be an object; run the sfm stage again")
+        models.append((f"models[{k}]", _views(m.get("images"), f"{path}: models[{k}].images")))
+    return Reconstruction(Path(path), tuple(models), doc)
+
+
+def read_reconstruction(path: Path) -> Reconstruction:
+    """Read and check the ``reconstruction.json`` at ``path``."""
+    return parse_reconstruction(read_json(Path(path)), path)
