@@ -627,3 +627,23 @@ def test_telephoto_focal_is_not_clamped(seed):
                             SolveOptions(pixel_sigma_px=0.5, estimate_focal=True, hfov_range_deg=(20.0, 100.0)))
     assert abs(old.focal_px["photo"] - 2000.0 / np.tan(np.radians(10.0))) < 1.0  # at the 20 deg limit
     assert [w for w in caught if "solver.hfov_range_deg" in str(w.message)]
+
+
+def test_each_view_carries_its_own_focal_known():
+    """A photo marked ``focal_known = False`` has its focal estimated; the calibrated photos beside it keep
+    theirs exactly (one unknown view used to switch focal estimation on for every view)."""
+    from dataclasses import replace
+
+    sim = simulate_consist(8, seed=5, pixel_sigma_px=0.5, max_distance_m=60.0)
+    f_true = sim.views[0].intrinsics.fx
+    views = [replace(sim.views[0], intrinsics=sim.views[0].intrinsics.with_focal(1.1 * f_true), focal_known=False),
+             *sim.views[1:]]
+    res = solve_consist(sim.carriages, sim.links, views, SolveOptions(pixel_sigma_px=0.5, estimate_focal=True))
+    assert res.converged
+    for v in views[1:]:
+        assert res.focal_px[v.name] == v.intrinsics.fx  # held, to the bit
+    name = views[0].name
+    err = res.focal_px[name] - f_true
+    assert abs(err) < 4 * res.sigma_focal_px[name] + 1.0, (err, res.sigma_focal_px[name])
+    assert abs(err) < 0.03 * f_true  # the 10 % wrong start is corrected
+    assert set(res.sigma_focal_px) == {name}

@@ -41,11 +41,14 @@ class Observation:
 
 @dataclass(frozen=True, kw_only=True)
 class View:
-    """One photo: name, intrinsics, ``cam_from_world`` (4, 4)."""
+    """One photo: name, intrinsics, ``cam_from_world`` (4, 4); ``focal_known`` False when its focal is only a
+    starting value (with ``SolveOptions.estimate_focal``, those views' focal is estimated, and every view's when
+    none is marked)."""
 
     name: str
     intrinsics: CameraIntrinsics
     cam_from_world: np.ndarray
+    focal_known: bool = True
 
     @property
     def camera_centre(self) -> np.ndarray:

@@ -89,8 +89,9 @@ def _context(carriages: Sequence[CarriageInput], links: Sequence[ChainLink], vie
     plan = plan_consist(cars, links, options, wl)
     weights = carriage_weights(cars, plan.active, options.weighting)
     prob = Problem(cars, plan.active, views, weights)
-    focal_views = focal_groups(views, [v for v in range(len(views)) if len(prob.by_view[v]) > 0]) \
-        if options.estimate_focal else []
+    used = [v for v in range(len(views)) if len(prob.by_view[v]) > 0]
+    free = [v for v in used if not views[v].focal_known] or used  # the views marked unknown, else every one
+    focal_views = focal_groups(views, free) if options.estimate_focal else []
     return SolveContext(cars, views, plan, prob, weights, focal_views, options, terrain, wl)
 
 
@@ -156,8 +157,8 @@ def refine_from(carriages: Sequence[CarriageInput], links: Sequence[ChainLink], 
     start = Poses(np.array([np.asarray(M, float)[:3, :3] for M in world_from_carriage]),
                   np.array([np.asarray(M, float)[:3, 3] for M in world_from_carriage]),
                   np.array([v.intrinsics.fx for v in views], dtype=float))
-    fv = focal_groups(views, [v for v in range(len(views)) if len(prob.by_view[v]) > 0]) \
-        if options.estimate_focal else []
+    used = [v for v in range(len(views)) if len(prob.by_view[v]) > 0]
+    fv = focal_groups(views, [v for v in used if not views[v].focal_known] or used) if options.estimate_focal else []
     fit = ChainedProblem(prob, cars, chains, fv, None, options).solve(start)
     res = {"world_from_carriage": _pose_matrices(fit.poses),
            "focal_px": {v.name: float(fit.poses.f[i]) for i, v in enumerate(views)},

@@ -17,13 +17,13 @@ from typing import Any
 
 import numpy as np
 
-from ..core.camera import CameraIntrinsics
 from ..core.frames import hpr_from_rotation
-from ..core.io import matrix_from_json
 from ..core.layout import CAMERAS_FILE, CORRESPONDENCES_FILE
 from ..errors import InputError, StageError
 from ..project import Project
 from ..core.stage_api import Progress, StageResult
+from ..files.cameras import read_cameras
+from ..files.panorama import read_panorama
 from .model import CarriageInput, ChainLink, Observation, SolveOptions, SolveWarning, View
 from .solver import solve_consist
 from .uncertainty import add_camera_uncertainty
@@ -34,38 +34,14 @@ log = logging.getLogger(__name__)
 # ---------------------------------------------------------------------------------------------------------
 # Reading and checking
 # ---------------------------------------------------------------------------------------------------------
-def _matrix(value: Any, shape: tuple[int, ...], where: str) -> np.ndarray:
-    return matrix_from_json(value, shape, where)
-
-
-def read_views(project: Project, path: Path) -> tuple[list, dict]:
-    """``(views, document)`` from a ``cameras.json`` (docs/pipeline.md); errors name the file and the entry."""
-    doc = project.read_json(path)
-    if not isinstance(doc, dict) or not isinstance(doc.get("views"), list) or not doc["views"]:
-        raise InputError(f"{path}: needs a non-empty 'views' list; see docs/pipeline.md (cameras.json)")
-    views, names = [], set()
-    for i, v in enumerate(doc["views"]):
-        where = f"{path}: views[{i}]"
-        if not isinstance(v, dict) or not isinstance(v.get("name"), str) or not v["name"]:
-            raise InputError(f"{where}: needs a 'name' (the photo's file name)")
-        where = f"{path}: views[{i}] ({v['name']!r})"
-        if v["name"] in names:
-            raise InputError(f"{where}: the name is used twice")
-        names.add(v["name"])
-        if not isinstance(v.get("intrinsics"), dict):
-            raise InputError(f"{where}: needs 'intrinsics' (the camera_profile.json model)")
-        try:
-            intr = CameraIntrinsics.from_dict(v["intrinsics"])
-        except (KeyError, TypeError, ValueError) as exc:
-            raise InputError(f"{where}.intrinsics: {exc}") from None
-        M = _matrix(v.get("cam_from_world"), (4, 4), f"{where}.cam_from_world")
-        R = M[:3, :3]
-        if not (np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0) or not np.allclose(
-                M[3], [0, 0, 0, 1]):
-            raise InputError(f"{where}.cam_from_world: not a rigid transform (rotation block must be orthonormal "
-                             f"with determinant +1, last row 0 0 0 1)")
-        views.append(View(name=v["name"], intrinsics=intr, cam_from_world=M))
-    return views, doc
+def read_views(project: Project, path: Path) -> tuple[list[View], dict]:
+    """``(views, document)`` of a ``cameras.json`` (read by :mod:`workbench.files.cameras`); a view's focal is
+    unknown when the file says so or when ``solver.estimate_focal`` asks for every focal to be estimated."""
+    cameras = read_cameras(path)
+    every = bool(project.settings.solver.estimate_focal)
+    views = [View(name=v.name, intrinsics=v.intrinsics, cam_from_world=v.cam_from_world,
+                  focal_known=v.focal_known and not every) for v in cameras.views]
+    return views, cameras.doc
 
 
 def _group(o: dict, method: str | None, where: str) -> str | None:
@@ -163,9 +139,7 @@ def _load_panorama(project: Project, doc: dict) -> Any:
     pano = doc.get("panorama")
     if not isinstance(pano, dict) or not pano.get("model"):
         return None
-    from ..core.panorama import PanoramaModel
-
-    return PanoramaModel.from_dict(project.read_json(project.require_file(pano["model"], "panorama.model")))
+    return read_panorama(project.require_file(pano["model"], "panorama.model")).model()
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -192,11 +166,11 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
     for i, c in enumerate(s.consist[:-1]):
         held = c.coupling_to_next is not None and c.coupling_to_next.value == "held"
         links.append(ChainLink(i, i + 1, s.solver.slack_held_m if held else s.solver.slack_broken_m))
-    focal_unknown = [v["name"] for v in cam_doc["views"] if v.get("focal_known") is False]
+    focal_unknown = [v.name for v in views if not v.focal_known]
     opts = SolveOptions(pixel_sigma_px=s.solver.pixel_sigma_px, robust_loss=s.solver.robust_loss.value
                         if hasattr(s.solver.robust_loss, "value") else str(s.solver.robust_loss),
                         loss_scale_px=s.solver.loss_scale_px, max_iterations=s.solver.max_iterations,
-                        estimate_focal=bool(s.solver.estimate_focal or focal_unknown),
+                        estimate_focal=bool(focal_unknown),
                         terrain_sigma_m=s.terrain.dem_vertical_accuracy_m,
                         face_sigma_px=s.solver.face_sigma_px, bias_correction=bool(s.solver.bias_correction),
                         prediction_release=float(s.solver.prediction_release),
