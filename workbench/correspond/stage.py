@@ -150,18 +150,12 @@ def _cached_photo_features(project: Project, path: Path, K: CameraIntrinsics, op
     return pf
 
 
-def automatic(project: Project, photos: list[Path], intrinsics: dict[str, CameraIntrinsics], opts: MatchOptions,
-              progress: Progress, reference_dir: Path | None = None,
-              cache_dir: Path | None = None) -> tuple[list[mf.Observation], list[dict], dict]:
-    """SIFT observations of every photo, the carriages needing manual points, and statistics.
-
-    ``cache_dir``: where the references and the photos' features are kept between runs (``cache.py``;
-    None: computed every time)."""
-    s = project.settings
-    types = project.carriage_types()
-    consist = [(c.number, types[c.number].id, c.coupling_to_next.value if c.coupling_to_next else None)
-               for c in s.consist]
-    cache_used: set[str] = set()
+def _car_references(project: Project, consist: list[tuple], types: dict, opts: MatchOptions, progress: Progress,
+                    reference_dir: Path | None, cache_dir: Path | None, cache_used: set[str]
+                    ) -> tuple[dict[str, list], dict, list[str]]:
+    """Every car's face references (number -> list), those of faces aligned only (``ref_cache``: (number,
+    face) -> reference) and the cars without texture enough to match; the references written to
+    ``reference_dir`` (images and ``references.json``) for review."""
     ref_cache: dict = {}  # built here once: the workers inherit them
     refs = {}
     untextured = []
@@ -185,50 +179,47 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
                     "origin_m": r.origin_m.tolist(), "axis_u_m": r.axis_u_m.tolist(), "axis_v_m": r.axis_v_m.tolist()}
     if reference_dir is not None:
         project.write_json(reference_dir / "references.json", ref_doc)
-    obs: list[mf.Observation] = []
-    if len(untextured) == len(consist):
-        photos = []  # nothing to match against
-    carry_on = opts.carry_between_photos and len(photos) > 1 and s.camera.source.value != "sfm"
-    # the chain/terrain pose search needs each photo's camera in the scene frame, and uses the terrain
-    poses = camera_poses(project, photos) if opts.search else {}
-    terrain = _terrain(project) if poses else None
-    by_number = {n: {r.face: r for r in rs} for n, rs in refs.items()}
+    return refs, ref_cache, untextured
 
-    # each photo's features are computed by a first task and written here (the cache, else a folder of this
-    # run), where the photo's second task reads them (parallel.map_photos)
-    work_dir = cache_dir if cache_dir is not None else Path(tempfile.mkdtemp(prefix="correspond-"))
-    photo_file = {}
-    for p in photos:
-        photo_file[p.name] = work_dir / _photo_cache_name(p, intrinsics[p.name], opts)
-        cache_used.add(photo_file[p.name].name)
 
-    for p in photos:  # the undistortion maps of the photos still to do, once per camera (the workers inherit them)
-        K = intrinsics[p.name]
-        if not photo_file[p.name].is_file() and K.has_distortion:
-            undistortion_maps(K, K.width, K.height)
+class _PhotoMatcher:
+    """The work on one photo, in two tasks (``parallel.map_photos``, in forked workers that inherit this):
+    ``features`` computes the photo's features into ``photo_file`` (the cache, else a folder of this run);
+    ``match`` reads them back, finds the cars (SIFT, then the chain/terrain pose search where the photo has a
+    camera pose) and their marked points."""
 
-    def features_of(p: Path, note) -> float:
+    def __init__(self, project: Project, intrinsics: dict[str, CameraIntrinsics], opts: MatchOptions,
+                 photo_file: dict[str, Path], refs: dict[str, list], ref_cache: dict, consist: list[tuple],
+                 types: dict, poses: dict[str, np.ndarray], terrain, carry_on: bool):
+        self.project, self.intrinsics, self.opts, self.photo_file = project, intrinsics, opts, photo_file
+        self.refs, self.ref_cache, self.consist, self.types = refs, ref_cache, consist, types
+        self.poses, self.terrain, self.carry_on = poses, terrain, carry_on
+        self.by_number = {n: {r.face: r for r in rs} for n, rs in refs.items()}
+
+    def features(self, p: Path, note) -> float:
         t0 = time.perf_counter()
-        f = photo_file[p.name]
+        f = self.photo_file[p.name]
         if f.is_file():
             note("features", "features from the cache")
         else:
-            pf = photo_features(p.name, _read_rgb(p), intrinsics[p.name], opts)
-            cache.save(project, f, {"gray": pf.gray_undistorted, "keypoints": pf.keypoints,
-                                    "descriptors": pf.descriptors, "frames": pf.frames})
+            pf = photo_features(p.name, _read_rgb(p), self.intrinsics[p.name], self.opts)
+            cache.save(self.project, f, {"gray": pf.gray_undistorted, "keypoints": pf.keypoints,
+                                         "descriptors": pf.descriptors, "frames": pf.frames})
             note("features", f"{len(pf.keypoints)} features")
         return time.perf_counter() - t0
 
-    def one_photo(p: Path, note, t_features: float) -> PhotoResult:
+    def match(self, p: Path, note, t_features: float) -> PhotoResult:
+        opts, consist, types = self.opts, self.consist, self.types
         t0 = time.perf_counter() - t_features
         # (an entry that cannot be read, or could not be written, is computed here)
-        pf = _cached_photo_features(project, p, intrinsics[p.name], opts, photo_file[p.name])
-        found = find_cars(pf, refs, consist, types, opts, ref_cache)
+        pf = _cached_photo_features(self.project, p, self.intrinsics[p.name], opts, self.photo_file[p.name])
+        found = find_cars(pf, self.refs, consist, types, opts, self.ref_cache)
         note("cars", f"faces of {len({c.number for c in found})} cars found")
         searched = None
-        if opts.search and p.name in poses:
+        if opts.search and p.name in self.poses:
             before = {c.number for c in found}
-            found = chain_search(pf, found, consist, types, by_number, poses[p.name], terrain, opts, ref_cache)
+            found = chain_search(pf, found, consist, types, self.by_number, self.poses[p.name], self.terrain, opts,
+                                 self.ref_cache)
             searched = sorted({c.number for c in found} - before)
         note("search", "pose search done" if searched is not None else "no pose search (no camera pose)")
         points = observations_of(found, pf, types, pose_points=opts.pose_points)
@@ -241,9 +232,15 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
                  "points": len(points),
                  "cars_by_pose_search": searched}
         note("done", f"{len(points)} points")
-        return PhotoResult(p.name, points, stats, pf.keypoints if carry_on else None,
-                           pf.descriptors if carry_on else None)
+        return PhotoResult(p.name, points, stats, pf.keypoints if self.carry_on else None,
+                           pf.descriptors if self.carry_on else None)
 
+
+def _match_photos(matcher: _PhotoMatcher, photos: list[Path], intrinsics: dict[str, CameraIntrinsics],
+                  opts: MatchOptions, progress: Progress, carry_on: bool
+                  ) -> tuple[list[PhotoResult], dict[str, PhotoFeatures], PairHomographies | None]:
+    """Every photo matched on worker processes: the results, in the photos' order, and, to carry points between
+    the photos of a panorama set, their features and the homographies between them."""
     steps_done: set = set()
 
     def report(index: int, step: str, message: str) -> None:
@@ -269,14 +266,53 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
         if pairs is not None:
             pairs.advance(features)
 
+    results = map_photos(matcher.match, photos, workers, report, on_result=done, first=matcher.features)
+    features = {r.name: features[r.name] for r in results if r.name in features}  # in the photos' order
+    return results, features, pairs
+
+
+def automatic(project: Project, photos: list[Path], intrinsics: dict[str, CameraIntrinsics], opts: MatchOptions,
+              progress: Progress, reference_dir: Path | None = None,
+              cache_dir: Path | None = None) -> tuple[list[mf.Observation], list[dict], dict]:
+    """SIFT observations of every photo, the carriages needing manual points, and statistics.
+
+    ``cache_dir``: where the references and the photos' features are kept between runs (``cache.py``;
+    None: computed every time)."""
+    s = project.settings
+    types = project.carriage_types()
+    consist = [(c.number, types[c.number].id, c.coupling_to_next.value if c.coupling_to_next else None)
+               for c in s.consist]
+    cache_used: set[str] = set()
+    refs, ref_cache, untextured = _car_references(project, consist, types, opts, progress, reference_dir, cache_dir,
+                                                  cache_used)
+    obs: list[mf.Observation] = []
+    if len(untextured) == len(consist):
+        photos = []  # nothing to match against
+    carry_on = opts.carry_between_photos and len(photos) > 1 and s.camera.source.value != "sfm"
+    # the chain/terrain pose search needs each photo's camera in the scene frame, and uses the terrain
+    poses = camera_poses(project, photos) if opts.search else {}
+    terrain = _terrain(project) if poses else None
+
+    # each photo's features are computed by a first task and written here (the cache, else a folder of this
+    # run), where the photo's second task reads them (parallel.map_photos)
+    work_dir = cache_dir if cache_dir is not None else Path(tempfile.mkdtemp(prefix="correspond-"))
+    photo_file = {}
+    for p in photos:
+        photo_file[p.name] = work_dir / _photo_cache_name(p, intrinsics[p.name], opts)
+        cache_used.add(photo_file[p.name].name)
+    for p in photos:  # the undistortion maps of the photos still to do, once per camera (the workers inherit them)
+        K = intrinsics[p.name]
+        if not photo_file[p.name].is_file() and K.has_distortion:
+            undistortion_maps(K, K.width, K.height)
+    matcher = _PhotoMatcher(project, intrinsics, opts, photo_file, refs, ref_cache, consist, types, poses, terrain,
+                            carry_on)
     try:
-        results = map_photos(one_photo, photos, workers, report, on_result=done, first=features_of)
+        results, features, pairs = _match_photos(matcher, photos, intrinsics, opts, progress, carry_on)
     finally:
         if cache_dir is None:
             shutil.rmtree(work_dir, ignore_errors=True)
     per_view = {r.name: r.points for r in results}
     per_photo = {r.name: r.stats for r in results}
-    features = {r.name: features[r.name] for r in results if r.name in features}  # in the photos' order
     if cache_dir is not None:
         cache.prune(cache_dir, cache_used)
     carried_stats = None
