@@ -155,57 +155,77 @@ def _hfov_long_deg(f_px: float, long_px: int) -> float:
     return math.degrees(2.0 * math.atan(long_px / 2.0 / f_px))
 
 
-def focal_prior_from_tags(width: int, height: int, tags: dict[str, Any], *,
-                          sensor_width_mm: float | None = None) -> FocalPrior | None:
-    """The focal prior of a ``width`` x ``height`` photo from its EXIF ``tags`` (see :func:`read_exif_tags`).
+class _FocalCandidates:
+    """The focal candidates (pixels) of one photo from its EXIF tags, by the three ways of the module
+    docstring, with what was found on the way: the warnings, in the order found, and the tags used."""
 
-    ``sensor_width_mm``: the sensor's long side, mm, when known (overrides the built-in table).
-    Returns None when the tags do not give a usable focal length (the warnings are logged).
-    """
-    warnings: list[str] = []
-    long_px = max(width, height)
-    used: dict[str, Any] = {}
-    cands: dict[str, float] = {}
+    def __init__(self, width: int, height: int, tags: dict[str, Any], sensor_width_mm: float | None):
+        self.width, self.height, self.tags = width, height, tags
+        self.long_px = max(width, height)
+        self.warnings: list[str] = []
+        self.used: dict[str, Any] = {}
+        self.cands: dict[str, float] = {}
+        self.fp_sensor_mm: float | None = None  # the sensor's long side implied by the focal-plane resolution
+        self.fp_tags: dict[str, Any] = {}
+        self.sensor: float | None = None  # the sensor's long side, mm, given or from the table
+        self.sensor_from: str | None = None
+        self._focal_tags()
+        self._size_change()
+        self._focal_plane()
+        self._sensor_width(sensor_width_mm)
+        self._equivalent_35mm()
+        self._drop_absurd()
 
-    f_mm = tags.get("FocalLength")
-    if f_mm is not None and not (0 < f_mm <= 5000):
-        warnings.append(f"FocalLength = {f_mm:g} mm is not a focal length (0 means unknown); ignored")
-        f_mm = None
-    f35 = tags.get("FocalLengthIn35mmFilm")
-    if f35 is not None and not (0 < f35 <= 10000):
-        warnings.append(f"FocalLengthIn35mmFilm = {f35:g} mm is not a focal length (0 means unknown); ignored")
-        f35 = None
-    zoom = tags.get("DigitalZoomRatio")
-    zoom = zoom if zoom is not None and 1.0 < zoom <= 100.0 else 1.0
-    if zoom > 1.0:
-        warnings.append(f"DigitalZoomRatio = {zoom:g}: the optical focal is multiplied by it")
-        used["DigitalZoomRatio"] = zoom
-    orient = tags.get("Orientation")
-    if orient in (5, 6, 7, 8):
-        warnings.append(f"Orientation = {orient:g}: the photo is stored rotated; the prior is for the stored pixel grid")
+    def _focal_tags(self) -> None:
+        """FocalLength, FocalLengthIn35mmFilm (None where absent or absurd), DigitalZoomRatio, Orientation."""
+        tags, warnings = self.tags, self.warnings
+        f_mm = tags.get("FocalLength")
+        if f_mm is not None and not (0 < f_mm <= 5000):
+            warnings.append(f"FocalLength = {f_mm:g} mm is not a focal length (0 means unknown); ignored")
+            f_mm = None
+        f35 = tags.get("FocalLengthIn35mmFilm")
+        if f35 is not None and not (0 < f35 <= 10000):
+            warnings.append(f"FocalLengthIn35mmFilm = {f35:g} mm is not a focal length (0 means unknown); ignored")
+            f35 = None
+        zoom = tags.get("DigitalZoomRatio")
+        zoom = zoom if zoom is not None and 1.0 < zoom <= 100.0 else 1.0
+        if zoom > 1.0:
+            warnings.append(f"DigitalZoomRatio = {zoom:g}: the optical focal is multiplied by it")
+            self.used["DigitalZoomRatio"] = zoom
+        orient = tags.get("Orientation")
+        if orient in (5, 6, 7, 8):
+            warnings.append(f"Orientation = {orient:g}: the photo is stored rotated; the prior is for the stored "
+                            f"pixel grid")
+        self.f_mm, self.f35, self.zoom = f_mm, f35, zoom
 
-    # how the photo's size relates to the size the tags were written for
-    scale, cropped = 1.0, False
-    px, py = tags.get("PixelXDimension"), tags.get("PixelYDimension")
-    if px and py and px > 0 and py > 0:
-        if (round(px), round(py)) != (width, height):
-            if abs(px / py - width / height) < 0.01 * width / height:
-                scale = width / px
-                warnings.append(f"resized: PixelXDimension x PixelYDimension = {px:g}x{py:g} but the photo is "
-                                f"{width}x{height}; focal-plane focal scaled by {scale:.4g}")
-            elif abs(py / px - width / height) < 0.01 * width / height:
-                scale = width / py
-                warnings.append(f"rotated: the tags describe a {px:g}x{py:g} image but the photo is {width}x{height}")
-            else:
-                cropped = True
-                warnings.append(f"cropped: the tags describe a {px:g}x{py:g} image but the photo is {width}x{height} "
-                                f"(another aspect ratio); the focal-plane resolution does not apply")
+    def _size_change(self) -> None:
+        """How the photo's size relates to the size the tags were written for: ``scale`` (resized or rotated)
+        and ``cropped`` (another aspect ratio)."""
+        width, height = self.width, self.height
+        self.scale, self.cropped = 1.0, False
+        px, py = self.tags.get("PixelXDimension"), self.tags.get("PixelYDimension")
+        if px and py and px > 0 and py > 0:
+            if (round(px), round(py)) != (width, height):
+                if abs(px / py - width / height) < 0.01 * width / height:
+                    self.scale = width / px
+                    self.warnings.append(f"resized: PixelXDimension x PixelYDimension = {px:g}x{py:g} but the photo "
+                                         f"is {width}x{height}; focal-plane focal scaled by {self.scale:.4g}")
+                elif abs(py / px - width / height) < 0.01 * width / height:
+                    self.scale = width / py
+                    self.warnings.append(f"rotated: the tags describe a {px:g}x{py:g} image but the photo is "
+                                         f"{width}x{height}")
+                else:
+                    self.cropped = True
+                    self.warnings.append(f"cropped: the tags describe a {px:g}x{py:g} image but the photo is "
+                                         f"{width}x{height} (another aspect ratio); the focal-plane resolution "
+                                         f"does not apply")
 
-    # 1. focal-plane resolution
-    fp_sensor_mm = None
-    fp_tags: dict[str, Any] = {}
-    res, unit = tags.get("FocalPlaneXResolution"), tags.get("FocalPlaneResolutionUnit")
-    if f_mm is not None and res is not None and not cropped:
+    def _focal_plane(self) -> None:
+        """1. ``FocalLength`` times the focal-plane resolution."""
+        tags, warnings, f_mm = self.tags, self.warnings, self.f_mm
+        res, unit = tags.get("FocalPlaneXResolution"), tags.get("FocalPlaneResolutionUnit")
+        if f_mm is None or res is None or self.cropped:
+            return
         if unit is None:
             unit = 2
             warnings.append("FocalPlaneResolutionUnit missing: the EXIF default (inch) is assumed")
@@ -216,98 +236,129 @@ def focal_prior_from_tags(width: int, height: int, tags: dict[str, Any], *,
                             f"5 um); focal-plane resolution ignored")
         else:
             unit_mm = UNIT_MM[int(unit)]
-            f_px = f_mm * res / unit_mm * scale * zoom
-            tagged_long = max(px, py) if (px and py and px > 0 and py > 0) else long_px
-            fp_sensor_mm = tagged_long / res * unit_mm  # sensor long side, mm (square pixels)
-            if not (SENSOR_RANGE_MM[0] <= fp_sensor_mm <= SENSOR_RANGE_MM[1]):
+            f_px = f_mm * res / unit_mm * self.scale * self.zoom
+            px, py = tags.get("PixelXDimension"), tags.get("PixelYDimension")
+            tagged_long = max(px, py) if (px and py and px > 0 and py > 0) else self.long_px
+            self.fp_sensor_mm = tagged_long / res * unit_mm  # sensor long side, mm (square pixels)
+            if not (SENSOR_RANGE_MM[0] <= self.fp_sensor_mm <= SENSOR_RANGE_MM[1]):
                 warnings.append(f"FocalPlaneXResolution = {res:g} per {UNIT_NAMES[int(unit)]} implies a "
-                                f"{fp_sensor_mm:.3g} mm sensor; implausible, ignored")
+                                f"{self.fp_sensor_mm:.3g} mm sensor; implausible, ignored")
             else:
-                cands["focal_plane"] = f_px
-                fp_tags = {"FocalPlaneXResolution": res, "FocalPlaneResolutionUnit": int(unit)}
+                self.cands["focal_plane"] = f_px
+                self.fp_tags = {"FocalPlaneXResolution": res, "FocalPlaneResolutionUnit": int(unit)}
 
-    # 2. sensor size (given, or from the table by Model)
-    model = (tags.get("Model") or "").strip().lower()
-    sensor = None
-    if sensor_width_mm is not None:
-        if not sensor_width_mm > 0:
-            raise InputError(f"sensor_width_mm = {sensor_width_mm!r}: must be a positive width in mm")
-        sensor, sensor_from = float(sensor_width_mm), "given"
-    elif model in SENSOR_SIZES_MM:
-        sensor, sensor_from = SENSOR_SIZES_MM[model][0], f"table ({tags.get('Model')})"
-        ss = SENSOR_SIZES_MM[model]
-        if abs(long_px / min(width, height) - ss[0] / ss[1]) > 0.03 * ss[0] / ss[1]:
-            cropped = True
-            warnings.append(f"cropped: the photo's aspect {long_px / min(width, height):.3f} differs from the "
-                            f"{tags.get('Model')} sensor's {ss[0] / ss[1]:.3f}; the focal in pixels is uncertain")
-    if f_mm is not None and sensor is not None:
-        cands["sensor_width"] = f_mm / sensor * long_px * zoom
-        if fp_sensor_mm is not None and abs(fp_sensor_mm / sensor - 1) > AGREE_TOL:
-            warnings.append(f"the focal-plane resolution implies a {fp_sensor_mm:.3g} mm sensor but the sensor is "
-                            f"{sensor:.3g} mm ({sensor_from}): the photo was resized or cropped after the tags "
-                            f"were written; focal-plane resolution ignored")
-            cands.pop("focal_plane", None)
+    def _sensor_width(self, sensor_width_mm: float | None) -> None:
+        """2. ``FocalLength`` over the sensor's size (given, or from the table by ``Model``)."""
+        tags, long_px, f_mm = self.tags, self.long_px, self.f_mm
+        model = (tags.get("Model") or "").strip().lower()
+        if sensor_width_mm is not None:
+            if not sensor_width_mm > 0:
+                raise InputError(f"sensor_width_mm = {sensor_width_mm!r}: must be a positive width in mm")
+            self.sensor, self.sensor_from = float(sensor_width_mm), "given"
+        elif model in SENSOR_SIZES_MM:
+            self.sensor, self.sensor_from = SENSOR_SIZES_MM[model][0], f"table ({tags.get('Model')})"
+            ss = SENSOR_SIZES_MM[model]
+            short_px = min(self.width, self.height)
+            if abs(long_px / short_px - ss[0] / ss[1]) > 0.03 * ss[0] / ss[1]:
+                self.cropped = True
+                self.warnings.append(f"cropped: the photo's aspect {long_px / short_px:.3f} differs from the "
+                                     f"{tags.get('Model')} sensor's {ss[0] / ss[1]:.3f}; the focal in pixels is "
+                                     f"uncertain")
+        sensor = self.sensor
+        if f_mm is not None and sensor is not None:
+            self.cands["sensor_width"] = f_mm / sensor * long_px * self.zoom
+            if self.fp_sensor_mm is not None and abs(self.fp_sensor_mm / sensor - 1) > AGREE_TOL:
+                self.warnings.append(f"the focal-plane resolution implies a {self.fp_sensor_mm:.3g} mm sensor but "
+                                     f"the sensor is {sensor:.3g} mm ({self.sensor_from}): the photo was resized or "
+                                     f"cropped after the tags were written; focal-plane resolution ignored")
+                self.cands.pop("focal_plane", None)
 
-    # 3. 35 mm equivalent
-    if f35 is not None:
-        cands["35mm_equivalent"] = f35 / 36.0 * long_px
-        if f_mm is not None and not (0.3 <= f35 / f_mm <= 15.0):
-            warnings.append(f"FocalLengthIn35mmFilm / FocalLength = {f35 / f_mm:.3g} is not a plausible crop factor")
+    def _equivalent_35mm(self) -> None:
+        """3. ``FocalLengthIn35mmFilm`` over the 36 mm long side of a 35 mm frame."""
+        f35, f_mm = self.f35, self.f_mm
+        if f35 is not None:
+            self.cands["35mm_equivalent"] = f35 / 36.0 * self.long_px
+            if f_mm is not None and not (0.3 <= f35 / f_mm <= 15.0):
+                self.warnings.append(f"FocalLengthIn35mmFilm / FocalLength = {f35 / f_mm:.3g} is not a plausible "
+                                     f"crop factor")
 
-    # drop absurd fields of view
-    for name in list(cands):
-        hfov = _hfov_long_deg(cands[name], long_px)
-        if not (HFOV_RANGE_DEG[0] <= hfov <= HFOV_RANGE_DEG[1]):
-            warnings.append(f"{name}: focal {cands[name]:.4g} px gives a {hfov:.3g} deg field of view; ignored")
-            del cands[name]
-    if not cands:
+    def _drop_absurd(self) -> None:
+        """Drop the candidates whose field of view is outside ``HFOV_RANGE_DEG``."""
+        for name in list(self.cands):
+            hfov = _hfov_long_deg(self.cands[name], self.long_px)
+            if not (HFOV_RANGE_DEG[0] <= hfov <= HFOV_RANGE_DEG[1]):
+                self.warnings.append(f"{name}: focal {self.cands[name]:.4g} px gives a {hfov:.3g} deg field of view; "
+                                     f"ignored")
+                del self.cands[name]
+
+    def choose(self) -> tuple[str, float, float]:
+        """(source, focal px, relative sigma): the first candidate in the module docstring's order, unless the
+        35 mm equivalent disagrees (then a wrong focal-plane unit is corrected, or the 35 mm equivalent used)."""
+        cands = self.cands
+        order = [n for n in ("focal_plane", "sensor_width", "35mm_equivalent") if n in cands]
+        source = order[0]
+        f_px = cands[source]
+        rel_sigma = REL_SIGMA[source]
+        if "35mm_equivalent" in cands and source != "35mm_equivalent":
+            ref = cands["35mm_equivalent"]
+            ratio = f_px / ref
+            if abs(ratio - 1) > AGREE_TOL:
+                fixed = None
+                if source == "focal_plane":
+                    for factor in (2.54, 1 / 2.54, 10.0, 0.1, 25.4, 1 / 25.4):
+                        if abs(ratio * factor - 1) <= AGREE_TOL:
+                            fixed = factor
+                            break
+                if fixed is not None:
+                    f_px *= fixed
+                    rel_sigma = REL_SIGMA["35mm_equivalent"]
+                    self.warnings.append(f"FocalPlaneResolutionUnit = {self.fp_tags.get('FocalPlaneResolutionUnit')} "
+                                         f"looks wrong: the focal-plane focal times {fixed:.4g} matches the 35 mm "
+                                         f"equivalent; corrected")
+                else:
+                    self.warnings.append(f"{source} focal {f_px:.4g} px disagrees with the 35 mm-equivalent "
+                                         f"{ref:.4g} px ({100 * (ratio - 1):+.0f} %); the 35 mm equivalent is used")
+                    source, f_px, rel_sigma = "35mm_equivalent", ref, REL_SIGMA["35mm_equivalent"]
+        if source == "35mm_equivalent":
+            rel_sigma = math.hypot(rel_sigma, 0.5 / self.f35)  # integer tag
+        if self.cropped:
+            rel_sigma = max(rel_sigma, 0.15)
+        return source, f_px, rel_sigma
+
+    def used_tags(self, source: str) -> dict[str, Any]:
+        """The tags the focal from ``source`` rests on (and the camera's name and the tagged size)."""
+        used, tags = self.used, self.tags
+        if source != "35mm_equivalent" and self.f_mm is not None:
+            used["FocalLength"] = self.f_mm
+        if source == "focal_plane":
+            used.update(self.fp_tags)
+        if source == "sensor_width":
+            used.update(sensor_long_side_mm=self.sensor, sensor_from=self.sensor_from)
+        if source == "35mm_equivalent":
+            used["FocalLengthIn35mmFilm"] = self.f35
+        for k in ("Make", "Model", "PixelXDimension", "PixelYDimension"):
+            if k in tags:
+                used[k] = tags[k]
+        return used
+
+
+def focal_prior_from_tags(width: int, height: int, tags: dict[str, Any], *,
+                          sensor_width_mm: float | None = None) -> FocalPrior | None:
+    """The focal prior of a ``width`` x ``height`` photo from its EXIF ``tags`` (see :func:`read_exif_tags`).
+
+    ``sensor_width_mm``: the sensor's long side, mm, when known (overrides the built-in table).
+    Returns None when the tags do not give a usable focal length (the warnings are logged).
+    """
+    c = _FocalCandidates(width, height, tags, sensor_width_mm)
+    if not c.cands:
         if tags:
-            log.info("no EXIF focal prior: %s", "; ".join(warnings) or "no focal tags")
+            log.info("no EXIF focal prior: %s", "; ".join(c.warnings) or "no focal tags")
         return None
-
-    # choose
-    order = [n for n in ("focal_plane", "sensor_width", "35mm_equivalent") if n in cands]
-    source = order[0]
-    f_px = cands[source]
-    rel_sigma = REL_SIGMA[source]
-    if "35mm_equivalent" in cands and source != "35mm_equivalent":
-        ref = cands["35mm_equivalent"]
-        ratio = f_px / ref
-        if abs(ratio - 1) > AGREE_TOL:
-            fixed = None
-            if source == "focal_plane":
-                for factor in (2.54, 1 / 2.54, 10.0, 0.1, 25.4, 1 / 25.4):
-                    if abs(ratio * factor - 1) <= AGREE_TOL:
-                        fixed = factor
-                        break
-            if fixed is not None:
-                f_px *= fixed
-                rel_sigma = REL_SIGMA["35mm_equivalent"]
-                warnings.append(f"FocalPlaneResolutionUnit = {fp_tags.get('FocalPlaneResolutionUnit')} looks wrong: the "
-                                f"focal-plane focal times {fixed:.4g} matches the 35 mm equivalent; corrected")
-            else:
-                warnings.append(f"{source} focal {f_px:.4g} px disagrees with the 35 mm-equivalent {ref:.4g} px "
-                                f"({100 * (ratio - 1):+.0f} %); the 35 mm equivalent is used")
-                source, f_px, rel_sigma = "35mm_equivalent", ref, REL_SIGMA["35mm_equivalent"]
-    if source == "35mm_equivalent":
-        rel_sigma = math.hypot(rel_sigma, 0.5 / f35)  # integer tag
-    if cropped:
-        rel_sigma = max(rel_sigma, 0.15)
-    if source != "35mm_equivalent" and f_mm is not None:
-        used["FocalLength"] = f_mm
-    if source == "focal_plane":
-        used.update(fp_tags)
-    if source == "sensor_width":
-        used.update(sensor_long_side_mm=sensor, sensor_from=sensor_from)
-    if source == "35mm_equivalent":
-        used["FocalLengthIn35mmFilm"] = f35
-    for k in ("Make", "Model", "PixelXDimension", "PixelYDimension"):
-        if k in tags:
-            used[k] = tags[k]
-    prior = FocalPrior(focal_px=float(f_px), sigma_px=float(rel_sigma * f_px), source=source, width=int(width),
-                       height=int(height), tags=used, candidates={k: float(v) for k, v in cands.items()},
-                       warnings=tuple(warnings))
-    return prior
+    source, f_px, rel_sigma = c.choose()
+    used = c.used_tags(source)
+    return FocalPrior(focal_px=float(f_px), sigma_px=float(rel_sigma * f_px), source=source, width=int(width),
+                      height=int(height), tags=used, candidates={k: float(v) for k, v in c.cands.items()},
+                      warnings=tuple(c.warnings))
 
 
 def exif_focal_prior(path: Path, *, sensor_width_mm: float | None = None) -> FocalPrior | None:
