@@ -338,6 +338,120 @@ def _map(db: Path, image_dir: Path, out: Path, opts: SfmOptions, intrinsics_fixe
     return ordered[0], ordered[1:]
 
 
+def _photo_sizes(images: list[Path]) -> tuple[Path, dict[str, tuple[int, int]]]:
+    """The one folder of the photos, and each photo's size (name -> (width, height))."""
+    from PIL import Image
+
+    if len(images) < 2:
+        raise InputError(f"structure from motion needs at least 2 photos, got {len(images)}")
+    folders = {p.parent for p in images}
+    if len(folders) != 1:
+        raise InputError(f"structure from motion: the photos must be in one folder, got {sorted(map(str, folders))}")
+    sizes = {}
+    for p in images:
+        try:
+            with Image.open(p) as im:
+                sizes[p.name] = im.size
+        except OSError as exc:
+            raise InputError(f"{p}: cannot read this photo ({exc})") from None
+    return folders.pop(), sizes
+
+
+def _reader_options(opts: SfmOptions, prior: CameraIntrinsics | None, distinct: set[tuple[int, int]],
+                    warnings: list[str]):
+    """COLMAP's image-reader options: the camera model, and the prior as its initial parameters when the photos
+    have one size that the prior fits (scaled to it if of the same aspect); and the prior used, or None."""
+    import pycolmap
+
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = opts.camera_model
+    prior_used = None
+    if prior is not None and len(distinct) == 1:
+        w, h = next(iter(distinct))
+        pr = prior
+        if (pr.width, pr.height) != (w, h):
+            if abs(pr.width / pr.height - w / h) < 1e-3:
+                pr = pr.scaled(w / pr.width)
+            else:
+                warnings.append(f"prior is for {prior.width}x{prior.height} but the photos are {w}x{h}; unused")
+                pr = None
+        if pr is not None:
+            params, dropped = colmap_params_from_intrinsics(opts.camera_model, pr)
+            if dropped:
+                warnings.append(f"the {opts.camera_model} model cannot hold the prior's {', '.join(dropped)}")
+            reader.camera_params = ",".join(f"{x:.10g}" for x in params)
+            prior_used = pr
+    elif prior is not None:
+        warnings.append("photos of several sizes: the intrinsics prior is unused")
+    return reader, prior_used
+
+
+def _extract_features(db: Path, image_dir: Path, names: list[str], reader, single: bool, opts: SfmOptions) -> None:
+    import pycolmap
+
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = 1 if opts.deterministic else opts.num_threads
+    extraction.max_image_size = opts.max_image_size_px
+    extraction.sift.max_num_features = opts.max_num_features
+    extraction.sift.peak_threshold = opts.sift_peak_threshold
+    extraction.sift.estimate_affine_shape = opts.sift_affine_shape
+    extraction.sift.domain_size_pooling = opts.sift_domain_size_pooling
+    extraction.use_gpu = False
+    pycolmap.extract_features(db, image_dir, image_names=names,
+                              camera_mode=pycolmap.CameraMode.SINGLE if single else pycolmap.CameraMode.AUTO,
+                              reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+
+
+def _matcher(opts: SfmOptions, n_images: int) -> str:
+    """``opts.matcher``, with ``auto`` resolved: exhaustive up to ``opts.exhaustive_max_images`` photos."""
+    if opts.matcher == "auto":
+        return "exhaustive" if n_images <= opts.exhaustive_max_images else "sequential"
+    return opts.matcher
+
+
+def _match_features(db: Path, matcher: str, opts: SfmOptions) -> None:
+    """Matches between the photos (``exhaustive`` or ``sequential``), verified geometrically, into ``db``."""
+    import pycolmap
+
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = 1 if opts.deterministic else opts.num_threads
+    matching.use_gpu = False
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.min_num_inliers = opts.verify_min_num_inliers
+    verification.ransac.random_seed = opts.seed
+    if matcher == "exhaustive":
+        pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
+                                  device=pycolmap.Device.cpu)
+    else:
+        pairing = pycolmap.SequentialPairingOptions()
+        pairing.overlap = opts.sequential_overlap
+        pairing.num_threads = matching.num_threads
+        pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
+                                  verification_options=verification, device=pycolmap.Device.cpu)
+
+
+def _map_or_retry(db: Path, image_dir: Path, tmp: Path, opts: SfmOptions, prior_fixed: bool, n_images: int,
+                  progress: Callable[[float, str], None], warnings: list[str]):
+    """Incremental mapping; again with the forward-motion thresholds if fewer than half the photos register
+    (kept if clearly better). (main model, other models, the options that built them, whether it retried)."""
+    used_opts = opts
+    rec, others = _map(db, image_dir, tmp / "sparse", opts, prior_fixed)
+    n_reg = rec.num_reg_images() if rec is not None else 0
+    retried = False
+    if opts.forward_motion_retry and n_reg < max(opts.min_model_size, (n_images + 1) // 2):
+        fm = opts.forward_motion_variant()
+        log.info("sfm: %d/%d photos registered; mapping again with the forward-motion thresholds", n_reg, n_images)
+        progress(0.8, "incremental mapping (forward-motion thresholds)")
+        rec2, others2 = _map(db, image_dir, tmp / "sparse_fm", fm, prior_fixed)
+        retried = True
+        n_reg2 = rec2.num_reg_images() if rec2 is not None else 0
+        if n_reg2 >= max(n_reg + 2, 1.5 * n_reg):  # clearly better, not one more photo on weaker evidence
+            rec, others, used_opts = rec2, others2, fm
+            warnings.append(f"only {n_reg}/{n_images} photos registered with the default thresholds; the "
+                            f"forward-motion thresholds registered {rec2.num_reg_images()}")
+    return rec, others, used_opts, retried
+
+
 def run_sfm(images: list[Path], *, options: SfmOptions | None = None, prior: CameraIntrinsics | None = None,
             prior_fixed: bool = False, work_dir: Path | None = None,
             progress: Callable[[float, str], None] | None = None) -> SfmResult:
@@ -354,22 +468,8 @@ def run_sfm(images: list[Path], *, options: SfmOptions | None = None, prior: Cam
     opts = options or SfmOptions()
     progress = progress or (lambda f, m="": None)
     images = [Path(p).resolve() for p in images]
-    if len(images) < 2:
-        raise InputError(f"structure from motion needs at least 2 photos, got {len(images)}")
-    folders = {p.parent for p in images}
-    if len(folders) != 1:
-        raise InputError(f"structure from motion: the photos must be in one folder, got {sorted(map(str, folders))}")
-    image_dir = folders.pop()
+    image_dir, sizes = _photo_sizes(images)
     names = [p.name for p in images]
-    sizes = {}
-    from PIL import Image
-
-    for p in images:
-        try:
-            with Image.open(p) as im:
-                sizes[p.name] = im.size
-        except OSError as exc:
-            raise InputError(f"{p}: cannot read this photo ({exc})") from None
     distinct = set(sizes.values())
     single = opts.single_camera
     if single and len(distinct) > 1:
@@ -383,86 +483,27 @@ def run_sfm(images: list[Path], *, options: SfmOptions | None = None, prior: Cam
     with tempfile.TemporaryDirectory(prefix="workbench-sfm-", dir=work_dir) as tmp:
         tmp = Path(tmp)
         db = tmp / "database.db"
-        reader = pycolmap.ImageReaderOptions()
-        reader.camera_model = opts.camera_model
-        prior_used = None
-        if prior is not None and len(distinct) == 1:
-            w, h = next(iter(distinct))
-            pr = prior
-            if (pr.width, pr.height) != (w, h):
-                if abs(pr.width / pr.height - w / h) < 1e-3:
-                    pr = pr.scaled(w / pr.width)
-                else:
-                    warnings.append(f"prior is for {prior.width}x{prior.height} but the photos are {w}x{h}; unused")
-                    pr = None
-            if pr is not None:
-                params, dropped = colmap_params_from_intrinsics(opts.camera_model, pr)
-                if dropped:
-                    warnings.append(f"the {opts.camera_model} model cannot hold the prior's {', '.join(dropped)}")
-                reader.camera_params = ",".join(f"{x:.10g}" for x in params)
-                prior_used = pr
-        elif prior is not None:
-            warnings.append("photos of several sizes: the intrinsics prior is unused")
+        reader, prior_used = _reader_options(opts, prior, distinct, warnings)
         if prior_fixed and prior_used is None:
             prior_fixed = False
-        extraction = pycolmap.FeatureExtractionOptions()
-        extraction.num_threads = 1 if opts.deterministic else opts.num_threads
-        extraction.max_image_size = opts.max_image_size_px
-        extraction.sift.max_num_features = opts.max_num_features
-        extraction.sift.peak_threshold = opts.sift_peak_threshold
-        extraction.sift.estimate_affine_shape = opts.sift_affine_shape
-        extraction.sift.domain_size_pooling = opts.sift_domain_size_pooling
-        extraction.use_gpu = False
         t0 = time.perf_counter()
         progress(0.05, "features")
         log.info("sfm: extracting features from %d photos", len(names))
-        pycolmap.extract_features(db, image_dir, image_names=names,
-                                  camera_mode=pycolmap.CameraMode.SINGLE if single else pycolmap.CameraMode.AUTO,
-                                  reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+        _extract_features(db, image_dir, names, reader, single, opts)
         timings["features_s"] = time.perf_counter() - t0
 
-        matching = pycolmap.FeatureMatchingOptions()
-        matching.num_threads = 1 if opts.deterministic else opts.num_threads
-        matching.use_gpu = False
-        matcher = opts.matcher
-        if matcher == "auto":
-            matcher = "exhaustive" if len(names) <= opts.exhaustive_max_images else "sequential"
+        matcher = _matcher(opts, len(names))
         t0 = time.perf_counter()
         progress(0.35, f"matching ({matcher})")
         log.info("sfm: %s matching", matcher)
-        verification = pycolmap.TwoViewGeometryOptions()
-        verification.min_num_inliers = opts.verify_min_num_inliers
-        verification.ransac.random_seed = opts.seed
-        if matcher == "exhaustive":
-            pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
-                                      device=pycolmap.Device.cpu)
-        else:
-            pairing = pycolmap.SequentialPairingOptions()
-            pairing.overlap = opts.sequential_overlap
-            pairing.num_threads = matching.num_threads
-            pycolmap.match_sequential(db, matching_options=matching, pairing_options=pairing,
-                                      verification_options=verification, device=pycolmap.Device.cpu)
+        _match_features(db, matcher, opts)
         timings["matching_s"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
         progress(0.6, "incremental mapping")
         log.info("sfm: incremental mapping")
-        used_opts = opts
-        rec, others = _map(db, image_dir, tmp / "sparse", opts, prior_fixed)
-        n_reg = rec.num_reg_images() if rec is not None else 0
-        retried = False
-        if opts.forward_motion_retry and n_reg < max(opts.min_model_size, (len(names) + 1) // 2):
-            fm = opts.forward_motion_variant()
-            log.info("sfm: %d/%d photos registered; mapping again with the forward-motion thresholds", n_reg,
-                     len(names))
-            progress(0.8, "incremental mapping (forward-motion thresholds)")
-            rec2, others2 = _map(db, image_dir, tmp / "sparse_fm", fm, prior_fixed)
-            retried = True
-            n_reg2 = rec2.num_reg_images() if rec2 is not None else 0
-            if n_reg2 >= max(n_reg + 2, 1.5 * n_reg):  # clearly better, not one more photo on weaker evidence
-                rec, others, used_opts = rec2, others2, fm
-                warnings.append(f"only {n_reg}/{len(names)} photos registered with the default thresholds; the "
-                                f"forward-motion thresholds registered {rec2.num_reg_images()}")
+        rec, others, used_opts, retried = _map_or_retry(db, image_dir, tmp, opts, prior_fixed, len(names), progress,
+                                                        warnings)
         timings["mapping_s"] = time.perf_counter() - t0
         if rec is None or rec.num_reg_images() < 2:
             raise StageError(f"structure from motion built no model from the {len(names)} photos in {image_dir}: "
