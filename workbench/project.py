@@ -37,6 +37,7 @@ if TYPE_CHECKING:  # numpy and the frame are loaded on use: `workbench status` n
     from .files.cameras import Cameras
     from .files.dem import TerrainModel
     from .files.profile import CameraProfile
+    from .files.solution import Solution
 
 log = logging.getLogger(__name__)
 
@@ -198,6 +199,14 @@ class Project:
             raise InputError(f"{p}: not found; the {needed_by} needs the 'solve' stage's output, and the 'solve' "
                              f"stage has not run for this incident. Run `workbench run {self.root}` first")
         return p
+
+    def solution(self, needed_by: str = "scene") -> "Solution":
+        """The solve stage's ``solution.json``, read and checked against this incident's frame and consist
+        (:class:`InputError` naming the stage to run when it has not run, or the file when it is stale)."""
+        from .files.solution import read_solution
+
+        return read_solution(self.require_solution(needed_by), frame=self.frame,
+                             numbers=[c.number for c in self.settings.consist])
 
     def dem_paths(self) -> list[Path]:
         """The DEM file(s) ``terrain.dem`` names (one file, a folder of tiles or a glob); [] when it is unset."""

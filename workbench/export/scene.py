@@ -4,7 +4,7 @@ Everything here is in the scene frame (``world``: the incident's ENU frame, metr
 until a writer converts it. The writers convert *exactly per vertex* with :class:`~workbench.core.frames.SceneFrame`
 (ENU -> WGS84 or ENU -> project CRS), never by adding an offset: the ENU frame is not the CRS grid shifted.
 
-* :func:`read_solution` reads ``out/solve/solution.json`` (format in ``docs/pipeline.md``) into
+* :func:`export_carriages` turns the solution (read by :mod:`workbench.files.solution`) into
   :class:`ExportCarriage` records.
 * :func:`decimate_terrain` keeps the terrain at full resolution near the carriages (so a carriage resting on the
   ground still rests on it in every export) and simplifies the rest (quadric error, the seam held exactly).
@@ -21,10 +21,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import trimesh
 
-from ..core.frames import Rigid, SceneFrame, hpr_from_rotation, is_rotation
+from ..core.frames import Rigid, SceneFrame, hpr_from_rotation
 from ..errors import InputError, SettingsError
 
 if TYPE_CHECKING:  # pragma: no cover
+    from ..files.solution import Solution
     from ..project import Project
 
 log = logging.getLogger(__name__)
@@ -148,82 +149,31 @@ class ExportScene:
 # ---------------------------------------------------------------------------------------------------------
 # solution.json
 # ---------------------------------------------------------------------------------------------------------
-def _matrix(value: Any, where: str) -> np.ndarray:
-    try:
-        M = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise InputError(f"{where}: not a 4x4 matrix of numbers") from None
-    if M.shape != (4, 4) or not np.all(np.isfinite(M)):
-        raise InputError(f"{where}: shape {M.shape}, expected a finite 4x4 matrix")
-    if not is_rotation(M[:3, :3], tol=1e-6) or not np.allclose(M[3], [0, 0, 0, 1]):
-        raise InputError(f"{where}: not a rigid transform [[R, t], [0, 0, 0, 1]] (R must be a rotation)")
-    return M
-
-
-def read_solution(path: Path, frame: SceneFrame, carriage_types: dict[str, Any]) -> tuple[list[ExportCarriage],
-                                                                                          list[dict], dict]:
-    """Read ``solution.json``: (posed carriages, left-out carriages ``[{number, reason}]``, the document).
-
-    ``carriage_types``: ``{car number: CarriageType}`` (``Project.carriage_types()``). Raises
-    :class:`InputError` naming the file and key when the solution is malformed or was made for another scene frame.
-    """
-    from ..core.io import read_json
-
-    path = Path(path)
-    doc = read_json(path, missing="not found; run the solve stage first (`workbench run`)")
-    if not isinstance(doc, dict) or not isinstance(doc.get("carriages"), list):
-        raise InputError(f"{path}: no 'carriages' list; see docs/pipeline.md (solution.json)")
-    fr = doc.get("frame")
-    if isinstance(fr, dict):
-        same = (abs(float(fr.get("lat", frame.lat_deg)) - frame.lat_deg) < 1e-9
-                and abs(float(fr.get("lon", frame.lon_deg)) - frame.lon_deg) < 1e-9
-                and abs(float(fr.get("height_m", frame.height_m)) - frame.height_m) < 1e-6)
-        if not same:
-            raise InputError(f"{path}: 'frame' = {fr} differs from the project's location ({frame.lat_deg}, "
-                             f"{frame.lon_deg}, {frame.height_m} m); the solution is stale: run the solve again")
+def export_carriages(solution: "Solution", carriage_types: dict[str, Any]) -> tuple[list[ExportCarriage], list[dict]]:
+    """The posed carriages of a read solution (:meth:`Project.solution`) with their models, and the left-out ones
+    ``[{number, reason}]``. ``carriage_types``: ``{car number: CarriageType}`` (``Project.carriage_types()``)."""
     cars: list[ExportCarriage] = []
-    left: list[dict] = []
-    for i, c in enumerate(doc["carriages"]):
-        where = f"{path}: carriages[{i}]"
-        if not isinstance(c, dict) or "number" not in c:
-            raise InputError(f"{where}: not an object with a 'number'")
-        number = str(c["number"])
-        status = str(c.get("status", "solved"))
-        if status == "left_out" or c.get("world_from_carriage") is None:
-            left.append({"number": number, "reason": c.get("reason") or "no pose in the solution"})
-            continue
-        if number not in carriage_types:
-            raise InputError(f"{where}.number = {number!r} is not in the project's consist "
-                             f"({', '.join(carriage_types)}); the solution is stale: run the solve again")
-        ct = carriage_types[number]
-        M = _matrix(c["world_from_carriage"], f"{where}.world_from_carriage")
+    left = [{"number": c.number, "reason": c.reason} for c in solution.left_out]
+    for c in solution.posed:
+        ct = carriage_types[c.number]
+        M = c.world_from_carriage
         w_from_c = Rigid.from_matrix(M, "world", "carriage")
         bbox = np.asarray(ct.bounding_box(), dtype=float)
         centre_c = bbox.mean(axis=0)
-        if c.get("body_centre_enu") is not None:
-            given = np.asarray(c["body_centre_enu"], dtype=float).reshape(3)
-            centre_c = w_from_c.inverse().apply(given)  # the solver's own definition of the body centre
+        given = c.floats("body_centre_enu")
+        if given is not None and len(given) == 3:
+            centre_c = w_from_c.inverse().apply(np.asarray(given))  # the solver's own definition of the body centre
         h, p, r = hpr_from_rotation(M[:3, :3])
         box_centre, box_half = ct.collision_boxes()[0]  # the body, without couplers
         lo, hi = box_centre - box_half, box_centre + box_half
         cars.append(ExportCarriage(
-            index=int(c.get("index", i)), number=number, type_id=ct.id, type_name=ct.name, status=status,
+            index=c.index, number=c.number, type_id=ct.id, type_name=ct.name, status=c.status,
             world_from_carriage=w_from_c, body_centre_carriage=centre_c, body_box=(lo, hi),
             heading_deg=h, pitch_deg=p, roll_deg=r,
-            ci95_body_centre_m=_floats(c.get("ci95_body_centre_m")), ci95_hpr_deg=_floats(c.get("ci95_hpr_deg")),
+            ci95_body_centre_m=c.floats("ci95_body_centre_m"), ci95_hpr_deg=c.floats("ci95_hpr_deg"),
             length_m=ct.length_m, width_m=ct.width_m, height_m=ct.height_m,
-            mesh=ct.mesh(car_number=number, textured=True), plain_mesh=ct.mesh(textured=False)))
-    return cars, left, doc
-
-
-def _floats(v: Any) -> list[float] | None:
-    if v is None:
-        return None
-    try:
-        a = [float(x) for x in v]
-    except (TypeError, ValueError):
-        return None
-    return a if all(np.isfinite(a)) else None
+            mesh=ct.mesh(car_number=c.number, textured=True), plain_mesh=ct.mesh(textured=False)))
+    return cars, left
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -428,10 +378,11 @@ def build_scene(project: "Project", options: ExportOptions | None = None) -> Exp
     options = options or ExportOptions()
     frame = project.frame
     types = project.carriage_types()
-    sol_path = project.stage_dir("solve") / "solution.json"
-    cars, left, doc = read_solution(sol_path, frame, types)
+    sol = project.solution("export")
+    cars, left = export_carriages(sol, types)
+    doc = sol.doc
     if not cars:
-        raise InputError(f"{sol_path}: no carriage has a pose (all left out); nothing to export")
+        raise InputError(f"{sol.path}: no carriage has a pose (all left out); nothing to export")
     tdir = project.stage_dir("terrain")
     terrain = None
     if (tdir / "terrain.ply").is_file():

@@ -97,8 +97,7 @@ def _compact_json(data: Any) -> str:
 
 def _centre_check(project: Project, scene: Any, gj: dict) -> float | None:
     """Largest distance (m) between a GeoJSON centre and the solution's ``body_centre_wgs84`` (None if absent)."""
-    doc = project.read_json(project.stage_dir("solve") / "solution.json")
-    given = {str(c.get("number")): c.get("body_centre_wgs84") for c in doc.get("carriages", [])}
+    given = {c.number: c.floats("body_centre_wgs84") for c in project.solution("export").carriages}
     worst = None
     for ft in gj["features"]:
         if ft["geometry"]["type"] != "Point":

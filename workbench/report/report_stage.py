@@ -391,8 +391,8 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
     s = project.settings
     out = project.stage_dir("report")
     figs = out / "figures"
-    sol_path = project.require_solution("report")
-    solution = project.read_json(sol_path)
+    sol = project.solution("report")
+    solution = sol.doc
     renders = read_json(project.stage_dir("render") / "renders.json",
                         missing=f"not found; the report needs the 'render' stage's output. Run `workbench run "
                                 f"{project.root}` (or `--only render`)")

@@ -9,7 +9,6 @@ files the stages wrote (``out/solve/solution.json``, ``out/georef/cameras.json``
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -133,22 +132,11 @@ def load_cameras(project: Project) -> tuple[dict, list[SceneCamera]]:
     return cameras.doc, cams
 
 
-def with_solved_focal(cams: list[SceneCamera], solution: dict, where: Path) -> list[SceneCamera]:
+def with_solved_focal(cams: list[SceneCamera], focal_px: dict[str, float]) -> list[SceneCamera]:
     """The cameras with the focal the solve estimated (``solution.json`` ``focal_px``, per view), so renders,
     overlays and the viewer draw what the solve saw; a view the solution does not name keeps its own."""
-    focal = solution.get("focal_px") or {}
-    if not isinstance(focal, dict):
-        raise InputError(f"{where}: 'focal_px' must map view names to focal lengths (px)")
-    out = []
-    for c in cams:
-        f = focal.get(c.name)
-        if f is None:
-            out.append(c)
-            continue
-        if not isinstance(f, (int, float)) or isinstance(f, bool) or not math.isfinite(f) or f <= 0:
-            raise InputError(f"{where}: focal_px[{c.name!r}] = {f!r}: not a positive focal length (px)")
-        out.append(SceneCamera(c.name, c.image, c.intrinsics.with_focal(f), c.cam_from_world))
-    return out
+    return [c if focal_px.get(c.name) is None else
+            SceneCamera(c.name, c.image, c.intrinsics.with_focal(focal_px[c.name]), c.cam_from_world) for c in cams]
 
 
 def _terrain_mesh(project: Project, *, textured: bool) -> trimesh.Trimesh | None:
@@ -188,33 +176,23 @@ def _buildings_mesh(project: Project) -> trimesh.Trimesh | None:
 
 def load_scene(project: Project, *, textured: bool = True, with_terrain: bool = True) -> IncidentScene:
     """Read the reconstructed scene of ``project``. :class:`InputError` naming the 'solve' stage if it has not run."""
-    sp = project.require_solution("scene")
-    solution = project.read_json(sp)
-    if not isinstance(solution, dict) or not isinstance(solution.get("carriages"), list):
-        raise InputError(f"{sp}: no 'carriages' list; see docs/pipeline.md (solution.json)")
+    sol = project.solution("scene")
     types = project.carriage_types()
     cars = []
-    for k, rec in enumerate(solution["carriages"]):
-        number = str(rec.get("number"))
-        if rec.get("status") == "left_out" or rec.get("world_from_carriage") is None:
-            continue
-        if number not in types:
-            raise InputError(f"{sp}: carriages[{k}].number = {number!r} is not in the consist of "
-                             f"{project.settings_path}; run the 'solve' stage again")
-        ct = types[number]
-        M = _matrix(rec["world_from_carriage"], f"{sp}: carriages[{k}].world_from_carriage")
-        mesh = ct.mesh(car_number=number, textured=textured)
-        mesh.apply_transform(M)
-        cars.append(PlacedCarriage(int(rec.get("index", k)), number, ct.id, ct.name, str(rec.get("status", "solved")),
-                                   M, mesh, np.asarray(ct.bounding_box(), float), rec))
+    for c in sol.posed:
+        ct = types[c.number]
+        mesh = ct.mesh(car_number=c.number, textured=textured)
+        mesh.apply_transform(c.world_from_carriage)
+        cars.append(PlacedCarriage(c.index, c.number, ct.id, ct.name, c.status, c.world_from_carriage, mesh,
+                                   np.asarray(ct.bounding_box(), float), c.record))
     cam_data, cams = load_cameras(project)
-    cams = with_solved_focal(cams, solution, sp)
+    cams = with_solved_focal(cams, sol.focal_px)
     terrain = _terrain_mesh(project, textured=textured) if with_terrain else None
     buildings = _buildings_mesh(project) if with_terrain else None
-    files = {"solution": sp}
+    files = {"solution": sol.path}
     if project.cameras_path():
         files["cameras"] = project.cameras_path()
-    return IncidentScene(terrain, buildings, cars, cams, solution, cam_data, files)
+    return IncidentScene(terrain, buildings, cars, cams, sol.doc, cam_data, files)
 
 
 # ----------------------------------------------------------------------------------------------------------

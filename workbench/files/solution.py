@@ -1,0 +1,148 @@
+"""``out/solve/solution.json``: every carriage's pose and uncertainty (format in ``docs/pipeline.md``), the one
+reader.
+
+The solve stage writes it; the render stage, the report, the exports and the viewer read it through
+:meth:`workbench.project.Project.solution`, which checks it against the incident (its frame and consist).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Collection
+
+import numpy as np
+
+from ..core.frames import SceneFrame, is_rotation
+from ..core.io import read_json
+from ..errors import InputError
+
+__all__ = ["SolvedCarriage", "Solution", "parse_solution", "read_solution"]
+
+STATUSES = ("solved", "carried", "left_out")
+
+
+@dataclass(frozen=True)
+class SolvedCarriage:
+    """One carriage of the solution: ``world_from_carriage`` (4, 4) or None (left out), and its whole record
+    (intervals, residuals, observations) as written."""
+
+    index: int
+    number: str
+    status: str
+    world_from_carriage: np.ndarray | None
+    record: dict = field(compare=False, repr=False)
+
+    @property
+    def posed(self) -> bool:
+        return self.world_from_carriage is not None
+
+    @property
+    def reason(self) -> str:
+        return str(self.record.get("reason") or "no pose in the solution")
+
+    def floats(self, key: str) -> list[float] | None:
+        """The record's list of numbers under ``key``, or None when it is absent or not all finite numbers."""
+        v = self.record.get(key)
+        if v is None:
+            return None
+        try:
+            a = [float(x) for x in v]
+        except (TypeError, ValueError):
+            return None
+        return a if all(math.isfinite(x) for x in a) else None
+
+
+@dataclass(frozen=True)
+class Solution:
+    """A read ``solution.json``: its carriages (file order), the focal the solve used per view, the document."""
+
+    path: Path
+    carriages: tuple[SolvedCarriage, ...]
+    focal_px: dict[str, float]
+    doc: dict = field(compare=False, repr=False)
+
+    @property
+    def posed(self) -> list[SolvedCarriage]:
+        return [c for c in self.carriages if c.posed]
+
+    @property
+    def left_out(self) -> list[SolvedCarriage]:
+        return [c for c in self.carriages if not c.posed]
+
+
+def _rigid(value: Any, where: str) -> np.ndarray:
+    try:
+        M = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: not a 4x4 matrix of numbers") from None
+    if M.shape != (4, 4) or not np.all(np.isfinite(M)):
+        raise InputError(f"{where}: shape {M.shape}, expected a finite 4x4 matrix")
+    if not is_rotation(M[:3, :3], tol=1e-6) or not np.allclose(M[3], [0, 0, 0, 1]):
+        raise InputError(f"{where}: not a rigid transform [[R, t], [0, 0, 0, 1]] (R must be a rotation)")
+    return M
+
+
+def _focal(doc: dict, where: str) -> dict[str, float]:
+    focal = doc.get("focal_px") or {}
+    if not isinstance(focal, dict):
+        raise InputError(f"{where}: 'focal_px' must map view names to focal lengths (px)")
+    for name, f in focal.items():
+        if not isinstance(f, (int, float)) or isinstance(f, bool) or not math.isfinite(f) or f <= 0:
+            raise InputError(f"{where}: focal_px[{name!r}] = {f!r}: not a positive focal length (px)")
+    return {str(k): float(v) for k, v in focal.items()}
+
+
+def _check_frame(doc: dict, frame: SceneFrame, where: str) -> None:
+    fr = doc.get("frame")
+    if not isinstance(fr, dict):
+        return
+    try:
+        same = (abs(float(fr.get("lat", frame.lat_deg)) - frame.lat_deg) < 1e-9
+                and abs(float(fr.get("lon", frame.lon_deg)) - frame.lon_deg) < 1e-9
+                and abs(float(fr.get("height_m", frame.height_m)) - frame.height_m) < 1e-6)
+    except (TypeError, ValueError):
+        raise InputError(f"{where}: 'frame' = {fr}: lat, lon and height_m must be numbers") from None
+    if not same:
+        raise InputError(f"{where}: 'frame' = {fr} differs from the project's location ({frame.lat_deg}, "
+                         f"{frame.lon_deg}, {frame.height_m} m); the solution is stale: run the solve again")
+
+
+def parse_solution(doc: Any, path: Path | str, *, frame: SceneFrame | None = None,
+                   numbers: Collection[str] | None = None) -> Solution:
+    """Check a parsed ``solution.json``: against the project's ``frame`` and consist car ``numbers`` when given;
+    :class:`InputError` naming the file and the entry (a stale solution says to run the solve again)."""
+    where = str(path)
+    if not isinstance(doc, dict) or not isinstance(doc.get("carriages"), list):
+        raise InputError(f"{where}: no 'carriages' list; see docs/pipeline.md (solution.json)")
+    if frame is not None:
+        _check_frame(doc, frame, where)
+    cars = []
+    for i, c in enumerate(doc["carriages"]):
+        w = f"{where}: carriages[{i}]"
+        if not isinstance(c, dict) or "number" not in c:
+            raise InputError(f"{w}: not an object with a 'number'")
+        number = str(c["number"])
+        status = str(c.get("status", "solved"))
+        if status not in STATUSES:
+            raise InputError(f"{w}.status = {status!r}: give one of {', '.join(STATUSES)}")
+        M = None
+        if status != "left_out" and c.get("world_from_carriage") is not None:
+            if numbers is not None and number not in numbers:
+                raise InputError(f"{w}.number = {number!r} is not in the project's consist ({', '.join(numbers)}); "
+                                 f"the solution is stale: run the solve again")
+            M = _rigid(c["world_from_carriage"], f"{w}.world_from_carriage")
+        try:
+            index = int(c.get("index", i))
+        except (TypeError, ValueError):
+            raise InputError(f"{w}.index = {c.get('index')!r}: not a whole number") from None
+        cars.append(SolvedCarriage(index, number, status, M, c))
+    return Solution(Path(path), tuple(cars), _focal(doc, where), doc)
+
+
+def read_solution(path: Path, *, frame: SceneFrame | None = None,
+                  numbers: Collection[str] | None = None) -> Solution:
+    """Read and check the ``solution.json`` at ``path`` (see :func:`parse_solution`)."""
+    doc = read_json(Path(path), missing="not found; run the solve stage first (`workbench run`)")
+    return parse_solution(doc, path, frame=frame, numbers=numbers)
