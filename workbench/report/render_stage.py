@@ -362,138 +362,165 @@ def _timed_map(sr: "SceneRenderer", fn, items):
         return list(pool.map(timed, items))
 
 
+class _RenderRun:
+    """One run of the render stage: each picture rendered, written under ``out`` and recorded (``renders.json``'s
+    index, the time by kind, the stage's outputs), in the stage's order."""
+
+    def __init__(self, project: Project, progress: Progress, out: Path, sc: IncidentScene, sr: SceneRenderer):
+        self.project, self.progress, self.out, self.sc, self.sr = project, progress, out, sc, sr
+        self.index: list[dict] = []
+        self.timings: dict[str, float] = {}
+        self.outputs: dict[str, Path] = {}
+        self.az0 = viewer_azimuth(sc, sr.centre)
+        self.n_steps = 3 + len(sc.carriages) + len(sc.cameras)
+        self.step = 0
+
+    def tick(self, msg: str) -> None:
+        self.step += 1
+        self.progress(min(self.step / self.n_steps, 0.99), msg)
+
+    def record(self, kind: str, name: str, path: Path, t0: float, **extra) -> None:
+        dt = time.perf_counter() - t0
+        self.timings[kind] = self.timings.get(kind, 0.0) + dt
+        self.outputs[name] = path
+        self.index.append({"kind": kind, "name": name, "path": self.project.relative(path), "time_s": round(dt, 3),
+                           **extra})
+
+    def overview(self) -> None:
+        sr = self.sr
+        self.tick("overview")
+        t0 = time.perf_counter()
+        M = sr.view_from(sr.centre, sr.radius, self.az0 + 25.0, 32.0, OVERVIEW_SIZE, margin=0.8)
+        res = sr.render(M, OVERVIEW_SIZE)
+        p = _write_png(self.project, self.out / "overview.png",
+                       label_carriages(res.color, _pinhole(*OVERVIEW_SIZE), M, self.sc))
+        self.record("overview", "overview", p, t0, width=OVERVIEW_SIZE[0], height=OVERVIEW_SIZE[1], cam_from_world=M)
+
+    def top_down_map(self) -> None:
+        """The map: the carriages and cameras from above, with a scale bar, north and the grid convergence."""
+        sc, sr, project = self.sc, self.sr, self.project
+        self.tick("map")
+        t0 = time.perf_counter()
+        pts = [c.footprint_enu() for c in sc.carriages] + [np.array([c.center_enu[:2] for c in sc.cameras])
+                                                          if sc.cameras else np.zeros((0, 2))]
+        P = np.vstack([q for q in pts if len(q)]) if any(len(q) for q in pts) else np.zeros((1, 2))
+        lo, hi = P.min(axis=0), P.max(axis=0)
+        centre_en = 0.5 * (lo + hi)
+        half = float(max(0.5 * np.max(hi - lo) * 1.12 + 6.0, 25.0))
+        K, Mt, mpp = top_down_camera(centre_en, half, MAP_SIZE[0], float(sr.centre[2]))
+        res = sr.render(Mt, MAP_SIZE, K=K, supersample=1)
+        extent = (centre_en[0] - half, centre_en[0] + half, centre_en[1] - half, centre_en[1] + half)
+        conv = project.frame.grid_convergence_deg()
+        map_path = self.out / "map.png"
+        crs_name = project.settings.location.crs
+        draw_map(map_path, res.color, extent, sc, conv, crs_name,
+                 f"Reference point {_latlon(project.settings.location.lat, project.settings.location.lon)}.")
+        self.record("map", "map", map_path, t0, extent_enu=list(extent), metres_per_px=mpp, grid_convergence_deg=conv,
+                    crs=crs_name)
+
+    def photos(self) -> None:
+        """Every photo with the reconstruction over it, and its carriage ids (the views without glyphs)."""
+        from ..render.lens import render_photo
+
+        sc, sr, project = self.sc, self.sr, self.project
+        sr.without_glyphs()
+        observed_views = {v for c in sc.solution.get("carriages", []) for v in (c.get("observations") or {})}
+        present = []  # (camera, scale, the photo's camera at the overlay's size)
+        for cam in sc.cameras:
+            if cam.image is None or not cam.image.is_file():
+                log.warning("render: photo of view %s not found (%s); no overlay for it", cam.name, cam.image)
+                continue
+            scale = min(1.0, PHOTO_MAX_WIDTH / cam.intrinsics.width)
+            present.append((cam, scale, cam.intrinsics.scaled(scale) if scale < 1.0 else cam.intrinsics))
+        overlays = _timed_map(sr, lambda p: render_photo(sr.scene, p[2], p[0].cam_from_world, supersample=1), present)
+        for (cam, scale, intr), (res, dt) in zip(present, overlays):
+            self.tick(f"photo {cam.name}")
+            t0 = time.perf_counter() - dt
+            photo = _read_rgb(cam.image, (intr.width, intr.height))
+            blended = blend_photo(photo, res.color, res.instance)
+            stem = Path(cam.name).stem
+            p = _write_png(project, self.out / f"photo_{stem}.png", blended)
+            ids = np.where(res.instance >= 0, res.instance, 255).astype(np.uint8)
+            pid = _write_png(project, self.out / f"photo_{stem}_ids.png", ids)
+            self.outputs[f"photo_{stem}_ids"] = pid
+            self.record("photo", f"photo_{stem}", p, t0, view=cam.name, width=intr.width, height=intr.height,
+                        scale=scale, ids=project.relative(pid), observed=cam.name in observed_views,
+                        carriage_pixels={str(int(k)): int(n) for k, n in
+                                         zip(*np.unique(res.instance[res.instance >= 0], return_counts=True))})
+
+    def closeups(self) -> None:
+        sr = self.sr
+
+        def closeup_view(c):
+            r = 0.5 * float(np.linalg.norm(c.bbox_carriage[1] - c.bbox_carriage[0]))
+            az, el = _closeup_azimuth(c, self.az0)
+            return sr.view_from(c.body_centre_enu, r, az, el, CLOSEUP_SIZE, margin=1.0), az, el
+
+        views = [closeup_view(c) for c in self.sc.carriages]
+        closeups = _timed_map(sr, lambda v: sr.render(v[0], CLOSEUP_SIZE), views)
+        for c, (_, az, el), (res, dt) in zip(self.sc.carriages, views, closeups):
+            self.tick(f"close-up {c.number}")
+            t0 = time.perf_counter() - dt
+            p = _write_png(self.project, self.out / f"car_{c.number}.png", res.color)
+            self.record("closeup", f"car_{c.number}", p, t0, carriage=c.number, width=CLOSEUP_SIZE[0],
+                        height=CLOSEUP_SIZE[1], azimuth_deg=az, elevation_deg=el)
+
+    def orbit(self) -> None:
+        """The orbit: an animated GIF around the scene, and a sheet of six of its frames."""
+        from PIL import Image
+
+        sr, project, az0 = self.sr, self.project, self.az0
+        self.tick("orbit")
+        t0 = time.perf_counter()
+        frames = []
+
+        def orbit_frame(k: int) -> np.ndarray:
+            M = sr.view_from(sr.centre, sr.radius, az0 + 360.0 * k / ORBIT_FRAMES, 30.0, ORBIT_SIZE, margin=0.8)
+            return sr.render(M, ORBIT_SIZE, supersample=1).color
+
+        for k, (frame, _dt) in enumerate(_timed_map(sr, orbit_frame, range(ORBIT_FRAMES))):
+            self.progress(min((self.step + k / ORBIT_FRAMES) / self.n_steps, 0.99),
+                          f"orbit frame {k + 1}/{ORBIT_FRAMES}")
+            frames.append(frame)
+        gif = self.out / "orbit.gif"
+        imgs = [Image.fromarray(f) for f in frames]
+        project.write_with(gif, lambda q: imgs[0].save(q, format="GIF", save_all=True, append_images=imgs[1:],
+                                                       duration=250, loop=0))
+        sel = frames[:: max(1, ORBIT_FRAMES // 6)][:6]
+        h, w = sel[0].shape[:2]
+        sheet = np.full((2 * h + 6, 3 * w + 12, 3), 255, np.uint8)
+        for i, f in enumerate(sel):
+            r_, c_ = divmod(i, 3)
+            sheet[r_ * (h + 6):r_ * (h + 6) + h, c_ * (w + 6):c_ * (w + 6) + w] = f
+        sp = _write_png(project, self.out / "orbit_sheet.png", sheet)
+        self.outputs["orbit_sheet"] = sp
+        sheet_az = [(az0 + 360.0 * k / ORBIT_FRAMES) % 360.0
+                    for k in range(0, ORBIT_FRAMES, max(1, ORBIT_FRAMES // 6))]
+        self.record("orbit", "orbit", gif, t0, frames=ORBIT_FRAMES, width=ORBIT_SIZE[0], height=ORBIT_SIZE[1],
+                    sheet=project.relative(sp), sheet_azimuths_deg=sheet_az[:6])
+
+
 def run_render(project: Project, progress: Progress) -> StageResult:
     t_all = time.perf_counter()
     out = project.stage_dir("render")
     progress(0.0, "reading the scene")
     sc = load_scene(project)
     sr = SceneRenderer(sc)
-    index: list[dict] = []
-    timings: dict[str, float] = {}
-    outputs: dict[str, Path] = {}
-    az0 = viewer_azimuth(sc, sr.centre)
-    n_steps = 3 + len(sc.carriages) + len(sc.cameras)
-    step = [0]
-
-    def tick(msg: str) -> None:
-        step[0] += 1
-        progress(min(step[0] / n_steps, 0.99), msg)
-
-    def record(kind: str, name: str, path: Path, t0: float, **extra) -> None:
-        dt = time.perf_counter() - t0
-        timings[kind] = timings.get(kind, 0.0) + dt
-        outputs[name] = path
-        index.append({"kind": kind, "name": name, "path": project.relative(path), "time_s": round(dt, 3), **extra})
-
-    # overview
-    tick("overview")
-    t0 = time.perf_counter()
-    M = sr.view_from(sr.centre, sr.radius, az0 + 25.0, 32.0, OVERVIEW_SIZE, margin=0.8)
-    res = sr.render(M, OVERVIEW_SIZE)
-    p = _write_png(project, out / "overview.png", label_carriages(res.color, _pinhole(*OVERVIEW_SIZE), M, sc))
-    record("overview", "overview", p, t0, width=OVERVIEW_SIZE[0], height=OVERVIEW_SIZE[1], cam_from_world=M)
-
-    # top-down map
-    tick("map")
-    t0 = time.perf_counter()
-    pts = [c.footprint_enu() for c in sc.carriages] + [np.array([c.center_enu[:2] for c in sc.cameras])
-                                                      if sc.cameras else np.zeros((0, 2))]
-    P = np.vstack([q for q in pts if len(q)]) if any(len(q) for q in pts) else np.zeros((1, 2))
-    lo, hi = P.min(axis=0), P.max(axis=0)
-    centre_en = 0.5 * (lo + hi)
-    half = float(max(0.5 * np.max(hi - lo) * 1.12 + 6.0, 25.0))
-    K, Mt, mpp = top_down_camera(centre_en, half, MAP_SIZE[0], float(sr.centre[2]))
-    res = sr.render(Mt, MAP_SIZE, K=K, supersample=1)
-    extent = (centre_en[0] - half, centre_en[0] + half, centre_en[1] - half, centre_en[1] + half)
-    conv = project.frame.grid_convergence_deg()
-    map_path = out / "map.png"
-    crs_name = project.settings.location.crs
-    draw_map(map_path, res.color, extent, sc, conv, crs_name,
-             f"Reference point {_latlon(project.settings.location.lat, project.settings.location.lon)}.")
-    record("map", "map", map_path, t0, extent_enu=list(extent), metres_per_px=mpp, grid_convergence_deg=conv,
-           crs=crs_name)
-
-    # every photo with the reconstruction over it
-    sr.without_glyphs()
-    observed_views = {v for c in sc.solution.get("carriages", []) for v in (c.get("observations") or {})}
-    from ..render.lens import render_photo
-
-    present = []  # (camera, scale, the photo's camera at the overlay's size)
-    for cam in sc.cameras:
-        if cam.image is None or not cam.image.is_file():
-            log.warning("render: photo of view %s not found (%s); no overlay for it", cam.name, cam.image)
-            continue
-        scale = min(1.0, PHOTO_MAX_WIDTH / cam.intrinsics.width)
-        present.append((cam, scale, cam.intrinsics.scaled(scale) if scale < 1.0 else cam.intrinsics))
-    overlays = _timed_map(sr, lambda p: render_photo(sr.scene, p[2], p[0].cam_from_world, supersample=1), present)
-    for (cam, scale, intr), (res, dt) in zip(present, overlays):
-        tick(f"photo {cam.name}")
-        t0 = time.perf_counter() - dt
-        photo = _read_rgb(cam.image, (intr.width, intr.height))
-        blended = blend_photo(photo, res.color, res.instance)
-        stem = Path(cam.name).stem
-        p = _write_png(project, out / f"photo_{stem}.png", blended)
-        ids = np.where(res.instance >= 0, res.instance, 255).astype(np.uint8)
-        pid = _write_png(project, out / f"photo_{stem}_ids.png", ids)
-        outputs[f"photo_{stem}_ids"] = pid
-        record("photo", f"photo_{stem}", p, t0, view=cam.name, width=intr.width, height=intr.height,
-               scale=scale, ids=project.relative(pid), observed=cam.name in observed_views,
-               carriage_pixels={str(int(k)): int(n) for k, n in zip(*np.unique(res.instance[res.instance >= 0],
-                                                                              return_counts=True))})
-
-    # close-ups
-    def closeup_view(c):
-        r = 0.5 * float(np.linalg.norm(c.bbox_carriage[1] - c.bbox_carriage[0]))
-        az, el = _closeup_azimuth(c, az0)
-        return sr.view_from(c.body_centre_enu, r, az, el, CLOSEUP_SIZE, margin=1.0), az, el
-
-    views = [closeup_view(c) for c in sc.carriages]
-    closeups = _timed_map(sr, lambda v: sr.render(v[0], CLOSEUP_SIZE), views)
-    for c, (_, az, el), (res, dt) in zip(sc.carriages, views, closeups):
-        tick(f"close-up {c.number}")
-        t0 = time.perf_counter() - dt
-        p = _write_png(project, out / f"car_{c.number}.png", res.color)
-        record("closeup", f"car_{c.number}", p, t0, carriage=c.number, width=CLOSEUP_SIZE[0],
-               height=CLOSEUP_SIZE[1], azimuth_deg=az, elevation_deg=el)
-
-    # orbit
-    tick("orbit")
-    t0 = time.perf_counter()
-    frames = []
-
-    def orbit_frame(k: int) -> np.ndarray:
-        M = sr.view_from(sr.centre, sr.radius, az0 + 360.0 * k / ORBIT_FRAMES, 30.0, ORBIT_SIZE, margin=0.8)
-        return sr.render(M, ORBIT_SIZE, supersample=1).color
-
-    for k, (frame, _dt) in enumerate(_timed_map(sr, orbit_frame, range(ORBIT_FRAMES))):
-        progress(min((step[0] + k / ORBIT_FRAMES) / n_steps, 0.99), f"orbit frame {k + 1}/{ORBIT_FRAMES}")
-        frames.append(frame)
-    from PIL import Image
-
-    gif = out / "orbit.gif"
-    imgs = [Image.fromarray(f) for f in frames]
-    project.write_with(gif, lambda q: imgs[0].save(q, format="GIF", save_all=True, append_images=imgs[1:],
-                                                   duration=250, loop=0))
-    sel = frames[:: max(1, ORBIT_FRAMES // 6)][:6]
-    h, w = sel[0].shape[:2]
-    sheet = np.full((2 * h + 6, 3 * w + 12, 3), 255, np.uint8)
-    for i, f in enumerate(sel):
-        r_, c_ = divmod(i, 3)
-        sheet[r_ * (h + 6):r_ * (h + 6) + h, c_ * (w + 6):c_ * (w + 6) + w] = f
-    sp = _write_png(project, out / "orbit_sheet.png", sheet)
-    outputs["orbit_sheet"] = sp
-    sheet_az = [(az0 + 360.0 * k / ORBIT_FRAMES) % 360.0 for k in range(0, ORBIT_FRAMES, max(1, ORBIT_FRAMES // 6))]
-    record("orbit", "orbit", gif, t0, frames=ORBIT_FRAMES, width=ORBIT_SIZE[0], height=ORBIT_SIZE[1],
-           sheet=project.relative(sp), sheet_azimuths_deg=sheet_az[:6])
+    run = _RenderRun(project, progress, out, sc, sr)
+    run.overview()
+    run.top_down_map()
+    run.photos()
+    run.closeups()
+    run.orbit()
 
     total = time.perf_counter() - t_all
-    idx = {"engine": sr.scene.engine, "renders": index, "time_s": round(total, 3),
-           "focus_enu": sr.centre, "focus_radius_m": sr.radius, "viewer_azimuth_deg": az0}
-    outputs["renders"] = project.write_json(out / "renders.json", idx)
+    idx = {"engine": sr.scene.engine, "renders": run.index, "time_s": round(total, 3),
+           "focus_enu": sr.centre, "focus_radius_m": sr.radius, "viewer_azimuth_deg": run.az0}
+    run.outputs["renders"] = project.write_json(out / "renders.json", idx)
     progress(1.0, "done")
-    return StageResult(outputs=outputs, stats={
-        "engine": sr.scene.engine, "n_renders": len(index), "n_carriages": len(sc.carriages),
-        "n_photos": sum(1 for r in index if r["kind"] == "photo"),
-        "time_by_kind_s": {k: round(v, 3) for k, v in timings.items()},
+    return StageResult(outputs=run.outputs, stats={
+        "engine": sr.scene.engine, "n_renders": len(run.index), "n_carriages": len(sc.carriages),
+        "n_photos": sum(1 for r in run.index if r["kind"] == "photo"),
+        "time_by_kind_s": {k: round(v, 3) for k, v in run.timings.items()},
         "terrain_textured": bool(sc.terrain is not None and getattr(sc.terrain.visual, "kind", None) == "texture"),
     })
