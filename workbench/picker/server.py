@@ -306,208 +306,221 @@ def parse_body(data: bytes) -> object:
         raise Refused(400, f"not JSON: {_cut(str(exc), 80)}") from None
 
 
-def _handler(state: PickerState, token: str):
+class PickerHandler(BaseHTTPRequestHandler):
+    """The picker's requests: every check of the module docstring, then the page, its files and the save.
+    A server uses a subclass bound to its run's :class:`PickerState`, token and page (:func:`_handler`)."""
+
+    state: PickerState
+    token: str
+    page_bytes: bytes
+    server_version = "workbench-picker"
+    sys_version = ""
+    timeout = 10  # seconds a client may take to send its request (a short body does not hold a thread)
+    _body_read = False
+
+    # -- answers -------------------------------------------------------------------------------------
+    def log_message(self, fmt, *args):  # http.server's access log: debug only, never stderr by itself
+        log.debug("picker: " + fmt, *args)
+
+    def _send(self, status: int, body: bytes, ctype: str, extra: dict | None = None) -> None:
+        self.send_response(status)
+        self.send_header("Content-Type", ctype)
+        self.send_header("Content-Length", str(len(body)))
+        for k, v in {**SECURITY_HEADERS, **(extra or {})}.items():
+            self.send_header(k, v)
+        self.end_headers()
+        if self.command != "HEAD":
+            self.wfile.write(body)
+
+    def _json(self, status: int, data: object, extra: dict | None = None) -> None:
+        self._send(status, json.dumps(data).encode(), "application/json", extra)
+
+    def _refuse(self, status: int, message: str, extra: dict | None = None) -> None:
+        """One log line and a JSON answer; the connection is closed after it."""
+        log.warning("picker: %d for %s %s: %s", status,
+                    _cut(getattr(self, "command", None) or "-", 20, quote=False),
+                    _cut(getattr(self, "path", None) or "-", 80, quote=False), message)
+        self.close_connection = True
+        if not self._body_read:
+            self._discard_body()
+        try:
+            self._json(status, {"error": message}, extra)
+        except OSError:  # the client has gone
+            pass
+
+    def send_error(self, code, message=None, explain=None):  # noqa: D401 - http.server's own refusals
+        """http.server's refusals of a malformed request (request line, headers, HTTP version): JSON, one
+        log line, and a 4xx (a malformed request is the client's fault: never a 5xx)."""
+        code = int(code)
+        if code >= 500:
+            code = 400
+        if not hasattr(self, "command") or self.command is None:
+            self.command = ""
+        self._refuse(code, message or HTTPStatus(code).phrase)
+
+    def _discard_body(self) -> None:
+        """Read and drop a refused request's body (if small enough), so the client reads the answer, not a
+        connection reset."""
+        n = (self.headers.get("Content-Length") or "").strip() if getattr(self, "headers", None) else ""
+        if not re.fullmatch(r"[0-9]{1,8}", n) or int(n) > MAX_BODY:
+            return
+        try:
+            self.connection.settimeout(2)
+            self.rfile.read(int(n))
+        except OSError:
+            pass
+        self._body_read = True
+
+    # -- checks --------------------------------------------------------------------------------------
+    def _origins(self) -> tuple[set[str], set[str]]:
+        port = self.server.server_address[1]
+        hosts = {f"127.0.0.1:{port}", f"localhost:{port}"}
+        return hosts, {f"http://{h}" for h in hosts}
+
+    def _gate(self, *, token_needed: bool, navigation_ok: bool) -> None:
+        hosts, origins = self._origins()
+        host = self.headers.get_all("Host") or []
+        if len(host) != 1 or host[0].strip().lower() not in hosts:
+            given = f"Host {_cut(host[0])}" if len(host) == 1 else f"{len(host)} Host headers"
+            raise Refused(403, f"{given}: not this picker (use http://127.0.0.1:{self.server.server_address[1]}/)")
+        origin = self.headers.get_all("Origin") or []
+        if len(origin) > 1 or (origin and origin[0].strip().lower() not in origins):
+            raise Refused(403, f"Origin {_cut(origin[0])} is not this picker's page")
+        site = (self.headers.get("Sec-Fetch-Site") or "").strip().lower()
+        mode = (self.headers.get("Sec-Fetch-Mode") or "").strip().lower()
+        if site in ("cross-site", "same-site") and not (navigation_ok and mode == "navigate"):
+            raise Refused(403, f"a request from another site ({site}) is refused")
+        if token_needed:
+            given = self.headers.get(TOKEN_HEADER) or ""
+            if not hmac.compare_digest(given.encode("utf-8", "replace"), self.token.encode()):
+                raise Refused(403, f"missing or wrong {TOKEN_HEADER} header: reload the picker's page "
+                                   f"(the token changes at every start)")
+
+    def _read_body(self) -> bytes:
+        ctype = (self.headers.get("Content-Type") or "").split(";")
+        params = {p.split("=", 1)[0].strip().lower(): p.split("=", 1)[-1].strip().strip('"').lower()
+                  for p in ctype[1:] if p.strip()}
+        if ctype[0].strip().lower() != "application/json" or params.get("charset", "utf-8") != "utf-8":
+            raise Refused(415, f"Content-Type {_cut(self.headers.get('Content-Type'))}: a save must be "
+                               f"application/json (UTF-8)")
+        if self.headers.get("Transfer-Encoding"):
+            raise Refused(411, "send the body with a Content-Length (no Transfer-Encoding)")
+        lengths = self.headers.get_all("Content-Length") or []
+        if len(lengths) != 1:
+            raise Refused(411, "a save needs one Content-Length header")
+        n = lengths[0].strip()
+        if not re.fullmatch(r"[0-9]{1,15}", n):
+            raise Refused(400, f"Content-Length {_cut(n)} is not a number of bytes")
+        if int(n) > MAX_BODY:
+            raise Refused(413, f"Content-Length {int(n)}: a save is at most {MAX_BODY} bytes")
+        n = int(n)
+        try:
+            data = self.rfile.read(n)
+        except (TimeoutError, socket.timeout):
+            self._body_read = True
+            raise Refused(408, f"the body did not arrive within {self.timeout} s (Content-Length {n})") from None
+        self._body_read = True
+        if len(data) != n:
+            raise Refused(400, f"the body has {len(data)} bytes, Content-Length says {n}")
+        return data
+
+    # -- dispatch ------------------------------------------------------------------------------------
+    def _run(self, work) -> None:
+        self._body_read = False
+        try:
+            if not self.path.startswith("/"):
+                raise Refused(400, f"request target {_cut(self.path)} is not a path")
+            work(unquote(self.path.split("?", 1)[0].split("#", 1)[0]))
+            if not self._body_read:  # a body nobody asked for (a GET with one): read it, or the close resets
+                self._discard_body()
+        except Refused as exc:
+            self._refuse(exc.status, exc.message)
+        except WorkbenchError as exc:  # the save or the incident's files: one line naming file, key, value
+            self._refuse(400, str(exc))
+        except WriteFailed as exc:
+            self._refuse(500, str(exc))
+        except (BrokenPipeError, ConnectionResetError):
+            log.info("picker: %s %s: the client closed the connection", self.command, _cut(self.path, 80))
+            self.close_connection = True
+        except Exception as exc:  # a bug: one line (the traceback with -vv), a 500, nothing written
+            log.error("picker: internal error on %s %s: %s: %s", self.command, _cut(self.path, 80),
+                      type(exc).__name__, _cut(str(exc), 200))
+            log.debug("picker: traceback", exc_info=True)
+            self._refuse(500, f"internal error ({type(exc).__name__}); nothing was written")
+
+    def _get(self, path: str) -> None:
+        page_paths = ("/", "/index.html")
+        self._gate(token_needed=path.startswith("/api/"), navigation_ok=path in page_paths)
+        if path in page_paths:
+            return self._send(200, self.page_bytes, "text/html; charset=utf-8")
+        if path == "/picker.js":
+            return self._send(200, (STATIC / "picker.js").read_bytes(), "text/javascript; charset=utf-8")
+        if path == "/api/state":
+            return self._json(200, self.state.document())
+        if path.startswith("/photo/"):
+            name = path[len("/photo/"):]
+            p = self.state.photo(name)
+            if p is None:
+                raise Refused(404, f"no photo {_cut(name)} in the incident")
+            ctype = {".png": "image/png", ".tif": "image/tiff", ".tiff": "image/tiff"}.get(p.suffix.lower(),
+                                                                                           "image/jpeg")
+            return self._send(200, p.read_bytes(), ctype)
+        m = re.fullmatch(r"/reference/([^/]+)/([a-z]+)\.png", path)
+        if path.startswith("/reference/"):
+            if not m or m.group(1) not in self.state.project.carriage_types() or m.group(2) not in FACES:
+                raise Refused(404, f"no reference {_cut(path[len('/reference/'):])}")
+            from PIL import Image
+
+            buf = io.BytesIO()
+            ref = _reference(self.state.project, m.group(1), m.group(2))
+            Image.fromarray(np.ascontiguousarray(ref.image)).save(buf, "PNG")
+            return self._send(200, buf.getvalue(), "image/png")
+        raise Refused(404, f"no such page {_cut(path)}")
+
+    def _post(self, path: str) -> None:
+        if path != "/api/save":
+            self._gate(token_needed=False, navigation_ok=False)
+            raise Refused(404, f"no such endpoint {_cut(path)}")
+        self._gate(token_needed=True, navigation_ok=False)
+        payload = parse_body(self._read_body())
+        try:
+            result = self.state.save(payload)
+        except InputError as exc:
+            raise Refused(400, f"save refused, {mf.FILE_NAME} unchanged: {exc}") from None
+        log.info("picker: saved %d points and %d rejections to %s", result["n"], result["n_rejected"],
+                 result["saved"])
+        self._json(200, result)
+
+    def do_GET(self) -> None:  # noqa: N802 - http.server API
+        self._run(self._get)
+
+    def do_POST(self) -> None:  # noqa: N802
+        self._run(self._post)
+
+    def _not_allowed(self) -> None:
+        def work(path: str) -> None:
+            raise Refused(405, f"method {_cut(self.command)} is not allowed (GET, POST)")
+
+        self._run(work)
+
+    def __getattr__(self, name: str):  # any other method (HEAD, PUT, OPTIONS, BREW, ...): 405, not 501
+        if name.startswith("do_"):
+            return self._not_allowed
+        raise AttributeError(name)
+
+
+
+def _handler(state: PickerState, token: str) -> type[PickerHandler]:
+    """A handler class bound to one picker: its state, its token, and its page with the token embedded."""
     page = (STATIC / "index.html").read_text(encoding="utf-8")
     if TOKEN_MARK not in page:
         raise RuntimeError(f"{STATIC / 'index.html'} lacks the token mark {TOKEN_MARK}")
     page_bytes = page.replace(TOKEN_MARK, token).encode("utf-8")
 
-    class Handler(BaseHTTPRequestHandler):
-        server_version = "workbench-picker"
-        sys_version = ""
-        timeout = 10  # seconds a client may take to send its request (a short body does not hold a thread)
-        _body_read = False
+    class Handler(PickerHandler):
+        pass
 
-        # -- answers -------------------------------------------------------------------------------------
-        def log_message(self, fmt, *args):  # http.server's access log: debug only, never stderr by itself
-            log.debug("picker: " + fmt, *args)
-
-        def _send(self, status: int, body: bytes, ctype: str, extra: dict | None = None) -> None:
-            self.send_response(status)
-            self.send_header("Content-Type", ctype)
-            self.send_header("Content-Length", str(len(body)))
-            for k, v in {**SECURITY_HEADERS, **(extra or {})}.items():
-                self.send_header(k, v)
-            self.end_headers()
-            if self.command != "HEAD":
-                self.wfile.write(body)
-
-        def _json(self, status: int, data: object, extra: dict | None = None) -> None:
-            self._send(status, json.dumps(data).encode(), "application/json", extra)
-
-        def _refuse(self, status: int, message: str, extra: dict | None = None) -> None:
-            """One log line and a JSON answer; the connection is closed after it."""
-            log.warning("picker: %d for %s %s: %s", status,
-                        _cut(getattr(self, "command", None) or "-", 20, quote=False),
-                        _cut(getattr(self, "path", None) or "-", 80, quote=False), message)
-            self.close_connection = True
-            if not self._body_read:
-                self._discard_body()
-            try:
-                self._json(status, {"error": message}, extra)
-            except OSError:  # the client has gone
-                pass
-
-        def send_error(self, code, message=None, explain=None):  # noqa: D401 - http.server's own refusals
-            """http.server's refusals of a malformed request (request line, headers, HTTP version): JSON, one
-            log line, and a 4xx (a malformed request is the client's fault: never a 5xx)."""
-            code = int(code)
-            if code >= 500:
-                code = 400
-            if not hasattr(self, "command") or self.command is None:
-                self.command = ""
-            self._refuse(code, message or HTTPStatus(code).phrase)
-
-        def _discard_body(self) -> None:
-            """Read and drop a refused request's body (if small enough), so the client reads the answer, not a
-            connection reset."""
-            n = (self.headers.get("Content-Length") or "").strip() if getattr(self, "headers", None) else ""
-            if not re.fullmatch(r"[0-9]{1,8}", n) or int(n) > MAX_BODY:
-                return
-            try:
-                self.connection.settimeout(2)
-                self.rfile.read(int(n))
-            except OSError:
-                pass
-            self._body_read = True
-
-        # -- checks --------------------------------------------------------------------------------------
-        def _origins(self) -> tuple[set[str], set[str]]:
-            port = self.server.server_address[1]
-            hosts = {f"127.0.0.1:{port}", f"localhost:{port}"}
-            return hosts, {f"http://{h}" for h in hosts}
-
-        def _gate(self, *, token_needed: bool, navigation_ok: bool) -> None:
-            hosts, origins = self._origins()
-            host = self.headers.get_all("Host") or []
-            if len(host) != 1 or host[0].strip().lower() not in hosts:
-                given = f"Host {_cut(host[0])}" if len(host) == 1 else f"{len(host)} Host headers"
-                raise Refused(403, f"{given}: not this picker (use http://127.0.0.1:{self.server.server_address[1]}/)")
-            origin = self.headers.get_all("Origin") or []
-            if len(origin) > 1 or (origin and origin[0].strip().lower() not in origins):
-                raise Refused(403, f"Origin {_cut(origin[0])} is not this picker's page")
-            site = (self.headers.get("Sec-Fetch-Site") or "").strip().lower()
-            mode = (self.headers.get("Sec-Fetch-Mode") or "").strip().lower()
-            if site in ("cross-site", "same-site") and not (navigation_ok and mode == "navigate"):
-                raise Refused(403, f"a request from another site ({site}) is refused")
-            if token_needed:
-                given = self.headers.get(TOKEN_HEADER) or ""
-                if not hmac.compare_digest(given.encode("utf-8", "replace"), token.encode()):
-                    raise Refused(403, f"missing or wrong {TOKEN_HEADER} header: reload the picker's page "
-                                       f"(the token changes at every start)")
-
-        def _read_body(self) -> bytes:
-            ctype = (self.headers.get("Content-Type") or "").split(";")
-            params = {p.split("=", 1)[0].strip().lower(): p.split("=", 1)[-1].strip().strip('"').lower()
-                      for p in ctype[1:] if p.strip()}
-            if ctype[0].strip().lower() != "application/json" or params.get("charset", "utf-8") != "utf-8":
-                raise Refused(415, f"Content-Type {_cut(self.headers.get('Content-Type'))}: a save must be "
-                                   f"application/json (UTF-8)")
-            if self.headers.get("Transfer-Encoding"):
-                raise Refused(411, "send the body with a Content-Length (no Transfer-Encoding)")
-            lengths = self.headers.get_all("Content-Length") or []
-            if len(lengths) != 1:
-                raise Refused(411, "a save needs one Content-Length header")
-            n = lengths[0].strip()
-            if not re.fullmatch(r"[0-9]{1,15}", n):
-                raise Refused(400, f"Content-Length {_cut(n)} is not a number of bytes")
-            if int(n) > MAX_BODY:
-                raise Refused(413, f"Content-Length {int(n)}: a save is at most {MAX_BODY} bytes")
-            n = int(n)
-            try:
-                data = self.rfile.read(n)
-            except (TimeoutError, socket.timeout):
-                self._body_read = True
-                raise Refused(408, f"the body did not arrive within {self.timeout} s (Content-Length {n})") from None
-            self._body_read = True
-            if len(data) != n:
-                raise Refused(400, f"the body has {len(data)} bytes, Content-Length says {n}")
-            return data
-
-        # -- dispatch ------------------------------------------------------------------------------------
-        def _run(self, work) -> None:
-            self._body_read = False
-            try:
-                if not self.path.startswith("/"):
-                    raise Refused(400, f"request target {_cut(self.path)} is not a path")
-                work(unquote(self.path.split("?", 1)[0].split("#", 1)[0]))
-                if not self._body_read:  # a body nobody asked for (a GET with one): read it, or the close resets
-                    self._discard_body()
-            except Refused as exc:
-                self._refuse(exc.status, exc.message)
-            except WorkbenchError as exc:  # the save or the incident's files: one line naming file, key, value
-                self._refuse(400, str(exc))
-            except WriteFailed as exc:
-                self._refuse(500, str(exc))
-            except (BrokenPipeError, ConnectionResetError):
-                log.info("picker: %s %s: the client closed the connection", self.command, _cut(self.path, 80))
-                self.close_connection = True
-            except Exception as exc:  # a bug: one line (the traceback with -vv), a 500, nothing written
-                log.error("picker: internal error on %s %s: %s: %s", self.command, _cut(self.path, 80),
-                          type(exc).__name__, _cut(str(exc), 200))
-                log.debug("picker: traceback", exc_info=True)
-                self._refuse(500, f"internal error ({type(exc).__name__}); nothing was written")
-
-        def _get(self, path: str) -> None:
-            page_paths = ("/", "/index.html")
-            self._gate(token_needed=path.startswith("/api/"), navigation_ok=path in page_paths)
-            if path in page_paths:
-                return self._send(200, page_bytes, "text/html; charset=utf-8")
-            if path == "/picker.js":
-                return self._send(200, (STATIC / "picker.js").read_bytes(), "text/javascript; charset=utf-8")
-            if path == "/api/state":
-                return self._json(200, state.document())
-            if path.startswith("/photo/"):
-                name = path[len("/photo/"):]
-                p = state.photo(name)
-                if p is None:
-                    raise Refused(404, f"no photo {_cut(name)} in the incident")
-                ctype = {".png": "image/png", ".tif": "image/tiff", ".tiff": "image/tiff"}.get(p.suffix.lower(),
-                                                                                               "image/jpeg")
-                return self._send(200, p.read_bytes(), ctype)
-            m = re.fullmatch(r"/reference/([^/]+)/([a-z]+)\.png", path)
-            if path.startswith("/reference/"):
-                if not m or m.group(1) not in state.project.carriage_types() or m.group(2) not in FACES:
-                    raise Refused(404, f"no reference {_cut(path[len('/reference/'):])}")
-                from PIL import Image
-
-                buf = io.BytesIO()
-                ref = _reference(state.project, m.group(1), m.group(2))
-                Image.fromarray(np.ascontiguousarray(ref.image)).save(buf, "PNG")
-                return self._send(200, buf.getvalue(), "image/png")
-            raise Refused(404, f"no such page {_cut(path)}")
-
-        def _post(self, path: str) -> None:
-            if path != "/api/save":
-                self._gate(token_needed=False, navigation_ok=False)
-                raise Refused(404, f"no such endpoint {_cut(path)}")
-            self._gate(token_needed=True, navigation_ok=False)
-            payload = parse_body(self._read_body())
-            try:
-                result = state.save(payload)
-            except InputError as exc:
-                raise Refused(400, f"save refused, {mf.FILE_NAME} unchanged: {exc}") from None
-            log.info("picker: saved %d points and %d rejections to %s", result["n"], result["n_rejected"],
-                     result["saved"])
-            self._json(200, result)
-
-        def do_GET(self) -> None:  # noqa: N802 - http.server API
-            self._run(self._get)
-
-        def do_POST(self) -> None:  # noqa: N802
-            self._run(self._post)
-
-        def _not_allowed(self) -> None:
-            def work(path: str) -> None:
-                raise Refused(405, f"method {_cut(self.command)} is not allowed (GET, POST)")
-
-            self._run(work)
-
-        def __getattr__(self, name: str):  # any other method (HEAD, PUT, OPTIONS, BREW, ...): 405, not 501
-            if name.startswith("do_"):
-                return self._not_allowed
-            raise AttributeError(name)
-
+    Handler.state, Handler.token, Handler.page_bytes = state, token, page_bytes
     return Handler
 
 
