@@ -70,7 +70,7 @@ def test_homography_recovers_a_known_warp():
     want = cv2.perspectiveTransform(np.float32([ref.points[n] for n in names])[None], H)[0]
     got = det.transfer(np.array([ref.points[n] for n in names]))
     err = np.linalg.norm(got - want, axis=1)
-    assert 0.0 <= err.max() < 0.8, err
+    assert err.max() < 0.8, err
     assert 0.0 < det.confidence <= 1.0
 
 
@@ -116,10 +116,10 @@ def test_hough_finds_a_small_side_among_clutter():
     dets = [d for d in hough_detections(pf, ref, opts) if d.hough]
     corners = ref.corners()
     errs = [np.abs(d.polygon() - apply_h(H, corners)).max() for d in dets]
-    assert errs and 0.0 <= min(errs) < 3.0, errs  # the outline's corners, from matches on a 16 px wall
+    assert errs and min(errs) < 3.0, errs  # the outline's corners, from matches on a 16 px wall
     best = refine_detection(pf, dets[int(np.argmin(errs))], opts)  # as the stage does: ECC on the whole face
     assert best.ecc is not None and best.ecc >= opts.hough_min_ecc
-    assert 0.0 <= np.abs(best.polygon() - apply_h(H, corners)).max() < 1.0
+    assert np.abs(best.polygon() - apply_h(H, corners)).max() < 1.0
 
 
 def test_guided_completion_aligns_the_other_faces():
@@ -159,7 +159,7 @@ def test_guided_completion_aligns_the_other_faces():
     assert front is not None and front.guided and front.ecc >= opts.guided_min_ecc
     corners = refs["front"].corners()
     err = np.abs(front.polygon() - apply_h(predicted_homography(M, refs["front"], K), corners)).max()
-    assert 0.0 <= err < 1.0, err  # the outline's corners: the face's edges, blurred by the warp
+    assert err < 1.0, err  # the outline's corners: the face's edges, blurred by the warp
     assert guided_face(pf, refs["roof"], start, ct, opts) is None
     # the left side as a detection at its true homography, then the joint pose from both faces
     g = np.stack(np.meshgrid(np.linspace(0, refs["left"].image.shape[1] - 1, 9),
@@ -195,8 +195,8 @@ def test_ecc_on_the_cropped_photo_agrees_with_the_whole_photo(monkeypatch):
     Hw, cc_w = ecc_refine(pf, ref, start)
     corners = ref.corners()
     truth = apply_h(H, corners)
-    assert 0.0 <= np.abs(apply_h(Hc, corners) - truth).max() < 0.5
-    assert 0.0 <= np.abs(apply_h(Hc, corners) - apply_h(Hw, corners)).max() < 0.05
+    assert np.abs(apply_h(Hc, corners) - truth).max() < 0.5
+    assert np.abs(apply_h(Hc, corners) - apply_h(Hw, corners)).max() < 0.05
     assert cc_c > 0.9 and abs(cc_c - cc_w) < 1e-3
 
 
@@ -588,7 +588,7 @@ def test_pose_search_finds_a_coach_on_its_side():
         errs.append(err)
         # on an aligned face: its homography; elsewhere (the coach's marked points are on its sides' edges and
         # couplers, off the roof's and the end's planes): a prediction from the pose, sigma 2 px
-        assert 0.0 <= err < (1.5 if o.how == "homography" else 6.0), (o, err)
+        assert err < (1.5 if o.how == "homography" else 6.0), (o, err)
     assert sum(e <= 3.0 for e in errs) >= 4, errs
     # the same photo without the coach: nothing
     assert se.search_car(pf_clean, "6223", ct, refs, [anchor], cam_from_world, ground, opts, taken) == []

@@ -123,7 +123,7 @@ def test_unknown_focal_long_consist_found_by_the_chained_profile(seed):
     e = _body_err(res, sim)
     ratio = np.sqrt(np.mean((e**2).sum(1)) / np.mean([np.trace(C) for C in bound["body_centre_cov"]]))
     assert 0.05 < ratio < 2.5, ratio
-    assert "chained focal profile" in res.steps[0].note
+    assert res.steps[0].facts["focal_start"] == "chained_profile"
 
 
 def test_known_focal_solver_reaches_the_truth_started_minimum():
@@ -228,7 +228,9 @@ def test_step2_flat_terrain_rests_on_ground():
 
 
 def test_coverage_of_95_intervals():
-    inside, n = np.zeros(3), 0
+    """Honest and sharp: the truth inside the 95 % interval 88-99 % of the time per axis, and the errors in units
+    of the stated sigma with an RMS near 1 (0.94-1.03 measured): not merely wide enough."""
+    z = []
     for s in range(200):
         sim = simulate_consist(3, seed=5000 + s, pixel_sigma_px=1.0)
         with warnings.catch_warnings():
@@ -236,14 +238,12 @@ def test_coverage_of_95_intervals():
             res = solve_consist(sim.carriages, sim.links, sim.views,
                                 SolveOptions(pixel_sigma_px=1.0, compute_covariance=True))
         e = _body_err(res, sim)
-        for c, ei in zip(res.carriages, e):
-            inside += np.abs(ei) <= c.ci95_body_centre_m
-            n += 1
-        for c, M in zip(res.carriages, sim.truth):
-            eo = np.abs(c.world_from_carriage[:3, 3] - M[:3, 3])
-            inside += 0 * eo
-    cov = inside / n
+        z += [ei / (np.asarray(c.ci95_body_centre_m) / 1.96) for c, ei in zip(res.carriages, e)]
+    z = np.array(z)
+    cov = np.mean(np.abs(z) <= 1.96, axis=0)
     assert np.all((cov >= 0.88) & (cov <= 0.99)), cov
+    rms = np.sqrt(np.mean(z ** 2, axis=0))
+    assert np.all((rms > 0.8) & (rms < 1.2)), rms
 
 
 def test_30_car_chain_converges_quickly():
@@ -292,7 +292,7 @@ def test_couplers_at_the_slack_converge_in_few_evaluations():
         res = solve_consist(sim.carriages, sim.links, sim.views, opts, terrain=sim.terrain)
     s3 = {s.name: s for s in res.steps}["3_chain_translations"]
     assert s3.status.startswith("converged"), s3.status
-    assert "0 coupler(s) at the slack" not in s3.note  # the case this is about: offsets on the sphere
+    assert s3.facts["links_at_slack"] > 0  # the case this is about: offsets on the sphere
     assert 3 <= s3.iterations <= 20, s3.iterations
 
 
@@ -424,7 +424,7 @@ def test_carriage_on_the_wrong_pnp_branch_is_restarted(case):
     assert abs(res.cost_at_minimum - ml["cost"]) < 1e-5 * ml["cost"], (res.cost_at_minimum, ml["cost"])
     assert max(c.rms_px for c in res.carriages) < 4 * sigma
     if not est:
-        assert "another PnP branch" in res.steps[3].note
+        assert "another PnP branch" in [r["from"] for r in res.steps[3].facts["restarted"]]
 
 
 def _brute_force_bias(prob, cars, R, t, f, chains, slacks, sigma, focal=False, h=1e-4):
@@ -565,7 +565,7 @@ def test_bias_correction_skips_carriages_where_the_expansion_fails():
     assert all(e["bias_over_sd"] >= lim for e in pb["skipped"])
     assert max(e["bias_over_sd"] for e in pb["skipped"]) == pytest.approx(bc["max_bias_over_sd"], rel=1e-9)
     names = {e["number"] for e in pb["skipped"]}
-    assert all(n in part.steps[5].note for n in names) and "not applied to car(s)" in part.steps[5].note
+    assert set(part.steps[5].facts["not_corrected"]) == names and "not applied to car(s)" in part.steps[5].note
     moved = {p["number"]: p for p in part.steps[5].per_carriage}
     for cp in part.carriages:
         assert moved[cp.number]["corrected"] == (cp.number not in names)
@@ -577,7 +577,7 @@ def test_bias_correction_skips_carriages_where_the_expansion_fails():
     none = solve_consist(sim.carriages, sim.links, sim.views, SolveOptions(pixel_sigma_px=2.0, bias_max_over_sd=1e-9))
     assert none.bias_correction["applied"] is False and len(none.bias_correction["skipped"]) == 6
     assert not none.steps[5].ran and none.final_cost == none.cost_at_minimum
-    assert "not applied to car(s)" in none.steps[5].note
+    assert len(none.steps[5].facts["not_corrected"]) == 6 and none.steps[5].facts["applied"] is False
     # an estimated focal: skipped, said so
     est = solve_consist(sim.carriages, sim.links, sim.views, SolveOptions(pixel_sigma_px=2.0, estimate_focal=True))
     assert est.bias_correction["applied"] is False and "focal" in est.bias_correction["note"]
@@ -600,8 +600,8 @@ def test_a_few_point_carriage_on_a_wrong_branch_is_judged_by_the_chain(seed, car
     ml = refine_from(sim.carriages, sim.links, sim.views, sim.truth, opts)
     assert res.converged
     assert res.cost_at_minimum <= ml["cost"] * (1 + 1e-6) + 1e-6, (res.cost_at_minimum, ml["cost"])
-    note = {st.name: st.note for st in res.steps}["4_all"]
-    assert f"car {car} restarted from" in note
+    facts = {st.name: st.facts for st in res.steps}["4_all"]
+    assert car in [r["car"] for r in facts["restarted"]]
     for c, M in zip(res.carriages, ml["world_from_carriage"]):
         R = c.world_from_carriage[:3, :3]
         assert np.degrees(np.arccos(np.clip((np.trace(R.T @ M[:3, :3]) - 1) / 2, -1, 1))) < 0.5

@@ -72,6 +72,8 @@ class BranchRetry:
     fit: ChainedFit | None = None
     nfev: int = 0
     notes: list[str] = field(default_factory=list)
+    restarted: list[dict] = field(default_factory=list)  # {"car", "from"}: cars restarted from another start
+    not_tried: list[str] = field(default_factory=list)  # cars the evaluation cap left untried
 
 
 @dataclass
@@ -154,6 +156,7 @@ def retry_branches(cp: ChainedProblem, solo: Sequence[int], start: Poses, sol: P
                      if rotation_angle_deg(Rk, sol.R[k]) >= 5.0]
         best, out.nfev = _cheapest_restart(cp, k, alts, sol, cost, terrain, out.nfev, max_nfev)
         if best is not None:
+            out.restarted.append({"car": cars[k].number, "from": best.how})
             out.notes.append(f"car {cars[k].number} restarted from {best.how} "
                              f"({rotation_angle_deg(best.R, sol.R[k]):.0f} deg from the solution's): cost "
                              f"{cost:.1f} -> {best.cost:.1f}")
@@ -163,6 +166,7 @@ def retry_branches(cp: ChainedProblem, solo: Sequence[int], start: Poses, sol: P
             flagged = misfit_cars(cp.prob, sol, sig, chained)
     left = [i for i in (flagged[:max_cars] + few) if i not in tried]
     if out.nfev >= max_nfev and left:
+        out.not_tried = [cars[i].number for i in dict.fromkeys(left)]
         out.notes.append(f"branch check stopped after {out.nfev} evaluations (its cap): car(s) "
                          f"{', '.join(cars[i].number for i in dict.fromkeys(left))} not tried on other poses")
     return out

@@ -173,6 +173,7 @@ class StepStats:
     status: str = ""
     time_s: float = 0.0
     per_carriage: list[dict] = field(default_factory=list)
+    facts: dict = field(default_factory=dict)  # what ``note`` says, as values a program (or a test) can read
 
 
 @dataclass

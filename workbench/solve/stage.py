@@ -216,7 +216,8 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
              "route": cam_doc.get("route"), "intrinsics_source": cam_doc.get("intrinsics_source"),
              "cameras": project.relative(cam_path), "correspondences_file": project.relative(corr_path),
              "steps": [{"name": st.name, "ran": st.ran, "note": st.note, "cost_before": _num(st.cost_before),
-                        "cost_after": _num(st.cost_after), "iterations": st.iterations, "time_s": st.time_s}
+                        "cost_after": _num(st.cost_after), "iterations": st.iterations, "time_s": st.time_s,
+                        "facts": st.facts}
                        for st in res.steps],
              "rejected_points": len(rejected), "warnings": [w.get("message") for w in res.warnings]}
     return StageResult(outputs={"solution": path}, stats=stats)

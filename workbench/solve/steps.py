@@ -105,7 +105,10 @@ def step_alone(s: SolveContext) -> tuple[Poses, FocalProfile | None]:
                              "constraints off" + ("; carried cars placed from their neighbours"
                                                   if len(plan.solo) < len(plan.active) else ""),
                              cost0, pixel_cost(s.prob, poses), nfev, msg, time.perf_counter() - t1,
-                             s.changes(init, poses)))
+                             s.changes(init, poses),
+                             {"focal_start": None if not options.estimate_focal else
+                              "chained_profile" if profile is not None else "sweep",
+                              "n_carried": len(plan.active) - len(plan.solo)}))
     return poses, profile
 
 
@@ -144,7 +147,8 @@ def step_translations(s: SolveContext, poses: Poses) -> ChainedFit:
     s.steps.append(StepStats("3_chain_translations", True, "couplers on, rotations held, translations"
                              + (" and focal" if s.focal_views else "") + f" optimised ({fit.rounds} active-set "
                              f"round(s), {fit.n_active} coupler(s) at the slack)", c0, pixel_cost(s.prob, fit.poses),
-                             fit.nfev, fit.message, time.perf_counter() - t3, s.changes(poses, fit.poses)))
+                             fit.nfev, fit.message, time.perf_counter() - t3, s.changes(poses, fit.poses),
+                             {"active_set_rounds": fit.rounds, "links_at_slack": fit.n_active}))
     return fit
 
 
@@ -190,7 +194,10 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
              ("; no terrain contact term (no terrain)" if terrain is None else "; terrain contact term off"))
     s.steps.append(StepStats("4_all", True, f"everything optimised ({fit.rounds} active-set round(s), "
                              f"{fit.n_active} coupler(s) at the slack)" + note, c0, pixel_cost(s.prob, fit.poses),
-                             nfev, fit.message, time.perf_counter() - t4, s.changes(fit3.poses, fit.poses)))
+                             nfev, fit.message, time.perf_counter() - t4, s.changes(fit3.poses, fit.poses),
+                             {"active_set_rounds": fit.rounds, "links_at_slack": fit.n_active,
+                              "restarted": retry.restarted, "branch_check_not_tried": retry.not_tried,
+                              "terrain_contact": s.contact is not None}))
     if not fit.ok:
         s.failures.append(f"step 4: {fit.message}")
     return fit
@@ -314,7 +321,7 @@ def step_bias(s: SolveContext, prob: Problem, fit: ChainedFit, cost_at_minimum: 
     skip = bias_skip_reason(s.options, s.focal_views)
     if skip:
         out.summary = {"applied": False, "note": skip}
-        s.steps.append(StepStats("5_bias_correction", False, skip))
+        s.steps.append(StepStats("5_bias_correction", False, skip, facts={"applied": False, "skipped_because": skip}))
         return out
     chains, cars = s.plan.chains, s.cars
     out.model = solution_model(prob, fit.poses, s.focal_views, chains, s.contact, s.options)
@@ -328,5 +335,6 @@ def step_bias(s: SolveContext, prob: Problem, fit: ChainedFit, cost_at_minimum: 
         out.fit = replace(fit, poses=Poses(bc.R, bc.t, bc.f), links=links)
         out.final_cost = full_cost(prob, cars, chains, out.fit.poses, s.contact, s.options)
     s.steps.append(StepStats("5_bias_correction", bc.applied, bc.note, cost_at_minimum, out.final_cost, 0,
-                             "done" if bc.applied else "skipped", time.perf_counter() - t5, bc.per_carriage))
+                             "done" if bc.applied else "skipped", time.perf_counter() - t5, bc.per_carriage,
+                             {"applied": bc.applied, "not_corrected": [c["number"] for c in bc.skipped]}))
     return out

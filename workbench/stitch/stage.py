@@ -19,12 +19,11 @@ import logging
 from pathlib import Path
 
 import cv2
-from PIL import Image
 
-from ..core.camera import CameraIntrinsics
 from ..errors import InputError
 from ..project import Project
 from ..files.exif import read_focal_px
+from ..files.intrinsics import photo_size
 from ..core.stage_api import Progress, StageResult
 from .options import StitchOptions, StitchResult
 from .stitcher import stitch_photos
@@ -32,26 +31,6 @@ from .stitcher import stitch_photos
 log = logging.getLogger(__name__)
 
 JPEG_QUALITY = 92
-
-
-def load_profile_intrinsics(project: Project) -> CameraIntrinsics:
-    """The camera profile's intrinsics (``camera.profile``); :class:`InputError` naming the file if bad."""
-    cam = project.settings.camera
-    path = project.require_file(cam.profile, "camera.profile")
-    data = project.read_json(path)
-    try:
-        return CameraIntrinsics.from_dict(data["intrinsics"])
-    except (KeyError, TypeError, ValueError) as exc:
-        raise InputError(f"{path}: 'intrinsics' is not a valid camera model ({exc}); see docs/formats.md "
-                         f"(camera_profile.json)") from None
-
-
-def _photo_size(path: Path) -> tuple[int, int]:
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read this photo ({exc})") from None
 
 
 def stitch_project(project: Project, progress: Progress = lambda f, m="": None,
@@ -63,20 +42,14 @@ def stitch_project(project: Project, progress: Progress = lambda f, m="": None,
     calibrated = None
     priors = None
     if cam.source.value == "calibrated":
-        prof = load_profile_intrinsics(project)
+        prof = project.camera_profile()
+        if prof is None:
+            raise InputError(f"{project.settings_path}: camera.source = 'calibrated' needs camera.profile (a "
+                             f"camera_profile.json from `workbench calibrate`), or set camera.source = 'exif'")
         calibrated = {}
         for p in photos:
-            w, h = _photo_size(p)
-            if (w, h) == (prof.width, prof.height):
-                calibrated[p.name] = prof
-            elif abs(w / prof.width - h / prof.height) < 1e-3:  # the same camera, resized photos
-                calibrated[p.name] = prof.scaled(w / prof.width)
-                log.info("stitch: %s is %dx%d; camera profile scaled from %dx%d", p.name, w, h, prof.width,
-                         prof.height)
-            else:
-                raise InputError(f"{p}: {w}x{h} px does not match the camera profile "
-                                 f"({project.path(cam.profile)}: {prof.width}x{prof.height}); use the photos as they "
-                                 f"came from that camera, or set camera.source = 'exif'")
+            w, h = photo_size(p)
+            calibrated[p.name] = prof.for_size(w, h)  # scaled when the photos were resized; another aspect: refused
     elif cam.source.value == "exif":
         priors = {p.name: read_focal_px(p) for p in photos}
         missing = [n for n, f in priors.items() if not f]

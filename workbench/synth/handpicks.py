@@ -4,7 +4,7 @@
   cameras of a photo set: the "known cameras" input that replaces stitching and georegistration.
 * :func:`write_true_correspondences` writes the incident's ``correspondences.json`` with the true pixels of
   visible marked points plus Gaussian noise: a person's careful picks, or the reference against which the
-  automatic finder is compared (issue 5: "the same solve on true points with 1 px noise").
+  automatic finder is compared (the same solve on true points with 1 px noise).
 
 Both refuse real incidents (no ``truth/ground_truth.json``) and write atomically. Nothing here is used by a
 stage: they only write the inputs a user could have written.
