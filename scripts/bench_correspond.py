@@ -102,7 +102,7 @@ def _cpu_s() -> float:
 
 def run_one(root: Path, opts: MatchOptions, cache: Path | None = None) -> tuple[dict, list]:
     """Find the points (or, with ``cache`` an existing file, read those found by an earlier run) and score them."""
-    from workbench.correspond import manual as mf
+    from workbench.files import correspondences as mf
 
     project = Project(root)
     truth = json.loads((root / "truth" / "ground_truth.json").read_text())
@@ -156,7 +156,7 @@ def solve_errors(src: Path, work: Path, obs: list | None, seed: int = 0, reuse: 
     ``obs`` (the automatic points), or from the true points plus 1 px noise (noise draw ``seed``) when ``obs``
     is None. ``reuse``: ``work`` is the copy an earlier call made (its inputs and terrain done): only the points
     and the solve are run again."""
-    from workbench.correspond import manual as mf
+    from workbench.files import correspondences as mf
     from workbench.pipeline import STAGES
     from workbench.runner import Runner, StageResult, StageSpec
     from workbench.synth.handpicks import true_correspondences, write_known_cameras

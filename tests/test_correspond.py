@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from workbench.core.camera import CameraIntrinsics
-from workbench.correspond import manual as mf
+from workbench.files import correspondences as mf
 from workbench.correspond import stage as cs
 from workbench.correspond.match import MatchOptions, detect_faces, photo_features, refine_detection
 from workbench.correspond.references import FACES, build_references, face_reference

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 from PIL import Image, ImageDraw
 
-from workbench.correspond import manual as mf
+from workbench.files import correspondences as mf
 from workbench.picker import PickerServer
 
 W, H = 480, 360

@@ -138,7 +138,7 @@ def _read_cameras(project, path):
 
 
 def _read_correspondences(project, path):
-    from workbench.correspond import manual
+    from workbench.files import correspondences as manual
 
     points = {n: list(t.marked_points) for n, t in project.carriage_types().items()}
     manual.load(path, points=points, image_sizes={p.name: (800, 600) for p in project.photo_paths()})

@@ -197,7 +197,7 @@ def test_unknown_point_method_is_named(incident, tmp_path):
     root = _copy_with_corr(incident, tmp_path, lambda o: o[0].update(method="guess"))
     p = Project(root)
     views, _ = read_views(p, root / "cameras.json")
-    with pytest.raises(InputError, match=r"observations\[0\].*method = 'guess'"):
+    with pytest.raises(InputError, match=r"observations\[0\]\.method: .*'guess'"):
         read_correspondences(p, root / "correspondences.json", views)
 
 

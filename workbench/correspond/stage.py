@@ -29,7 +29,7 @@ from ..errors import InputError
 from ..files.intrinsics import photo_size, resolve_intrinsics
 from ..project import Project
 from . import cache
-from . import manual as mf
+from ..files import correspondences as mf
 from .assign import find_cars, observations_of
 from .match import MatchOptions, PhotoFeatures, photo_features, undistortion_maps
 from .parallel import STEPS, PhotoResult, default_workers, map_photos

@@ -21,7 +21,7 @@ The picker holds forensic work, so it trusts no request (docs/formats.md, "corre
   application/json`` with a ``Content-Length`` of at most 4 MiB. Otherwise: 403, 415, 411 or 413.
 * A save is validated completely before anything is written: JSON (UTF-8, no NaN or Infinity, no duplicate
   keys, nested at most 8 deep), the keys ``observations`` and ``rejected`` (lists of objects, nothing else),
-  then the stage's own reader and validator (``workbench.correspond.manual``: types, finite numbers, carriage,
+  then the stage's own reader and validator (``workbench.files.correspondences``: types, finite numbers, carriage,
   point and photo names, pixels inside the photo, duplicates). A bad save is a 400 whose JSON ``error`` names
   the key and the value (cut to a few dozen characters) and leaves the file as it was.
 * A good save writes ``correspondences.json`` atomically (a temp file renamed over it) and first keeps the
@@ -54,7 +54,7 @@ from urllib.parse import quote, unquote
 import numpy as np
 
 from ..core.io import atomic_write_bytes, atomic_write_text, to_json
-from ..correspond import manual as mf
+from ..files import correspondences as mf
 from ..correspond.references import FACES, face_reference
 from ..errors import InputError, OutputError, WorkbenchError
 from ..project import Project
@@ -96,7 +96,7 @@ class WriteFailed(Exception):
 
 
 def _cut(value: object, n: int = 60, *, quote: bool = True) -> str:
-    return mf._cut(value, n, quote=quote)
+    return mf.cut_for_message(value, n, quote=quote)
 
 
 @dataclass

@@ -22,6 +22,7 @@ from ..core.layout import CAMERAS_FILE, CORRESPONDENCES_FILE
 from ..errors import InputError, StageError
 from ..project import Project
 from ..core.stage_api import Progress, StageResult
+from ..files import correspondences
 from ..files.cameras import read_cameras
 from ..files.panorama import read_panorama
 from .model import CarriageInput, ChainLink, Observation, SolveOptions, SolveWarning, View
@@ -60,6 +61,7 @@ def read_correspondences(project: Project, path: Path, views: list, panorama: An
     doc = project.read_json(path)
     if not isinstance(doc, dict) or not isinstance(doc.get("observations"), list):
         raise InputError(f"{path}: needs an 'observations' list; see docs/pipeline.md (correspondences.json)")
+    correspondences.parse(doc, path)  # the format (keys, types, finite numbers); its meaning is checked below
     types = project.carriage_types()
     vby = {v.name: v for v in views}
     out: dict[str, dict[str, dict[str, tuple[float, float]]]] = {}

@@ -115,14 +115,14 @@ class CorrespondenceFile(BaseModel):
 
 
 def _where(loc: tuple) -> str:
-    return ".".join(_cut(x, 40, quote=False) if not isinstance(x, int) else f"[{x}]" for x in loc).replace(".[", "[")
+    return ".".join(cut_for_message(x, 40, quote=False) if not isinstance(x, int) else f"[{x}]" for x in loc).replace(".[", "[")
 
 
 _repr = reprlib.Repr()
 _repr.maxlevel, _repr.maxstring, _repr.maxother, _repr.maxlist, _repr.maxdict = 2, 40, 40, 4, 3
 
 
-def _cut(value: object, n: int = 40, *, quote: bool = True) -> str:
+def cut_for_message(value: object, n: int = 40, *, quote: bool = True) -> str:
     """``value`` for a message: its repr (or the string itself, ``quote=False``), cut to about ``n`` characters
     (a bad value may be megabytes long)."""
     s = _repr.repr(value) if quote or not isinstance(value, str) else value
@@ -134,7 +134,7 @@ def parse(data: object, path: Path | str) -> CorrespondenceFile:
     try:
         return CorrespondenceFile.model_validate(data)
     except ValidationError as exc:
-        errs = "; ".join(f"{_where(e['loc'])}: {e['msg']} (got {_cut(e.get('input'))})" for e in exc.errors()[:5])
+        errs = "; ".join(f"{_where(e['loc'])}: {e['msg']} (got {cut_for_message(e.get('input'))})" for e in exc.errors()[:5])
         raise InputError(f"{path}: invalid correspondence file: {errs}. See docs/pipeline.md "
                          f"(correspondences.json)") from None
 
@@ -153,45 +153,45 @@ def validate(cf: CorrespondenceFile, path: Path | str, *, points: dict[str, list
     for i, o in enumerate(cf.observations):
         where = f"observations[{i}]"
         if o.carriage not in points:
-            problems.append(f"{where}: unknown carriage {_cut(o.carriage)} (the consist has {', '.join(points)})")
+            problems.append(f"{where}: unknown carriage {cut_for_message(o.carriage)} (the consist has {', '.join(points)})")
             continue
         if o.point not in points[o.carriage]:
-            problems.append(f"{where}: carriage {_cut(o.carriage)} has no marked point {_cut(o.point)} (its points: "
+            problems.append(f"{where}: carriage {cut_for_message(o.carriage)} has no marked point {cut_for_message(o.point)} (its points: "
                             f"{', '.join(points[o.carriage])})")
         if o.view in image_sizes:
             w, h = image_sizes[o.view]
             u, v = o.uv
             if not (-0.5 <= u <= w - 0.5 and -0.5 <= v <= h - 0.5):
-                problems.append(f"{where}: uv = [{u}, {v}] is outside view {_cut(o.view)} ({w} x {h} px; pixel centres "
+                problems.append(f"{where}: uv = [{u}, {v}] is outside view {cut_for_message(o.view)} ({w} x {h} px; pixel centres "
                                 f"span [-0.5, {w - 0.5}] x [-0.5, {h - 0.5}])")
         elif o.view == PANORAMA:
             if min(o.uv) < -0.5:
                 problems.append(f"{where}: uv = {list(o.uv)} is outside the panorama")
         else:
-            problems.append(f"{where}: unknown view {_cut(o.view)} (the photos are {', '.join(sorted(image_sizes))}"
+            problems.append(f"{where}: unknown view {cut_for_message(o.view)} (the photos are {', '.join(sorted(image_sizes))}"
                             f", or 'panorama')")
         if o.key in seen:
-            problems.append(f"{where}: duplicate of observations[{seen[o.key]}] (carriage {_cut(o.carriage)}, point "
-                            f"{_cut(o.point)}, view {_cut(o.view)}); keep one")
+            problems.append(f"{where}: duplicate of observations[{seen[o.key]}] (carriage {cut_for_message(o.carriage)}, point "
+                            f"{cut_for_message(o.point)}, view {cut_for_message(o.view)}); keep one")
         else:
             seen[o.key] = i
     for i, n in enumerate(cf.needs_manual):
         if n.carriage not in points:
-            problems.append(f"needs_manual[{i}]: unknown carriage {_cut(n.carriage)}")
+            problems.append(f"needs_manual[{i}]: unknown carriage {cut_for_message(n.carriage)}")
     rejected: dict[tuple[str, str, str], int] = {}
     for i, r in enumerate(cf.rejected):
         where = f"rejected[{i}]"
         if r.carriage not in points:
-            problems.append(f"{where}: unknown carriage {_cut(r.carriage)} (the consist has {', '.join(points)})")
+            problems.append(f"{where}: unknown carriage {cut_for_message(r.carriage)} (the consist has {', '.join(points)})")
         elif r.point not in points[r.carriage]:
-            problems.append(f"{where}: carriage {_cut(r.carriage)} has no marked point {_cut(r.point)}")
+            problems.append(f"{where}: carriage {cut_for_message(r.carriage)} has no marked point {cut_for_message(r.point)}")
         if r.view not in image_sizes and r.view != PANORAMA:
-            problems.append(f"{where}: unknown view {_cut(r.view)} (the photos are {', '.join(sorted(image_sizes))})")
+            problems.append(f"{where}: unknown view {cut_for_message(r.view)} (the photos are {', '.join(sorted(image_sizes))})")
         if r.key in rejected:
             problems.append(f"{where}: duplicate of rejected[{rejected[r.key]}]; keep one")
         rejected.setdefault(r.key, i)
         if r.key in seen:
-            problems.append(f"{where}: (carriage {_cut(r.carriage)}, point {_cut(r.point)}, view {_cut(r.view)}) is "
+            problems.append(f"{where}: (carriage {cut_for_message(r.carriage)}, point {cut_for_message(r.point)}, view {cut_for_message(r.view)}) is "
                             f"also picked in observations[{seen[r.key]}]; a point is picked or rejected, not both")
     if problems:
         more = f" (and {len(problems) - 8} more)" if len(problems) > 8 else ""
