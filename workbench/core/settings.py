@@ -298,3 +298,13 @@ bias_correction = true        # remove the estimate's second-order bias (known f
 prediction_release = 30.0     # predictions that pull a car off its measured points' fit: sigma x this (1: no check)
 hfov_range_deg = [3.0, 120.0]  # field of view (deg) an unknown focal is searched in: telephoto to wide angle
 """
+
+
+def options_from_dict(cls: type, d: dict, what: str):
+    """An options dataclass ``cls`` from a plain dict; :class:`SettingsError` naming ``what`` and the keys it knows
+    when ``d`` has others."""
+    known = set(cls.__dataclass_fields__)
+    unknown = sorted(set(d) - known)
+    if unknown:
+        raise SettingsError(f"{what}: unknown key(s) {unknown}; known: {sorted(known)}")
+    return cls(**d)

@@ -19,6 +19,7 @@ import numpy as np
 
 from ..core.camera import CameraIntrinsics
 from ..core.io import atomic_write_json
+from ..core.settings import options_from_dict
 from ..errors import InputError, SettingsError
 from ..files.profile import load_camera_profile, validate_profile, write_camera_profile  # noqa: F401 - re-exported
 
@@ -72,11 +73,7 @@ class CalibrationOptions:
     @classmethod
     def from_dict(cls, d: dict) -> "CalibrationOptions":
         """From a plain dict; unknown keys are an error."""
-        known = set(cls.__dataclass_fields__)
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise SettingsError(f"calibration options: unknown key(s) {unknown}; known: {sorted(known)}")
-        return cls(**d)
+        return options_from_dict(cls, d, "calibration options")
 
 
 def parse_pattern(text: str) -> tuple[int, int]:

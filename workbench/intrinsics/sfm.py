@@ -28,6 +28,7 @@ from typing import Callable
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
+from ..core.settings import options_from_dict
 from ..errors import InputError, SettingsError, StageError
 
 log = logging.getLogger(__name__)
@@ -122,11 +123,8 @@ class SfmOptions:
 
     @classmethod
     def from_dict(cls, d: dict) -> "SfmOptions":
-        known = set(cls.__dataclass_fields__)
-        unknown = sorted(set(d) - known)
-        if unknown:
-            raise SettingsError(f"sfm options: unknown key(s) {unknown}; known: {sorted(known)}")
-        return cls(**d)
+        """From a plain dict; unknown keys are an error."""
+        return options_from_dict(cls, d, "sfm options")
 
     @classmethod
     def forward_motion(cls, **overrides) -> "SfmOptions":
