@@ -67,6 +67,8 @@ class Terrain(_Strict):
     aoi_radius_m: Annotated[float, Field(gt=0.0, le=20_000.0)] = 250.0
     simplify_max_error_m: Annotated[float, Field(ge=0.0, le=10.0)] = 0.05  # 0: no mesh simplification
     ortho: str | None = None  # orthophoto (JPEG/PNG) covering the DEM's extent, row 0 north; drapes the terrain
+    # railway lines (GeoJSON lines, or OpenStreetMap XML ways tagged railway=rail), any CRS, relative path
+    railways: str | None = None
 
 
 class Coupling(str, Enum):
@@ -156,6 +158,15 @@ class Solver(_Strict):
         return v
 
 
+class FinderMode(str, Enum):
+    AUTO = "auto"  # search every photo for the library's liveries (SIFT against each car's reference faces)
+    OFF = "off"  # no automatic points: the incident's hand picks only (real rolling stock not in the library)
+
+
+class Correspond(_Strict):
+    finder: Annotated[FinderMode, _LAX] = FinderMode.AUTO
+
+
 class ProjectSettings(_Strict):
     incident: Incident
     location: Location
@@ -166,6 +177,7 @@ class ProjectSettings(_Strict):
     # plus preset = "forward_motion"); checked by the sfm stage, which rejects unknown keys
     sfm: dict[str, Any] | None = None
     solver: Solver = Solver()
+    correspond: Correspond = Correspond()
 
     @model_validator(mode="after")
     def _consist_rules(self) -> "ProjectSettings":
