@@ -282,6 +282,7 @@ crs = "{crs}"                 # projected CRS of the project (metres), e.g. the 
 [terrain]
 # dem = "../../terrain/<region>/dem.tif"            # GeoTIFF with a CRS
 # buildings = "../../terrain/<region>/buildings.geojson"
+# railways = "../../terrain/<region>/railways.geojson"  # track centre lines (GeoJSON or OSM XML)
 dem_vertical_accuracy_m = 0.5
 aoi_radius_m = 250.0
 
@@ -295,6 +296,9 @@ source = "exif"               # calibrated | exif | sfm | unknown
 photos = "photos/panorama"
 # profile = "camera_profile.json"   # needed when source = "calibrated"
 # position_enu = [0.0, 0.0, 0.0]    # known camera centre (scene frame), until georegistration
+
+[correspond]
+finder = "auto"               # auto: find the carriages' liveries in the photos | off: hand picks only
 
 [solver]
 pixel_sigma_px = 1.0
