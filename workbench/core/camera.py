@@ -77,11 +77,7 @@ class CameraIntrinsics:
     # -- normalised coordinates ------------------------------------------------------------------------
     def distort(self, xy: np.ndarray) -> np.ndarray:
         """Undistorted normalised (n, 2) -> distorted normalised (n, 2)."""
-        x, y = xy[:, 0], xy[:, 1]
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (self.k1 + r2 * (self.k2 + r2 * self.k3))
-        xd = x * radial + 2.0 * self.p1 * x * y + self.p2 * (r2 + 2.0 * x * x)
-        yd = y * radial + self.p1 * (r2 + 2.0 * y * y) + 2.0 * self.p2 * x * y
+        _, _, xd, yd = brown_distortion(xy[:, 0], xy[:, 1], self)
         return np.column_stack([xd, yd])
 
     def undistort(self, xy_d: np.ndarray, iterations: int = 20) -> np.ndarray:
@@ -174,3 +170,25 @@ def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = np.array([0.0,
     M[:3, :3] = R
     M[:3, 3] = -R @ eye
     return M
+
+
+def brown_distortion(x: np.ndarray, y: np.ndarray, intr: CameraIntrinsics):
+    """Brown-Conrady distortion of normalised (x, y) (OpenCV's model): ``(r^2, radial factor, xd, yd)``."""
+    k1, k2, k3, p1, p2 = intr.k1, intr.k2, intr.k3, intr.p1, intr.p2
+    r2 = x * x + y * y
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
+    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
+    return r2, radial, xd, yd
+
+
+def distort_with_derivs(x: np.ndarray, y: np.ndarray, intr: CameraIntrinsics):
+    """Brown-Conrady distortion of normalised (x, y): r^2, the distorted (xd, yd) and d(xd, yd) / d(x, y)."""
+    k1, k2, k3, p1, p2 = intr.k1, intr.k2, intr.k3, intr.p1, intr.p2
+    r2, radial, xd, yd = brown_distortion(x, y, intr)
+    drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
+    dxd_dx = radial + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x
+    dxd_dy = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
+    dyd_dx = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
+    dyd_dy = radial + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x
+    return r2, xd, yd, dxd_dx, dxd_dy, dyd_dx, dyd_dy

@@ -17,7 +17,7 @@ import numpy as np
 
 from ..core.geometry import exp_so3
 from .problem import Chains, Poses
-from .projection import distort_with_derivs
+from ..core.camera import distort_with_derivs
 from .uncertainty import CovarianceModel, contact_rows, inverse_psd, pixel_rows, prior_rows
 
 log = logging.getLogger(__name__)

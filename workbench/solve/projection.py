@@ -20,25 +20,10 @@ from typing import Sequence
 
 import numpy as np
 
-from ..core.camera import CameraIntrinsics
+from ..core.camera import CameraIntrinsics, distort_with_derivs
 from ..core.geometry import skew
 
 INTRINSIC_NAMES = ("f", "cx", "cy", "k1", "k2")
-
-
-def distort_with_derivs(x: np.ndarray, y: np.ndarray, intr: CameraIntrinsics):
-    """Brown-Conrady distortion of normalised (x, y): r^2, the distorted (xd, yd) and d(xd, yd) / d(x, y)."""
-    k1, k2, k3, p1, p2 = intr.k1, intr.k2, intr.k3, intr.p1, intr.p2
-    r2 = x * x + y * y
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    drad = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)  # d radial / d r2
-    xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-    yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-    dxd_dx = radial + 2.0 * x * x * drad + 2.0 * p1 * y + 6.0 * p2 * x
-    dxd_dy = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
-    dyd_dx = 2.0 * x * y * drad + 2.0 * p1 * x + 2.0 * p2 * y
-    dyd_dy = radial + 2.0 * y * y * drad + 6.0 * p1 * y + 2.0 * p2 * x
-    return r2, xd, yd, dxd_dx, dxd_dy, dyd_dx, dyd_dy
 
 
 def project_world_points_with_jacobians(
