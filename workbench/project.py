@@ -37,6 +37,7 @@ if TYPE_CHECKING:  # numpy and the frame are loaded on use: `workbench status` n
     from .files.cameras import Cameras
     from .files.dem import TerrainModel
     from .files.profile import CameraProfile
+    from .files.railways import RailwayLayer
     from .files.solution import Solution
 
 log = logging.getLogger(__name__)
@@ -162,6 +163,20 @@ class Project:
         return TerrainModel.from_sources(self.dem_paths(), self.frame, aoi_radius_m=t.aoi_radius_m,
                                          vertical_accuracy_m=t.dem_vertical_accuracy_m,
                                          max_cells=max_cells if max_cells is not None else 400_000)
+
+    def railways(self, *, heights: bool = True) -> "RailwayLayer | None":
+        """The railway layer ``terrain.railways`` names, in the scene frame (docs/gis.md, "Railway lines"); None when
+        it is unset, or (with a warning naming the file) when the file holds no railway line. ``heights``: drape the
+        lines on the DEM when the incident has one (else the file's heights); the map, chainages and offsets do
+        without."""
+        from .files.railways import read_railways
+
+        rel = self.settings.terrain.railways
+        if not rel:
+            return None
+        path = self.require_file(rel, "terrain.railways")
+        terrain = self.terrain_model(max_cells=160_000) if heights and self.settings.terrain.dem else None
+        return read_railways(path, self.frame, terrain=terrain)
 
     @property
     def manual_picks_path(self) -> Path:

@@ -1,11 +1,12 @@
 """``workbench synth``: generate a complete incident with ground truth, deterministic for a seed.
 
 Writes into an incident folder (through :class:`~workbench.project.Project` paths, atomically):
-the DEM GeoTIFF and building footprints (``layers/`` or a regional ``terrain/`` folder), ``project.toml``,
+the DEM GeoTIFF, building footprints and the railway line the train ran on (``layers/`` or a regional ``terrain/``
+folder), ``project.toml``,
 ``camera_profile.json``, the photos (``photos/panorama`` from one position, the camera only turning;
 ``photos/multiview`` from places around the site), instance masks and ``truth/ground_truth.json``
-(carriage poses, camera poses and intrinsics, every marked point's true pixel and visibility in
-every photo). The format is in ``docs/formats.md``.
+(carriage poses and their place on the track, camera poses and intrinsics, every marked point's true pixel and
+visibility in every photo). The format is in ``docs/formats.md``.
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ from ..core.io import atomic_write, atomic_write_text, to_json
 from ..core.settings import SETTINGS_FILE, parse_settings
 from ..errors import WorkbenchError
 from .scenarios import SCENARIOS, plan_consist
+from .track import carriage_track_truth
 
 log = logging.getLogger(__name__)
 
@@ -292,7 +294,10 @@ def _keep_if_generated(root: Path, truth_path: Path, opts: SynthOptions) -> bool
     try:
         old = json.loads(truth_path.read_text())
         photos_ok = all((root / ph["photo"]).is_file() for ph in old.get("photos", []))
-        if old.get("generator", {}).get("spec_hash") == opts.spec_hash() and photos_ok:
+        # an incident generated before the railway layer was written: generate it afresh (the same photos)
+        rail = old.get("layers", {}).get("railways")
+        complete = photos_ok and bool(rail) and (root / rail).is_file()
+        if old.get("generator", {}).get("spec_hash") == opts.spec_hash() and complete:
             log.info("synth: %s is already generated with these options; nothing to do", root)
             _write_control_points(root)
             return True
@@ -313,14 +318,16 @@ class _Layers:
     dem_path: Path
     bld_path: Path
     ortho_path: Path
+    rail_path: Path
 
 
 def _make_layers(root: Path, scn, opts: SynthOptions) -> _Layers:
-    """The DEM, the building footprints and the orthophoto, written under ``opts.layers_dir``."""
+    """The DEM, the building footprints, the orthophoto and the railway line, written under ``opts.layers_dir``."""
     from ..files.buildings import write_buildings_geojson
     from ..files.dem import TerrainModel
     from .buildings import make_buildings
     from .terrain import make_terrain, write_dem_geotiff
+    from .track import write_track_layer
 
     frame0 = SceneFrame(scn.crs, scn.lat, scn.lon, 0.0)
     st = make_terrain(scn.terrain, frame0, size_m=opts.terrain_size_m, resolution_m=opts.terrain_resolution_m,
@@ -329,6 +336,7 @@ def _make_layers(root: Path, scn, opts: SynthOptions) -> _Layers:
     dem_path = layers / f"{scn.id}_dem.tif"
     bld_path = layers / f"{scn.id}_buildings.geojson"
     ortho_path = layers / f"{scn.id}_ortho.jpg"
+    rail_path = layers / f"{scn.id}_railways.geojson"
     write_dem_geotiff(dem_path, st)
     tm0 = TerrainModel.from_geotiff(dem_path, frame0)
     h0 = round(float(tm0.height_at(np.zeros((1, 2)))[0]), 2)
@@ -337,7 +345,8 @@ def _make_layers(root: Path, scn, opts: SynthOptions) -> _Layers:
     buildings = make_buildings(scn.terrain, st, frame, seed=opts.seed)
     write_buildings_geojson(bld_path, buildings, scn.crs)
     atomic_write(ortho_path, lambda p: st.texture.convert("RGB").save(p, quality=90))
-    return _Layers(st, frame, h0, tm, buildings, dem_path, bld_path, ortho_path)
+    write_track_layer(rail_path, st, frame0, scn.id)
+    return _Layers(st, frame, h0, tm, buildings, dem_path, bld_path, ortho_path, rail_path)
 
 
 def _lay_out_consist(scn, lay: _Layers, opts: SynthOptions, rng) -> list:
@@ -462,7 +471,7 @@ def _write_settings(root: Path, settings_path: Path, scn, opts: SynthOptions, la
                                     f"the truth is in truth/ground_truth.json."},
         "location": {"lat": scn.lat, "lon": scn.lon, "height_m": lay.h0, "crs": scn.crs},
         "terrain": {"dem": os.path.relpath(lay.dem_path, root), "buildings": os.path.relpath(lay.bld_path, root),
-                    "dem_vertical_accuracy_m": 0.25, "aoi_radius_m": opts.terrain_size_m / 2.0 - 5.0},
+                    "railways": os.path.relpath(lay.rail_path, root), "dem_vertical_accuracy_m": 0.25, "aoi_radius_m": opts.terrain_size_m / 2.0 - 5.0},
         "consist": [{"number": p.number, "type": p.ctype.id,
                      **({"coupling_to_next": p.coupling_to_next} if p.coupling_to_next else {})} for p in placed],
         "camera": {"source": "calibrated", "profile": "camera_profile.json", "photos": "photos/panorama",
@@ -504,13 +513,15 @@ def generate_incident(root: Path, opts: SynthOptions, *, force: bool = False,
 
     progress(0.96, "ground truth")
     cars = _carriages_truth(placed, lay.frame)
+    for car, on_track in zip(cars, carriage_track_truth(placed, lay.st, scn.id)):
+        car["track"] = on_track
     truth = {
         "generator": {"name": "workbench synth", "version": GENERATOR_VERSION, "spec_hash": opts.spec_hash(),
                       "options": asdict(opts)},
         "scenario": {"id": scn.id, "title": scn.title},
         "frame": {"crs": scn.crs, "lat": scn.lat, "lon": scn.lon, "height_m": lay.h0},
         "layers": {"dem": os.path.relpath(lay.dem_path, root), "buildings": os.path.relpath(lay.bld_path, root),
-                   "ortho": os.path.relpath(lay.ortho_path, root)},
+                   "ortho": os.path.relpath(lay.ortho_path, root), "railways": os.path.relpath(lay.rail_path, root)},
         "carriages": cars,
         "panorama_center_enu": pano_centre,
         "photos": photos,
