@@ -3,8 +3,8 @@
 Writes under ``out/render/``:
 
 * ``overview.png``: the whole scene from above and beside the camera's side of the wreck;
-* ``map.png``: a top-down map (true north up, scene frame), carriages outlined and numbered, the camera(s),
-  a scale bar and a north arrow with grid north beside it;
+* ``map.png``: a top-down map (true north up, scene frame), the railway lines (``terrain.railways``), carriages
+  outlined and numbered, the camera(s), a scale bar and a north arrow with grid north beside it;
 * ``photo_<view>.png``: each photo with the reconstruction seen from the photo's own camera (through its
   lens model) blended over it, carriages outlined in their colours; ``photo_<view>_ids.png`` the carriage
   ids of that render (8-bit: the carriage's index in ``solution.json``, 255 = none);
@@ -24,11 +24,13 @@ import math
 import os
 import time
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 
 from ..core.camera import look_at
 from ..core.stage_api import Progress, StageResult
+from ..core.track import RailwayLine
 from ..errors import RenderError
 from ..project import Project
 from .scene import IncidentScene, PlacedCarriage, camera_glyph, car_color, load_scene
@@ -165,9 +167,35 @@ def _nice_length(max_m: float) -> float:
     return k
 
 
+def _draw_railways(ax, railways: Sequence[RailwayLine], extent: tuple[float, float, float, float], pe) -> None:
+    """The railway lines, dashed over a white halo, with chainage ticks (metres, on the left of the direction of
+    increasing chainage) every round number of metres."""
+    x0, x1, y0, y1 = extent
+    W = x1 - x0
+    step = _nice_length(W / 4.0)
+    for k, line in enumerate(railways):
+        P = line.points_enu
+        ax.plot(P[:, 0], P[:, 1], color=(0.12, 0.12, 0.12), linewidth=1.3, linestyle=(0, (6, 2)),
+                path_effects=[pe.withStroke(linewidth=3.2, foreground=(1, 1, 1, 0.85))],
+                label="railway line (centre), chainage in m" if k == 0 else None, zorder=2)
+        first = math.ceil(line.chainage_origin_m / step) * step
+        for ch in np.arange(first, line.chainage_origin_m + line.length_m + 1e-9, step):
+            xy, bearing = line.at(float(ch))
+            if not (x0 < xy[0] < x1 and y0 < xy[1] < y1):
+                continue
+            b = math.radians(bearing)
+            left = np.array([-math.cos(b), math.sin(b)])
+            tip = xy + 0.018 * W * left
+            ax.plot([xy[0], tip[0]], [xy[1], tip[1]], color=(0.12, 0.12, 0.12), linewidth=1.0, zorder=2)
+            ax.annotate(f"{ch:g}", tip, xytext=tuple(4 * left), textcoords="offset points", fontsize=6,
+                        color=(0.12, 0.12, 0.12), ha="center", va="center", zorder=2,
+                        path_effects=[pe.withStroke(linewidth=2, foreground="white")])
+
+
 def draw_map(path: Path, image: np.ndarray, extent: tuple[float, float, float, float], sc: IncidentScene,
-             convergence_deg: float, crs_name: str, frame_note: str) -> None:
-    """A map figure: the top-down render with carriage outlines and numbers, cameras, scale bar, north arrows."""
+             convergence_deg: float, crs_name: str, frame_note: str, railways: Sequence[RailwayLine] = ()) -> None:
+    """A map figure: the top-down render with the railway lines (chainage ticks), carriage outlines and numbers,
+    cameras, scale bar, north arrows."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -179,6 +207,7 @@ def draw_map(path: Path, image: np.ndarray, extent: tuple[float, float, float, f
     fig, ax = plt.subplots(figsize=(7.0, 7.0), dpi=150)
     ax.imshow(image, extent=extent, origin="upper", interpolation="bilinear")
     halo = [pe.withStroke(linewidth=3, foreground="white")]
+    _draw_railways(ax, railways, extent, pe)
     for c in sc.carriages:
         col = np.array(car_color(c.index)) / 255.0
         fp = c.footprint_enu()
@@ -413,8 +442,10 @@ class _RenderRun:
         conv = project.frame.grid_convergence_deg()
         map_path = self.out / "map.png"
         crs_name = project.settings.location.crs
+        layer = project.railways(heights=False)
         draw_map(map_path, res.color, extent, sc, conv, crs_name,
-                 f"Reference point {_latlon(project.settings.location.lat, project.settings.location.lon)}.")
+                 f"Reference point {_latlon(project.settings.location.lat, project.settings.location.lon)}.",
+                 railways=layer.lines if layer is not None else ())
         self.record("map", "map", map_path, t0, extent_enu=list(extent), metres_per_px=mpp, grid_convergence_deg=conv,
                     crs=crs_name)
 

@@ -29,6 +29,7 @@ from ..core.stage_api import Progress, StageResult
 from ..errors import InputError, StageError
 from ..project import Project
 from .scene import car_color
+from .track_table import track_table
 
 log = logging.getLogger(__name__)
 
@@ -483,7 +484,7 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
                      "convergence": _f(project.frame.grid_convergence_deg(), 2)},
         "generated": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "summary": summary, "rows": rows, "warnings": [_warning_text(w) for w in solution.get("warnings", [])],
-        "findings": findings(project, solution),
+        "findings": findings(project, solution), "track": track_table(project, sol),
         "overview": (by_kind.get("overview") or [None])[0], "map": (by_kind.get("map") or [None])[0],
         "photos": by_kind.get("photo", []), "closeups": by_kind.get("closeup", []),
         "orbit": (by_kind.get("orbit") or [None])[0], "observations": obs_figs, "panorama": panorama_img,
@@ -492,7 +493,8 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
         "provenance": provenance(project, state), "render_engine": renders.get("engine", "?"),
         "stage_times": [{"name": k, "duration": _f(v.get("duration_s"), 2)} for k, v in stats.items()],
     }
-    facts = {"summary": summary, "findings": ctx["findings"], "carriages": rows, "residuals": res_info,
+    facts = {"summary": summary, "findings": ctx["findings"], "carriages": rows, "track": ctx["track"],
+             "residuals": res_info,
              "observations": obs_figs,
              "panorama": panorama_fig}
     return ctx, facts

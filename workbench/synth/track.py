@@ -19,7 +19,7 @@ import numpy as np
 from ..core.frames import SceneFrame, hpr_from_rotation
 from ..core.track import wrap_deg
 
-LINE_NAME = "the track the train ran on (synthetic)"
+LINE_NAME = "track the train ran on"
 
 
 def line_id(scenario_id: str) -> str:
