@@ -289,7 +289,13 @@ def test_solved_carriages_on_the_track_within_their_intervals(solved):
 
 
 def test_project_railways_unset_and_missing(solved, tmp_path):
+    from workbench.pipeline import stage
+
     project, _, _ = solved
+    layer_file = project.path(project.settings.terrain.railways)
+    for name in ("render", "export"):  # a changed layer makes them stale (the report too, once render has run)
+        assert stage(name).inputs(project)["railways"] == layer_file, name
+    assert "terrain.railways" in stage("report").settings_sections
     text = project.settings_path.read_text()
     other = tmp_path / "copy"
     other.mkdir()
@@ -298,3 +304,22 @@ def test_project_railways_unset_and_missing(solved, tmp_path):
     (other / "project.toml").write_text(text.replace(project.settings.terrain.railways, "nowhere.geojson"))
     with pytest.raises(InputError, match=r"terrain.railways = 'nowhere.geojson'"):
         Project(other).railways(heights=False)
+
+
+def test_geojson_export_carries_the_place_on_the_track(solved):
+    from workbench.export import ExportOptions
+    from workbench.export.stage import export_scene
+
+    project, truth, _ = solved
+    paths, _ = export_scene(project, ExportOptions(tiles=False, terrain_max_faces=20_000))
+    gj = json.loads(paths["geojson"].read_text())
+    positions = carriage_track_positions(project.solution(), project.railways(heights=False))
+    true = {c["number"]: c["track"] for c in truth["carriages"]}
+    assert len(gj["features"]) == 2 * len(positions)
+    for feat in gj["features"]:
+        p, tp = feat["properties"], positions[feat["properties"]["number"]]
+        assert p["track_line"] == "spuyten-duyvil-track" and p["beyond_line_end"] is False
+        assert p["chainage_m"] == pytest.approx(tp.chainage_m, abs=1e-4)
+        assert p["lateral_offset_m"] == pytest.approx(tp.offset_m, abs=1e-4)
+        assert p["yaw_to_track_deg"] == pytest.approx(tp.yaw_deg, abs=1e-4)
+        assert abs(p["lateral_offset_m"] - true[p["number"]]["offset_m"]) <= p["ci95_lateral_offset_m"]

@@ -124,6 +124,12 @@ def _dem_files(project: Project) -> dict[str, Path]:
     return {"dem": paths[0]} if len(paths) == 1 else {f"dem:{p.name}": p for p in paths}
 
 
+def _railway_files(project: Project) -> dict[str, Path]:
+    """The railway layer, which the map, the report's track table and the GeoJSON export read."""
+    rel = project.settings.terrain.railways
+    return {"railways": project.require_file(rel, "terrain.railways")} if rel else {}
+
+
 def _terrain_inputs(project: Project) -> dict[str, Path]:
     files = _dem_files(project)
     if project.settings.terrain.buildings:
@@ -252,6 +258,7 @@ def _export_inputs(project: Project) -> dict[str, Path]:
         if ortho is not None:
             files["orthophoto"] = ortho
     files.update(_rolling_stock_files(project))
+    files.update(_railway_files(project))
     return files
 
 
@@ -270,6 +277,7 @@ def scene_input_files(project: Project) -> dict[str, Path]:
         files["ortho"] = ortho
         for i, d in enumerate(project.dem_paths()):
             files["dem" if i == 0 else f"dem:{d.name}"] = d
+    files.update(_railway_files(project))
     return files
 
 
@@ -283,6 +291,7 @@ def _report_inputs(project: Project) -> dict[str, Path]:
     cams = project.cameras_path()
     if cams is not None:
         files["cameras"] = cams
+    files.update(_railway_files(project))
     # The stages' stats.json files are read but not hashed: they hold run times, which change on every run (and
     # stages after the report, such as export, would make it stale forever). A new solution reaches the report
     # through the solution's hash and the render stage's outputs.
@@ -331,7 +340,7 @@ STAGES: list[StageSpec] = [
               settings_sections=("incident", "location", "terrain", "consist"), depends_on=("solve",)),
     StageSpec("report", "incident report (HTML and PDF) from the stages' statistics and renders",
               "workbench.report.report_stage:run_report", inputs=_report_inputs,
-              settings_sections=("incident", "location", "consist"), depends_on=("render",)),
+              settings_sections=("incident", "location", "consist", "terrain.railways"), depends_on=("render",)),
 ]
 STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES)
 

@@ -5,16 +5,22 @@ body box (couplers excluded) projected vertically onto the ground, their convex 
 vertex is converted on its own, ENU -> WGS84 through :class:`~workbench.core.frames.SceneFrame` (never an
 offset added to the origin). Heights (third coordinate): the body centre's for the point, the exported terrain's
 under each footprint vertex (the lowest body corner's where there is no terrain), in the DEM's vertical datum.
+
+With a railway layer (``terrain.railways``) each carriage's features also carry its place on the track
+(:func:`track_properties`; definitions in ``docs/gis.md``, "Railway lines").
 """
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any, Mapping
 
 import numpy as np
 from scipy.spatial import ConvexHull
 
 from .scene import ExportCarriage, ExportScene, ground_heights
+
+if TYPE_CHECKING:  # pragma: no cover
+    from ..core.track import TrackPosition
 
 DECIMALS_DEG = 9  # ~0.1 mm
 DECIMALS_M = 4
@@ -56,12 +62,27 @@ def carriage_properties(car: ExportCarriage, frame: Any) -> dict[str, Any]:
     }
 
 
-def carriages_geojson(scene: ExportScene) -> dict:
-    """The FeatureCollection (a JSON-ready dict); properties in :func:`carriage_properties`."""
+def track_properties(tp: "TrackPosition") -> dict[str, Any]:
+    """A carriage's place on the railway line (JSON-ready): ``track_line`` (its id), ``chainage_m`` (along the line
+    from its origin), ``lateral_offset_m`` (from the track centre, positive left of increasing chainage),
+    ``yaw_to_track_deg`` (positive: the front turned left of increasing chainage), their ``ci95_*`` half widths
+    (None without an uncertainty) and ``beyond_line_end``."""
+    d = tp.to_dict(decimals=DECIMALS_M)
+    return {"track_line": tp.line_id, "chainage_m": d["chainage_m"], "ci95_chainage_m": d["ci95_chainage_m"],
+            "lateral_offset_m": d["offset_m"], "ci95_lateral_offset_m": d["ci95_offset_m"],
+            "yaw_to_track_deg": d["yaw_deg"], "ci95_yaw_to_track_deg": d["ci95_yaw_deg"],
+            "beyond_line_end": tp.beyond_end}
+
+
+def carriages_geojson(scene: ExportScene, track: Mapping[str, "TrackPosition"] | None = None) -> dict:
+    """The FeatureCollection (a JSON-ready dict); properties in :func:`carriage_properties`, and in
+    :func:`track_properties` for the carriages in ``track`` ({car number: place on the railway line})."""
     f = scene.frame
     features = []
     for car in scene.carriages:
         props = carriage_properties(car, f)
+        if track and car.number in track:
+            props.update(track_properties(track[car.number]))
         centre = f.wgs84_from_enu(car.body_centre_enu[None])[0]
         features.append({"type": "Feature", "id": f"{car.number}-centre",
                          "properties": {**props, "feature": "body centre"},

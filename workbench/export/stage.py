@@ -5,7 +5,8 @@ them), the orthophoto (when the project has one) and the rolling-stock models; w
 
 * ``scene.glb``: glTF 2.0 binary (terrain, buildings, carriages with liveries), georeference in
   ``asset.extras.georeference``;
-* ``carriages.geojson``: footprints and centres, WGS84 (RFC 7946);
+* ``carriages.geojson``: footprints and centres, WGS84 (RFC 7946), with each carriage's place on the railway line
+  when the incident has one (``terrain.railways``);
 * ``scene.kmz``: the carriage models placed for Google Earth;
 * ``scene.city.json``: CityJSON 2.0 in the project CRS;
 * ``tiles/tileset.json`` + ``tiles/scene.glb``: Cesium 3D Tiles 1.1 (``ExportOptions.tiles``).
@@ -22,6 +23,7 @@ import numpy as np
 
 from ..core.io import atomic_write_bytes, to_json
 from ..core.stage_api import Progress, StageResult
+from ..files.railways import carriage_track_positions
 from ..project import Project
 from .cityjson import cityjson_document
 from .geojson import carriages_geojson
@@ -64,7 +66,8 @@ def export_scene(project: Project, options: ExportOptions | None = None,
     paths["glb"] = atomic_write_bytes(out / OUTPUTS["glb"], glb)
     stats["glb"] = gstats
     progress(0.5, "GeoJSON")
-    gj = timed("geojson", lambda: carriages_geojson(scene))
+    track = carriage_track_positions(project.solution("export"), project.railways(heights=False))
+    gj = timed("geojson", lambda: carriages_geojson(scene, track))
     paths["geojson"] = project.write_text(out / OUTPUTS["geojson"], to_json(gj))
     progress(0.6, "KMZ")
     kmz, kstats = timed("kmz", lambda: kmz_bytes(scene, options))
