@@ -112,9 +112,6 @@ class Rigid:
     def name(self) -> str:
         return f"{self.to_frame}_from_{self.from_frame}"
 
-    @classmethod
-    def identity(cls, frame: str) -> "Rigid":
-        return cls(np.eye(3), np.zeros(3), frame, frame)
 
     @classmethod
     def from_matrix(cls, matrix: np.ndarray, to_frame: str, from_frame: str) -> "Rigid":

@@ -35,12 +35,6 @@ def exp_so3(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + a * K + b * (K @ K)
 
 
-def log_so3(R: np.ndarray) -> np.ndarray:
-    """Rotation matrix (3, 3) -> rotation vector (3,)."""
-    from scipy.spatial.transform import Rotation
-
-    return Rotation.from_matrix(np.asarray(R, dtype=float)).as_rotvec()
-
 
 def left_jacobian_so3(w: np.ndarray) -> np.ndarray:
     """Left Jacobian of SO(3) (..., 3, 3): ``Exp(w + dw) = Exp(J_l(w) dw) Exp(w)`` to first order."""

@@ -115,9 +115,6 @@ def hash_file(path: Path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
-def hash_bytes(data: bytes) -> str:
-    return hashlib.sha256(data).hexdigest()
-
 
 def matrix_from_json(value, shape: tuple[int, ...], where: str):
     """A finite float array of ``shape`` from a JSON value; :class:`InputError` naming ``where`` otherwise."""

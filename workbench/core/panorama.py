@@ -221,9 +221,6 @@ class PanoramaModel:
             d[m] = src.intrinsics.rays(p[m]) @ src.cam_from_pano  # pano_from_cam = cam_from_pano.T
         return self.project(d)
 
-    def source_dirs_pano(self, index: int) -> np.ndarray:
-        """The optical axis of source ``index`` as a unit direction in ``pano`` (3,)."""
-        return self.sources[index].cam_from_pano[2].copy()
 
     # -- files -----------------------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
@@ -252,7 +249,3 @@ def warped_from_dirs(projection: str, dirs: np.ndarray) -> np.ndarray:
     return m.project(dirs)
 
 
-def dirs_from_warped(projection: str, warped: np.ndarray) -> np.ndarray:
-    """Inverse of :func:`warped_from_dirs`: unit directions (N, 3)."""
-    m = PanoramaModel(projection=projection, scale=1.0, offset=(0.0, 0.0), width=1, height=1, sources=())
-    return m.rays(warped)

@@ -249,20 +249,6 @@ def load_settings(path: Path) -> ProjectSettings:
     return parse_settings(data, str(path))
 
 
-def settings_to_toml_dict(settings: ProjectSettings) -> dict:
-    """A plain dict (for tomli_w) with None values dropped."""
-
-    def clean(v: Any) -> Any:
-        if isinstance(v, dict):
-            return {k: clean(x) for k, x in v.items() if x is not None}
-        if isinstance(v, (list, tuple)):
-            return [clean(x) for x in v]
-        if isinstance(v, Enum):
-            return v.value
-        return v
-
-    return clean(settings.model_dump(mode="python"))
-
 
 TEMPLATE = """\
 # Incident settings. Every key is documented in docs/formats.md.

@@ -148,14 +148,6 @@ def read_cameras(path: Path) -> Cameras:
     return parse_cameras(read_json(Path(path)), path)
 
 
-def cameras_document(route: str, views: list[CameraView] | list[dict], **blocks: Any) -> dict:
-    """A ``cameras.json`` document: ``route``, ``views`` (entries, or :class:`CameraView`) and the other blocks
-    (``panorama``, ``georegistration``, ...) as given."""
-    if route not in ROUTES:
-        raise ValueError(f"route {route!r} is not one of {ROUTES}")
-    entries = [v.entry() if isinstance(v, CameraView) else v for v in views]
-    return {"route": route, **blocks, "views": entries}
-
 
 def write_cameras(path: Path, doc: dict) -> Path:
     """Check ``doc`` as :func:`parse_cameras` does, then write it atomically."""

@@ -16,7 +16,6 @@ import numpy as np
 import trimesh
 
 from ..core.camera import CameraIntrinsics
-from ..errors import InputError
 from ..project import Project
 
 log = logging.getLogger(__name__)
@@ -115,12 +114,6 @@ class IncidentScene:
 # ----------------------------------------------------------------------------------------------------------
 # Loading
 # ----------------------------------------------------------------------------------------------------------
-def _matrix(value, where: str) -> np.ndarray:
-    M = np.asarray(value, dtype=float)
-    if M.shape != (4, 4) or not np.all(np.isfinite(M)):
-        raise InputError(f"{where}: expected a finite 4x4 matrix, got shape {M.shape}")
-    return M
-
 
 def load_cameras(project: Project) -> tuple[dict, list[SceneCamera]]:
     """(``cameras.json`` document, its views) of the incident; ({}, []) before georef."""
