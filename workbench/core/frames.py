@@ -112,7 +112,6 @@ class Rigid:
     def name(self) -> str:
         return f"{self.to_frame}_from_{self.from_frame}"
 
-
     @classmethod
     def from_matrix(cls, matrix: np.ndarray, to_frame: str, from_frame: str) -> "Rigid":
         M = np.asarray(matrix, dtype=float)

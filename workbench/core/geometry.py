@@ -35,7 +35,6 @@ def exp_so3(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + a * K + b * (K @ K)
 
 
-
 def left_jacobian_so3(w: np.ndarray) -> np.ndarray:
     """Left Jacobian of SO(3) (..., 3, 3): ``Exp(w + dw) = Exp(J_l(w) dw) Exp(w)`` to first order."""
     w = np.asarray(w, dtype=float)

@@ -115,7 +115,6 @@ def hash_file(path: Path, chunk: int = 1 << 20) -> str:
     return h.hexdigest()
 
 
-
 def matrix_from_json(value, shape: tuple[int, ...], where: str):
     """A finite float array of ``shape`` from a JSON value; :class:`InputError` naming ``where`` otherwise."""
     import numpy as np

@@ -221,7 +221,6 @@ class PanoramaModel:
             d[m] = src.intrinsics.rays(p[m]) @ src.cam_from_pano  # pano_from_cam = cam_from_pano.T
         return self.project(d)
 
-
     # -- files -----------------------------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
         return {"projection": self.projection, "scale": float(self.scale), "offset": [*self.offset],

@@ -249,7 +249,6 @@ def load_settings(path: Path) -> ProjectSettings:
     return parse_settings(data, str(path))
 
 
-
 TEMPLATE = """\
 # Incident settings. Every key is documented in docs/formats.md.
 # Paths are relative to this folder. Unknown keys are an error.

@@ -148,7 +148,6 @@ def read_cameras(path: Path) -> Cameras:
     return parse_cameras(read_json(Path(path)), path)
 
 
-
 def write_cameras(path: Path, doc: dict) -> Path:
     """Check ``doc`` as :func:`parse_cameras` does, then write it atomically."""
     parse_cameras(doc, path)
