@@ -50,6 +50,10 @@ def profile_yz(spec: CarriageSpec) -> np.ndarray:
     right_half: list[tuple[float, float]] = []  # from bottom centre-ish up the right side (y < 0)
     if p.bottom_inset_m > 0:
         right_half.append((-(hw - p.bottom_inset_m), bb))
+        n = p.bottom_segments  # 1: a straight chamfer; more: a quarter ellipse from the bottom to the wall
+        for k in range(1, n):
+            t = 0.5 * np.pi * k / n
+            right_half.append((-(hw - p.bottom_inset_m + p.bottom_inset_m * np.sin(t)), wb - (wb - bb) * np.cos(t)))
         right_half.append((-hw, wb))
     else:
         right_half.append((-hw, bb))
@@ -192,12 +196,12 @@ def anchor_point(spec: CarriageSpec, anchor: str) -> tuple[np.ndarray, tuple[str
     m = ANCHOR_RE.match(anchor)
     if not m:
         raise ValueError(f"unknown anchor {anchor!r}")
-    d, p = spec.dimensions, spec.profile
-    hw = d.width_m / 2
-    if m.group(1):
-        end = m.group(1)
+    if m.group(1):  # the couplers: a mesh type's too (its dimensions hold the length and the coupler height)
+        end, d = m.group(1), spec.dimensions
         sign = 1.0 if end == "front" else -1.0
         return np.array([sign * d.length_over_couplers_m / 2, 0.0, d.coupler_height_m]), (end,)
+    d, p = spec.dimensions, spec.profile
+    hw = d.width_m / 2
     if m.group(2):
         which, end, side = m.group(2), m.group(3), m.group(4)
         ys = 1.0 if side == "left" else -1.0
@@ -211,6 +215,10 @@ def anchor_point(spec: CarriageSpec, anchor: str) -> tuple[np.ndarray, tuple[str
         ys = 1.0 if side == "left" else -1.0
         z = getattr(spec, end).nose_base_height_m
         return np.array([nose_x(spec, end, z), ys * hw, z]), (side, end)
+    if m.group(11):  # the top or the bottom of an end, on the centre line
+        which, end = m.group(11), m.group(12)
+        z = d.height_m if which == "roof" else d.body_bottom_m
+        return np.array([nose_x(spec, end, z), 0.0, z]), ((end, "roof") if which == "roof" else (end,))
     k, which, xend, side = int(m.group(7)), m.group(8), m.group(9), m.group(10)
     door = spec.doors[k - 1]
     ys = 1.0 if side == "left" else -1.0

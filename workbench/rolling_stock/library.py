@@ -9,9 +9,10 @@ from typing import TYPE_CHECKING, Iterable
 import numpy as np
 
 from ..errors import SettingsError, UnknownModelType
+from . import mesh_type
 from .geometry import FACE_NORMALS, Part, anchor_point, bogie_boxes, build_parts, equipment_box
 from .livery import Atlas, paint_atlas
-from .spec import CarriageSpec, load_spec
+from .spec import POINT_TOLERANCE_M, AnySpec, CarriageSpec, MeshCarriageSpec, load_spec
 
 if TYPE_CHECKING:  # trimesh takes seconds to import: loaded when a mesh is built, not to list or check types
     import trimesh
@@ -44,15 +45,17 @@ class CarriageType:
     """One carriage type: dimensions, marked points and (cached) meshes in the carriage frame.
 
     Carriage frame: metres; x forward (towards the front coupler), y left, z up; origin on the centre line
-    midway between the coupler faces, at top-of-rail height.
+    midway between the coupler faces, at top-of-rail height. Parametric (the body built from the dimensions) or
+    a mesh type (the model read from a mesh file, :mod:`.mesh_type`); both answer the same questions.
     """
 
-    def __init__(self, spec: CarriageSpec, source_path: Path) -> None:
+    def __init__(self, spec: AnySpec, source_path: Path) -> None:
         self.spec = spec
         self.source_path = Path(source_path)
         self._lock = threading.Lock()
         self._parts: list[Part] | None = None
         self._mesh_cache: dict[tuple[str, bool], trimesh.Trimesh] = {}
+        self._loaded = mesh_type.load_mesh(spec, self.source_path) if self.is_mesh_type else None
         pts: dict[str, np.ndarray] = {}
         faces: dict[str, tuple[str, ...]] = {}
         for mp in spec.marked_points:
@@ -63,7 +66,10 @@ class CarriageType:
             pts[mp.name] = xyz
             faces[mp.name] = fs
         self.marked_points: dict[str, np.ndarray] = pts
-        self._check_explicit_points()
+        if self._loaded is not None:  # every point, the anchored couplers too: the file is the model
+            mesh_type.check_points(self.source_path, spec, pts, self._loaded.vertices, self._loaded.faces)
+        else:
+            self._check_explicit_points()
         self.marked_point_faces: dict[str, tuple[str, ...]] = faces
         self.marked_point_normals: dict[str, np.ndarray] = {
             n: (lambda v: v / np.linalg.norm(v))(sum(FACE_NORMALS[f] for f in fs)) for n, fs in faces.items()
@@ -74,17 +80,15 @@ class CarriageType:
         explicit = [(i, mp) for i, mp in enumerate(self.spec.marked_points) if mp.xyz is not None]
         if not explicit:
             return
-        import trimesh
-
-        tri = self.mesh(textured=False).triangles
+        m = self.mesh(textured=False)
+        V, F = np.asarray(m.vertices), np.asarray(m.faces)
         for i, mp in explicit:
-            p = np.asarray(mp.xyz, dtype=float)
-            q = trimesh.triangles.closest_point(tri, np.repeat(p[None], len(tri), axis=0))
-            dist = float(np.min(np.linalg.norm(q - p, axis=1)))
-            if dist > 0.005:
+            dist = mesh_type.surface_distance(V, F, np.asarray(mp.xyz, dtype=float))
+            if dist > POINT_TOLERANCE_M:
                 raise SettingsError(
-                    f"{self.source_path}: 'marked_points[{i}].xyz' = {list(mp.xyz)!r}: the point is {dist:.3f} m "
-                    "off the model's surface; give a point on the body (e.g. a corner) or use an 'anchor'"
+                    f"{self.source_path}: 'marked_points[{i}].xyz' = {list(mp.xyz)!r} ({mp.name!r}): the point is "
+                    f"{dist:.3f} m from the model's surface, more than the {POINT_TOLERANCE_M * 1000:.0f} mm allowed; "
+                    "give a point on the body (e.g. a corner) or use an 'anchor'"
                 )
 
     # -- identity and dimensions ------------------------------------------------------------------------
@@ -109,20 +113,45 @@ class CarriageType:
         return self.spec.default_car_number
 
     @property
+    def is_mesh_type(self) -> bool:
+        """Whether the model is a mesh file (``[mesh]``) rather than built from the dimensions."""
+        return isinstance(self.spec, MeshCarriageSpec)
+
+    @property
+    def has_reference_imagery(self) -> bool:
+        """Whether the automatic finder may search photos for this type: a parametric type whose ``[livery]`` is
+        its real appearance (given in the file, ``reference`` true). Mesh types and types without a livery, or
+        whose livery only colours the drawing (``reference = false``), have none: their cars need hand picks."""
+        return isinstance(self.spec, CarriageSpec) and self.spec.has_livery and self.spec.livery.reference
+
+    def _mesh_bounds(self) -> np.ndarray:
+        return self._loaded.bounds.copy()
+
+    @property
     def length_m(self) -> float:
         """Length over the coupler faces."""
         return float(self.spec.dimensions.length_over_couplers_m)
 
     @property
     def body_length_m(self) -> float:
+        """Over the body ends (a mesh type: the mesh's extent in x)."""
+        if self._loaded is not None:
+            lo, hi = self._mesh_bounds()
+            return float(hi[0] - lo[0])
         return float(self.spec.dimensions.body_length_m)
 
     @property
     def width_m(self) -> float:
+        if self._loaded is not None:
+            lo, hi = self._mesh_bounds()
+            return float(hi[1] - lo[1])
         return float(self.spec.dimensions.width_m)
 
     @property
     def height_m(self) -> float:
+        """Top of the model above the top of rail."""
+        if self._loaded is not None:
+            return float(self._mesh_bounds()[1][2])
         return float(self.spec.dimensions.height_m)
 
     @property
@@ -143,9 +172,16 @@ class CarriageType:
 
     # -- geometry -----------------------------------------------------------------------------------------
     def parts(self) -> list[Part]:
+        """The closed parts the model is made of (a mesh type: one part, the file's mesh)."""
         with self._lock:
             if self._parts is None:
-                self._parts = build_parts(self.spec)
+                if self._loaded is not None:
+                    import trimesh
+
+                    m = trimesh.Trimesh(vertices=self._loaded.vertices, faces=self._loaded.faces, process=False)
+                    self._parts = [Part(m, "body", "mesh")]
+                else:
+                    self._parts = build_parts(self.spec)
             return self._parts
 
     def mesh(self, car_number: str = "", textured: bool = True) -> trimesh.Trimesh:
@@ -154,7 +190,7 @@ class CarriageType:
         Untextured: the parts concatenated with shared vertices (each part closed, outward normals).
         Textured: every triangle has its own three vertices, with UVs into the car's livery atlas
         (a PIL image in ``mesh.visual.material.image``); ``car_number`` ("" = the type's default) is painted
-        on both sides and both ends.
+        on both sides and both ends. A mesh type: UVs into a palette of the file's colours (no number painted).
         """
         number = car_number or self.spec.default_car_number
         key = (number if textured else "", bool(textured))
@@ -169,6 +205,8 @@ class CarriageType:
     def _build_plain(self) -> trimesh.Trimesh:
         import trimesh
 
+        if self._loaded is not None:
+            return trimesh.Trimesh(vertices=self._loaded.vertices, faces=self._loaded.faces, process=False)
         meshes = [p.mesh for p in self.parts()]
         m = trimesh.util.concatenate(meshes)
         return trimesh.Trimesh(vertices=m.vertices, faces=m.faces, process=False)
@@ -178,6 +216,11 @@ class CarriageType:
         from trimesh.visual import TextureVisuals
         from trimesh.visual.material import SimpleMaterial
 
+        if self._loaded is not None:
+            mesh = mesh_type.textured_mesh(self._loaded)
+            mesh.metadata["carriage_type"] = self.id
+            mesh.metadata["car_number"] = number
+            return mesh
         atlas, image = paint_atlas(self.spec, number)
         verts, uvs = [], []
         for part in self.parts():
@@ -200,17 +243,27 @@ class CarriageType:
         return mesh
 
     def texture(self, car_number: str = "") -> tuple[Atlas, "object"]:
-        """(atlas layout, PIL image) of the livery for ``car_number``."""
+        """(atlas layout, PIL image) of the livery for ``car_number`` (a parametric type's only)."""
+        if self._loaded is not None:
+            raise ValueError(f"{self.id}: a mesh type has no livery atlas")
         m = self.mesh(car_number, textured=True)
         return Atlas(self.spec), m.visual.material.image
 
     def bounding_box(self) -> np.ndarray:
         """(2, 3) min / max corners of the whole model (couplers included) in the carriage frame."""
+        if self._loaded is not None:  # the coupler faces too, where the file has no couplers
+            lo, hi = self._mesh_bounds()
+            ends = np.array([self.coupler_front, self.coupler_rear])
+            return np.array([np.minimum(lo, ends.min(axis=0)), np.maximum(hi, ends.max(axis=0))])
         return np.array(self.mesh(textured=False).bounds, dtype=float)
 
     def collision_boxes(self) -> list[tuple[np.ndarray, np.ndarray]]:
         """Axis-aligned boxes (centre (3,), half extents (3,)) in the carriage frame: the body (without
-        couplers), each bogie, and the underframe equipment between the bogies."""
+        couplers), each bogie, and the underframe equipment between the bogies. A mesh type: one box, the
+        mesh's bounds (running gear and any couplers in the file included)."""
+        if self._loaded is not None:
+            lo, hi = self._mesh_bounds()
+            return [((lo + hi) / 2, (hi - lo) / 2)]
         d = self.spec.dimensions
         lo = np.array([-d.body_length_m / 2, -d.width_m / 2, d.body_bottom_m])
         hi = np.array([d.body_length_m / 2, d.width_m / 2, d.height_m])
@@ -222,7 +275,11 @@ class CarriageType:
 
     def sample_surface(self, n: int, seed: int = 0) -> np.ndarray:
         """Points on the mesh surface: every (unique) mesh vertex, topped up with area-uniform random samples
-        to ``n`` points; so the result has ``max(n, number of vertices)`` rows. Deterministic for a seed."""
+        to ``n`` points; so the result has ``max(n, number of vertices)`` rows. Deterministic for a seed.
+        A mesh type (often many thousand vertices): the vertices of its convex hull, which hold the lowest point
+        in any attitude, topped up to ``n`` (:func:`.mesh_type.hull_samples`)."""
+        if self._loaded is not None:
+            return mesh_type.hull_samples(self._loaded.vertices, self._loaded.faces, n, seed)
         m = self.mesh(textured=False)
         verts = np.unique(np.round(np.asarray(m.vertices), 9), axis=0)
         extra = max(0, int(n) - len(verts))
@@ -235,20 +292,29 @@ class CarriageType:
 
 
 # --------------------------------------------------------------------------------------------------------
-_cache: dict[Path, tuple[float, CarriageType]] = {}
+_cache: dict[Path, tuple[tuple, CarriageType]] = {}
 _cache_lock = threading.Lock()
+
+
+def _stamp(path: Path, spec: AnySpec | None) -> tuple:
+    """When the type file (and a mesh type's mesh file) last changed."""
+    stamp = (path.stat().st_mtime_ns,)
+    if isinstance(spec, MeshCarriageSpec):
+        f = mesh_type.mesh_file(spec, path)
+        stamp += (f.stat().st_mtime_ns if f.is_file() else None,)
+    return stamp
 
 
 def _load_type(path: Path) -> CarriageType:
     path = Path(path).resolve()
-    mtime = path.stat().st_mtime
     with _cache_lock:
         hit = _cache.get(path)
-        if hit is not None and hit[0] == mtime:
-            return hit[1]
-    ct = CarriageType(load_spec(path), path)
+    if hit is not None and hit[0] == _stamp(path, hit[1].spec):
+        return hit[1]
+    spec = load_spec(path)
+    ct = CarriageType(spec, path)
     with _cache_lock:
-        _cache[path] = (mtime, ct)
+        _cache[path] = (_stamp(path, spec), ct)
     return ct
 
 

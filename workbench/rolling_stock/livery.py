@@ -395,6 +395,10 @@ def _paint_end(img: Image.Image, atlas: Atlas, end: str, number: str) -> None:
         nh = min(0.2, 0.3 * (base - bb))
         pen.text(0.0, bb + 0.16 + nh / 2, number, nh, fill=(250, 250, 250), stroke=(20, 20, 20))
         pen.rect(-hw + 0.05, hw - 0.05, bb, bb + 0.12, fill=(20, 20, 20))  # anticlimber
+    elif spec.kind == "freight_car":  # a wagon's end (a tank's head): no door, no diaphragm; the number only
+        pen.text(0.0, (bb + h) / 2 + 0.4, number, 0.16, fill=nc)
+        for ys in (-1, 1):  # ladders / grab irons at the corners
+            pen.line([(ys * (hw - 0.25), bb + 0.1), (ys * (hw - 0.25), min(fl, h - 0.3))], (200, 170, 40), 0.03)
     else:
         # end door with window, diaphragm, handrails, number
         if e.cab:

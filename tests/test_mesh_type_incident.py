@@ -1,0 +1,74 @@
+"""A mesh type through an incident (issue 16): the shoreliner's own model exported as a CAD tool would (GLB in
+millimetres, glTF's axes, origin at the rear coupler), given as the incident's ``rolling_stock/shoreliner.toml``
+with its marked points by ``xyz``: the hand-written incident (known cameras, hand picks, no photo files) solves
+as with the parametric type, and the export draws the mesh."""
+
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import trimesh
+
+from workbench.pipeline import STAGES
+from workbench.project import Project
+from workbench.rolling_stock import get_type
+from workbench.runner import Runner
+from workbench.synth.generate import SynthOptions, generate_incident
+from workbench.synth.handpicks import write_known_cameras, write_true_correspondences
+
+
+def _cad_type(folder: Path) -> None:
+    """rolling_stock/shoreliner.toml: a mesh type of the shipped shoreliner's mesh, exported in mm and glTF axes."""
+    ct = get_type("shoreliner")
+    m = ct.mesh(textured=False)
+    V = np.asarray(m.vertices).copy()
+    V[:, 0] += ct.length_m / 2  # origin at the rear coupler face
+    cad = trimesh.Trimesh(V[:, [1, 2, 0]] * 1000.0, m.faces, process=False)  # glTF: (x, y, z) = (left, up, forward)
+    cad.visual.face_colors = np.tile([180, 185, 190, 255], (len(m.faces), 1))
+    folder.mkdir()
+    cad.export(folder / "shoreliner_cad.glb")
+    T = [[0, 0, 1, -ct.length_m / 2], [1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 0, 1]]
+    lines = ['id = "shoreliner"', 'name = "Shoreliner (CAD export)"', "[mesh]", 'file = "shoreliner_cad.glb"',
+             "unit_m = 0.001", f"carriage_from_file = {T!r}", "[dimensions]",
+             f"length_over_couplers_m = {ct.length_m}", f"coupler_height_m = {ct.spec.dimensions.coupler_height_m}"]
+    for n, p in ct.marked_points.items():
+        lines += ["[[marked_points]]", f'name = "{n}"', f"xyz = {[round(float(v), 6) for v in p]!r}",
+                  "faces = " + json.dumps(list(ct.marked_point_faces[n]))]
+    (folder / "shoreliner.toml").write_text("\n".join(lines) + "\n", encoding="utf-8")
+
+
+@pytest.fixture(scope="module")
+def incident(tmp_path_factory) -> Path:
+    gen = tmp_path_factory.mktemp("mesh_type") / "gen"
+    generate_incident(gen, SynthOptions(scenario="spuyten-duyvil", seed=2, n_cars=3, photo_width=480,
+                                        photo_height=360, n_panorama=3, n_multiview=0, supersample=1))
+    write_known_cameras(gen, "panorama")
+    write_true_correspondences(gen, "panorama", sigma_px=1.0, seed=5)
+    root = gen.parent / "inc"
+    shutil.copytree(gen, root, ignore=shutil.ignore_patterns("out", "photos", "masks"))
+    _cad_type(root / "rolling_stock")
+    return root
+
+
+def test_a_mesh_type_solves_and_exports(incident):
+    p = Project(incident)
+    types = p.carriage_types()
+    assert all(t.is_mesh_type for t in types.values())
+    Runner(p, STAGES).run(only=["inputs", "terrain", "georef", "solve", "export"])
+    sol = json.loads((incident / "out" / "solve" / "solution.json").read_text())
+    truth = {c["number"]: c for c in json.loads((incident / "truth" / "ground_truth.json").read_text())["carriages"]}
+    solved = [c for c in sol["carriages"] if c["status"] == "solved"]
+    assert len(solved) >= 2
+    for c in solved:
+        err = np.asarray(c["body_centre_enu"]) - np.asarray(truth[c["number"]]["body_centre_enu"])
+        ci = np.asarray(c["ci95_body_centre_m"])
+        assert np.all(np.abs(err) <= 1.75 * ci + 0.02), (c["number"], err, ci)
+        assert c["rms_px"] < 3.0
+    scene = trimesh.load(incident / "out" / "export" / "scene.glb", force="scene")
+    cars = [g for n, g in scene.geometry.items() if n.startswith("shoreliner ")]
+    assert len(cars) == len(solved) and all(len(g.faces) == len(types["6100"].mesh(textured=False).faces)
+                                              for g in cars)
