@@ -323,3 +323,33 @@ def test_geojson_export_carries_the_place_on_the_track(solved):
         assert p["lateral_offset_m"] == pytest.approx(tp.offset_m, abs=1e-4)
         assert p["yaw_to_track_deg"] == pytest.approx(tp.yaw_deg, abs=1e-4)
         assert abs(p["lateral_offset_m"] - true[p["number"]]["offset_m"]) <= p["ci95_lateral_offset_m"]
+
+
+def test_map_draws_the_line_and_records_a_layer_without_one(solved, tmp_path, monkeypatch):
+    from PIL import Image
+
+    from workbench.report import render_stage
+    from workbench.report.scene import load_scene
+
+    project, _, _ = solved
+    monkeypatch.setattr(render_stage, "MAP_SIZE", (240, 240))
+    stations = tmp_path / "stations.geojson"
+    stations.write_text(json.dumps({"type": "Feature", "properties": {"railway": "station"},
+                                    "geometry": {"type": "Point", "coordinates": [-73.92, 40.878]}}))
+    sc = load_scene(project, textured=False)
+    sr = render_stage.SceneRenderer(sc)
+    maps = {}
+    for name, layer in (("with", None), ("without", stations)):
+        p = Project(project.root)
+        if layer is not None:
+            p.__dict__["settings"] = p.settings.model_copy(
+                update={"terrain": p.settings.terrain.model_copy(update={"railways": str(layer)})})
+        run = render_stage._RenderRun(p, lambda f, m="": None, tmp_path / name, sc, sr)
+        run.top_down_map()
+        maps[name] = np.asarray(Image.open(tmp_path / name / "map.png").convert("L"), dtype=float)
+        if layer is None:
+            assert run.railways == {"file": project.settings.terrain.railways, "lines": 1, "warnings": []}
+        else:
+            assert run.railways["lines"] == 0 and "stations.geojson" in run.railways["warnings"][0]
+    assert maps["with"].shape == maps["without"].shape
+    assert np.mean(np.abs(maps["with"] - maps["without"]) > 40) > 0.002  # the dashed line and its ticks

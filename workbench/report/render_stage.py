@@ -23,6 +23,7 @@ import logging
 import math
 import os
 import time
+import warnings
 from pathlib import Path
 from typing import Sequence
 
@@ -31,7 +32,7 @@ import numpy as np
 from ..core.camera import look_at
 from ..core.stage_api import Progress, StageResult
 from ..core.track import RailwayLine
-from ..errors import RenderError
+from ..errors import RenderError, WorkbenchWarning
 from ..project import Project
 from .scene import IncidentScene, PlacedCarriage, camera_glyph, car_color, load_scene
 
@@ -398,6 +399,7 @@ class _RenderRun:
     def __init__(self, project: Project, progress: Progress, out: Path, sc: IncidentScene, sr: SceneRenderer):
         self.project, self.progress, self.out, self.sc, self.sr = project, progress, out, sc, sr
         self.index: list[dict] = []
+        self.railways: dict = {}
         self.timings: dict[str, float] = {}
         self.outputs: dict[str, Path] = {}
         self.az0 = viewer_azimuth(sc, sr.centre)
@@ -442,7 +444,11 @@ class _RenderRun:
         conv = project.frame.grid_convergence_deg()
         map_path = self.out / "map.png"
         crs_name = project.settings.location.crs
-        layer = project.railways(heights=False)
+        with warnings.catch_warnings(record=True) as caught:  # a layer with no railway line: in the stage's stats
+            warnings.simplefilter("always", WorkbenchWarning)
+            layer = project.railways(heights=False)
+        self.railways = {"file": project.settings.terrain.railways, "lines": len(layer.lines) if layer else 0,
+                         "warnings": [str(w.message) for w in caught if issubclass(w.category, WorkbenchWarning)]}
         draw_map(map_path, res.color, extent, sc, conv, crs_name,
                  f"Reference point {_latlon(project.settings.location.lat, project.settings.location.lon)}.",
                  railways=layer.lines if layer is not None else ())
@@ -554,4 +560,5 @@ def run_render(project: Project, progress: Progress) -> StageResult:
         "n_photos": sum(1 for r in run.index if r["kind"] == "photo"),
         "time_by_kind_s": {k: round(v, 3) for k, v in run.timings.items()},
         "terrain_textured": bool(sc.terrain is not None and getattr(sc.terrain.visual, "kind", None) == "texture"),
+        "railways": run.railways,
     })
