@@ -646,7 +646,7 @@ def chain_search(photo: PhotoFeatures, found: list[CarInPhoto], consist: list[tu
         have = {c.number for c in out}
         new = []
         for k, (number, _, _) in enumerate(consist):
-            if number in have:
+            if number in have or number not in by_number:  # not in by_number: no reference imagery, not searched
                 continue
             anchors = anchors_of(k, consist, types, poses, broken=opts.search_broken)
             if not anchors:

@@ -11,6 +11,12 @@ Per photo: SIFT features of the undistorted photo; per car (its own livery) and 
 by RANSAC; the detections are assigned to the cars jointly (:mod:`.assign`); the marked points on a face's
 plane are transferred by its (refined) homography, the others (couplers, corners) projected from the
 face's pose. Face references are written to ``out/correspond/references/`` for review (and the picker).
+
+The automatic finder runs only where it can work: with ``[correspond] finder = "auto"`` (the default) and for
+the cars whose type has reference imagery (``CarriageType.has_reference_imagery``: a livery that is the car's
+real appearance). The other cars are listed as needing manual points, with the reason; when no car is left to
+search, no photo is scanned. With ``finder = "off"`` no photo is scanned at all: the output holds the
+incident's hand picks, and every car without one is listed as needing manual points.
 """
 
 from __future__ import annotations
@@ -24,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
+from ..core.settings import FinderMode
 from ..core.stage_api import Progress, StageResult
 from ..errors import InputError
 from ..files.intrinsics import photo_size, resolve_intrinsics
@@ -150,17 +157,29 @@ def _cached_photo_features(project: Project, path: Path, K: CameraIntrinsics, op
     return pf
 
 
+FINDER_OFF_REASON = ("the automatic finder is off (project.toml: [correspond] finder = 'off'); pick its points by "
+                     "hand (workbench pick)")
+
+
+def no_reference_reason(type_id: str) -> str:
+    """Why a car of type ``type_id`` is not searched for (:attr:`CarriageType.has_reference_imagery` false)."""
+    return (f"type {type_id!r} has no reference imagery (a mesh type, no [livery], or livery.reference = false): "
+            f"the automatic finder does not search for it; pick its points by hand (workbench pick)")
+
+
 def _car_references(project: Project, consist: list[tuple], types: dict, opts: MatchOptions, progress: Progress,
                     reference_dir: Path | None, cache_dir: Path | None, cache_used: set[str]
                     ) -> tuple[dict[str, list], dict, list[str]]:
-    """Every car's face references (number -> list), those of faces aligned only (``ref_cache``: (number,
-    face) -> reference) and the cars without texture enough to match; the references written to
-    ``reference_dir`` (images and ``references.json``) for review."""
+    """Every searched car's face references (number -> list; the cars whose type has reference imagery),
+    those of faces aligned only (``ref_cache``: (number, face) -> reference) and the cars without texture
+    enough to match; the references written to ``reference_dir`` (images and ``references.json``) for review."""
     ref_cache: dict = {}  # built here once: the workers inherit them
     refs = {}
     untextured = []
     ref_doc = {}
     for k, (number, _, _) in enumerate(consist):
+        if not types[number].has_reference_imagery:
+            continue
         progress(0.05 * k / len(consist), f"references of {number}")
         rs, aligned = _cached_references(project, types[number], number, opts, cache_dir, cache_used)
         for r in aligned:  # references of faces aligned only (the roof), shared by the photos
@@ -286,7 +305,7 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
     refs, ref_cache, untextured = _car_references(project, consist, types, opts, progress, reference_dir, cache_dir,
                                                   cache_used)
     obs: list[mf.Observation] = []
-    if len(untextured) == len(consist):
+    if len(untextured) == len(refs):
         photos = []  # nothing to match against
     carry_on = opts.carry_between_photos and len(photos) > 1 and s.camera.source.value != "sfm"
     # the chain/terrain pose search needs each photo's camera in the scene frame, and uses the terrain
@@ -328,18 +347,41 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
                                        "points by hand"} for n in untextured]
     seen = {o.carriage for o in obs}
     needs += [{"carriage": n, "reason": "no face matched in any photo"} for n, _, _ in consist
-              if n not in seen and n not in untextured]
+              if n not in seen and n not in untextured and n in refs]
+    needs += [{"carriage": n, "reason": no_reference_reason(t)} for n, t, _ in consist if n not in refs]
     return obs, needs, {"photos": per_photo, "carried": carried_stats}
+
+
+def _not_searched(project: Project) -> tuple[list[dict], str | None]:
+    """The cars the automatic finder will not search for, with the reason, and why no photo is scanned at all
+    (None: the finder runs)."""
+    s = project.settings
+    if s.correspond.finder is FinderMode.OFF:
+        return [{"carriage": c.number, "reason": FINDER_OFF_REASON} for c in s.consist], "finder off"
+    types = project.carriage_types()
+    needs = [{"carriage": c.number, "reason": no_reference_reason(types[c.number].id)} for c in s.consist
+             if not types[c.number].has_reference_imagery]
+    return needs, ("no type with reference imagery" if len(needs) == len(s.consist) else None)
 
 
 def run_correspond(project: Project, progress: Progress, opts: MatchOptions | None = None) -> StageResult:
     opts = opts or MatchOptions()
     photos = project.photo_paths()
     man = load_manual(project, photos)  # validate first: a bad file fails before minutes of matching
-    intrinsics, intr_source = photo_intrinsics(project, photos)
     out_dir = project.stage_dir("correspond")
-    auto, needs, stats = automatic(project, photos, intrinsics, opts, progress, reference_dir=out_dir / "references",
-                                   cache_dir=out_dir / "cache")
+    skipped, no_scan = _not_searched(project)
+    outputs = {}
+    if no_scan is None:
+        intrinsics, intr_source = photo_intrinsics(project, photos)
+        auto, needs, stats = automatic(project, photos, intrinsics, opts, progress,
+                                       reference_dir=out_dir / "references", cache_dir=out_dir / "cache")
+        outputs["references"] = out_dir / "references" / "references.json"
+    else:  # nothing to search for: no photo is read but for its size (the picks' check)
+        intr_source, auto, needs, stats = None, [], skipped, {"photos": {}, "carried": None}
+        shutil.rmtree(out_dir / "references", ignore_errors=True)  # an earlier automatic run's: not this one's
+        log.info("correspond: no photo scanned (%s); the hand picks only", no_scan)
+    stats["finder"] = project.settings.correspond.finder.value
+    stats["not_searched"] = [n["carriage"] for n in skipped]
     merged = mf.merge(auto, man.observations, man.rejected)
     manual_cars = {o.carriage for o in man.observations}
     needs = [n for n in needs if n["carriage"] not in manual_cars]
@@ -358,8 +400,7 @@ def run_correspond(project: Project, progress: Progress, opts: MatchOptions | No
                   "needs_manual": needs, "options": {k: getattr(opts, k) for k in opts.__dataclass_fields__}})
     for n in needs:
         log.warning("carriage %s needs manual points: %s", n["carriage"], n["reason"])
-    return StageResult(outputs={"correspondences": path, "references": out_dir / "references" / "references.json"},
-                       stats=stats)
+    return StageResult(outputs={"correspondences": path, **outputs}, stats=stats)
 
 
-__all__ = ["run_correspond", "load_manual", "photo_intrinsics", "automatic", "FACES"]
+__all__ = ["run_correspond", "load_manual", "photo_intrinsics", "automatic", "no_reference_reason", "FACES"]
