@@ -166,6 +166,8 @@ def test_straight_line_signs_and_ends():
     assert tp.chainage_m == pytest.approx(620.0) and tp.offset_m == pytest.approx(2.0) and tp.beyond_end
     assert tp.yaw_deg == pytest.approx(10.0)
     assert track_position(line, np.array([0.0, -5.0]), 185.0).yaw_deg == pytest.approx(175.0)
+    xy, bearing = line.at(560.0)  # the map's chainage ticks
+    assert np.allclose(xy, [0.0, 60.0]) and bearing == pytest.approx(0.0)
     assert wrap_deg(180.0) == 180.0 and wrap_deg(-180.0) == 180.0 and wrap_deg(-190.0) == pytest.approx(170.0)
 
 

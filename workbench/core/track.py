@@ -111,6 +111,16 @@ class RailwayLine:
     def length_m(self) -> float:
         return float(self._segments[3][-1])
 
+    def at(self, chainage_m: float) -> tuple[np.ndarray, float]:
+        """(east/north (2,), compass bearing of the track direction) at ``chainage_m`` (clamped to the line)."""
+        a, d, L, cum = self._segments
+        s = float(np.clip(chainage_m - self.chainage_origin_m, 0.0, cum[-1]))
+        i = int(np.clip(np.searchsorted(cum, s, side="right") - 1, 0, len(L) - 1))
+        t = (s - cum[i]) / L[i]
+        T = self._vertex_tangents
+        tan = (1.0 - t) * T[i] + t * T[i + 1]
+        return a[i] + t * d[i], math.degrees(math.atan2(tan[0], tan[1])) % 360.0
+
     def _candidates(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Every place on the line where the track direction is perpendicular to the line to ``p``: on segment i,
         ``(p - a_i - t d_i) . ((1 - t) T_i + t T_i+1) = 0`` (a quadratic in t), t in [0, 1]; and beyond either end,
