@@ -267,11 +267,13 @@ def _match_photos(matcher: _PhotoMatcher, photos: list[Path], intrinsics: dict[s
         progress(0.05 + 0.9 * len(steps_done) / (len(STEPS) * max(len(photos), 1)),
                  f"{photos[index].name}: {message}")
 
-    # a worker's memory peaks in SIFT on the upsampled photo: about 270 bytes per pixel there (3.2 GB measured
-    # at 4000 x 3000)
-    big = max([min(opts.photo_upsample, opts.max_photo_side_px / max(K.width, K.height)) ** 2 * K.width * K.height
-               for K in (intrinsics[p.name] for p in photos)] or [0.0])
-    workers = opts.workers or default_workers(270.0 * big)
+    # a worker's memory peaks in SIFT on the resized photo, about 270 bytes per pixel there (3.2 GB measured at
+    # 4000 x 3000), on top of the photo itself at full size, decoded and undistorted (about 14 bytes per pixel:
+    # 3.4-4.0 GB measured on 81 MP photos, docs/stitching.md "Large photos")
+    per_worker = max([270.0 * min(opts.photo_upsample, opts.max_photo_side_px / max(K.width, K.height)) ** 2
+                      * K.width * K.height + 14.0 * K.width * K.height
+                      for K in (intrinsics[p.name] for p in photos)] or [0.0])
+    workers = opts.workers or default_workers(per_worker)
     if photos:
         progress(0.05, f"matching {len(photos)} photos on {min(workers, len(photos))} processes")
     # kept only to carry points between the photos of a panorama set; the homographies between them are

@@ -37,7 +37,7 @@ class StitchOptions:
     planar_max_deg: float = 50.0  # planar when every ray is within this angle of the panorama's axis
     cylindrical_max_deg: float = 50.0  # cylindrical when every ray is within this elevation
     wave_correct: bool = True
-    max_output_megapix: float = 400.0  # larger panoramas are composed at a reduced scale
+    max_output_megapix: float = 100.0  # larger panoramas are composed at a reduced scale (memory: docs/stitching.md)
     parallax_rms_work_px: float = 3.0  # rotation-only fit worse than this (work pixels, RMS): parallax
     parallax_p90_work_px: float = 5.0
     check_parallax: bool = True  # raise when the verdict is "parallax"
