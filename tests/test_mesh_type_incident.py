@@ -72,3 +72,41 @@ def test_a_mesh_type_solves_and_exports(incident):
     cars = [g for n, g in scene.geometry.items() if n.startswith("shoreliner ")]
     assert len(cars) == len(solved) and all(len(g.faces) == len(types["6100"].mesh(textured=False).faces)
                                               for g in cars)
+
+
+def test_the_picker_shows_a_mesh_type(incident, tmp_path):
+    """The picker's page for an incident of mesh types: each face is the model seen from outside it (no livery to
+    crop), with its marked points where they project; the pixel <-> carriage-frame mapping the view states holds."""
+    from workbench.picker.server import PickerState, _reference
+
+    root = tmp_path / "with_photos"
+    shutil.copytree(incident.parent / "gen", root, ignore=shutil.ignore_patterns("out", "rolling_stock"))
+    shutil.copytree(incident / "rolling_stock", root / "rolling_stock")
+    p = Project(root)
+    doc = PickerState(p).document()
+    ct = p.carriage_types()["6100"]
+    for car in doc["cars"]:
+        assert set(car["faces"]) >= {"left", "right", "front", "rear"}, car["faces"].keys()
+        for face, f in car["faces"].items():
+            ref = _reference(p, car["number"], face)
+            assert ref.image.shape[:2] == (f["height"], f["width"]) and ref.image.std() > 10  # the model is drawn
+            view = np.cross(ref.axis_u_m, ref.axis_v_m)
+            view /= np.linalg.norm(view)
+            for name, (u, v) in ref.points.items():
+                xyz = ct.marked_points[name]
+                back = ref.origin_m + (u + 0.5) * ref.axis_u_m + (v + 0.5) * ref.axis_v_m
+                d = back - xyz
+                assert np.linalg.norm(d - (d @ view) * view) < 1e-9, (face, name)  # the same point, along the view
+                assert 0 <= u < f["width"] and 0 <= v < f["height"]
+
+
+def test_a_changed_mesh_file_makes_the_stages_stale(incident, tmp_path):
+    from workbench.pipeline import stage
+
+    root = tmp_path / "inc"
+    shutil.copytree(incident, root, ignore=shutil.ignore_patterns("out"))
+    p = Project(root)
+    before = stage("solve").inputs(p)
+    assert any(k.endswith(":shoreliner_cad.glb") for k in before)
+    glb = root / "rolling_stock" / "shoreliner_cad.glb"
+    assert before[next(k for k in before if k.endswith(":shoreliner_cad.glb"))] == glb.resolve()

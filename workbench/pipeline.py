@@ -34,9 +34,7 @@ def _inputs_files(project: Project) -> dict[str, Path]:
     cam = project.settings.camera
     if cam.profile:
         files["camera_profile"] = project.path(cam.profile)
-    if project.rolling_stock_dir.is_dir():
-        for t in sorted(project.rolling_stock_dir.glob("*.toml")):
-            files[f"rolling_stock:{t.name}"] = t
+    files.update(_rolling_stock_files(project))
     return files
 
 
@@ -114,9 +112,26 @@ def run_inputs(project: Project, progress: Progress) -> StageResult:
 # The stages' input files: what each stage reads, for the runner's hashes (every path from the Project)
 # ---------------------------------------------------------------------------------------------------
 def _rolling_stock_files(project: Project) -> dict[str, Path]:
-    if not project.rolling_stock_dir.is_dir():
+    """The incident's own type files, and the files a mesh type's ``[mesh] file`` names (with whatever else
+    its folder holds: a glTF's buffers and textures), so a changed CAD export makes the stages stale."""
+    import tomllib
+
+    d = project.rolling_stock_dir
+    if not d.is_dir():
         return {}
-    return {f"rolling_stock:{t.name}": t for t in sorted(project.rolling_stock_dir.glob("*.toml"))}
+    files = {}
+    for t in sorted(d.glob("*.toml")):
+        files[f"rolling_stock:{t.name}"] = t
+        try:
+            mesh = tomllib.loads(t.read_text(encoding="utf-8")).get("mesh")
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+            continue  # the type loader names the file and the error
+        if isinstance(mesh, dict) and isinstance(mesh.get("file"), str):
+            m = (t.parent / mesh["file"]).resolve()
+            for f in sorted(m.parent.iterdir()) if m.parent.is_dir() else []:
+                if f.is_file() and f.suffix.lower() != ".toml":
+                    files[f"rolling_stock:{t.stem}:{f.name}"] = f
+    return files
 
 
 def _dem_files(project: Project) -> dict[str, Path]:
@@ -241,6 +256,7 @@ def _solve_inputs(project: Project) -> dict[str, Path]:
     if pano is not None:
         files["panorama_model"] = pano
     files.update(_dem_files(project))
+    files.update(_rolling_stock_files(project))  # the models: marked points, bounds, the surface that settles
     return files
 
 

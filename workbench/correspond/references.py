@@ -127,10 +127,49 @@ def resize_linear_light(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
     return srgb8_from_linear(lin)
 
 
+# the direction a face is seen along (from outside the car) and the image's up direction, carriage frame
+_VIEW = {"left": ((0.0, -1.0, 0.0), (0.0, 0.0, 1.0)), "right": ((0.0, 1.0, 0.0), (0.0, 0.0, 1.0)),
+         "front": ((-1.0, 0.0, 0.0), (0.0, 0.0, 1.0)), "rear": ((1.0, 0.0, 0.0), (0.0, 0.0, 1.0)),
+         "roof": ((0.0, 0.0, -1.0), (1.0, 0.0, 0.0))}
+
+
+def mesh_face_view(ct: CarriageType, car_number: str, face: str, px_per_m: float) -> FaceReference:
+    """A mesh type's face as the picker shows it: the model seen orthographically from outside that face,
+    shaded by the slope of its triangles, with every marked point of the face where it projects (a mesh type
+    has no painted livery to crop; nothing is matched against this view)."""
+    from PIL import Image, ImageDraw
+
+    view, up = (np.asarray(v, float) for v in _VIEW[face])
+    right = np.cross(view, up)
+    m = ct.mesh(car_number, textured=False)
+    V, F = np.asarray(m.vertices, float), np.asarray(m.faces)
+    a, b, depth = V @ right, V @ up, -(V @ view)
+    margin = 0.25  # metres around the model: points at its extremes (couplers) are inside the image
+    a0, b1 = float(a.min()) - margin, float(b.max()) + margin
+    w = max(8, int(np.ceil((a.max() + margin - a0) * px_per_m)) + 1)
+    h = max(8, int(np.ceil((b1 - b.min() + margin) * px_per_m)) + 1)
+    img = Image.new("RGB", (w, h), (250, 250, 250))
+    draw = ImageDraw.Draw(img)
+    n = np.cross(V[F[:, 1]] - V[F[:, 0]], V[F[:, 2]] - V[F[:, 0]])
+    facing = np.abs(n @ view) / np.maximum(np.linalg.norm(n, axis=1), 1e-12)
+    u, v = (a - a0) * px_per_m, (b1 - b) * px_per_m
+    for t in np.argsort(depth[F].mean(axis=1)):  # far first: the near triangles are drawn over them
+        g = int(60 + 130 * facing[t])  # faces square to the view lightest, grazing ones dark
+        draw.polygon([(float(u[i]), float(v[i])) for i in F[t]], fill=(g - 15, g - 5, g))
+    origin = a0 * right + b1 * up + float(depth.max()) * -view
+    points = {name: np.array([(xyz @ right - a0) * px_per_m - 0.5, (b1 - xyz @ up) * px_per_m - 0.5])
+              for name, xyz in ct.marked_points.items() if face in ct.marked_point_faces[name]}
+    return FaceReference(ct.id, car_number, face, np.ascontiguousarray(np.asarray(img)), float(px_per_m), points,
+                         origin, right / px_per_m, -up / px_per_m)
+
+
 def face_reference(ct: CarriageType, car_number: str, face: str, px_per_m: float) -> FaceReference:
-    """The reference of one face of car ``car_number`` of type ``ct``, resampled to ``px_per_m``."""
+    """The reference of one face of car ``car_number`` of type ``ct``, resampled to ``px_per_m`` (a mesh type's:
+    :func:`mesh_face_view`)."""
     if face not in FACES:
         raise ValueError(f"face={face!r} but expected one of {FACES}")
+    if ct.is_mesh_type:
+        return mesh_face_view(ct, car_number, face, px_per_m)
     atlas, img = ct.texture(car_number)
     assert isinstance(atlas, Atlas)
     A = np.asarray(img.convert("RGB"))
