@@ -222,3 +222,20 @@ def test_help_and_status_load_no_stage_code(tmp_path):
     for args in (["--help"], ["status", str(root)], ["types"]):
         r = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=120)
         assert "HEAVY []" in r.stdout, (args, r.stdout[-500:], r.stderr[-2000:])
+
+
+def test_a_library_warning_is_one_line(tmp_path):
+    """A WorkbenchWarning reaches the user once, as one line (no Python source line), even when the library also
+    logs it."""
+    script = (
+        "import logging, warnings\n"
+        "from workbench.cli import _main\n"
+        "from workbench.errors import WorkbenchWarning\n"
+        "class Odd(WorkbenchWarning): pass\n"
+        "_main(0)\n"
+        "logging.getLogger('workbench.x').warning('logged and warned')\n"
+        "warnings.warn('logged and warned', Odd)\n"
+        "warnings.warn('only warned', Odd)\n")
+    r = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=60)
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert lines == ["WARNING workbench.x: logged and warned", "WARNING Odd: only warned"], r.stderr

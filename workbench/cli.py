@@ -33,6 +33,35 @@ def _progress():
 def _main(verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="-v info, -vv debug logging")) -> None:
     level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    _one_line_warnings()
+
+
+def _one_line_warnings() -> None:
+    """The library's warnings (``WorkbenchWarning``) as one line each, ``WARNING <category>: <message>``, and not
+    at all when the library has just logged the same message (most warn and log both); others as Python's."""
+    import warnings
+
+    from .errors import WorkbenchWarning
+
+    logged: set[str] = set()
+
+    class _Seen(logging.Filter):
+        def filter(self, record: logging.LogRecord) -> bool:
+            if record.levelno >= logging.WARNING:
+                logged.add(record.getMessage())
+            return True
+
+    for h in logging.getLogger().handlers:
+        h.addFilter(_Seen())
+    plain = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if not (isinstance(category, type) and issubclass(category, WorkbenchWarning)):
+            return plain(message, category, filename, lineno, file, line)
+        if str(message) not in logged:
+            console.print(f"WARNING {category.__name__}: {message}")
+
+    warnings.showwarning = show
 
 
 @app.command()
