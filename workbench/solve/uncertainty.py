@@ -18,7 +18,8 @@ from scipy.special import stdtrit  # the t quantile scipy.stats.t.ppf computes (
 from ..core.frames import hpr_from_rotation
 from ..core.geometry import exp_so3, skew
 from .model import SolveOptions
-from .problem import Chains, Poses, Problem, carriage_weights, focal_groups, held_chains, prepare_cars
+from .problem import (Chains, Poses, Problem, carriage_weights, focal_groups, held_chains, prepare_cars,
+                      record_warning)
 
 
 def pixel_rows(prob, R, t, f, focal_views):
@@ -120,7 +121,8 @@ def inverse_psd(H: np.ndarray) -> np.ndarray:
 class CovarianceModel:
     """The covariance ``cov`` (P, P) of the free-pose parameters (carriage ``k``'s six from ``col[k]``, then the
     focal groups'), the pixel sigma used and estimated, its degrees of freedom, the 95 % factor ``q`` (Student's
-    t) and the inverse information ``H_inv``."""
+    t), the inverse information ``H_inv`` and the parameters the information leaves ``undetermined`` (P,) bool
+    (:func:`undetermined_parameters`; None: none)."""
 
     cov: np.ndarray
     col: dict[int, int]
@@ -130,6 +132,24 @@ class CovarianceModel:
     q: float
     P: int
     H_inv: np.ndarray
+    undetermined: np.ndarray | None = None
+
+
+def undetermined_parameters(H: np.ndarray) -> np.ndarray | None:
+    """The parameters (P,) bool that a singular information ``H`` leaves undetermined (a component on its null
+    space), or None when ``H`` is positive definite (its Cholesky factorisation exists). The pseudo-inverse that
+    :func:`inverse_psd` falls back on gives such a parameter a finite variance, as if the data had fixed it;
+    its variance is infinite."""
+    try:
+        np.linalg.cholesky(H)
+        return None
+    except np.linalg.LinAlgError:
+        pass
+    ev, V = np.linalg.eigh(0.5 * (H + H.T))
+    null = ev <= max(ev[-1], 0.0) * len(H) * np.finfo(float).eps
+    if not null.any():
+        return None
+    return np.sum(V[:, null] ** 2, axis=1) > 1e-6
 
 
 def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_cfg: float,
@@ -189,7 +209,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         G = G + face_sigma**2 / sigma**4 * _shared_misfit(J * rho[:, None], groups, views, uv_obs, w_row)
     cov = Hi @ G @ Hi
     cov = 0.5 * (cov + cov.T)
-    return CovarianceModel(cov, col, sigma, sigma_hat, dof, q, P, Hi)
+    return CovarianceModel(cov, col, sigma, sigma_hat, dof, q, P, Hi, undetermined_parameters(H))
 
 
 def _shared_misfit(J: np.ndarray, groups: np.ndarray, views: np.ndarray, uv: np.ndarray,
@@ -257,11 +277,33 @@ def solution_model(prob: Problem, poses: Poses, focal_views, chains: Chains, con
                             face_sigma=options.face_sigma_px)
 
 
-def _set_pose_covariance(cr: Any, C: np.ndarray, R: np.ndarray, lever: np.ndarray, q: float) -> np.ndarray:
+def pose_determined(C: np.ndarray, rtol: float = 1e-9) -> bool:
+    """Whether a carriage's (6, 6) pose covariance is a covariance: finite and positive semi-definite to within
+    rounding (its least eigenvalue no lower than ``-rtol`` times its largest). Not so when the information it
+    inverts is numerically singular (a carriage whose measured points do not fix its pose: its predictions
+    placed it), where the computed variances are rounding noise, some of them negative."""
+    C = np.asarray(C, dtype=float)
+    if not np.all(np.isfinite(C)):
+        return False
+    ev = np.linalg.eigvalsh(0.5 * (C + C.T))
+    return bool(ev[0] >= -rtol * max(ev[-1], 0.0))
+
+
+def _set_pose_covariance(cr: Any, C: np.ndarray, R: np.ndarray, lever: np.ndarray, q: float,
+                         determined: bool = True) -> np.ndarray:
     """Set a carriage result's ``covariance_pose`` (6, 6: scene rotation vector, origin) and the sigmas and 95 %
-    half widths (``q`` sigmas) of its origin, body centre and heading / pitch / roll that follow from it.
+    half widths (``q`` sigmas) of its origin, body centre and heading / pitch / roll that follow from it (all None,
+    no interval, when the data leave the pose ``determined`` False or the covariance is not one:
+    :func:`pose_determined`).
     ``R`` (3, 3) its rotation, ``lever`` (3,) the body centre minus the origin in the scene frame (m). Returns
     the body centre's Jacobian (3, 6)."""
+    if not (determined and pose_determined(C)):
+        # the measured points leave a direction of the pose undetermined (the inverse of a numerically singular
+        # information): its variances are rounding noise, and negative ones clipped to 0 would read "exact"
+        cr.covariance_pose = None
+        cr.sigma_position_m = cr.ci95_position_m = cr.sigma_body_centre_m = cr.ci95_body_centre_m = None
+        cr.sigma_hpr_deg = cr.ci95_hpr_deg = None
+        return np.hstack([-skew(lever), np.eye(3)])
     cr.covariance_pose = C
     sp = np.sqrt(np.maximum(np.diag(C[3:, 3:]), 0))
     cr.sigma_position_m, cr.ci95_position_m = sp, q * sp
@@ -298,14 +340,22 @@ def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Cha
     for k in prob.active:
         cr = res.carriages[k]
         c = col[k]
-        Jbs[k] = _set_pose_covariance(cr, cov[c:c + 6, c:c + 6], R[k], R[k] @ prob.cars[k].c_body, q)
+        determined = model.undetermined is None or not model.undetermined[c:c + 6].any()
+        Jbs[k] = _set_pose_covariance(cr, cov[c:c + 6, c:c + 6], R[k], R[k] @ prob.cars[k].c_body, q, determined)
+        if cr.covariance_pose is None:
+            record_warning(res.warnings, prob.cars[k], "undetermined",
+                           f"car {cr.number}: its measured points do not determine its pose (predictions or the "
+                           f"chain placed it); no interval is given")
     for i, grp in enumerate(focal_views):
         j = 6 * len(prob.active) + i
         for v in grp:
-            res.sigma_focal_px[prob.views[v].name] = float(math.sqrt(max(cov[j, j], 0.0)))
+            res.sigma_focal_px[prob.views[v].name] = float(math.sqrt(max(cov[j, j], 0.0))) \
+                if model.undetermined is None or not model.undetermined[j] else math.inf
     for ch in chains.members:
         for j in range(len(ch) - 1):
             a, b = ch[j], ch[j + 1]
+            if res.carriages[a].covariance_pose is None or res.carriages[b].covariance_pose is None:
+                continue  # no interval, no correlation
             ca, cb = col[a], col[b]
             Caa = Jbs[a] @ cov[ca:ca + 6, ca:ca + 6] @ Jbs[a].T
             Cbb = Jbs[b] @ cov[cb:cb + 6, cb:cb + 6] @ Jbs[b].T

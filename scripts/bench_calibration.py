@@ -1,0 +1,381 @@
+#!/usr/bin/env python
+"""Calibration of the solve's 95 % intervals, route by route (issue 21): are they honest and sharp?
+
+    OMP_NUM_THREADS=1 nice -n 10 .venv/bin/python scripts/bench_calibration.py --route known --n 200
+    ... --route focal --n 200
+    ... --route auto --n 30          # ~40-60 s per generated incident on a loaded 2-core machine
+    ... --route known,focal          # several routes, one table
+
+Each route solves fresh problems (seeds from ``--seed0``) until it has ``--n`` solved carriages, and compares
+every carriage's pose with the truth on six axes: body centre east, north, up (m) and heading, pitch, roll (deg).
+Per route and axis it prints
+
+* **coverage**: the share of carriages whose truth lies inside the 95 % interval (``ci95_*``: the solve's
+  half widths, Student's t times sigma); target 90-98 %;
+* **RMS z**: the root mean square of error / sigma (1 when the sigmas are the errors' true spread); target
+  0.85-1.15;
+* **width / spread**: the RMS of the sigmas over the RMS of the errors (1 when the intervals are as wide as the
+  errors, above 1 when wider), and the mean 95 % half width beside the RMS error.
+
+Each figure has a 95 % confidence interval from a cluster bootstrap over the solved problems (one incident's
+carriages share its camera, focal and noise draw, so they are not independent; resampling whole problems keeps
+that). The coverage's Wilson interval (carriages taken as independent) is saved too.
+
+Routes:
+
+``known``
+    hand picks (true pixels plus Gaussian noise) on one photo, known camera: ``simulate_consist`` +
+    ``solve_consist(compute_covariance=True)``, cycling 4 and 7 cars at 0.7 and 1.5 px (the cases of issue 21),
+    the solver's defaults (per-carriage weighting, bias correction, no terrain);
+``focal``
+    the same problems with the focal unknown (``SolveOptions(estimate_focal=True)``);
+``auto``
+    generated incidents (``workbench synth``: 800x600 photos, a 4-photo panorama, 4-7 cars, the seed varying),
+    control points from the truth, then the pipeline up to ``solve`` (stitch, georef, correspond with automatic
+    points, solve): the demo's route. Its intervals include the georeferenced camera's uncertainty.
+
+Results are saved as JSON (``--out``, default ``bench_out/calibration_<routes>.json``: one record per carriage
+and the table), so runs can be merged (``--merge a.json b.json``) to reach 200 carriages in several sittings.
+"""
+
+from __future__ import annotations
+
+import os
+
+if __name__ == "__main__":  # one core per run (set before numpy loads); not when imported (tests)
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", os.environ["OMP_NUM_THREADS"])
+    os.environ.setdefault("MKL_NUM_THREADS", os.environ["OMP_NUM_THREADS"])
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import math  # noqa: E402
+import shutil  # noqa: E402
+import sys  # noqa: E402
+import time  # noqa: E402
+import warnings  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from workbench.core.frames import hpr_from_rotation  # noqa: E402
+from workbench.solve import SolveOptions, SolveWarning, solve_consist  # noqa: E402
+from workbench.solve.simulate import simulate_consist  # noqa: E402
+
+AXES = ("east", "north", "up", "heading", "pitch", "roll")
+UNITS = ("m", "m", "m", "deg", "deg", "deg")
+Z95 = 1.959963984540054
+
+
+# ----------------------------------------------------------------------------------------------------------
+# statistics (shared by every route)
+# ----------------------------------------------------------------------------------------------------------
+def wilson(k: float, n: int, z: float = Z95) -> tuple[float, float]:
+    """Wilson score interval of a proportion k / n."""
+    if n == 0:
+        return (float("nan"), float("nan"))
+    p = k / n
+    d = 1 + z * z / n
+    c = (p + z * z / (2 * n)) / d
+    h = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
+    return (c - h, c + h)
+
+
+def _wrap_deg(a):
+    return (np.asarray(a, float) + 180.0) % 360.0 - 180.0
+
+
+def axis_stats(records: list[dict], n_boot: int = 2000, seed: int = 0) -> dict:
+    """Per axis: coverage, RMS z, width / spread, mean half width and RMS error, each with a 95 % cluster
+    bootstrap interval (clusters: ``record["problem"]``); the coverage's Wilson interval too."""
+    ok = [r for r in records if all(x is not None and math.isfinite(x) and x > 0 for x in r["sigma"])]
+    dropped = len(records) - len(ok)  # intervals not given (or, from older runs, not finite)
+    records = ok
+    err = np.array([r["error"] for r in records], float)  # (n, 6)
+    sig = np.array([r["sigma"] for r in records], float)
+    half = np.array([r["ci95"] for r in records], float)
+    keys = [r["problem"] for r in records]
+    ids = {k: i for i, k in enumerate(dict.fromkeys(keys))}
+    cl = np.array([ids[k] for k in keys])
+    C = len(ids)
+    n_c = np.bincount(cl, minlength=C).astype(float)
+
+    def per_cluster(x):  # (n, 6) -> (C, 6) sums
+        out = np.zeros((C, x.shape[1]))
+        np.add.at(out, cl, x)
+        return out
+
+    inside = per_cluster((np.abs(err) <= half).astype(float))
+    z2 = per_cluster((err / sig) ** 2)
+    e2 = per_cluster(err ** 2)
+    s2 = per_cluster(sig ** 2)
+    hw = per_cluster(half)
+    rng = np.random.default_rng(seed)
+    W = rng.multinomial(C, np.full(C, 1.0 / C), size=n_boot).astype(float)  # (B, C) cluster counts
+    W = np.vstack([np.ones(C), W])  # row 0: the sample itself
+
+    def figures(w):
+        n = w @ n_c
+        return {"coverage": (w @ inside) / n[:, None], "rms_z": np.sqrt((w @ z2) / n[:, None]),
+                "width_over_spread": np.sqrt((w @ s2) / np.maximum(w @ e2, 1e-300)),
+                "mean_half_width": (w @ hw) / n[:, None], "rms_error": np.sqrt((w @ e2) / n[:, None])}
+
+    f = figures(W)
+    out = {"n_carriages": int(len(records)), "n_problems": C, "n_without_interval": dropped, "axes": {}}
+    for j, ax in enumerate(AXES):
+        a = {"unit": UNITS[j]}
+        for name, v in f.items():
+            a[name] = float(v[0, j])
+            lo, hi = np.percentile(v[1:, j], [2.5, 97.5])
+            a[name + "_ci95"] = [float(lo), float(hi)]
+        k = int(round(a["coverage"] * len(records)))
+        a["coverage_wilson_ci95"] = list(wilson(k, len(records)))
+        a["within_target"] = bool(0.90 <= a["coverage"] <= 0.98 and 0.85 <= a["rms_z"] <= 1.15)
+        out["axes"][ax] = a
+    return out
+
+
+def print_table(route: str, st: dict, extra: str = "") -> None:
+    print(f"\nroute {route}: {st['n_carriages']} carriages in {st['n_problems']} problems"
+          + (f" ({st['n_without_interval']} more placed without an interval)" if st["n_without_interval"] else "")
+          + extra)
+    print(f"{'axis':>8} | {'coverage % [95% CI]':>22} | {'RMS z [95% CI]':>21} | {'width/spread [95% CI]':>22} | "
+          f"{'mean 95% half width':>19} | {'RMS error':>10} | target")
+    for ax, a in st["axes"].items():
+        c, (cl, ch) = a["coverage"], a["coverage_ci95"]
+        z, (zl, zh) = a["rms_z"], a["rms_z_ci95"]
+        w, (wl, wh) = a["width_over_spread"], a["width_over_spread_ci95"]
+        print(f"{ax:>8} | {100 * c:6.1f} [{100 * cl:5.1f}, {100 * ch:5.1f}] | {z:5.3f} [{zl:5.3f}, {zh:5.3f}] | "
+              f"{w:5.3f} [{wl:5.3f}, {wh:5.3f}]  | {a['mean_half_width']:12.4f} {a['unit']:<4} | "
+              f"{a['rms_error']:10.4f} | {'ok' if a['within_target'] else 'MISS'}")
+
+
+# ----------------------------------------------------------------------------------------------------------
+# one carriage against its truth
+# ----------------------------------------------------------------------------------------------------------
+def record(problem: str, number: str, M_est: np.ndarray, body_est, M_true: np.ndarray, body_true,
+           sigma_body, ci_body, sigma_hpr, ci_hpr, **extra) -> dict:
+    """A carriage's six errors (body centre ENU, heading / pitch / roll), sigmas and 95 % half widths."""
+    h_est = np.array(hpr_from_rotation(np.asarray(M_est, float)[:3, :3]))
+    h_true = np.array(hpr_from_rotation(np.asarray(M_true, float)[:3, :3]))
+    e = np.concatenate([np.subtract(body_est, body_true), _wrap_deg(h_est - h_true)])
+    return {"problem": problem, "number": number, "error": e.tolist(),
+            "sigma": np.concatenate([sigma_body, sigma_hpr]).tolist(),
+            "ci95": np.concatenate([ci_body, ci_hpr]).tolist(), **extra}
+
+
+# ----------------------------------------------------------------------------------------------------------
+# routes 1 and 2: hand picks on simulated consists, focal known or estimated
+# ----------------------------------------------------------------------------------------------------------
+HAND_CASES = ((4, 0.7), (7, 1.5), (4, 1.5), (7, 0.7))  # (cars, pixel sigma): issue 21's cases
+
+
+def route_hand(n: int, seed0: int, estimate_focal: bool, log=print, terrain: bool = False,
+               terrain_sigma_m: float | None = None) -> tuple[list[dict], dict]:
+    """``terrain``: solve with the simulated plane as the terrain (step 2 and the contact term, as the solve stage
+    runs with a DEM), its stated accuracy ``terrain_sigma_m`` (None: ``SolveOptions``' default). The simulated
+    carriages rest on the plane to within 2 cm (1 sd: the couplers' play), so the plane is that accurate."""
+    recs, info = [], {"seeds": [], "skipped_seeds": [], "not_converged": 0, "left_out": 0, "time_s": 0.0,
+                      "focal_z": []}
+    tsig = {} if terrain_sigma_m is None else {"terrain_sigma_m": float(terrain_sigma_m)}
+    s = seed0
+    t0 = time.perf_counter()
+    while len(recs) < n:
+        n_cars, sigma = HAND_CASES[(s - seed0) % len(HAND_CASES)]
+        seed = s
+        s += 1
+        try:
+            sim = simulate_consist(n_cars, seed=seed, pixel_sigma_px=sigma)
+        except RuntimeError:
+            info["skipped_seeds"].append(seed)
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", SolveWarning)
+            res = solve_consist(sim.carriages, sim.links, sim.views,
+                                SolveOptions(pixel_sigma_px=sigma, estimate_focal=estimate_focal,
+                                             compute_covariance=True, **tsig), terrain=sim.terrain if terrain else None)
+        info["seeds"].append(seed)
+        info["not_converged"] += res.status != "converged"
+        if estimate_focal and res.sigma_focal_px:
+            name = sim.views[0].name
+            info["focal_z"].append((res.focal_px[name] - sim.views[0].intrinsics.fx) / res.sigma_focal_px[name])
+        for c, M, ci in zip(res.carriages, sim.truth, sim.carriages):
+            if c.covariance_pose is None:
+                info["left_out"] += 1
+                continue
+            bt = M[:3, :3] @ [0, 0, ci.carriage_type.height_m / 2] + M[:3, 3]
+            recs.append(record(f"seed{seed}", c.number, c.world_from_carriage, c.body_centre_m, M, bt,
+                               c.sigma_body_centre_m, c.ci95_body_centre_m, c.sigma_hpr_deg, c.ci95_hpr_deg,
+                               n_cars=n_cars, sigma_px=sigma, converged=res.status == "converged",
+                               t_factor=res.ci95_factor, dof=res.dof))
+        if len(info["seeds"]) % 10 == 0:
+            log(f"  {len(info['seeds'])} problems, {len(recs)} carriages, {time.perf_counter() - t0:.0f} s")
+    info["time_s"] = time.perf_counter() - t0
+    if info["focal_z"]:
+        fz = np.array(info["focal_z"])
+        info["focal_rms_z"] = float(np.sqrt(np.mean(fz ** 2)))
+        info["focal_coverage"] = float(np.mean(np.abs(fz) <= Z95))
+    return recs, info
+
+
+def route_known(n, seed0, log=print, terrain=False, terrain_sigma_m=None):
+    return route_hand(n, seed0, False, log, terrain, terrain_sigma_m)
+
+
+def route_focal(n, seed0, log=print, terrain=False, terrain_sigma_m=None):
+    return route_hand(n, seed0, True, log, terrain, terrain_sigma_m)
+
+
+# ----------------------------------------------------------------------------------------------------------
+# route 3: generated incidents through the pipeline, automatic points
+# ----------------------------------------------------------------------------------------------------------
+AUTO_CARS = (4, 5, 6, 7)
+
+
+def solve_incident(root: Path, seed: int, n_cars: int, width: int = 800, height: int = 600,
+                   n_panorama: int | None = None, n_multiview: int = 0, resolve: bool = False) -> dict:
+    """Generate one incident (``workbench synth``; kept when already generated), write its control points, run
+    the pipeline up to ``solve`` (``resolve``: the solve stage again, the rest as it is); returns the solution and
+    the truth (both as JSON documents)."""
+    from workbench import pipeline
+    from workbench.project import Project
+    from workbench.runner import Runner
+    from workbench.synth.control_points import write_control_points
+    from workbench.synth.generate import SynthOptions, generate_incident
+
+    generate_incident(root, SynthOptions(seed=seed, n_cars=n_cars, photo_width=width, photo_height=height,
+                                         n_panorama=n_panorama, n_multiview=n_multiview))
+    write_control_points(root)
+    project = Project(root)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        runner = Runner(project, list(pipeline.STAGES))
+        runner.run(until="solve")
+        if resolve:
+            runner.run(only=["solve"], force=True)
+    sol = json.loads((root / "out/solve/solution.json").read_text())
+    truth = json.loads((root / "truth/ground_truth.json").read_text())
+    return {"solution": sol, "truth": truth}
+
+
+def incident_records(problem: str, sol: dict, truth: dict, **extra) -> tuple[list[dict], int]:
+    """The placed carriages' records of one solved incident, the number left out and the number placed without an
+    interval (a pose its measured points do not determine)."""
+    by_number = {c["number"]: c for c in truth["carriages"]}
+    recs, left, no_interval = [], 0, 0
+    for c in sol["carriages"]:
+        if c.get("world_from_carriage") is None:
+            left += 1
+            continue
+        if c.get("sigma_body_centre_m") is None or None in c["sigma_body_centre_m"]:
+            no_interval += 1
+            continue
+        t = by_number[c["number"]]
+        recs.append(record(problem, c["number"], c["world_from_carriage"], c["body_centre_enu"],
+                           t["world_from_carriage"], t["body_centre_enu"], c["sigma_body_centre_m"],
+                           c["ci95_body_centre_m"], c["sigma_hpr_deg"], c["ci95_hpr_deg"], status=c["status"],
+                           n_points=c["n_points"], t_factor=sol.get("ci95_factor"), dof=sol.get("dof"),
+                           sigma_px=sol.get("sigma_px"), sigma_px_estimated=sol.get("sigma_px_estimated"),
+                           camera_uncertainty=bool((sol.get("camera_uncertainty") or {}).get("included")),
+                           **extra))
+    return recs, left, no_interval
+
+
+def route_auto(n: int, seed0: int, log=print, work: Path | None = None, keep: bool = True,
+               resolve: bool = False) -> tuple[list[dict], dict]:
+    """Incidents ``work/inc_<seed>`` (kept, so that ``resolve`` can solve them again after a change to the solve,
+    without the 40-60 s of the earlier stages)."""
+    work = work or REPO / "bench_out" / "calibration_auto"
+    recs, info = [], {"seeds": [], "failed": [], "left_out": 0, "no_interval": 0, "time_s": 0.0, "work": str(work)}
+    s = seed0
+    t0 = time.perf_counter()
+    while len(recs) < n:
+        seed, n_cars = s, AUTO_CARS[(s - seed0) % len(AUTO_CARS)]
+        s += 1
+        root = work / f"inc_{seed}"
+        t1 = time.perf_counter()
+        try:
+            out = solve_incident(root, seed, n_cars, resolve=resolve)
+        except Exception as e:  # noqa: BLE001 - a failed incident is counted and named, not fatal
+            info["failed"].append({"seed": seed, "error": f"{type(e).__name__}: {str(e)[:300]}"})
+            log(f"  seed {seed}: failed ({type(e).__name__}: {str(e)[:120]})")
+            if len(info["failed"]) >= 3 and len({f["error"] for f in info["failed"][-3:]}) == 1 \
+                    and all(f["seed"] >= seed - 2 for f in info["failed"][-3:]):
+                log("  three incidents in a row failed the same way: stopping (a broken checkout, not a finding)")
+                break
+            continue
+        r, left, no_int = incident_records(f"seed{seed}", out["solution"], out["truth"], n_cars=n_cars)
+        recs += r
+        info["seeds"].append(seed)
+        info["left_out"] += left
+        info["no_interval"] += no_int
+        zs = [np.max(np.abs(np.divide(x["error"], x["sigma"]))) for x in r]
+        log(f"  seed {seed}: {n_cars} cars, {len(r)} placed, sigma_px {out['solution'].get('sigma_px'):.3f} "
+            f"(estimated {out['solution'].get('sigma_px_estimated') or float('nan'):.3f}), max |z| per car "
+            f"{' '.join(f'{z:.1f}' for z in zs)}; {time.perf_counter() - t1:.0f} s; {len(recs)} carriages so far")
+        if not keep:
+            shutil.rmtree(root, ignore_errors=True)
+    info["time_s"] = time.perf_counter() - t0
+    return recs, info
+
+
+ROUTES = {"known": route_known, "focal": route_focal, "auto": route_auto}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--route", default="known,focal", help="comma-separated: " + ", ".join(ROUTES))
+    ap.add_argument("--n", type=int, default=200, help="carriages per route (at least)")
+    ap.add_argument("--seed0", type=int, default=210000, help="first seed (fresh seeds: not the tests' or "
+                                                               "bench_solver's)")
+    ap.add_argument("--out", type=Path, default=None)
+    ap.add_argument("--work", type=Path, default=None, help="route auto: the incidents' folder "
+                                                            "(default bench_out/calibration_auto)")
+    ap.add_argument("--terrain", action="store_true", help="routes known, focal: solve on the simulated terrain "
+                                                           "(resting and the contact term, as the stage with a DEM)")
+    ap.add_argument("--terrain-sigma", type=float, default=None,
+                    help="with --terrain: the terrain's stated accuracy (m; default SolveOptions' 0.10)")
+    ap.add_argument("--no-keep", action="store_true", help="route auto: delete each incident once solved")
+    ap.add_argument("--resolve", action="store_true", help="route auto: run the solve stage again on incidents "
+                                                           "already there (after a change to the solve)")
+    ap.add_argument("--merge", type=Path, nargs="*", default=None,
+                    help="merge saved runs (their carriage records, route by route) and print the table")
+    a = ap.parse_args(argv)
+    if a.merge:
+        by_route: dict[str, list] = {}
+        for p in a.merge:
+            d = json.loads(p.read_text())
+            for rt, v in d["routes"].items():
+                by_route.setdefault(rt, []).extend(v["records"])
+        for rt, recs in by_route.items():
+            print_table(rt, axis_stats(recs))
+        return 0
+    routes = [r.strip() for r in a.route.split(",") if r.strip()]
+    for r in routes:
+        if r not in ROUTES:
+            ap.error(f"unknown route {r!r}; routes: {', '.join(ROUTES)}")
+    out = a.out or REPO / "bench_out" / f"calibration_{'_'.join(routes)}.json"
+    result = {"command": " ".join(sys.argv), "seed0": a.seed0, "terrain": a.terrain,
+              "terrain_sigma_m": a.terrain_sigma, "routes": {}}
+    for r in routes:
+        print(f"route {r}: solving until {a.n} carriages ...", flush=True)
+        kw = {"work": a.work, "keep": not a.no_keep, "resolve": a.resolve} if r == "auto" else \
+            {"terrain": a.terrain, "terrain_sigma_m": a.terrain_sigma}
+        recs, info = ROUTES[r](a.n, a.seed0, log=lambda m: print(m, flush=True), **kw)
+        st = axis_stats(recs)
+        extra = f", {info['time_s']:.0f} s; left out {info.get('left_out', 0)}"
+        if "focal_rms_z" in info:
+            extra += f"; focal: RMS z {info['focal_rms_z']:.3f}, coverage {100 * info['focal_coverage']:.1f} %"
+        print_table(r, st, extra)
+        result["routes"][r] = {"stats": st, "info": info, "records": recs}
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(result, indent=1))
+    print(f"\nsaved {out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
