@@ -235,11 +235,30 @@ def route_focal(n, seed0, log=print, terrain=False, terrain_sigma_m=None):
 AUTO_CARS = (4, 5, 6, 7)
 
 
+SURVEY_NOISE_MARK = "coordinates perturbed by their sigma_m (bench_calibration --survey-noise)"
+
+
+def perturb_control_points(path: Path, seed: int) -> None:
+    """Give the synthetic control points the survey error they state: each coordinate + N(0, sigma_m^2) (the
+    generator writes exact coordinates with sigma_m = 0.05 m, so the georegistration's covariance, which
+    believes sigma_m, is wider than its errors). Once per file (marked in its description)."""
+    doc = json.loads(path.read_text())
+    if SURVEY_NOISE_MARK in doc.get("description", ""):
+        return
+    rng = np.random.default_rng(seed)
+    for p in doc["points"]:
+        sd = float(p.get("sigma_m") or 0.0)
+        p["coords"] = [round(float(x) + rng.normal(0.0, sd), 4) for x in p["coords"]]
+    doc["description"] = doc.get("description", "") + "; " + SURVEY_NOISE_MARK
+    path.write_text(json.dumps(doc, indent=1))
+
+
 def solve_incident(root: Path, seed: int, n_cars: int, width: int = 800, height: int = 600,
-                   n_panorama: int | None = None, n_multiview: int = 0, resolve: bool = False) -> dict:
+                   n_panorama: int | None = None, n_multiview: int = 0, resolve: bool = False,
+                   survey_noise: bool = False) -> dict:
     """Generate one incident (``workbench synth``; kept when already generated), write its control points, run
     the pipeline up to ``solve`` (``resolve``: the solve stage again, the rest as it is); returns the solution and
-    the truth (both as JSON documents)."""
+    the truth (both as JSON documents). ``survey_noise``: :func:`perturb_control_points`."""
     from workbench import pipeline
     from workbench.project import Project
     from workbench.runner import Runner
@@ -249,6 +268,8 @@ def solve_incident(root: Path, seed: int, n_cars: int, width: int = 800, height:
     generate_incident(root, SynthOptions(seed=seed, n_cars=n_cars, photo_width=width, photo_height=height,
                                          n_panorama=n_panorama, n_multiview=n_multiview))
     write_control_points(root)
+    if survey_noise:
+        perturb_control_points(root / "control_points.json", seed)
     project = Project(root)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -258,14 +279,41 @@ def solve_incident(root: Path, seed: int, n_cars: int, width: int = 800, height:
             runner.run(only=["solve"], force=True)
     sol = json.loads((root / "out/solve/solution.json").read_text())
     truth = json.loads((root / "truth/ground_truth.json").read_text())
-    return {"solution": sol, "truth": truth}
+    cams = root / "out/georef/cameras.json"
+    return {"solution": sol, "truth": truth, "cameras": json.loads(cams.read_text()) if cams.is_file() else None}
 
 
-def incident_records(problem: str, sol: dict, truth: dict, **extra) -> tuple[list[dict], int]:
-    """The placed carriages' records of one solved incident, the number left out and the number placed without an
-    interval (a pose its measured points do not determine)."""
+def camera_error(cameras: dict, truth: dict) -> tuple[np.ndarray, dict] | None:
+    """The georegistration's error as the rigid motion ``T`` (4, 4) of the scene that takes the true camera onto
+    the estimated one (``world_from_cam_est @ cam_from_world_true``: a carriage solved perfectly relative to the
+    camera lands at ``T @ truth``), and its rotation (rad) and centre (m) errors over their stated sigmas."""
+    if not cameras or not cameras.get("views"):
+        return None
+    v = cameras["views"][0]
+    ph = next((p for p in truth.get("photos", []) if Path(p.get("photo", "")).name == v["name"]), None)
+    if ph is None:
+        return None
+    Me, Mt = np.asarray(v["cam_from_world"], float), np.asarray(ph["cam_from_world"], float)
+    T = np.linalg.inv(Me) @ Mt
+    from scipy.spatial.transform import Rotation
+
+    w = Rotation.from_matrix(T[:3, :3]).as_rotvec()
+    c_e, c_t = -Me[:3, :3].T @ Me[:3, 3], -Mt[:3, :3].T @ Mt[:3, 3]
+    C = (cameras.get("georegistration") or {}).get("covariance_world_rotation_centre")
+    z = None
+    if C is not None:
+        sd = np.sqrt(np.diag(np.asarray(C, float)))
+        z = (np.concatenate([w, c_e - c_t]) / sd).tolist()
+    return T, {"rotation_err_deg": np.degrees(w).tolist(), "centre_err_m": (c_e - c_t).tolist(), "z": z}
+
+
+def incident_records(problem: str, sol: dict, truth: dict, T_cam: np.ndarray | None = None,
+                     **extra) -> tuple[list[dict], list[dict], int, int]:
+    """The placed carriages' records of one solved incident; the same against the fit's own intervals and the
+    truth carried by the camera's error ``T_cam`` (:func:`camera_error`: what the fit alone got wrong); the number
+    left out and the number placed without an interval (a pose its measured points do not determine)."""
     by_number = {c["number"]: c for c in truth["carriages"]}
-    recs, left, no_interval = [], 0, 0
+    recs, fit, left, no_interval = [], [], 0, 0
     for c in sol["carriages"]:
         if c.get("world_from_carriage") is None:
             left += 1
@@ -281,15 +329,23 @@ def incident_records(problem: str, sol: dict, truth: dict, **extra) -> tuple[lis
                            sigma_px=sol.get("sigma_px"), sigma_px_estimated=sol.get("sigma_px_estimated"),
                            camera_uncertainty=bool((sol.get("camera_uncertainty") or {}).get("included")),
                            **extra))
-    return recs, left, no_interval
+        if T_cam is not None and c.get("sigma_body_centre_fit_m") is not None:
+            q = float(sol.get("ci95_factor") or Z95)
+            sb, sh = np.asarray(c["sigma_body_centre_fit_m"], float), np.asarray(c["sigma_hpr_fit_deg"], float)
+            fit.append(record(problem, c["number"], c["world_from_carriage"], c["body_centre_enu"],
+                              T_cam @ np.asarray(t["world_from_carriage"], float),
+                              T_cam[:3, :3] @ np.asarray(t["body_centre_enu"], float) + T_cam[:3, 3],
+                              sb, q * sb, sh, q * sh, **extra))
+    return recs, fit, left, no_interval
 
 
 def route_auto(n: int, seed0: int, log=print, work: Path | None = None, keep: bool = True,
-               resolve: bool = False) -> tuple[list[dict], dict]:
+               resolve: bool = False, survey_noise: bool = False) -> tuple[list[dict], dict]:
     """Incidents ``work/inc_<seed>`` (kept, so that ``resolve`` can solve them again after a change to the solve,
     without the 40-60 s of the earlier stages)."""
     work = work or REPO / "bench_out" / "calibration_auto"
-    recs, info = [], {"seeds": [], "failed": [], "left_out": 0, "no_interval": 0, "time_s": 0.0, "work": str(work)}
+    recs, info = [], {"seeds": [], "failed": [], "left_out": 0, "no_interval": 0, "time_s": 0.0, "work": str(work),
+                      "fit_records": [], "camera": []}
     s = seed0
     t0 = time.perf_counter()
     while len(recs) < n:
@@ -298,7 +354,7 @@ def route_auto(n: int, seed0: int, log=print, work: Path | None = None, keep: bo
         root = work / f"inc_{seed}"
         t1 = time.perf_counter()
         try:
-            out = solve_incident(root, seed, n_cars, resolve=resolve)
+            out = solve_incident(root, seed, n_cars, resolve=resolve, survey_noise=survey_noise)
         except Exception as e:  # noqa: BLE001 - a failed incident is counted and named, not fatal
             info["failed"].append({"seed": seed, "error": f"{type(e).__name__}: {str(e)[:300]}"})
             log(f"  seed {seed}: failed ({type(e).__name__}: {str(e)[:120]})")
@@ -307,8 +363,13 @@ def route_auto(n: int, seed0: int, log=print, work: Path | None = None, keep: bo
                 log("  three incidents in a row failed the same way: stopping (a broken checkout, not a finding)")
                 break
             continue
-        r, left, no_int = incident_records(f"seed{seed}", out["solution"], out["truth"], n_cars=n_cars)
+        cam = camera_error(out["cameras"], out["truth"])
+        r, fit, left, no_int = incident_records(f"seed{seed}", out["solution"], out["truth"],
+                                                None if cam is None else cam[0], n_cars=n_cars)
         recs += r
+        info["fit_records"] += fit
+        if cam is not None:
+            info["camera"].append({"seed": seed, **cam[1]})
         info["seeds"].append(seed)
         info["left_out"] += left
         info["no_interval"] += no_int
@@ -338,6 +399,8 @@ def main(argv=None) -> int:
                                                            "(resting and the contact term, as the stage with a DEM)")
     ap.add_argument("--terrain-sigma", type=float, default=None,
                     help="with --terrain: the terrain's stated accuracy (m; default SolveOptions' 0.10)")
+    ap.add_argument("--survey-noise", action="store_true",
+                    help="route auto: perturb the control points' coordinates by the sigma_m they state")
     ap.add_argument("--no-keep", action="store_true", help="route auto: delete each incident once solved")
     ap.add_argument("--resolve", action="store_true", help="route auto: run the solve stage again on incidents "
                                                            "already there (after a change to the solve)")
@@ -362,7 +425,8 @@ def main(argv=None) -> int:
               "terrain_sigma_m": a.terrain_sigma, "routes": {}}
     for r in routes:
         print(f"route {r}: solving until {a.n} carriages ...", flush=True)
-        kw = {"work": a.work, "keep": not a.no_keep, "resolve": a.resolve} if r == "auto" else \
+        kw = {"work": a.work, "keep": not a.no_keep, "resolve": a.resolve, "survey_noise": a.survey_noise} \
+            if r == "auto" else \
             {"terrain": a.terrain, "terrain_sigma_m": a.terrain_sigma}
         recs, info = ROUTES[r](a.n, a.seed0, log=lambda m: print(m, flush=True), **kw)
         st = axis_stats(recs)
@@ -371,6 +435,16 @@ def main(argv=None) -> int:
             extra += f"; focal: RMS z {info['focal_rms_z']:.3f}, coverage {100 * info['focal_coverage']:.1f} %"
         print_table(r, st, extra)
         result["routes"][r] = {"stats": st, "info": info, "records": recs}
+        if info.get("fit_records"):  # the fit's own intervals against the truth moved by the camera's error
+            st_fit = axis_stats(info["fit_records"])
+            zc = np.array([c["z"] for c in info["camera"] if c.get("z") is not None])
+            extra_c = "" if not len(zc) else (
+                "; camera (georegistration) error / sigma, RMS over incidents: rotation "
+                + " ".join(f"{x:.2f}" for x in np.sqrt(np.mean(zc[:, :3] ** 2, axis=0))) + ", centre "
+                + " ".join(f"{x:.2f}" for x in np.sqrt(np.mean(zc[:, 3:] ** 2, axis=0))))
+            print_table(r + " (the fit alone: its own intervals, the truth moved by the camera's error)", st_fit,
+                        extra_c)
+            result["routes"][r]["stats_fit"] = st_fit
         out.parent.mkdir(parents=True, exist_ok=True)
         out.write_text(json.dumps(result, indent=1))
     print(f"\nsaved {out}")

@@ -1,5 +1,6 @@
 """Calibration of the intervals (issue 21): the benchmark's statistics (scripts/bench_calibration.py), a carriage
-whose pose its measured points do not determine (no interval rather than a false one)."""
+whose pose its measured points do not determine (no interval rather than a false one), and the report's
+sentence on what the intervals include."""
 
 from __future__ import annotations
 
@@ -87,3 +88,26 @@ def test_a_pose_its_measured_points_do_not_fix_gets_no_interval():
     res = _one_car(derived_from=7)  # every point measured: an interval, no warning
     c = res.carriages[0]
     assert np.all(np.isfinite(c.ci95_body_centre_m)) and not res.warnings
+
+
+def test_report_states_what_the_intervals_include():
+    from types import SimpleNamespace
+
+    from workbench.report.report_stage import interval_scope
+
+    solver = SimpleNamespace(pixel_sigma_px=1.0, face_sigma_px=0.15, slack_held_m=0.05)
+    sol = {"sigma_px": 0.4, "sigma_px_estimated": 0.25, "dof": 43, "ci95_factor": 2.01,
+           "correspondences": {"by_source": {"sift": 60}}, "links": [{}],
+           "steps": [{"name": "4_all", "facts": {"terrain_contact": True}}],
+           "camera_uncertainty": {"included": True, "sigma_centre_m": [0.2, 0.1, 0.3],
+                                  "sigma_rotation_deg": [0.2, 0.1, 0.1]},
+           "sigma_focal_px": {}, "intrinsics_source": "calibrated"}
+    s = interval_scope(sol, solver, 0.25)
+    text = s["text"]
+    assert "georegistration" in text and "0.30 m" in text and "face" in text and "terrain" in text
+    assert any("focal" in x for x in s["excluded"]) and not any("georegistration" in x for x in s["excluded"])
+    sol.update(camera_uncertainty={"included": False}, sigma_focal_px={"photo": 120.0},
+               correspondences={"by_source": {"manual": 40}})
+    s = interval_scope(sol, solver, 0.25)
+    assert any("focal" in x and "120 px" in x for x in s["included"])
+    assert any("georegistration" in x for x in s["excluded"]) and "face" not in s["text"]

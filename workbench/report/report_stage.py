@@ -21,6 +21,7 @@ import math
 import platform
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -245,16 +246,45 @@ def residual_figure(path: Path, cars: list[dict], sigma_px: float | None) -> dic
 # ----------------------------------------------------------------------------------------------------------
 # Tables
 # ----------------------------------------------------------------------------------------------------------
-def _camera_uncertainty_text(cu: dict | None) -> str:
-    """One sentence: whether the intervals include the camera's georegistration uncertainty."""
-    if not cu:
-        return "They are those of the fit of the marked points; the cameras were taken as exact."
+def interval_scope(solution: dict, solver: Any, dem_accuracy_m: float | None) -> dict:
+    """What the carriages' 95 % intervals include and leave out, from ``solution.json`` and the solver settings:
+    ``{"included": [...], "excluded": [...], "text": a sentence or two}`` (docs/calibration.md)."""
+    inc, exc = [], []
+    sig, est, dof = solution.get("sigma_px"), solution.get("sigma_px_estimated"), solution.get("dof")
+    q = solution.get("ci95_factor")
+    fit = "the fit of the marked points"
+    if sig is not None:
+        fit += f" (pixel noise {_f(sig, 2)} px" + (
+            f": the residuals' {_f(est, 2)} px ({_f(dof, 0)} degrees of freedom) pooled with the configured "
+            f"{_f(solver.pixel_sigma_px, 2)} px" if est is not None and dof else "") + (
+            f"; ± = {_f(q, 2)} σ" if q is not None else "") + ")"
+    inc.append(fit)
+    by_source = (solution.get("correspondences") or {}).get("by_source") or {}
+    if by_source.get("sift") and float(solver.face_sigma_px) > 0:
+        inc.append(f"a misfit shared by each automatically matched face ({_f(solver.face_sigma_px, 2)} px)")
+    if solution.get("links"):
+        inc.append(f"the couplers' play ({_f(100 * float(solver.slack_held_m), 0)} cm)")
+    if any((st.get("facts") or {}).get("terrain_contact") for st in solution.get("steps", [])) \
+            and dem_accuracy_m is not None:
+        inc.append(f"the contact with the terrain model (±{_f(dem_accuracy_m, 2)} m, carriage by carriage)")
+    cu = solution.get("camera_uncertainty") or {}
     if cu.get("included"):
-        rot = max(cu.get("sigma_rotation_deg") or [0.0])
-        cen = max(cu.get("sigma_centre_m") or [0.0])
-        return (f"They include the camera's georegistration uncertainty (1σ up to {cen:.2f} m in its position and "
-                f"{rot:.3f}° in its orientation, from the control points).")
-    return f"They are those of the fit of the marked points: {cu.get('note', 'the cameras were taken as exact')}."
+        inc.append(f"the camera's georegistration, levelling included (1σ up to "
+                   f"{_f(max(cu.get('sigma_centre_m') or [0.0]), 2)} m and "
+                   f"{_f(max(cu.get('sigma_rotation_deg') or [0.0]), 3)}°)")
+    else:
+        exc.append("the cameras' georegistration (taken as exact)")
+    sf = solution.get("sigma_focal_px") or {}
+    if sf:
+        inc.append("the focal length, estimated (1σ " + ", ".join(sorted({f"{_f(v, 0)} px" for v in sf.values()}))
+                   + ")")
+    else:
+        exc.append(f"the focal length (taken as known: {solution.get('intrinsics_source') or 'given'})")
+    exc += ["errors of the carriage models", "a common offset of the terrain model",
+            "a wrong match the outlier check kept"]
+    text = "The ± include " + ", ".join(inc[:-1]) + (" and " if len(inc) > 1 else "") + inc[-1] + \
+        ". Not included: " + ", ".join(exc) + "."
+    return {"included": inc, "excluded": exc, "text": text}
 
 
 def _f(x, nd: int) -> str:
@@ -474,7 +504,7 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
         "sigma_est": _f(solution.get("sigma_px_estimated"), 2), "dof": solution.get("dof", "–"),
         "ci95_factor": _f(solution.get("ci95_factor"), 2),
         "georef": (cams.get("georegistration") or {}).get("method", "–"),
-        "camera_uncertainty": _camera_uncertainty_text(solution.get("camera_uncertainty")),
+        "interval_scope": interval_scope(solution, s.solver, s.terrain.dem_vertical_accuracy_m),
     }
     ctx = {
         "incident": {"name": s.incident.name, "date": s.incident.date.isoformat(),
