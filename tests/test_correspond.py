@@ -146,7 +146,8 @@ def test_guided_completion_aligns_the_other_faces():
     refs = {f: face_reference(ct, "6100", f, opts.px_per_m) for f in ("left", "front", "roof")}
     for f in ("left", "front"):
         photo = _warp_into(photo, refs[f].image, predicted_homography(M, refs[f], K))
-    from workbench.correspond.match import PhotoFeatures, undistorted_image
+    from workbench.correspond.match import PhotoFeatures
+    from workbench.correspond.undistort import undistorted_image
     gray = cv2.cvtColor(photo, cv2.COLOR_RGB2GRAY)
     pf = PhotoFeatures("posed.png", K, undistorted_image(gray, K), np.zeros((0, 2)), np.zeros((0, 128), np.float32))
     # the start: the true pose, turned by 0.5 degree about the vertical and shifted 5 cm
@@ -177,7 +178,8 @@ def test_ecc_on_the_cropped_photo_agrees_with_the_whole_photo(monkeypatch):
     on every call): from a start 2 px off, the face lands where the known warp put it, and where ECC on the
     whole photo puts it (the crop's offset carried back), with the same correlation."""
     from workbench.correspond import match as mm
-    from workbench.correspond.match import PhotoFeatures, apply_h, ecc_refine, undistorted_image
+    from workbench.correspond.match import PhotoFeatures, apply_h, ecc_refine
+    from workbench.correspond.undistort import undistorted_image
 
     ct = get_type("shoreliner")
     ref = face_reference(ct, "6100", "left", MatchOptions().px_per_m)
@@ -506,7 +508,8 @@ def _on_its_side_scene(pitch_deg: float = 0.0):
     from workbench.core.camera import look_at
     from workbench.correspond import search as se
     from workbench.correspond.complete import facing_cosine, predicted_homography
-    from workbench.correspond.match import PhotoFeatures, undistorted_image
+    from workbench.correspond.match import PhotoFeatures
+    from workbench.correspond.undistort import undistorted_image
 
     ct = get_type("shoreliner")
     opts = MatchOptions()

@@ -38,7 +38,8 @@ from ..project import Project
 from . import cache
 from ..files import correspondences as mf
 from .assign import find_cars, observations_of
-from .match import MatchOptions, PhotoFeatures, photo_features, undistortion_maps
+from .match import MatchOptions, PhotoFeatures, photo_features
+from .undistort import undistortion_maps
 from .parallel import STEPS, PhotoResult, default_workers, map_photos
 from .references import FACES, build_references, face_reference
 from .search import chain_search
