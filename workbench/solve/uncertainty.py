@@ -13,7 +13,7 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
-from scipy.special import stdtrit  # the t quantile scipy.stats.t.ppf computes (scipy.stats: 2 s to import)
+from scipy.special import gammaincinv, stdtrit  # quantiles as scipy.stats computes them (2 s to import)
 
 from ..core.frames import hpr_from_rotation
 from ..core.geometry import exp_so3, skew
@@ -316,6 +316,33 @@ def _set_pose_covariance(cr: Any, C: np.ndarray, R: np.ndarray, lever: np.ndarra
     return Jb
 
 
+def misfit_carriages(prob: Problem, poses: Poses, sigma: float, p_value: float = 1e-4,
+                     relative: float = 4.0) -> dict[int, float]:
+    """The carriages whose measured points the solution does not fit, as the branch check judges a misfit
+    (:func:`.branches.misfit_cars`: chi-square at ``sigma`` beyond its (1 - ``p_value``) quantile with 2 n - 6
+    degrees of freedom, *and* more than ``relative`` times the median carriage's misfit per row), on the measured
+    points alone (a prediction's residual says how far its face's pose was off, not that the fit failed).
+    Returns carriage -> RMS residual (px) of its measured points. Such a carriage sits on a wrong branch or on
+    mismatched points the branch check and the outlier rejection did not cure, and the noise model its interval
+    rests on does not hold for it; or its points share a misfit (``face_sigma_px``) this test does not model,
+    so it warns and keeps the interval (docs/calibration.md: 1 gross failure and 5 sound intervals among 6 flags
+    on the automatic route)."""
+    uv, *_ = prob.project(poses.R, poses.t, poses.f)
+    scale = prob.w / np.where(prob.w_noise > 0, prob.w_noise, 1.0)  # each point's own sigma, relative
+    e2 = np.sum(((uv - prob.uv) * scale[:, None] / sigma) ** 2, axis=1)
+    r2 = np.sum((uv - prob.uv) ** 2, axis=1)
+    meas = getattr(prob, "measured", None)
+    meas = np.ones(len(e2), bool) if meas is None or len(meas) != len(e2) else meas
+    chi = {}
+    for k, idx in prob.by_car.items():
+        idx = idx[meas[idx]]
+        if len(idx):
+            chi[k] = (float(np.sum(e2[idx])), 2 * len(idx), float(np.sqrt(np.mean(r2[idx]))))
+    med = float(np.median([x / m for x, m, _ in chi.values()])) if chi else 0.0
+    return {k: rms for k, (x, m, rms) in chi.items()
+            if x > 2.0 * float(gammaincinv(max(m - 6, 1) / 2, 1.0 - p_value)) and x / m > relative * med}
+
+
 def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Chains, contact, options: SolveOptions,
                       model: CovarianceModel | None = None) -> None:
     """Fill the covariance fields of a :class:`SolveResult` in place. ``model``: a :func:`solution_model` already
@@ -337,12 +364,18 @@ def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Cha
     order += ["focal." + "+".join(prob.views[v].name for v in grp) for grp in focal_views]
     res.covariance_order = order
     Jbs = {}
+    misfit = misfit_carriages(prob, poses, model.sigma)
     for k in prob.active:
         cr = res.carriages[k]
         c = col[k]
         determined = model.undetermined is None or not model.undetermined[c:c + 6].any()
         Jbs[k] = _set_pose_covariance(cr, cov[c:c + 6, c:c + 6], R[k], R[k] @ prob.cars[k].c_body, q, determined)
-        if cr.covariance_pose is None:
+        if k in misfit and cr.covariance_pose is not None:
+            record_warning(res.warnings, prob.cars[k], "misfit",
+                           f"car {cr.number}: the solution does not fit its points (RMS {misfit[k]:.1f} px against "
+                           f"a pixel sigma of {model.sigma:.2f} px): a wrong branch or mismatched points; its "
+                           f"pose and its interval are doubtful")
+        elif cr.covariance_pose is None:
             record_warning(res.warnings, prob.cars[k], "undetermined",
                            f"car {cr.number}: its measured points do not determine its pose (predictions or the "
                            f"chain placed it); no interval is given")
