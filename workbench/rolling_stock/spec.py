@@ -272,8 +272,8 @@ def _lower_id(v):
     return v.lower() if isinstance(v, str) else v
 
 
-class CarriageSpec(_Model):
-    """A parametric type: the body built from its dimensions, profile and end shapes."""
+class _TypeHeader(_Model):
+    """What every type file starts with: its id, names, kind and sources."""
 
     id: Annotated[str, Field(pattern=r"^[a-z0-9][a-z0-9_-]*$")]
     name: str
@@ -281,6 +281,16 @@ class CarriageSpec(_Model):
     kind: Kind = "coach"
     default_car_number: str = ""
     sources: list[str] = []
+
+    @field_validator("id", mode="before")
+    @classmethod
+    def _lower(cls, v):
+        return _lower_id(v)
+
+
+class CarriageSpec(_TypeHeader):
+    """A parametric type: the body built from its dimensions, profile and end shapes."""
+
     dimensions: Dimensions
     profile: Profile
     front: End = End()
@@ -290,11 +300,6 @@ class CarriageSpec(_Model):
     grilles: list[Grille] = []
     livery: Livery = Livery()
     marked_points: MarkedPoints
-
-    @field_validator("id", mode="before")
-    @classmethod
-    def _lower(cls, v):
-        return _lower_id(v)
 
     @property
     def has_livery(self) -> bool:
@@ -325,23 +330,12 @@ class MeshSource(_Model):
         return v
 
 
-class MeshCarriageSpec(_Model):
+class MeshCarriageSpec(_TypeHeader):
     """A mesh type: the model is a mesh file (a manufacturer's CAD export), its marked points given by xyz."""
 
-    id: Annotated[str, Field(pattern=r"^[a-z0-9][a-z0-9_-]*$")]
-    name: str
-    operator: str = ""
-    kind: Kind = "coach"
-    default_car_number: str = ""
-    sources: list[str] = []
     mesh: MeshSource
     dimensions: MeshDimensions
     marked_points: MarkedPoints
-
-    @field_validator("id", mode="before")
-    @classmethod
-    def _lower(cls, v):
-        return _lower_id(v)
 
     @property
     def has_livery(self) -> bool:
