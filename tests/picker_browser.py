@@ -9,6 +9,11 @@ PLAN.json: ``{"car": "6223", "point": "front_door_top_front_left", "face": "left
 model's face, click ``first_uv`` in the photo (a rough pick), zoom in with the wheel at ``uv`` and click it
 (the careful pick), undo it (Ctrl+Z: back to the rough pick), pick ``uv`` again, optionally reject the
 automatic point of ``reject_point`` (R), save (Ctrl+S), take a screenshot. Prints a JSON summary (status line after each step) on stdout.
+
+``--look``: PLAN.json ``{"view", "car"[, "point", "zoom": [u, v, scale], "edges": [[[u, v], [u, v]], [[u, v],
+[u, v]]]]}``: choose the photo and the carriage, wait for the solve's overlay and the live pose, optionally pick
+``point`` from two edges dragged in the photo (E), zoom in at ``(u, v)``, take a screenshot; prints what the page
+shows (the overlay's and the live pose's figures, the checks panel's text).
 """
 
 from __future__ import annotations
@@ -86,16 +91,72 @@ def drive(url: str, plan: dict, screenshot: str, chromium: str | None = None) ->
     return log
 
 
+def _drag(page, a, b):
+    x, y = _screen(page, a)
+    page.mouse.move(x, y)
+    page.mouse.down()
+    x, y = _screen(page, b)
+    page.mouse.move(x, y, steps=4)
+    page.mouse.up()
+
+
+def look(url: str, plan: dict, screenshot: str, chromium: str | None = None) -> dict:
+    """Open the page on a photo and a carriage, wait for the overlay and the live pose, screenshot (``--look``)."""
+    from playwright.sync_api import sync_playwright
+
+    log = {}
+    with sync_playwright() as p:
+        browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox"]) if chromium \
+            else p.chromium.launch(args=["--no-sandbox"])
+        page = browser.new_page(viewport={"width": plan.get("width", 1400), "height": plan.get("height", 800)})
+        errors = log["console_errors"] = []
+        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+        page.on("pageerror", lambda e: errors.append(str(e)))
+        page.goto(url)
+        page.wait_for_selector("#status:has-text('automatic')", timeout=30000)
+        page.select_option("#photo-select", plan["view"])
+        page.wait_for_timeout(500)
+        page.select_option("#car-select", plan["car"])
+        page.wait_for_timeout(1500)  # the overlay and the live pose answer
+        if plan.get("zoom"):  # the view centred on (u, v) at that scale (the page redraws on the magnifier's change)
+            u, v, scale = plan["zoom"]
+            page.evaluate("""([u, v, k]) => { const S = window.pickerState, cv = document.getElementById('photo-canvas');
+                S.scale = k; S.ox = cv.width / 2 - (u + 0.5) * k; S.oy = cv.height / 2 - (v + 0.5) * k; }""", [u, v, scale])
+            page.evaluate("document.getElementById('magnify').dispatchEvent(new Event('change'))")
+        if plan.get("edges"):
+            page.click(f'#points li[data-point="{plan["point"]}"]')
+            page.keyboard.press("e")
+            for a, b in plan["edges"]:
+                _drag(page, a, b)
+            log["edges"] = page.inner_text("#status")
+            log["edge_pick"] = page.evaluate("window.pickerState.manual.slice(-1)[0]")
+            page.wait_for_timeout(1000)
+        elif plan.get("point"):
+            page.click(f'#points li[data-point="{plan["point"]}"]')
+        page.wait_for_timeout(300)
+        log["overlay"] = page.evaluate("""() => { const o = window.pickerState.overlay; return o && {available: o.available,
+            reason: o.reason, cars: o.cars, n_residuals: o.residuals && o.residuals.length, flagged: o.flagged,
+            outline: o.outline && Object.fromEntries(Object.entries(o.outline).map(([k, v]) => [k, v.length]))}; }""")
+        log["live"] = page.evaluate("""() => { const l = window.pickerState.live; return l && {pose: !!l.pose, reason: l.reason,
+            rms_px: l.rms_px, n_picks: l.n_picks, flagged: l.flagged, focal: l.focal,
+            n_predicted: l.predicted && Object.keys(l.predicted[window.pickerState.photo.name] || {}).length}; }""")
+        log["checks"] = page.inner_text("#checks")
+        page.screenshot(path=screenshot)
+        browser.close()
+    return log
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser()
     ap.add_argument("url")
     ap.add_argument("plan")
     ap.add_argument("screenshot")
     ap.add_argument("--chromium", default=None)
+    ap.add_argument("--look", action="store_true", help="open a photo and a carriage, screenshot the overlay")
     a = ap.parse_args(argv)
     with open(a.plan, encoding="utf-8") as f:
         plan = json.load(f)
-    print(json.dumps(drive(a.url, plan, a.screenshot, a.chromium)))
+    print(json.dumps((look if a.look else drive)(a.url, plan, a.screenshot, a.chromium)))
     return 0
 
 

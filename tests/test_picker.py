@@ -4,6 +4,7 @@ endpoints, and the page driven in a headless Chromium as a person would."""
 from __future__ import annotations
 
 import json
+import math
 import os
 import re
 import shutil
@@ -431,8 +432,12 @@ def test_fuzz_endpoints(incident, tmp_path):
             json_value, st.booleans())
         valid_save = st.builds(lambda u, v: json.dumps({"observations": [{**obs, "uv": [u, v]}], "rejected": []}),
                                st.floats(-0.5, W - 0.5), st.floats(-0.5, H - 0.5))
+        pose_request = st.builds(  # a pose request (POST /api/pose) with one key's value replaced
+            lambda key, value: json.dumps({"carriage": "6100", "view": "p0.jpg", "observations": [
+                {"point": "coupler_rear", "view": "p0.jpg", "uv": [100.0, 170.0], key: value}]}),
+            st.sampled_from(["point", "view", "uv", "sigma_px", "x"]), json_value)
         bodies = st.one_of(  # mostly saves with one key's value replaced by anything JSON holds
-            mutated_save, mutated_save, mutated_save, mutated_save, valid_save,
+            mutated_save, mutated_save, mutated_save, mutated_save, valid_save, pose_request,
             st.binary(min_size=1, max_size=200),
             json_value.map(json.dumps),
             mutated_save.map(lambda s: s.replace("0.", "NaN").replace("1", "Infinity")),
@@ -447,7 +452,8 @@ def test_fuzz_endpoints(incident, tmp_path):
             "/", "/index.html", "/picker.js", "/api/state", "/api/state", "/photo/p0.jpg", "/photo/leak.jpg",
             "/photo/../project.toml", "/photo/%2e%2e/project.toml", "/photo/project.toml", "/reference/6100/left.png",
             "/reference/x.png", "/reference/6100/../../x.png", "*", "http://evil.example/", "/api/save?x=1",
-            "//etc/passwd", RANDOM])
+            "//etc/passwd", "/api/pose", "/api/pose", "/api/pose", "/api/overlay", "/api/overlay?view=p0.jpg",
+            "/api/overlay?view=..%2Fproject.toml", "/api/overlay?view=", RANDOM])
         random_paths = st.text("abcdefghijklmnopqrstuvwxyz0123456789/._%?#-", max_size=30).map(lambda s: "/" + s)
 
         def header(good, *bad):
@@ -557,3 +563,302 @@ def test_driven_in_a_browser_like_a_person(incident, tmp_path):
     yellow = (left[..., 0] > 230) & (left[..., 1] > 190) & (left[..., 1] < 230) & (left[..., 2] < 120)
     assert (red | yellow).sum() > 20  # the manual marker (a cross; yellow while its point is selected)
     assert left.std() > 20 and right.std() > 20  # the photo and the model's faces are shown, not blank
+
+
+# ------------------------------------------------------------------------------------------------------------
+# Issue 16: the solve's overlay, the live pose, picks from two edges (workbench/picker/overlay.py, live.py)
+# ------------------------------------------------------------------------------------------------------------
+@pytest.fixture(scope="module")
+def synth(tmp_path_factory):
+    """(root, truth) of a tiny generated incident (2 cars, 2 panorama photos of 320x240, about 5 s) whose
+    cameras.json has the true cameras but a focal 10 % off and marked unknown, and whose solution.json holds the
+    true poses and the true focal (as a solve that estimated it would): the overlay must use the solved focal."""
+    from workbench.synth.generate import SynthOptions, generate_incident
+    from workbench.synth.handpicks import known_cameras
+
+    root = tmp_path_factory.mktemp("picker_synth") / "inc"
+    generate_incident(root, SynthOptions(scenario="spuyten-duyvil", seed=2, n_cars=2, photo_width=320,
+                                         photo_height=240, n_panorama=2, n_multiview=0, supersample=1,
+                                         terrain_size_m=200))
+    truth = json.loads((root / "truth" / "ground_truth.json").read_text())
+    cams = known_cameras(root, "panorama")
+    focal = {v["name"]: v["intrinsics"]["fx"] for v in cams["views"]}
+    for v in cams["views"]:
+        v["focal_known"] = False
+        v["intrinsics"]["fx"] *= 1.1
+        v["intrinsics"]["fy"] *= 1.1
+    (root / "cameras.json").write_text(json.dumps(cams))
+    sol = {"status": "converged", "focal_px": focal,
+           "carriages": [{"index": c["index"], "number": c["number"], "status": "solved",
+                          "world_from_carriage": c["world_from_carriage"], "rms_px": 0.0}
+                         for c in truth["carriages"]]}
+    (root / "out" / "solve").mkdir(parents=True)
+    (root / "out" / "solve" / "solution.json").write_text(json.dumps(sol))
+    return root, truth
+
+
+def _true_pixels(truth, view, car):
+    ph = next(p for p in truth["photos"] if Path(p["photo"]).name == view)
+    return {n: np.asarray(o["uv"], float) for n, o in ph["observations"][car].items() if o["uv"] is not None}
+
+
+def test_overlay_outlines_and_residuals_against_the_truth(synth):
+    """Every marked point where the solved pose and the solved focal put it is the truth's pixel; each pick's
+    residual is predicted - pick; a pick beyond 3 sigma is flagged (and listed first); the outline lies on the car."""
+    root, truth = synth
+    view = "pano_00.jpg"
+    tp = _true_pixels(truth, view, "6100")
+    picks = [{"carriage": "6100", "point": "coupler_front", "view": view, "uv": (tp["coupler_front"] + [0.5, -0.4]).tolist()},
+             {"carriage": "6100", "point": "body_top_front_left", "view": view,
+              "uv": (tp["body_top_front_left"] + [6.0, 2.0]).tolist()},
+             {"carriage": "6100", "point": "body_top_rear_left", "view": view, "uv": tp["body_top_rear_left"].tolist(),
+              "sigma_px": 4.0}]
+    (root / mf.FILE_NAME).write_text(json.dumps({"observations": [dict(o) for o in picks]}))
+    try:
+        with PickerServer(root) as srv:
+            ov = json.loads(_get(srv.url + f"api/overlay?view={view}")[2])
+            assert _get(srv.url + "api/overlay")[0] == 200  # no view: no outline, the rest as well
+            with pytest.raises(urllib.error.HTTPError) as e:
+                _get(srv.url + "api/overlay?view=nope.jpg")
+            assert e.value.code == 404
+    finally:
+        (root / mf.FILE_NAME).unlink()
+    assert ov["available"] and ov["view"] == view
+    assert ov["focal_px"][view] == {"focal_px": pytest.approx(truth["photos"][0]["intrinsics"]["fx"], abs=1e-3),
+                                    "from": "solution"}
+    n = 0
+    for v in ("pano_00.jpg", "pano_01.jpg"):
+        for car in ("6100", "6223"):
+            for p, uv in _true_pixels(truth, v, car).items():
+                assert np.allclose(ov["predicted"][v][car][p], uv, atol=0.01), (v, car, p)
+                n += 1
+    assert n == 40
+    res = {r["point"]: r for r in ov["residuals"]}
+    assert res["coupler_front"]["residual_px"] == pytest.approx([-0.5, 0.4], abs=0.01)
+    assert not res["coupler_front"]["flagged"] and res["coupler_front"]["limit_px"] == pytest.approx(3.0)
+    assert res["body_top_front_left"]["distance_px"] == pytest.approx(math.hypot(6.0, 2.0), abs=0.01)
+    assert res["body_top_front_left"]["flagged"]
+    assert res["body_top_rear_left"]["limit_px"] == pytest.approx(12.0)  # its own sigma, when larger
+    assert [r["point"] for r in ov["flagged"]] == ["body_top_front_left"]
+    # the outline: both cars, polylines of pixels, spanning the car's marked points and not far beyond them
+    assert set(ov["outline"]) == {"6100", "6223"}
+    for car in ("6100", "6223"):
+        q = np.concatenate([np.asarray(ln) for ln in ov["outline"][car]])
+        pts = np.array(list(_true_pixels(truth, view, car).values()))
+        assert len(ov["outline"][car]) > 20 and q.shape[1] == 2
+        assert np.all(q.min(axis=0) <= pts.min(axis=0) + 1) and np.all(q.max(axis=0) >= pts.max(axis=0) - 1)
+        span = pts.max(axis=0) - pts.min(axis=0)
+        assert np.all(q.min(axis=0) >= pts.min(axis=0) - 0.5 * span - 10)
+        assert np.all(q.max(axis=0) <= pts.max(axis=0) + 0.5 * span + 10)
+
+
+def test_overlay_matches_the_solvers_own_residuals(synth, tmp_path):
+    """After a real solve (true picks + 0.7 px noise, the focal estimated), each pick's residual in the overlay is
+    the one solution.json records (the picker reads the solved cameras and poses as the solver had them)."""
+    from workbench.project import Project
+    from workbench.solve.stage import run_solve
+    from workbench.synth.handpicks import write_true_correspondences
+
+    root = tmp_path / "inc"
+    shutil.copytree(synth[0], root, ignore=shutil.ignore_patterns("out"))
+    write_true_correspondences(root, "panorama", sigma_px=0.7, seed=3, points_per_car=None)
+    with PickerServer(root) as srv:
+        before = json.loads(_get(srv.url + "api/overlay")[2])
+        assert not before["available"] and "no solve yet" in before["reason"]
+        run_solve(Project(root), lambda *a, **k: None)
+        ov = json.loads(_get(srv.url + "api/overlay?view=pano_01.jpg")[2])
+    sol = json.loads((root / "out" / "solve" / "solution.json").read_text())
+    assert ov["available"] and all(f["from"] == "solution" for f in ov["focal_px"].values())
+    res = {(r["carriage"], r["view"], r["point"]): r["residual_px"] for r in ov["residuals"]}
+    n = 0
+    for c in sol["carriages"]:
+        for v, pts in (c["residuals_px"] or {}).items():
+            for p, e in pts.items():
+                assert res[(c["number"], v, p)] == pytest.approx(e, abs=0.002), (c["number"], v, p)
+                n += 1
+    assert n >= 15 and n == len(res)
+
+
+def test_live_pose_predicts_the_other_points(synth, tmp_path):
+    """While picking: 4 picks with the focal solved give the car's pose and where its other points fall (the
+    truth); fewer, or collinear ones, give a reason; with the focal unknown (no solve) 6 picks are needed and the
+    focal is estimated; a wrong pick among them is flagged; a bad request is a 400 naming the key."""
+    root = tmp_path / "inc"
+    shutil.copytree(synth[0], root)
+    truth = synth[1]
+    view = "pano_00.jpg"
+    tp = _true_pixels(truth, view, "6223")
+    names = ["body_top_front_left", "body_top_rear_left", "coupler_front", "rear_door_bottom_rear_left",
+             "body_top_front_right", "front_door_top_front_left", "coupler_rear"]
+
+    def obs(k, wrong=None):
+        return [{"point": p, "view": view, "uv": (tp[p] + (10.0 if p == wrong else 0.0)).tolist()} for p in names[:k]]
+
+    with PickerServer(root) as srv:
+        url = srv.url + "api/pose"
+        status, lp = _post(url, {"carriage": "6223", "observations": obs(4), "view": view})
+        assert status == 200 and lp["pose"] and lp["focal"][view]["from"] == "solution"
+        for p, uv in _true_pixels(truth, view, "6223").items():
+            assert np.allclose(lp["predicted"][view][p]["uv"], uv, atol=0.05), p
+            assert 0 < lp["predicted"][view][p]["sigma_px"] < 5
+        for p, uv in _true_pixels(truth, "pano_01.jpg", "6223").items():  # and in the other photo
+            assert np.allclose(lp["predicted"]["pano_01.jpg"][p]["uv"], uv, atol=0.05), p
+        W = np.asarray(lp["pose"]["world_from_carriage"])
+        assert np.allclose(W, truth["carriages"][1]["world_from_carriage"], atol=1e-3)
+        assert len(lp["outline"]) > 20
+        status, lp = _post(url, {"carriage": "6223", "observations": obs(3), "view": view})
+        assert status == 200 and lp["pose"] is None and "3 picks, 4 needed" in lp["reason"]
+        line = [{"point": p, "view": view, "uv": tp[p].tolist()} for p in
+                ("body_top_front_left", "body_top_rear_left", "front_door_top_front_left", "rear_door_bottom_rear_left")]
+        line[3]["point"] = "body_top_front_left"  # a duplicate is refused
+        status, res = _post(url, {"carriage": "6223", "observations": line, "view": view})
+        assert status == 400 and "given twice" in res["error"]
+        status, lp = _post(url, {"carriage": "6223", "observations": obs(7, wrong="body_top_rear_left"), "view": view})
+        flagged = [p for p in lp["picks"] if p["flagged"]]  # found by the others, and left out of the pose
+        assert [p["point"] for p in flagged] == ["body_top_rear_left"] and lp["n_used"] == 6, lp["picks"]
+        assert flagged[0]["off_the_others_px"] == pytest.approx(10 * math.sqrt(2), abs=0.05)
+        assert lp["rms_px"] < 0.01
+        for bad, words in [({"carriage": "9"}, "carriage = '9'"), ({"extra": 1}, "unknown key 'extra'"),
+                           ({"observations": [{"point": "x", "view": view, "uv": [1, 2]}]}, "observations[0].point"),
+                           ({"observations": [{"point": "coupler_front", "view": view, "uv": [1, True]}]}, ".uv"),
+                           ({"view": "../project.toml"}, "view = '../project.toml'")]:
+            status, res = _post(url, {"carriage": "6223", "observations": obs(4), "view": view, **bad})
+            assert status == 400 and words in res["error"], (bad, res)
+        # no solve: the focal is unknown (cameras.json says so, and is 10 % off)
+        (root / "out" / "solve" / "solution.json").unlink()
+        status, lp = _post(url, {"carriage": "6223", "observations": obs(5), "view": view})
+        assert lp["pose"] is None and "5 picks, 6 needed (unknown focal)" in lp["reason"]
+        status, lp = _post(url, {"carriage": "6223", "observations": obs(7), "view": view})
+        assert lp["pose"] and lp["focal"][view]["from"] == "estimated here" and lp["checked"]
+        assert lp["focal"][view]["focal_px"] == pytest.approx(truth["photos"][0]["intrinsics"]["fx"], rel=0.02)
+        for p, uv in _true_pixels(truth, view, "6223").items():
+            assert np.allclose(lp["predicted"][view][p]["uv"], uv, atol=0.2), p
+        assert "pano_01.jpg" not in lp["predicted"]  # its focal is unknown and it has no picks
+        status, lp = _post(url, {"carriage": "6223", "observations": obs(7, wrong="coupler_front"), "view": view})
+        assert [p["point"] for p in lp["flagged"]] == ["coupler_front"], lp["picks"]
+        assert lp["focal"][view]["focal_px"] == pytest.approx(truth["photos"][0]["intrinsics"]["fx"], rel=0.02)
+    assert not (root / mf.FILE_NAME).exists()  # a pose request writes nothing
+
+
+def test_a_pick_from_two_edges_is_saved_checked_and_read_by_the_stages(incident):
+    """A pick made from two edges records them (construction); its uv must be where they cross; the stages read
+    the file as before."""
+    from workbench.correspond.stage import load_manual
+    from workbench.project import Project
+
+    segs = [[[100.0, 150.0], [140.0, 150.0]], [[160.0, 170.0], [160.0, 190.0]]]  # they cross at (160, 150)
+    good = {"carriage": "6100", "point": "body_top_front_left", "view": "p0.jpg", "uv": [160.0, 150.0],
+            "construction": {"method": "edges", "segments": segs}}
+    path = incident / mf.FILE_NAME
+    with PickerServer(incident) as srv:
+        status, res = _post(srv.url + "api/save", {"observations": [good], "rejected": []})
+        assert status == 200, res
+        saved = json.loads(path.read_text())
+        assert saved["observations"][0]["construction"] == {"method": "edges", "segments": segs}
+        state = json.loads(_get(srv.url + "api/state")[2])
+        assert state["manual"][0]["construction"]["method"] == "edges"
+        for bad, words in [({"uv": [161.0, 150.0]}, "not where the construction's edges cross"),
+                           ({"construction": {"method": "edges", "segments": [segs[0], [[0.0, 150.0], [50.0, 151.0]]]}},
+                            "deg apart"),
+                           ({"construction": {"method": "guess", "segments": segs}}, "construction.method"),
+                           ({"construction": {"method": "edges", "segments": [segs[0], [[1.0, 1.0], [1.5, 1.0]]]}},
+                            "shorter than 2 px")]:
+            status, res = _post(srv.url + "api/save", {"observations": [{**good, **bad}], "rejected": []})
+            assert status == 400 and words in res["error"], (bad, res)
+            assert json.loads(path.read_text()) == saved
+    man = load_manual(Project(incident))
+    assert man.observations[0].construction.point() == pytest.approx((160.0, 150.0))
+    assert mf.merge([], man.observations)[0].to_json()["construction"]["segments"] == segs
+
+
+def test_live_pose_never_fails_on_odd_picks(synth):
+    """Random picks (inside the photos, any points, repeated pixels, one photo or two) give a pose or a reason,
+    never an error (hypothesis, bounded in time)."""
+    import time
+
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    from workbench.picker.live import live_pose
+    from workbench.project import Project
+
+    root, truth = synth
+    project = Project(root)
+    sizes = {"pano_00.jpg": (320, 240), "pano_01.jpg": (320, 240)}
+    names = list(project.carriage_types()["6100"].marked_points)
+    pick = st.fixed_dictionaries({"point": st.sampled_from(names), "view": st.sampled_from(list(sizes)),
+                                  "uv": st.sampled_from([[0.0, 0.0], [100.0, 100.0], [319.5, 239.5], [-0.5, 120.0]])
+                                  | st.lists(st.floats(-0.5, 239.5), min_size=2, max_size=2)})
+    t0 = time.monotonic()
+    seen = {"pose": 0, "reason": 0}
+
+    @settings(max_examples=150, deadline=None, database=None, derandomize=True, suppress_health_check=list(HealthCheck))
+    @given(picks=st.lists(pick, min_size=0, max_size=14, unique_by=lambda o: (o["point"], o["view"])))
+    def one(picks):
+        if time.monotonic() - t0 > 3:
+            return
+        out = live_pose(project, {"carriage": "6100", "observations": picks, "view": "pano_00.jpg"}, sizes)
+        assert (out["pose"] is None) == ("reason" in out)
+        seen["pose" if out["pose"] else "reason"] += 1
+        if out["pose"]:
+            assert np.all(np.isfinite(out["pose"]["world_from_carriage"]))
+
+    one()
+    assert seen["reason"] > 5 and seen["pose"] > 5, seen
+
+
+@pytest.mark.slow
+def test_overlay_and_edges_in_a_browser(synth, tmp_path):
+    """The page after a solve: the outlines are drawn, the wrong pick is listed as flagged, the carriage being
+    picked is posed live, and a corner picked from two edges dragged in the photo lands on the truth."""
+    py = _playwright_python()
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if py is None or chromium is None:
+        pytest.skip("needs Playwright (pip install playwright, or WORKBENCH_PLAYWRIGHT_PYTHON) and chromium")
+    from workbench.core.camera import project_world
+    from workbench.project import Project
+
+    root = tmp_path / "inc"
+    shutil.copytree(synth[0], root)
+    truth = synth[1]
+    view = "pano_00.jpg"
+    picks = []
+    for car in ("6100", "6223"):
+        for i, (p, uv) in enumerate(_true_pixels(truth, view, car).items()):
+            if car == "6223" and p == "rear_door_bottom_rear_left":
+                continue  # to be picked from two edges
+            wrong = car == "6100" and p == "coupler_front"
+            picks.append({"carriage": car, "point": p, "view": view, "uv": (uv + (7.0 if wrong else 0.0)).tolist()})
+    (root / mf.FILE_NAME).write_text(json.dumps({"observations": picks}))
+    project = Project(root)
+    ct, cam = project.carriage_types()["6223"], project.cameras()[view]
+    intr = cam.intrinsics.with_focal(truth["photos"][0]["intrinsics"]["fx"])  # the true focal (cameras.json's is off)
+    W = np.asarray(truth["carriages"][1]["world_from_carriage"])
+    X = ct.marked_points["rear_door_bottom_rear_left"]
+
+    def px(pts):
+        return project_world(intr, cam.cam_from_world, np.asarray(pts) @ W[:3, :3].T + W[:3, 3])[0]
+
+    true_uv = px([X])[0]
+    edges = [px([X + [s, 0, 0] for s in (0.4, 3.0)]).tolist(), px([X + [0, 0, s] for s in (0.4, 2.0)]).tolist()]
+    plan = {"view": view, "car": "6223", "point": "rear_door_bottom_rear_left", "edges": edges,
+            "zoom": [float(true_uv[0]), float(true_uv[1]), 8]}
+    (tmp_path / "plan.json").write_text(json.dumps(plan))
+    shot = tmp_path / "overlay.png"
+    with PickerServer(root) as srv:
+        out = subprocess.run([py, str(DRIVER), srv.url, str(tmp_path / "plan.json"), str(shot), "--chromium", chromium,
+                              "--look"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    log = json.loads(out.stdout.strip().splitlines()[-1])
+    assert log["console_errors"] == [], log["console_errors"]
+    assert log["overlay"]["available"] and set(log["overlay"]["outline"]) == {"6100", "6223"}
+    assert [(f["carriage"], f["point"]) for f in log["overlay"]["flagged"]] == [("6100", "coupler_front")]
+    assert "1 of" in log["checks"] and "6100 coupler_front" in log["checks"]
+    assert log["live"]["pose"] and log["live"]["flagged"] == []
+    pick = log["edge_pick"]
+    assert pick["construction"]["method"] == "edges" and pick["point"] == "rear_door_bottom_rear_left"
+    assert np.hypot(*(np.asarray(pick["uv"]) - true_uv)) < 0.3, (pick["uv"], true_uv)
+    img = np.asarray(Image.open(shot).convert("RGB")).astype(int)
+    photo = img[80:, : img.shape[1] * 3 // 5]
+    cyan = (photo[..., 0] < 90) & (photo[..., 1] > 180) & (photo[..., 2] > 200)
+    assert cyan.sum() > 200  # the solve's outlines over the photo

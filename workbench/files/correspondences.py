@@ -10,6 +10,12 @@ The incident's hand-written file and the ``correspond`` stage's output share one
 ``rejected`` (hand-written file only): automatic points a person reviewed and found wrong; the stage drops
 them. A (carriage, point, view) may be picked or rejected, not both.
 
+``construction`` (optional, manual points): how a pick was made when it is not a click on the point itself.
+``{"method": "edges", "segments": [[[u, v], [u, v]], [[u, v], [u, v]]]}``: the point is where the lines through
+two segments drawn along the two edges that meet there cross (a rounded or hidden corner); ``uv`` must be that
+intersection (within :data:`CONSTRUCTION_TOLERANCE_PX`), the segments at least :data:`MIN_SEGMENT_PX` long and
+at least :data:`MIN_EDGE_ANGLE_DEG` apart. The stages read ``uv`` only; the construction is the record.
+
 Pixels follow docs/conventions.md: (0, 0) is the centre of the top-left pixel, so an image of width w spans
 u in [-0.5, w - 0.5]. ``view`` is a photo name of the photo set, or ``"panorama"``.
 """
@@ -21,13 +27,63 @@ import reprlib
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, ValidationError, field_validator, model_validator
 
 from ..core.layout import CORRESPONDENCES_FILE
 from ..errors import InputError
 
 FILE_NAME = CORRESPONDENCES_FILE  # the picks file's name (core/layout.py names every incident file)
 PANORAMA = "panorama"
+CONSTRUCTION_TOLERANCE_PX = 0.05  # uv against its construction's intersection (both written to 0.001 px)
+MIN_SEGMENT_PX = 2.0
+MIN_EDGE_ANGLE_DEG = 5.0
+
+Pixel = tuple[StrictFloat, StrictFloat]
+
+
+def lines_intersection(a: tuple, b: tuple) -> tuple[tuple[float, float] | None, float]:
+    """Where the lines through segments ``a`` and ``b`` (each ``((u, v), (u, v))``) cross, and the angle between
+    them in degrees (0 to 90); ``(None, 0.0)`` for parallel lines or a segment of no length."""
+    (p, q), (r, s) = ((tuple(map(float, a[0])), tuple(map(float, a[1]))),
+                      (tuple(map(float, b[0])), tuple(map(float, b[1]))))
+    d1, d2 = (q[0] - p[0], q[1] - p[1]), (s[0] - r[0], s[1] - r[1])
+    n1, n2 = math.hypot(*d1), math.hypot(*d2)
+    cross = d1[0] * d2[1] - d1[1] * d2[0]
+    if n1 == 0.0 or n2 == 0.0 or cross == 0.0:
+        return None, 0.0
+    angle = math.degrees(math.asin(min(1.0, abs(cross) / (n1 * n2))))
+    k = ((r[0] - p[0]) * d2[1] - (r[1] - p[1]) * d2[0]) / cross
+    return (p[0] + k * d1[0], p[1] + k * d1[1]), angle
+
+
+class Construction(BaseModel):
+    """How a manual point was made (module docstring): ``method = "edges"``, two drawn ``segments``."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    method: Literal["edges"]
+    segments: tuple[tuple[Pixel, Pixel], tuple[Pixel, Pixel]]
+
+    @field_validator("segments")
+    @classmethod
+    def _drawn(cls, v):
+        for i, (p, q) in enumerate(v):
+            if not all(math.isfinite(x) for x in (*p, *q)):
+                raise ValueError(f"segment {i} = {[list(p), list(q)]} is not finite")
+            if math.hypot(q[0] - p[0], q[1] - p[1]) < MIN_SEGMENT_PX:
+                raise ValueError(f"segment {i} is shorter than {MIN_SEGMENT_PX:g} px (draw it along the edge)")
+        _, angle = lines_intersection(*v)
+        if angle < MIN_EDGE_ANGLE_DEG:
+            raise ValueError(f"the two edges are {angle:.1f} deg apart, less than {MIN_EDGE_ANGLE_DEG:g} deg: their "
+                             f"intersection is not defined well enough")
+        return v
+
+    def point(self) -> tuple[float, float]:
+        return lines_intersection(*self.segments)[0]
+
+    def to_json(self) -> dict:
+        return {"method": self.method,
+                "segments": [[[round(float(x), 3) for x in pt] for pt in seg] for seg in self.segments]}
 
 
 class Observation(BaseModel):
@@ -49,6 +105,8 @@ class Observation(BaseModel):
     # the carriage face whose homography or pose placed a "sift" point (left, right, front, rear, roof): the
     # points of one face share its small misfit, which the solve's covariance models (solver.face_sigma_px)
     face: str | None = None
+    # how a manual point was made, when not by a click on it (module docstring): the stages read uv only
+    construction: Construction | None = None
 
     @field_validator("uv")
     @classmethod
@@ -56,6 +114,18 @@ class Observation(BaseModel):
         if not all(math.isfinite(x) for x in v):
             raise ValueError(f"uv = {list(v)} is not finite")
         return v
+
+    @model_validator(mode="after")
+    def _constructed(self):
+        if self.construction is None:
+            return self
+        if self.source != "manual":
+            raise ValueError("a construction is recorded for manual points only")
+        x = self.construction.point()
+        if math.hypot(self.uv[0] - x[0], self.uv[1] - x[1]) > CONSTRUCTION_TOLERANCE_PX:
+            raise ValueError(f"uv = {list(self.uv)} is not where the construction's edges cross "
+                             f"([{x[0]:.3f}, {x[1]:.3f}])")
+        return self
 
     @property
     def key(self) -> tuple[str, str, str]:
@@ -71,6 +141,8 @@ class Observation(BaseModel):
             d["method"] = self.method
         if self.face is not None:
             d["face"] = self.face
+        if self.construction is not None:
+            d["construction"] = self.construction.to_json()
         return d
 
 

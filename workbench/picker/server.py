@@ -8,7 +8,11 @@ point again overrides it (a manual point replaces an automatic one in the ``corr
 automatic point found wrong is rejected (key R; the stage then drops it).
 
 Endpoints: ``GET /`` page; ``GET /picker.js``; ``GET /api/state``; ``GET /photo/<name>``;
-``GET /reference/<car>/<face>.png``; ``POST /api/save`` with ``{"observations": [...], "rejected": [...]}``.
+``GET /reference/<car>/<face>.png``; ``POST /api/save`` with ``{"observations": [...], "rejected": [...]}``;
+``GET /api/overlay?view=<photo>``: after a solve, the carriages' outlines and every pick's residual
+(:mod:`.overlay`); ``POST /api/pose`` with one carriage's current picks: its pose on the spot and where its
+other marked points should fall (:mod:`.live`; nothing is written). A pick may be made from two edges drawn
+along a rounded or hidden corner (``construction`` in correspondences.json, :mod:`workbench.files.correspondences`).
 
 The picker holds forensic work, so it trusts no request (docs/formats.md, "correspondences.json"):
 
@@ -49,7 +53,7 @@ from dataclasses import dataclass, field
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
-from urllib.parse import quote, unquote
+from urllib.parse import parse_qs, quote, unquote
 
 import numpy as np
 
@@ -58,6 +62,8 @@ from ..files import correspondences as mf
 from ..correspond.references import FACES, face_reference
 from ..errors import InputError, OutputError, WorkbenchError
 from ..project import Project
+from .live import live_pose
+from .overlay import solution_overlay
 
 log = logging.getLogger(__name__)
 
@@ -457,6 +463,11 @@ class PickerHandler(BaseHTTPRequestHandler):
             return self._send(200, (STATIC / "picker.js").read_bytes(), "text/javascript; charset=utf-8")
         if path == "/api/state":
             return self._json(200, self.state.document())
+        if path == "/api/overlay":
+            view = (parse_qs(self.path.split("?", 1)[1] if "?" in self.path else "").get("view") or [None])[0]
+            if view is not None and self.state.photo(view) is None:
+                raise Refused(404, f"no photo {_cut(view)} in the incident")
+            return self._json(200, solution_overlay(self.state.project, view))
         if path.startswith("/photo/"):
             name = path[len("/photo/"):]
             p = self.state.photo(name)
@@ -478,11 +489,16 @@ class PickerHandler(BaseHTTPRequestHandler):
         raise Refused(404, f"no such page {_cut(path)}")
 
     def _post(self, path: str) -> None:
-        if path != "/api/save":
+        if path not in ("/api/save", "/api/pose"):
             self._gate(token_needed=False, navigation_ok=False)
             raise Refused(404, f"no such endpoint {_cut(path)}")
         self._gate(token_needed=True, navigation_ok=False)
         payload = parse_body(self._read_body())
+        if path == "/api/pose":  # reads only: the same checks as a save, then nothing written
+            try:
+                return self._json(200, live_pose(self.state.project, payload, self.state.image_sizes()))
+            except InputError as exc:
+                raise Refused(400, f"pose request refused: {exc}") from None
         try:
             result = self.state.save(payload)
         except InputError as exc:
