@@ -7,10 +7,13 @@ top-left pixel); cameras are :class:`workbench.core.camera.CameraIntrinsics` and
   meet at more than :data:`CREASE_DEG`) and every edge between two faces, which the silhouette test needs.
 * :func:`outline`: those edges in one photo at one pose: a crease where one of its faces turns to the camera,
   and the silhouette (an edge between a face that turns to the camera and one that turns away), each cut into
-  pieces of at most :data:`PIECE_M` so that the lens distortion bends it as the photo does. Hidden-line removal
-  between parts is not done (back faces only): the outline shows where the model is, not what hides it.
+  pieces of at most :data:`PIECE_M` so that the lens distortion bends it as the photo does; a piece the car's
+  body hides (a line of sight to it crosses the body part first: the running gear under a car seen from above) is
+  left out. A mesh type has one part, so only its back faces are culled. Other cars and buildings hide nothing.
 * :func:`project_points`: marked points to pixels, None where a point is behind the camera or beyond the
   lens model's reach (:func:`reach`: a Brown polynomial folds back far outside the picture).
+* :func:`in_sight`: whether the car's own model hides a point (a line of sight cast against the model, with the
+  synthetic truth's tolerance; at a grazing angle it can go either way, and other cars are not considered).
 """
 
 from __future__ import annotations
@@ -32,7 +35,9 @@ MAX_LINES = 6000  # pieces per carriage and photo at most
 @dataclass(frozen=True)
 class ModelEdges:
     """Edges of a carriage model in the carriage frame: ends ``a``, ``b`` (n, 3); the two faces' outward normals
-    ``n1``, ``n2`` and centres ``c1``, ``c2`` (n, 3); ``crease`` (n,) bool."""
+    ``n1``, ``n2`` and centres ``c1``, ``c2`` (n, 3); ``crease`` (n,) bool; the model (a ``trimesh.Trimesh``,
+    the lines of sight of :func:`in_sight` are cast against it) and ``body``, its body part (the outline's
+    occluder; None for a mesh type)."""
 
     a: np.ndarray
     b: np.ndarray
@@ -41,6 +46,8 @@ class ModelEdges:
     c1: np.ndarray
     c2: np.ndarray
     crease: np.ndarray
+    mesh: object = None
+    body: object = None
 
 
 _edges_cache: dict[tuple, ModelEdges] = {}
@@ -70,7 +77,8 @@ def model_edges(ct) -> ModelEdges:
     V, N, C = np.asarray(mesh.vertices), np.asarray(mesh.face_normals), np.asarray(mesh.triangles_center)
     angle = np.asarray(mesh.face_adjacency_angles)
     hit = ModelEdges(a=V[ends[:, 0]], b=V[ends[:, 1]], n1=N[pairs[:, 0]], n2=N[pairs[:, 1]], c1=C[pairs[:, 0]],
-                     c2=C[pairs[:, 1]], crease=angle > math.radians(CREASE_DEG))
+                     c2=C[pairs[:, 1]], crease=angle > math.radians(CREASE_DEG), mesh=mesh,
+                     body=None if ct.is_mesh_type else next((q.mesh for q in ct.parts() if q.name == "body"), None))
     with _edges_lock:
         _edges_cache[key] = hit
     return hit
@@ -142,6 +150,10 @@ def outline(edges: ModelEdges, world_from_carriage: np.ndarray, intr: CameraIntr
     idx = np.repeat(np.arange(len(a)), n + 1)
     X = a[idx] + s[:, None] * (b[idx] - a[idx])
     uv = _pixels(intr, M, X, limit)
+    if edges.body is not None:  # pieces behind the body
+        seen = np.all(np.isfinite(uv), axis=1)
+        seen[seen] = _clear(edges.body, R.T @ (centre - t), (X[seen] - t) @ R, intr.fx)
+        uv[~seen] = np.nan
     for i in range(len(a)):
         seg = uv[offsets[i]:offsets[i + 1]]
         good = np.all(np.isfinite(seg), axis=1)
@@ -164,3 +176,37 @@ def outline(edges: ModelEdges, world_from_carriage: np.ndarray, intr: CameraIntr
             continue
         out.append(ln)
     return out
+
+
+
+
+def _clear(mesh, c: np.ndarray, P: np.ndarray, focal_px: float) -> np.ndarray:
+    """(n,) whether the lines of sight from ``c`` to points ``P`` (one frame) meet ``mesh`` no nearer than 5 cm
+    plus two pixel footprints (``2 distance / focal_px``) before the point."""
+    d = P - c
+    length = np.linalg.norm(d, axis=1)
+    out = np.ones(len(P), dtype=bool)
+    if not len(P):
+        return out
+    from trimesh.ray.ray_triangle import RayMeshIntersector
+
+    hits, rays, _ = RayMeshIntersector(mesh).intersects_location(
+        np.repeat(c[None], len(P), axis=0), d / np.maximum(length, 1e-12)[:, None], multiple_hits=True)
+    if len(rays):
+        dist = np.linalg.norm(hits - c, axis=1)
+        near = dist < length[rays] - (0.05 + 2.0 * length[rays] / float(focal_px))
+        out[np.unique(rays[near])] = False
+    return out
+
+
+def in_sight(edges: ModelEdges, world_from_carriage: np.ndarray, centre: np.ndarray, points: np.ndarray,
+             focal_px: float) -> np.ndarray:
+    """(n,) whether the line of sight from the camera ``centre`` (scene frame) to each carriage-frame point
+    meets the carriage's own model (:attr:`ModelEdges.mesh`) no nearer than 5 cm plus two pixel footprints
+    (``2 distance / focal_px``) before the point, as the synthetic truth's visibility is judged. The car itself
+    only: other cars and buildings are not considered."""
+    W = np.asarray(world_from_carriage, dtype=float)
+    P = np.asarray(points, dtype=float).reshape(-1, 3)
+    if edges.mesh is None:
+        return np.ones(len(P), dtype=bool)
+    return _clear(edges.mesh, W[:3, :3].T @ (np.asarray(centre, dtype=float) - W[:3, 3]), P, focal_px)

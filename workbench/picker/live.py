@@ -34,7 +34,7 @@ from ..project import Project
 from ..solve.focal import focal_grid
 from ..solve.pnp import pnp
 from ..solve.projection import project_with_jacobians
-from .geometry import model_edges, outline, project_points
+from .geometry import in_sight, model_edges, outline, project_points
 from .overlay import FLAG_SIGMAS, PickerCamera, picker_cameras
 
 MIN_POINTS_KNOWN = 4
@@ -250,7 +250,8 @@ def _start(car_P: dict, by_view: dict, cams: dict[str, PickerCamera], hfov_range
 
 
 def _predictions(ct, R, t, cov, free_f, f, cams: dict[str, PickerCamera]) -> dict:
-    """Every marked point in every photo: ``{"uv", "sigma_px"}`` (sigma: the largest axis of its covariance)."""
+    """Every marked point in every photo: ``{"uv", "sigma_px", "in_sight"}`` (sigma: the largest axis of its
+    covariance; in_sight: the car itself does not hide it, :func:`.geometry.in_sight`)."""
     names = list(ct.marked_points)
     P = np.array([ct.marked_points[n] for n in names])
     W = np.eye(4)
@@ -258,6 +259,8 @@ def _predictions(ct, R, t, cov, free_f, f, cams: dict[str, PickerCamera]) -> dic
     out = {}
     for v, cam in cams.items():
         intr = cam.intrinsics.with_focal(f[v]) if v in f else cam.intrinsics
+        M = cam.cam_from_world
+        sight = dict(zip(names, in_sight(model_edges(ct), W, -M[:3, :3].T @ M[:3, 3], P, intr.fx).tolist()))
         uv = project_points(ct.marked_points, W, intr, cam.cam_from_world)
         _, Jp, Jf = project_with_jacobians(P, R, t, cam.cam_from_world, intr, ("f",) if v in free_f else ())
         pts = {}
@@ -270,7 +273,7 @@ def _predictions(ct, R, t, cov, free_f, f, cams: dict[str, PickerCamera]) -> dic
                 Ji[:, 6 + free_f.index(v)] = Jf[i, :, 0]
             C = Ji @ cov @ Ji.T
             s = math.sqrt(max(float(np.linalg.eigvalsh(C)[-1]), 0.0)) if np.all(np.isfinite(C)) else None
-            pts[n] = {"uv": uv[n], "sigma_px": None if s is None else round(s, 3)}
+            pts[n] = {"uv": uv[n], "sigma_px": None if s is None else round(s, 3), "in_sight": sight[n]}
         out[v] = pts
     return out
 

@@ -317,10 +317,13 @@ function drawOverlay(view) {
     for (const [n, p] of Object.entries(lv.predicted[view] || {})) {  // where the other points should fall
       if (picked.has(n)) continue;
       const [x, y] = toScreen(p.uv), rad = Math.max(4, 2 * (p.sigma_px || 0) * S.scale);
-      ctx.strokeStyle = n === S.point ? "#ffd54f" : "#b2ff59"; ctx.lineWidth = 1.5;
+      // a point the car itself hides: dimmer, dashed
+      ctx.strokeStyle = n === S.point ? "#ffd54f" : p.in_sight === false ? "rgba(178, 255, 89, 0.45)" : "#b2ff59";
+      ctx.lineWidth = 1.5; ctx.setLineDash(p.in_sight === false ? [2, 3] : []);
       ctx.beginPath(); ctx.arc(x, y, rad, 0, 2 * Math.PI); ctx.stroke();
       ctx.beginPath(); ctx.moveTo(x - 3, y); ctx.lineTo(x + 3, y); ctx.moveTo(x, y - 3); ctx.lineTo(x, y + 3); ctx.stroke();
-      ctx.fillStyle = "#ccff90"; ctx.fillText(n, x + rad + 2, y + 4);
+      ctx.setLineDash([]);
+      ctx.fillStyle = p.in_sight === false ? "rgba(204, 255, 144, 0.5)" : "#ccff90"; ctx.fillText(n, x + rad + 2, y + 4);
     }
   }
   for (const o of currentPicks()) {  // each pick to where the solved pose puts it
