@@ -144,6 +144,11 @@ class Solver(_Strict):
     # the horizontal field of view (degrees, [narrowest, widest]) an unknown focal is searched in: telephoto
     # railway photos reach 3-8 deg, phones' wide cameras 120 (a warning names this key when the focal reaches an end)
     hfov_range_deg: Annotated[tuple[float, float], _LAX] = (3.0, 120.0)
+    # a relative scene (no survey) is levelled from the carriages standing on their wheels: each car's own tilt
+    # (suspension, ballast; independent car to car) and the track's grade and cant (common to all, not averaged
+    # away), 1-sigma degrees (docs/solver.md, "Relative scenes")
+    level_sigma_car_deg: Annotated[float, Field(ge=0.0, le=20.0)] = 0.5
+    level_sigma_common_deg: Annotated[float, Field(ge=0.0, le=20.0)] = 0.5
 
     @field_validator("hfov_range_deg", mode="before")
     @classmethod
@@ -298,6 +303,8 @@ face_sigma_px = 0.15          # misfit shared by one face's automatic points, pi
 bias_correction = true        # remove the estimate's second-order bias (known focal only; docs/solver.md)
 prediction_release = 30.0     # predictions that pull a car off its measured points' fit: sigma x this (1: no check)
 hfov_range_deg = [3.0, 120.0]  # field of view (deg) an unknown focal is searched in: telephoto to wide angle
+level_sigma_car_deg = 0.5     # no survey: each upright car's own tilt, deg (levels the relative scene)
+level_sigma_common_deg = 0.5  # no survey: the track's grade and cant under all the cars, deg
 """
 
 
