@@ -128,3 +128,30 @@ def test_levelling_with_no_upright_car_falls_back_to_the_camera():
     lev = level_from_carriages([UprightCar("1", on_side)], np.array([0, 0, 1.0]), np.array([0, 1.0, 0]))
     assert lev.method == "camera" and lev.used == [] and "held level" in lev.note
     assert lev.sigma_tilt_deg[0] == pytest.approx(5.0)
+
+
+def test_relative_incident_outputs_say_so_and_refuse_gis(tmp_path):
+    """The whole run: the glTF in the local frame, the GIS exports left out with the reason, the report's first
+    page saying the scene is relative; asking for GeoJSON in project.toml is refused (exit 2 from the CLI) with
+    nothing written."""
+    from workbench.cli import main
+
+    project = _incident(tmp_path / "inc", _sim(3), focal_known=True)
+    Runner(project, STAGES).run()
+    ex = project.stage_dir("export")
+    assert (ex / "scene.glb").is_file()
+    assert not any((ex / n).exists() for n in ("carriages.geojson", "scene.kmz", "scene.city.json", "tiles"))
+    stats = json.loads((ex / "stats.json").read_text())
+    assert stats["georeference"]["frame"] == "relative" and stats["georeference"]["crs"] is None
+    assert set(stats["refused"]) == {"geojson", "kmz", "cityjson", "tiles"}
+    html = (project.stage_dir("report") / "report.html").read_text()
+    first = html[:html.index("<h2")]
+    assert "Relative reconstruction, not georeferenced" in first and "Reference point" not in first
+    assert "Latitude" not in html and "Easting" not in html
+    glb_before = (ex / "scene.glb").read_bytes()
+    toml = project.settings_path.read_text() + '\n[export]\nformats = ["glb", "geojson"]\n'
+    project.settings_path.write_text(toml)
+    with pytest.raises(SystemExit) as exc:
+        main(["export", str(project.root), "--force"])
+    assert exc.value.code == 2
+    assert not (ex / "carriages.geojson").exists() and (ex / "scene.glb").read_bytes() == glb_before

@@ -172,6 +172,22 @@ class Correspond(_Strict):
     finder: Annotated[FinderMode, _LAX] = FinderMode.AUTO
 
 
+class ExportFormat(str, Enum):
+    GLB = "glb"  # glTF 2.0 binary (the only one a relative scene gets: it needs no place on the Earth)
+    GEOJSON = "geojson"
+    KMZ = "kmz"
+    CITYJSON = "cityjson"
+    TILES = "tiles"
+
+
+GIS_FORMATS = ("geojson", "kmz", "cityjson", "tiles")  # they place the scene on the Earth: georeference needed
+
+
+class Export(_Strict):
+    # the formats the export stage writes; absent: every one the scene allows (a relative scene: glb only)
+    formats: Annotated[list[Annotated[ExportFormat, _LAX]], Field(min_length=1)] | None = None
+
+
 class ProjectSettings(_Strict):
     incident: Incident
     location: Location
@@ -183,6 +199,7 @@ class ProjectSettings(_Strict):
     sfm: dict[str, Any] | None = None
     solver: Solver = Solver()
     correspond: Correspond = Correspond()
+    export: Export = Export()
 
     @model_validator(mode="after")
     def _consist_rules(self) -> "ProjectSettings":

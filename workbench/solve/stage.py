@@ -190,7 +190,7 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
     progress(0.3, f"solving {len(carriages)} carriages")
     res, rejected = _solve_rejecting(carriages, links, views, opts, terrain, s.solver, progress)
     levelling = None
-    if relative:
+    if relative and any(c.status != "left_out" for c in res.carriages):
         progress(0.8, "levelling the relative scene")
         res, views, levelling = _level(res, carriages, links, views, opts, s.solver)
     progress(0.9, "writing the solution")
