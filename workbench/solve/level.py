@@ -5,7 +5,8 @@ route). Nothing in the photo says which way is up except the carriages themselve
 on straight, level track has its floor horizontal, so its z axis is the vertical. This module takes the solved
 poses, finds the cars that agree on an up direction (the upright ones; a car lying on its side or tipped over
 disagrees and is left out), averages their z axes weighted by their covariance, and returns the rotation about
-the camera that makes that average vertical, with the y axis along the reference photo's centre ray (its viewing direction).
+the camera that makes that average vertical, with the y axis along the reference photo's centre ray (its
+viewing direction).
 
 The levelling's uncertainty is what the data allow: each car's tilt from its fit, plus ``sigma_car_deg`` of its
 own (suspension, a wheel off the rail, uneven ballast; independent car to car), plus ``sigma_common_deg`` that
@@ -25,7 +26,8 @@ from ..core.geometry import skew
 __all__ = ["Levelling", "UprightCar", "level_from_carriages", "rotation_between"]
 
 UPRIGHT_TOL_DEG = 10.0    # cars whose z axes agree within this are taken to stand on the same track
-CAMERA_TILT_MAX_DEG = 35.0  # a photo is held within this of level: an "up" farther from the camera's is a car on its side
+# a photo is held within this of level: an "up" farther from the camera's is a car on its side
+CAMERA_TILT_MAX_DEG = 35.0
 CAMERA_LEVEL_SIGMA_DEG = 5.0  # the fallback's sigma when no car stands on its wheels (the photo taken level)
 
 

@@ -378,7 +378,8 @@ def _frame_record(project: Project, levelling: Levelling | None) -> dict:
         return {"kind": "georeferenced", "crs": loc.crs, "lat": loc.lat, "lon": loc.lon, "height_m": loc.height_m}
     return {"kind": "relative", "crs": None,
             "axes": "origin at the camera centre; z up (levelled from the carriages standing on their wheels); y "
-                    "along the ray through the reference photo's centre pixel, x to its right; metres (the cars' dimensions)",
+                    "along the ray through the reference photo's centre pixel, x to its right; metres (the cars' "
+                    "dimensions)",
             "world_from_cameras": levelling.world_from_provisional.tolist(), "levelling": levelling.to_dict()}
 
 
