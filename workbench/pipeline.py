@@ -197,6 +197,11 @@ def _georef_inputs(project: Project) -> dict[str, Path]:
         p = project.reconstruction_path
         if p.is_file():
             files["reconstruction"] = p
+    elif route == "relative":
+        files["photos"] = project.photo_paths()[0]
+        p = project.panorama_model_path
+        if p.is_file():
+            files["panorama_model"] = p
     elif route == "single":
         files["photo"] = project.photo_paths()[0]
         if project.settings.camera.profile:
@@ -207,8 +212,11 @@ def _georef_inputs(project: Project) -> dict[str, Path]:
 
 
 def _georef_applies(project: Project) -> bool:
-    """Known cameras, control points, or (multiview) an SfM model that the photos' GPS can place."""
+    """Known cameras, control points, no survey at all (the relative route), or (multiview) an SfM model that the
+    photos' GPS can place."""
     if project.own_cameras_path.is_file() or project.control_points_path.is_file():
+        return True
+    if project.georef_route() == "relative":
         return True
     return project.georef_route() == "multiview" and project.reconstruction_path.is_file()
 

@@ -259,7 +259,8 @@ class Project:
 
     def georef_route(self) -> str:
         """How the cameras are placed: ``known`` (the incident's own ``cameras.json``), ``multiview`` (SfM),
-        ``single`` (one photo) or ``panorama``."""
+        ``single`` (one photo) or ``panorama`` from control points, or ``relative`` (photos but no control
+        points: a local frame anchored at the camera; docs/gis.md, "Relative incidents")."""
         if self.own_cameras_path.is_file():
             return "known"
         if self.settings.camera.source.value == "sfm":
@@ -268,6 +269,8 @@ class Project:
             photos = self.photo_paths()
         except InputError:
             photos = []
+        if photos and not self.control_points_path.is_file():
+            return "relative"
         return "single" if len(photos) == 1 else "panorama"
 
     # -- settings -------------------------------------------------------------------------------------

@@ -144,6 +144,11 @@ class Solver(_Strict):
     # the horizontal field of view (degrees, [narrowest, widest]) an unknown focal is searched in: telephoto
     # railway photos reach 3-8 deg, phones' wide cameras 120 (a warning names this key when the focal reaches an end)
     hfov_range_deg: Annotated[tuple[float, float], _LAX] = (3.0, 120.0)
+    # a relative scene (no survey) is levelled from the carriages standing on their wheels: each car's own tilt
+    # (suspension, ballast; independent car to car) and the track's grade and cant (common to all, not averaged
+    # away), 1-sigma degrees (docs/solver.md, "Relative scenes")
+    level_sigma_car_deg: Annotated[float, Field(ge=0.0, le=20.0)] = 0.5
+    level_sigma_common_deg: Annotated[float, Field(ge=0.0, le=20.0)] = 0.5
 
     @field_validator("hfov_range_deg", mode="before")
     @classmethod
@@ -167,6 +172,22 @@ class Correspond(_Strict):
     finder: Annotated[FinderMode, _LAX] = FinderMode.AUTO
 
 
+class ExportFormat(str, Enum):
+    GLB = "glb"  # glTF 2.0 binary (the only one a relative scene gets: it needs no place on the Earth)
+    GEOJSON = "geojson"
+    KMZ = "kmz"
+    CITYJSON = "cityjson"
+    TILES = "tiles"
+
+
+GIS_FORMATS = ("geojson", "kmz", "cityjson", "tiles")  # they place the scene on the Earth: georeference needed
+
+
+class Export(_Strict):
+    # the formats the export stage writes; absent: every one the scene allows (a relative scene: glb only)
+    formats: Annotated[list[Annotated[ExportFormat, _LAX]], Field(min_length=1)] | None = None
+
+
 class ProjectSettings(_Strict):
     incident: Incident
     location: Location
@@ -178,6 +199,7 @@ class ProjectSettings(_Strict):
     sfm: dict[str, Any] | None = None
     solver: Solver = Solver()
     correspond: Correspond = Correspond()
+    export: Export = Export()
 
     @model_validator(mode="after")
     def _consist_rules(self) -> "ProjectSettings":
@@ -298,6 +320,8 @@ face_sigma_px = 0.15          # misfit shared by one face's automatic points, pi
 bias_correction = true        # remove the estimate's second-order bias (known focal only; docs/solver.md)
 prediction_release = 30.0     # predictions that pull a car off its measured points' fit: sigma x this (1: no check)
 hfov_range_deg = [3.0, 120.0]  # field of view (deg) an unknown focal is searched in: telephoto to wide angle
+level_sigma_car_deg = 0.5     # no survey: each upright car's own tilt, deg (levels the relative scene)
+level_sigma_common_deg = 0.5  # no survey: the track's grade and cant under all the cars, deg
 """
 
 

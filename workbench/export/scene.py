@@ -126,9 +126,15 @@ class ExportScene:
     title: str = ""
     date: str = ""
     solution_status: str = ""
+    relative: dict | None = None  # the solution's frame record when the scene is relative (no survey)
 
     def georeference(self) -> dict:
-        """The georeference recorded in every export (JSON-ready)."""
+        """The georeference recorded in every export (JSON-ready); a relative scene says it has none."""
+        if self.relative is not None:
+            return {"frame": "relative", "crs": None, "origin_wgs84": None,
+                    "scene_frame": self.relative.get("axes", "local levelled frame at the camera, metres"),
+                    "note": "not georeferenced: no control points, no known cameras, no GPS (docs/gis.md, "
+                            "\"Relative incidents\")", "units": "metres"}
         f = self.frame
         o = f.origin_crs
         epsg = f.crs.to_epsg()
@@ -385,12 +391,13 @@ def build_scene(project: "Project", options: ExportOptions | None = None) -> Exp
         raise InputError(f"{sol.path}: no carriage has a pose (all left out); nothing to export")
     tdir = project.stage_dir("terrain")
     terrain = None
-    if (tdir / "terrain.ply").is_file():
+    if (tdir / "terrain.ply").is_file() and not sol.relative:
         mesh = trimesh.load(tdir / "terrain.ply", process=False, force="mesh")
         terrain = build_terrain(mesh, frame, cars, options, find_orthophoto(project))
     buildings: list[trimesh.Trimesh] = []
-    if (tdir / "buildings.ply").is_file():
+    if (tdir / "buildings.ply").is_file() and not sol.relative:
         buildings = split_buildings(trimesh.load(tdir / "buildings.ply", process=False, force="mesh"))
     s = project.settings
     return ExportScene(frame=frame, carriages=cars, left_out=left, terrain=terrain, buildings=buildings,
-                       title=s.incident.name, date=str(s.incident.date), solution_status=str(doc.get("status", "")))
+                       title=s.incident.name, date=str(s.incident.date), solution_status=str(doc.get("status", "")),
+                       relative=doc["frame"] if sol.relative else None)

@@ -74,6 +74,11 @@ class Cameras:
         return [v.name for v in self.views]
 
     @property
+    def relative(self) -> bool:
+        """True for the relative route's cameras (no survey): a provisional local frame at the camera."""
+        return self.doc.get("frame") == "relative"
+
+    @property
     def focal_unknown(self) -> list[str]:
         """Names of the views whose focal the solve estimates."""
         return [v.name for v in self.views if not v.focal_known]

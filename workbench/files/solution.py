@@ -62,6 +62,19 @@ class Solution:
     carriages: tuple[SolvedCarriage, ...]
     focal_px: dict[str, float]
     doc: dict = field(compare=False, repr=False)
+    # (4, 4) the solution's frame from the cameras file's: identity, except in a relative scene (levelled)
+    world_from_cameras: np.ndarray = field(default_factory=lambda: np.eye(4), compare=False, repr=False)
+
+    @property
+    def relative(self) -> bool:
+        """True when the scene is relative (no survey): local frame at the camera, no CRS or WGS84 figures."""
+        fr = self.doc.get("frame")
+        return isinstance(fr, dict) and fr.get("kind") == "relative"
+
+    def cam_from_world(self, cam_from_world_of_cameras: np.ndarray) -> np.ndarray:
+        """(4, 4) a ``cameras.json`` view's ``cam_from_world`` in the solution's frame (the same matrix unless
+        the scene is relative and was levelled)."""
+        return np.asarray(cam_from_world_of_cameras, float) @ np.linalg.inv(self.world_from_cameras)
 
     @property
     def posed(self) -> list[SolvedCarriage]:
@@ -96,7 +109,7 @@ def _focal(doc: dict, where: str) -> dict[str, float]:
 
 def _check_frame(doc: dict, frame: SceneFrame, where: str) -> None:
     fr = doc.get("frame")
-    if not isinstance(fr, dict):
+    if not isinstance(fr, dict) or fr.get("kind") == "relative":
         return
     try:
         same = (abs(float(fr.get("lat", frame.lat_deg)) - frame.lat_deg) < 1e-9
@@ -138,7 +151,11 @@ def parse_solution(doc: Any, path: Path | str, *, frame: SceneFrame | None = Non
         except (TypeError, ValueError):
             raise InputError(f"{w}.index = {c.get('index')!r}: not a whole number") from None
         cars.append(SolvedCarriage(index, number, status, M, c))
-    return Solution(Path(path), tuple(cars), _focal(doc, where), doc)
+    fr = doc.get("frame")
+    W = np.eye(4)
+    if isinstance(fr, dict) and fr.get("kind") == "relative":
+        W = _rigid(fr.get("world_from_cameras"), f"{where}: frame.world_from_cameras")
+    return Solution(Path(path), tuple(cars), _focal(doc, where), doc, W)
 
 
 def read_solution(path: Path, *, frame: SceneFrame | None = None,

@@ -10,6 +10,8 @@ Routes (``route`` in cameras.json; docs/gis.md):
 * **multiview** (``camera.source = "sfm"``, :mod:`.route_multiview`): the SfM reconstruction's models mapped by
   similarities fitted to the control points and to the photos' GPS
   (:func:`~workbench.georef.similarity.solve_similarity`).
+* **relative** (photos, no control points, :mod:`.route_relative`): the camera at the origin of a provisional
+  local frame, which the solve stage levels from the carriages; nothing is georeferenced.
 * **single** (one photo, :mod:`.route_central`): P3P + refinement from the control points, intrinsics from the
   camera profile (``calibrated``) or the EXIF focal (``exif``).
 
@@ -29,6 +31,7 @@ from .options import GeorefOptions, GeorefResidualsLarge
 from .route_central import panorama_route, single_route
 from .route_known import known_route
 from .route_multiview import multiview_route
+from .route_relative import relative_route
 
 __all__ = ["run_georef"]
 
@@ -49,6 +52,8 @@ def run_georef(project: Project, progress: Progress, opts: GeorefOptions = Geore
             doc, extra = panorama_route(project, opts, where)
         elif route == "multiview":
             doc, extra = multiview_route(project, opts, where)
+        elif route == "relative":
+            doc, extra = relative_route(project)
         else:
             doc, extra = single_route(project, opts, where)
     stats.update(extra)

@@ -194,9 +194,11 @@ def _draw_railways(ax, railways: Sequence[RailwayLine], extent: tuple[float, flo
 
 
 def draw_map(path: Path, image: np.ndarray, extent: tuple[float, float, float, float], sc: IncidentScene,
-             convergence_deg: float, crs_name: str, frame_note: str, railways: Sequence[RailwayLine] = ()) -> None:
+             convergence_deg: float, crs_name: str, frame_note: str, railways: Sequence[RailwayLine] = (),
+             relative: bool = False) -> None:
     """A map figure: the top-down render with the railway lines (chainage ticks), carriage outlines and numbers,
-    cameras, scale bar, north arrows."""
+    cameras, scale bar, north arrows; ``relative``: a plan of a scene with no georeference (the arrow is the
+    camera's direction, not north)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -258,18 +260,26 @@ def draw_map(path: Path, image: np.ndarray, extent: tuple[float, float, float, f
                            edgecolor="none"))
     ax.add_patch(FancyArrow(nx, ny, 0, al, width=0.012 * W, head_width=0.035 * W, head_length=0.035 * W,
                             length_includes_head=True, color="k"))
-    ax.text(nx, ny + al + 0.01 * W, "N", ha="center", va="bottom", fontsize=11, fontweight="bold")
-    g = math.radians(convergence_deg)
-    ax.plot([nx, nx + al * 0.8 * math.sin(g)], [ny, ny + al * 0.8 * math.cos(g)], color=(0.2, 0.2, 0.8),
-            linewidth=0.9, linestyle="--")
-    ax.text(nx, ny - 0.012 * W, f"GN {convergence_deg:+.2f}°", ha="center", va="top", fontsize=6,
-            color=(0.2, 0.2, 0.8))
+    ax.text(nx, ny + al + 0.01 * W, "camera" if relative else "N", ha="center", va="bottom",
+            fontsize=8 if relative else 11, fontweight="bold")
+    if not relative:
+        g = math.radians(convergence_deg)
+        ax.plot([nx, nx + al * 0.8 * math.sin(g)], [ny, ny + al * 0.8 * math.cos(g)], color=(0.2, 0.2, 0.8),
+                linewidth=0.9, linestyle="--")
+        ax.text(nx, ny - 0.012 * W, f"GN {convergence_deg:+.2f}°", ha="center", va="top", fontsize=6,
+                color=(0.2, 0.2, 0.8))
     ax.set_xlim(x0, x1)
     ax.set_ylim(y0, y1)
-    ax.set_xlabel("east of the reference point (m)", fontsize=8)
-    ax.set_ylabel("north of the reference point (m)", fontsize=8)
+    if relative:
+        ax.set_xlabel("right of the camera (m)", fontsize=8)
+        ax.set_ylabel("ahead of the camera, along the photo's centre ray (m)", fontsize=8)
+        ax.set_title(f"Plan view, RELATIVE (not georeferenced; up is the camera's direction, not north). {frame_note}",
+                     fontsize=8)
+    else:
+        ax.set_xlabel("east of the reference point (m)", fontsize=8)
+        ax.set_ylabel("north of the reference point (m)", fontsize=8)
+        ax.set_title(f"Site plan: true north up; grid north ({crs_name}) dashed. {frame_note}", fontsize=8)
     ax.tick_params(labelsize=7)
-    ax.set_title(f"Site plan: true north up; grid north ({crs_name}) dashed. {frame_note}", fontsize=8)
     fig.tight_layout()
     from ..core.io import atomic_write
 
@@ -441,17 +451,19 @@ class _RenderRun:
         K, Mt, mpp = top_down_camera(centre_en, half, MAP_SIZE[0], float(sr.centre[2]))
         res = sr.render(Mt, MAP_SIZE, K=K, supersample=1)
         extent = (centre_en[0] - half, centre_en[0] + half, centre_en[1] - half, centre_en[1] + half)
-        conv = project.frame.grid_convergence_deg()
+        relative = (sc.solution.get("frame") or {}).get("kind") == "relative"
+        conv = 0.0 if relative else project.frame.grid_convergence_deg()
         map_path = self.out / "map.png"
         crs_name = project.settings.location.crs
         with warnings.catch_warnings(record=True) as caught:  # a layer with no railway line: in the stage's stats
             warnings.simplefilter("always", WorkbenchWarning)
-            layer = project.railways(heights=False)
+            layer = None if relative else project.railways(heights=False)  # not in a relative scene's frame
         self.railways = {"file": project.settings.terrain.railways, "lines": len(layer.lines) if layer else 0,
                          "warnings": [str(w.message) for w in caught if issubclass(w.category, WorkbenchWarning)]}
-        draw_map(map_path, res.color, extent, sc, conv, crs_name,
-                 f"Reference point {_latlon(project.settings.location.lat, project.settings.location.lon)}.",
-                 railways=layer.lines if layer is not None else ())
+        note = ("Origin at the camera." if relative else
+                f"Reference point {_latlon(project.settings.location.lat, project.settings.location.lon)}.")
+        draw_map(map_path, res.color, extent, sc, conv, crs_name, note,
+                 railways=layer.lines if layer is not None else (), relative=relative)
         self.record("map", "map", map_path, t0, extent_enu=list(extent), metres_per_px=mpp, grid_convergence_deg=conv,
                     crs=crs_name)
 

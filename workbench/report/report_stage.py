@@ -339,10 +339,13 @@ def carriage_rows(project: Project, solution: dict) -> list[dict]:
         enu = c.get("body_centre_enu")
         crs = c.get("body_centre_crs")
         wgs = c.get("body_centre_wgs84")
-        if enu is not None and crs is None:
-            crs = frame.crs_from_enu(np.asarray(enu, float)).tolist()
-        if enu is not None and wgs is None:
-            wgs = frame.wgs84_from_enu(np.asarray(enu, float)).tolist()
+        if (solution.get("frame") or {}).get("kind") == "relative":  # metres from the camera; nowhere on Earth
+            crs, wgs = enu, None
+        else:
+            if enu is not None and crs is None:
+                crs = frame.crs_from_enu(np.asarray(enu, float)).tolist()
+            if enu is not None and wgs is None:
+                wgs = frame.wgs84_from_enu(np.asarray(enu, float)).tolist()
         ci = c.get("ci95_body_centre_m") or [None] * 3
         hci = c.get("ci95_hpr_deg") or [None] * 3
         row.update({
@@ -527,7 +530,8 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
         "n_predicted": (solution.get("residual_rms_px") or {}).get("n_predicted") or 0,
         "sigma_est": _f(solution.get("sigma_px_estimated"), 2), "dof": solution.get("dof", "–"),
         "ci95_factor": _f(solution.get("ci95_factor"), 2),
-        "georef": (cams.get("georegistration") or {}).get("method", "–"),
+        "georef": ("none: relative scene, levelled from the carriages" if sol.relative else
+                   (cams.get("georegistration") or {}).get("method", "–")),
         "interval_scope": interval_scope(solution, s.solver, s.terrain.dem_vertical_accuracy_m),
     }
     ctx = {
@@ -538,7 +542,8 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
                      "convergence": _f(project.frame.grid_convergence_deg(), 2)},
         "generated": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "summary": summary, "rows": rows, "warnings": [_warning_text(w) for w in solution.get("warnings", [])],
-        "findings": findings(project, solution), "track": track_table(project, sol),
+        "findings": findings(project, solution), "track": None if sol.relative else track_table(project, sol),
+        "relative": relative_context(sol),
         "overview": (by_kind.get("overview") or [None])[0], "map": (by_kind.get("map") or [None])[0],
         "photos": by_kind.get("photo", []), "closeups": by_kind.get("closeup", []),
         "orbit": (by_kind.get("orbit") or [None])[0], "observations": obs_figs, "panorama": panorama_img,
@@ -552,6 +557,19 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
              "observations": obs_figs,
              "panorama": panorama_fig}
     return ctx, facts
+
+
+def relative_context(sol: Any) -> dict | None:
+    """What the report says of a relative scene (no survey), or None for a georeferenced one."""
+    if not sol.relative:
+        return None
+    lev = (sol.doc.get("frame") or {}).get("levelling") or {}
+    tilt = lev.get("sigma_tilt_deg") or [float("nan")] * 2
+    used = lev.get("cars_used") or []
+    how = (f"levelled from {len(used)} carriage(s) standing on their wheels ({', '.join(used)})" if used else
+           "levelled as if the photo had been held level (no carriage stands on its wheels)")
+    return {"levelling": how, "tilt": f"{max(tilt):.2f}", "left_out": ", ".join(lev.get("cars_left_out") or []),
+            "method": lev.get("method", "?")}
 
 
 def render_html(ctx: dict) -> str:

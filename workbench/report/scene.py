@@ -179,7 +179,9 @@ def load_scene(project: Project, *, textured: bool = True, with_terrain: bool = 
         cars.append(PlacedCarriage(c.index, c.number, ct.id, ct.name, c.status, c.world_from_carriage, mesh,
                                    np.asarray(ct.bounding_box(), float), c.record))
     cam_data, cams = load_cameras(project)
+    cams = [SceneCamera(c.name, c.image, c.intrinsics, sol.cam_from_world(c.cam_from_world)) for c in cams]
     cams = with_solved_focal(cams, sol.focal_px)
+    with_terrain = with_terrain and not sol.relative  # a relative scene is not in the DEM's frame
     terrain = _terrain_mesh(project, textured=textured) if with_terrain else None
     buildings = _buildings_mesh(project) if with_terrain else None
     files = {"solution": sol.path}

@@ -12,6 +12,7 @@ from __future__ import annotations
 import logging
 import math
 import warnings
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -25,6 +26,7 @@ from ..core.stage_api import Progress, StageResult
 from ..files import correspondences
 from ..files.cameras import read_cameras
 from ..files.panorama import read_panorama
+from .level import Levelling, UprightCar, level_from_carriages
 from .model import CarriageInput, ChainLink, Observation, SolveOptions, SolveWarning, View
 from .solver import solve_consist
 from .uncertainty import add_camera_uncertainty
@@ -177,19 +179,27 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
                         face_sigma_px=s.solver.face_sigma_px, bias_correction=bool(s.solver.bias_correction),
                         prediction_release=float(s.solver.prediction_release),
                         hfov_range_deg=tuple(float(x) for x in s.solver.hfov_range_deg))
+    relative = cam_doc.get("frame") == "relative"
     terrain = None
-    if s.terrain.dem:
+    if s.terrain.dem and not relative:
         progress(0.15, "terrain")
         terrain = project.terrain_model()
+    elif s.terrain.dem:
+        log.warning("solve: the scene is relative (no control points): the DEM (terrain.dem) is not in its frame "
+                    "and is not used to settle the carriages; add control_points.json to georeference it")
     progress(0.3, f"solving {len(carriages)} carriages")
     res, rejected = _solve_rejecting(carriages, links, views, opts, terrain, s.solver, progress)
+    levelling = None
+    if relative and any(c.status != "left_out" for c in res.carriages):
+        progress(0.8, "levelling the relative scene")
+        res, views, levelling = _level(res, carriages, links, views, opts, s.solver)
     progress(0.9, "writing the solution")
     fit_sigmas = {c.number: (c.sigma_body_centre_m, c.sigma_hpr_deg) for c in res.carriages}
-    camera_unc = camera_uncertainty(cam_doc)
+    camera_unc = camera_uncertainty(cam_doc) if levelling is None else _levelling_uncertainty(levelling)
     if camera_unc is not None:
         camera_unc["carriages"] = add_camera_uncertainty(res, camera_unc["centre_enu"], camera_unc["cov"])
     used = {c.number: c.observations for c in carriages}
-    doc = solution_document(project, res, views, cam_doc, used)
+    doc = solution_document(project, res, views, cam_doc, used, levelling)
     doc["camera_uncertainty"] = _camera_uncertainty_record(camera_unc, cam_doc)
     for rec in doc["carriages"]:
         sb, sh = fit_sigmas.get(rec["number"], (None, None))
@@ -268,6 +278,39 @@ def _solve_rejecting(carriages: list, links: list, views: list, opts: Any, terra
     return res, rejected
 
 
+def _level(res: Any, carriages: list, links: list, views: list, opts: Any, solver: Any
+           ) -> tuple[Any, list, Levelling]:
+    """A relative scene levelled from its upright carriages (:mod:`workbench.solve.level`): the views turned
+    about the camera into the levelled frame and the consist solved again there (the same points: the
+    rejections of the first solve stand), so every figure of the solution is in the levelled frame."""
+    cars = [UprightCar(c.number, np.asarray(c.world_from_carriage, float)[:3, :3],
+                       None if c.covariance_pose is None else np.asarray(c.covariance_pose, float)[:3, :3])
+            for c in res.carriages if c.status == "solved" and c.world_from_carriage is not None]
+    R_ref = np.asarray(views[0].cam_from_world, float)[:3, :3]
+    intr = views[0].intrinsics  # the frame's y: the ray through the reference photo's centre pixel
+    ray = np.array([((intr.width - 1) / 2.0 - intr.cx) / intr.fx, ((intr.height - 1) / 2.0 - intr.cy) / intr.fy, 1.0])
+    lev = level_from_carriages(cars, -R_ref[1], R_ref.T @ ray, sigma_car_deg=float(solver.level_sigma_car_deg),
+                               sigma_common_deg=float(solver.level_sigma_common_deg))
+    provisional_from_world = np.linalg.inv(lev.world_from_provisional)
+    views = [replace(v, cam_from_world=np.asarray(v.cam_from_world, float) @ provisional_from_world) for v in views]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", SolveWarning)
+        res = solve_consist(carriages, links, views, opts, None)
+    if lev.method == "camera":
+        res.warnings.append({"car": None, "index": None, "kind": "not_levelled", "message": lev.note})
+        log.warning("solve: %s", lev.note)
+    log.info("solve: %s; tilt sigma %.2f, %.2f deg", lev.note, *lev.sigma_tilt_deg)
+    return res, views, lev
+
+
+def _levelling_uncertainty(lev: Levelling) -> dict:
+    """The levelling's tilt error as a camera-pose covariance about the origin (the camera), for
+    :func:`add_camera_uncertainty`."""
+    C = np.zeros((6, 6))
+    C[:3, :3] = lev.cov_rotation
+    return {"cov": C, "centre_enu": np.zeros(3), "levelling": True}
+
+
 def camera_uncertainty(cam_doc: dict) -> dict | None:
     """The georegistration's camera-pose covariance to carry into the carriages' poses, or None.
 
@@ -304,6 +347,13 @@ def _camera_uncertainty_record(camera_unc: dict | None, cam_doc: dict) -> dict:
         return {"included": False, "note": why}
     C = camera_unc["cov"]
     sd = np.sqrt(np.clip(np.diag(C), 0.0, None))
+    if camera_unc.get("levelling"):
+        return {"included": True,
+                "note": "relative scene: the levelling's tilt uncertainty (from the upright carriages) is added to "
+                        "every carriage's (first order: the scene turns about the camera); sigma_*_fit_* give "
+                        "the fit's alone",
+                "sigma_rotation_deg": np.degrees(sd[:3]).tolist(), "sigma_centre_m": [0.0, 0.0, 0.0],
+                "centre_enu": [0.0, 0.0, 0.0], "carriages": camera_unc.get("carriages", [])}
     return {"included": True,
             "note": "the georegistration's camera-pose covariance is added to every carriage's (first order: the "
                     "poses move with the camera); sigma_*_fit_* give the fit's alone",
@@ -320,9 +370,25 @@ def _num(x: Any) -> float | None:
     return f if math.isfinite(f) else None
 
 
-def solution_document(project: Project, res: Any, views: list, cam_doc: dict, obs: dict) -> dict:
-    """The ``solution.json`` document (docs/pipeline.md) of a :class:`SolveResult`."""
+def _frame_record(project: Project, levelling: Levelling | None) -> dict:
+    """``solution.json``'s ``frame``: the project's georeference, or (a relative scene) the levelled local frame
+    and how it was made, with no latitude, longitude or CRS (docs/pipeline.md)."""
+    loc = project.settings.location
+    if levelling is None:
+        return {"kind": "georeferenced", "crs": loc.crs, "lat": loc.lat, "lon": loc.lon, "height_m": loc.height_m}
+    return {"kind": "relative", "crs": None,
+            "axes": "origin at the camera centre; z up (levelled from the carriages standing on their wheels); y "
+                    "along the ray through the reference photo's centre pixel, x to its right; metres (the cars' "
+                    "dimensions)",
+            "world_from_cameras": levelling.world_from_provisional.tolist(), "levelling": levelling.to_dict()}
+
+
+def solution_document(project: Project, res: Any, views: list, cam_doc: dict, obs: dict,
+                      levelling: Levelling | None = None) -> dict:
+    """The ``solution.json`` document (docs/pipeline.md) of a :class:`SolveResult`; ``levelling`` for a relative
+    scene (no CRS or WGS84 figures then)."""
     frame = project.frame
+    georeferenced = levelling is None
     d = res.to_dict()
     s = project.settings
     cars_out = []
@@ -340,8 +406,8 @@ def solution_document(project: Project, res: Any, views: list, cam_doc: dict, ob
             rec.update({
                 "world_from_carriage": M.tolist(), "origin_enu": M[:3, 3].tolist(),
                 "body_centre_enu": c_enu.tolist(),
-                "body_centre_crs": frame.crs_from_enu(c_enu[None])[0].tolist(),
-                "body_centre_wgs84": frame.wgs84_from_enu(c_enu[None])[0].tolist(),
+                "body_centre_crs": frame.crs_from_enu(c_enu[None])[0].tolist() if georeferenced else None,
+                "body_centre_wgs84": frame.wgs84_from_enu(c_enu[None])[0].tolist() if georeferenced else None,
                 "heading_deg": float(h), "pitch_deg": float(p), "roll_deg": float(r),
             })
         for k in ("sigma_body_centre_m", "ci95_body_centre_m", "sigma_position_m", "ci95_position_m",
@@ -376,10 +442,9 @@ def solution_document(project: Project, res: Any, views: list, cam_doc: dict, ob
         a["coupler_gap_to_next_m"] = gap
     if cars_out:
         cars_out[-1]["coupler_gap_to_next_m"] = None
-    loc = s.location
     return {
         "status": res.status, "message": res.message,
-        "frame": {"crs": loc.crs, "lat": loc.lat, "lon": loc.lon, "height_m": loc.height_m},
+        "frame": _frame_record(project, levelling),
         "route": cam_doc.get("route"), "intrinsics_source": cam_doc.get("intrinsics_source"),
         "georegistration": cam_doc.get("georegistration"),
         "views": [v.name for v in views], "focal_px": d.get("focal_px"), "sigma_focal_px": d.get("sigma_focal_px"),

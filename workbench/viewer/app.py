@@ -45,23 +45,32 @@ def _open3d():
     return o3d, gui, rendering
 
 
+RELATIVE = "relative frame (not georeferenced)"
+
+
 def carriage_text(row: dict, crs: str) -> str:
     """The numbers of one carriage (a row of :func:`workbench.report.report_stage.carriage_rows`), as text."""
     lines = [f"Car {row['number']}  ({row['type']})",
              f"status {row['status']}, {row['n_points']} points, RMS {row['rms_px']} px",
              "",
-             f"Body centre, {crs} (95% half width):",
-             f"  E  {row['e']} m  ± {row['ci_e']}",
-             f"  N  {row['n']} m  ± {row['ci_n']}",
-             f"  h  {row['h']} m  ± {row['ci_u']}",
-             f"  lat {row['lat']}°  lon {row['lon']}°",
-             "",
-             f"Heading {row['heading']}° ± {row['ci_heading']}",
-             f"Pitch   {row['pitch']}° ± {row['ci_pitch']}",
-             f"Roll    {row['roll']}° ± {row['ci_roll']}",
-             "",
-             f"Coupling to next: {row['coupling']}, gap {row['gap']} m",
-             f"Terrain clearance {row['clearance']} m"]
+             f"Body centre, {crs} (95% half width):"]
+    if crs == RELATIVE:  # no place on the Earth: metres from the camera
+        lines += [f"  x  {row['e']} m  ± {row['ci_e']}  (right of the camera)",
+                  f"  y  {row['n']} m  ± {row['ci_n']}  (ahead of the camera)",
+                  f"  z  {row['h']} m  ± {row['ci_u']}  (above the camera)"]
+    else:
+        lines += [f"  E  {row['e']} m  ± {row['ci_e']}",
+                  f"  N  {row['n']} m  ± {row['ci_n']}",
+                  f"  h  {row['h']} m  ± {row['ci_u']}",
+                  f"  lat {row['lat']}°  lon {row['lon']}°"]
+    lines += ["",
+              f"Heading {row['heading']}° ± {row['ci_heading']}" + ("  (from the camera's direction)"
+                                                                     if crs == RELATIVE else ""),
+              f"Pitch   {row['pitch']}° ± {row['ci_pitch']}",
+              f"Roll    {row['roll']}° ± {row['ci_roll']}",
+              "",
+              f"Coupling to next: {row['coupling']}, gap {row['gap']} m",
+              f"Terrain clearance {row['clearance']} m"]
     return "\n".join(lines).replace("\u2212", "-")  # the GUI font has no minus sign
 
 
@@ -69,7 +78,8 @@ class IncidentViewer:
     """The viewer window of one incident (create it after ``gui.Application.instance.initialize()``)."""
 
     def __init__(self, project: Project, *, width: int = 1280, height: int = 800) -> None:
-        from ..report.render_stage import SUN_AZIMUTH_DEG, SUN_ELEVATION_DEG, view_direction, fit_distance, viewer_azimuth
+        from ..report.render_stage import (SUN_AZIMUTH_DEG, SUN_ELEVATION_DEG, fit_distance, view_direction,
+                                           viewer_azimuth)
         from ..report.report_stage import carriage_rows
         from ..report.scene import camera_glyph, load_scene
 
@@ -78,7 +88,8 @@ class IncidentViewer:
         self.project = project
         self.sc = load_scene(project)
         self.rows = {r["number"]: r for r in carriage_rows(project, self.sc.solution)}
-        self.crs = project.settings.location.crs
+        relative = (self.sc.solution.get("frame") or {}).get("kind") == "relative"
+        self.crs = RELATIVE if relative else project.settings.location.crs
         self.selected: str | None = None
         app = gui.Application.instance
         self.window = app.create_window(f"{project.settings.incident.name} - workbench viewer", width, height)

@@ -1,0 +1,157 @@
+"""A relative incident (issue 16): photos and hand picks, no control points, no known cameras, no GPS.
+
+The scene is solved in a local frame anchored at the camera and levelled from the carriages standing on their
+wheels. Checked against a simulated truth (a level track, a camera held well off level): the poses in the
+levelled frame, the intervals (which carry the levelling's uncertainty), and that nothing claims a place on the
+Earth (no CRS or WGS84 figure; the GIS exports refused, naming the missing georeference).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from workbench.core.frames import hpr_from_rotation
+from workbench.pipeline import STAGES
+from workbench.project import Project
+from workbench.runner import Runner
+from workbench.solve.level import UprightCar, level_from_carriages
+from workbench.solve.simulate import TYPE_CYCLE, simulate_consist
+
+W, H = 1600, 1200
+
+
+def _truth_levelled(sim) -> np.ndarray:
+    """(4, 4) levelled_from_world of the simulation: origin at the camera, z up, y along the ray through the
+    photo's centre pixel."""
+    M = np.asarray(sim.views[0].cam_from_world, float)
+    C = -M[:3, :3].T @ M[:3, 3]
+    k = sim.views[0].intrinsics
+    ray = np.array([((k.width - 1) / 2.0 - k.cx) / k.fx, ((k.height - 1) / 2.0 - k.cy) / k.fy, 1.0])
+    f = M[:3, :3].T @ ray
+    f[2] = 0.0
+    f /= np.linalg.norm(f)
+    yaw = math.atan2(f[0], f[1])
+    c, s = math.cos(yaw), math.sin(yaw)
+    L = np.eye(4)
+    L[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    L[:3, 3] = -L[:3, :3] @ C
+    return L
+
+
+def _incident(root: Path, sim, *, focal_known: bool) -> Project:
+    root.mkdir(parents=True)
+    cars = []
+    n = len(sim.carriages)
+    for i, c in enumerate(sim.carriages):
+        cars.append(f'[[consist]]\nnumber = "{c.number}"\ntype = "{TYPE_CYCLE[i % len(TYPE_CYCLE)]}"\n'
+                    + ('coupling_to_next = "held"\n' if i < n - 1 else ""))
+    intr = sim.views[0].intrinsics
+    camera = ('[camera]\nsource = "calibrated"\nprofile = "camera_profile.json"\nphotos = "photos/p"\n' if focal_known
+              else '[camera]\nsource = "unknown"\nphotos = "photos/p"\n')
+    (root / "project.toml").write_text(
+        '[incident]\nname = "relative test"\ndate = 2024-05-01\n\n'
+        '[location]\nlat = 35.53\nlon = 139.70\ncrs = "EPSG:32654"\n\n' + "\n".join(cars) + "\n" + camera
+        + '\n[correspond]\nfinder = "off"\n\n[solver]\nslack_held_m = 0.03\n', encoding="utf-8")
+    if focal_known:
+        (root / "camera_profile.json").write_text(json.dumps({"model": "brown", "source": "test",
+                                                               "intrinsics": intr.to_dict()}))
+    (root / "photos" / "p").mkdir(parents=True)
+    Image.new("RGB", (W, H), (120, 120, 120)).save(root / "photos" / "p" / "photo.jpg")
+    obs = [{"carriage": c.number, "point": p, "view": "photo.jpg", "uv": list(uv)}
+           for c in sim.carriages for p, uv in c.observations["photo"].items()]
+    (root / "correspondences.json").write_text(json.dumps({"observations": obs}), encoding="utf-8")
+    return Project(root)
+
+
+def _sim(seed: int):
+    return simulate_consist(3, seed=seed, slope_deg=0.0, width=W, height=H, focal_px=1300.0,
+                            distortion=(0.0, 0.0), pixel_sigma_px=0.5, camera_height_m=12.0)
+
+
+@pytest.mark.parametrize("focal_known", [True, False])
+def test_relative_incident_is_levelled_and_says_so(tmp_path, focal_known):
+    sim = _sim(3)
+    project = _incident(tmp_path / "inc", sim, focal_known=focal_known)
+    assert project.georef_route() == "relative"
+    Runner(project, STAGES).run(only=["inputs", "georef", "correspond", "solve"])
+    cams = project.cameras()
+    assert cams.relative and cams.doc["georegistration"] is None
+    sol = project.solution("test")
+    assert sol.relative and sol.doc["frame"]["crs"] is None
+    lev = sol.doc["frame"]["levelling"]
+    assert lev["method"] == "carriages" and lev["cars_used"] == [c.number for c in sim.carriages]
+    L = _truth_levelled(sim)
+    for car, M_true in zip(sol.carriages, sim.truth):
+        rec = car.record
+        assert rec["body_centre_crs"] is None and rec["body_centre_wgs84"] is None
+        T = L @ M_true
+        err = np.asarray(car.world_from_carriage)[:3, 3] - T[:3, 3]
+        ci_pos = np.asarray(rec["ci95_position_m"])
+        assert np.all(np.abs(err) <= ci_pos), (car.number, err, ci_pos)
+        # scaled by the cars' dimensions: a known focal places them to a few decimetres across, an unknown one
+        # leaves the range to the focal's uncertainty (metres along the line of sight, and said so)
+        assert np.all(ci_pos[:2] < (1.0 if focal_known else 15.0))
+        assert np.linalg.norm(err) < (0.6 if focal_known else 3.0)
+        # heading, pitch and roll in the levelled frame against the truth's, inside the 95 % intervals
+        h, p, r = hpr_from_rotation(np.asarray(car.world_from_carriage)[:3, :3])
+        ht, pt, rt = hpr_from_rotation(T[:3, :3])
+        dh = (h - ht + 180.0) % 360.0 - 180.0
+        ci = rec["ci95_hpr_deg"]
+        assert abs(dh) <= ci[0] and abs(p - pt) <= ci[1] and abs(r - rt) <= ci[2], (car.number, dh, p - pt, r - rt, ci)
+        # the intervals hold the levelling's tilt: pitch and roll no narrower than the common track tilt's
+        assert ci[1] >= 1.96 * 0.5 * 0.99 and ci[2] >= 1.96 * 0.5 * 0.99
+        assert ci[1] < 3.0 and ci[2] < 3.0  # and no wider than the data allow
+        # the camera was tilted about 15 deg: the provisional frame was not level, the levelled one is
+    assert lev["camera_tilt_deg"] > 5.0
+
+
+def test_levelling_leaves_out_a_car_on_its_side():
+    tilt = np.array([[1, 0, 0], [0, math.cos(0.2), -math.sin(0.2)], [0, math.sin(0.2), math.cos(0.2)]])
+    on_side = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # rolled 90 deg
+    cars = [UprightCar(str(i), tilt) for i in range(3)] + [UprightCar("9", tilt @ on_side)]
+    lev = level_from_carriages(cars, tilt[:, 2], tilt[:, 1], sigma_car_deg=0.5, sigma_common_deg=0.5)
+    assert lev.used == ["0", "1", "2"] and lev.left_out == ["9"]
+    R = lev.world_from_provisional[:3, :3]
+    assert np.allclose(R @ tilt[:, 2], [0, 0, 1], atol=1e-9)
+    # three cars' own tilts average: sqrt(0.5^2 / 3 + 0.5^2) deg per axis
+    assert np.allclose(lev.sigma_tilt_deg, math.sqrt(0.25 / 3 + 0.25), rtol=1e-6)
+
+
+def test_levelling_with_no_upright_car_falls_back_to_the_camera():
+    on_side = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])
+    lev = level_from_carriages([UprightCar("1", on_side)], np.array([0, 0, 1.0]), np.array([0, 1.0, 0]))
+    assert lev.method == "camera" and lev.used == [] and "held level" in lev.note
+    assert lev.sigma_tilt_deg[0] == pytest.approx(5.0)
+
+
+def test_relative_incident_outputs_say_so_and_refuse_gis(tmp_path):
+    """The whole run: the glTF in the local frame, the GIS exports left out with the reason, the report's first
+    page saying the scene is relative; asking for GeoJSON in project.toml is refused (exit 2 from the CLI) with
+    nothing written."""
+    from workbench.cli import main
+
+    project = _incident(tmp_path / "inc", _sim(3), focal_known=True)
+    Runner(project, STAGES).run()
+    ex = project.stage_dir("export")
+    assert (ex / "scene.glb").is_file()
+    assert not any((ex / n).exists() for n in ("carriages.geojson", "scene.kmz", "scene.city.json", "tiles"))
+    stats = json.loads((ex / "stats.json").read_text())
+    assert stats["georeference"]["frame"] == "relative" and stats["georeference"]["crs"] is None
+    assert set(stats["refused"]) == {"geojson", "kmz", "cityjson", "tiles"}
+    html = (project.stage_dir("report") / "report.html").read_text()
+    first = html[:html.index("<h2")]
+    assert "Relative reconstruction, not georeferenced" in first and "Reference point" not in first
+    assert "Latitude" not in html and "Easting" not in html
+    glb_before = (ex / "scene.glb").read_bytes()
+    toml = project.settings_path.read_text() + '\n[export]\nformats = ["glb", "geojson"]\n'
+    project.settings_path.write_text(toml)
+    with pytest.raises(SystemExit) as exc:
+        main(["export", str(project.root), "--force"])
+    assert exc.value.code == 2
+    assert not (ex / "carriages.geojson").exists() and (ex / "scene.glb").read_bytes() == glb_before

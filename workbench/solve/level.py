@@ -1,0 +1,180 @@
+"""Levelling a relative scene from the carriages that stand on their wheels (docs/solver.md, "Relative scenes").
+
+An incident with no survey is solved in a provisional frame anchored at the camera (the georef stage's relative
+route). Nothing in the photo says which way is up except the carriages themselves: a car standing on its wheels
+on straight, level track has its floor horizontal, so its z axis is the vertical. This module takes the solved
+poses, finds the cars that agree on an up direction (the upright ones; a car lying on its side or tipped over
+disagrees and is left out), averages their z axes weighted by their covariance, and returns the rotation about
+the camera that makes that average vertical, with the y axis along the reference photo's centre ray (its
+viewing direction).
+
+The levelling's uncertainty is what the data allow: each car's tilt from its fit, plus ``sigma_car_deg`` of its
+own (suspension, a wheel off the rail, uneven ballast; independent car to car), plus ``sigma_common_deg`` that
+no number of cars averages away (the grade and cant of the track they stand on). When three or more cars are used
+and they scatter more than that model says, the covariance is inflated by the excess (the Birge ratio).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..core.geometry import skew
+
+__all__ = ["Levelling", "UprightCar", "level_from_carriages", "rotation_between"]
+
+UPRIGHT_TOL_DEG = 10.0    # cars whose z axes agree within this are taken to stand on the same track
+# a photo is held within this of level: an "up" farther from the camera's is a car on its side
+CAMERA_TILT_MAX_DEG = 35.0
+CAMERA_LEVEL_SIGMA_DEG = 5.0  # the fallback's sigma when no car stands on its wheels (the photo taken level)
+
+
+@dataclass(frozen=True)
+class UprightCar:
+    """A solved carriage as the levelling sees it: ``R`` (3, 3) its rotation in the provisional frame,
+    ``cov_rotation`` (3, 3) rad^2 of its scene rotation vector (None: not known)."""
+
+    number: str
+    R: np.ndarray
+    cov_rotation: np.ndarray | None = None
+
+
+@dataclass
+class Levelling:
+    """``world_from_provisional`` (4, 4): the rotation about the origin (the camera) into the levelled frame;
+    ``cov_rotation`` (3, 3) rad^2: the levelled frame's tilt error (a scene rotation vector, levelled frame; its
+    z row and column zero: the azimuth is defined by the camera); the cars used and left out; a note."""
+
+    world_from_provisional: np.ndarray
+    cov_rotation: np.ndarray
+    used: list[str]
+    left_out: list[str]
+    method: str  # "carriages" | "camera"
+    note: str
+    facts: dict = field(default_factory=dict)
+
+    @property
+    def sigma_tilt_deg(self) -> list[float]:
+        return np.degrees(np.sqrt(np.clip(np.diag(self.cov_rotation)[:2], 0.0, None))).tolist()
+
+    def to_dict(self) -> dict:
+        return {"method": self.method, "cars_used": self.used, "cars_left_out": self.left_out,
+                "sigma_tilt_deg": self.sigma_tilt_deg, "cov_rotation_rad2": self.cov_rotation.tolist(),
+                "world_from_provisional": self.world_from_provisional.tolist(), "note": self.note, **self.facts}
+
+
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(3, 3) the smallest rotation taking unit vector ``a`` to unit vector ``b``."""
+    a = np.asarray(a, float) / np.linalg.norm(a)
+    b = np.asarray(b, float) / np.linalg.norm(b)
+    v, c = np.cross(a, b), float(np.dot(a, b))
+    if c < -1.0 + 1e-12:  # opposite: half a turn about any axis normal to a
+        n = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+        n /= np.linalg.norm(n)
+        return 2.0 * np.outer(n, n) - np.eye(3)
+    K = skew(v)
+    return np.eye(3) + K + K @ K / (1.0 + c)
+
+
+def _tangent_basis(u: np.ndarray) -> np.ndarray:
+    """(3, 2) an orthonormal basis of the plane normal to ``u``."""
+    e = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    b1 = np.cross(u, e)
+    b1 /= np.linalg.norm(b1)
+    return np.column_stack([b1, np.cross(u, b1)])
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    return math.degrees(math.acos(float(np.clip(np.dot(a, b), -1.0, 1.0))))
+
+
+def _upright_set(ups: np.ndarray, camera_up: np.ndarray) -> list[int]:
+    """Indices of the largest group of cars whose z axes agree within UPRIGHT_TOL_DEG, among the groups whose
+    up is within CAMERA_TILT_MAX_DEG of the camera's (empty: no car stands on its wheels)."""
+    best: list[int] = []
+    best_spread = math.inf
+    for i in range(len(ups)):
+        group = [j for j in range(len(ups)) if _angle_deg(ups[i], ups[j]) <= UPRIGHT_TOL_DEG]
+        mean = ups[group].sum(axis=0)
+        mean /= np.linalg.norm(mean)
+        if _angle_deg(mean, camera_up) > CAMERA_TILT_MAX_DEG:
+            continue
+        spread = float(np.mean([_angle_deg(mean, ups[j]) for j in group]))
+        if len(group) > len(best) or (len(group) == len(best) and spread < best_spread):
+            best, best_spread = group, spread
+    return best
+
+
+def _frame(up: np.ndarray, camera_forward: np.ndarray) -> np.ndarray:
+    """(4, 4) world_from_provisional: ``up`` to +z, then the camera's forward direction turned to +y."""
+    R = rotation_between(up, [0.0, 0.0, 1.0])
+    f = R @ np.asarray(camera_forward, float)
+    yaw = math.atan2(f[0], f[1])  # turning by +yaw about z takes (sin yaw, cos yaw) to +y
+    c, s = math.cos(yaw), math.sin(yaw)
+    Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    M = np.eye(4)
+    M[:3, :3] = Rz @ R
+    return M
+
+
+def level_from_carriages(cars: list[UprightCar], camera_up: np.ndarray, camera_forward: np.ndarray, *,
+                         sigma_car_deg: float = 0.5, sigma_common_deg: float = 0.5) -> Levelling:
+    """The levelled frame of a relative scene (module docstring). ``camera_up`` (3,): the reference camera's up
+    (-y of the camera) and ``camera_forward`` (3,) its optical axis, both in the provisional frame."""
+    cam_up = np.asarray(camera_up, float) / np.linalg.norm(camera_up)
+    ups = np.array([np.asarray(c.R, float)[:, 2] for c in cars]) if cars else np.zeros((0, 3))
+    idx = _upright_set(ups, cam_up) if len(cars) else []
+    s_car, s_common = math.radians(sigma_car_deg), math.radians(sigma_common_deg)
+    if not idx:
+        cov = np.diag([math.radians(CAMERA_LEVEL_SIGMA_DEG) ** 2] * 2 + [0.0])
+        why = ("no solved carriage stands on its wheels" if cars else "no carriage was solved")
+        return Levelling(_frame(cam_up, camera_forward), cov, [], [c.number for c in cars], "camera",
+                         f"{why}: the scene is levelled as if the photo had been held level (sigma "
+                         f"{CAMERA_LEVEL_SIGMA_DEG:g} deg); pitch and roll are only as good as that")
+    u = ups[idx].sum(axis=0)
+    u /= np.linalg.norm(u)
+    covs = []
+    for i in idx:
+        ui = ups[i]
+        C = s_car ** 2 * (np.eye(3) - np.outer(ui, ui))
+        Cr = cars[i].cov_rotation
+        if Cr is not None and np.all(np.isfinite(Cr)):
+            K = skew(ui)  # d(up) = d_theta x up = -[up]x d_theta
+            C = C + K @ np.asarray(Cr, float) @ K.T
+        covs.append(C)
+    for _ in range(5):  # information-weighted mean on the sphere (Gauss-Newton in the tangent plane)
+        B = _tangent_basis(u)
+        Ws = [np.linalg.inv(B.T @ C @ B) for C in covs]
+        ds = [B.T @ (ups[i] - u) for i in idx]
+        info = sum(Ws)
+        d = np.linalg.solve(info, sum(W @ di for W, di in zip(Ws, ds)))
+        u = u + B @ d
+        u /= np.linalg.norm(u)
+        if np.linalg.norm(d) < 1e-12:
+            break
+    B = _tangent_basis(u)
+    Ws = [np.linalg.inv(B.T @ C @ B) for C in covs]
+    info = sum(Ws)
+    cov_u = np.linalg.inv(info)
+    ds = [B.T @ (ups[i] - u) for i in idx]
+    chi2 = float(sum(di @ W @ di for W, di in zip(Ws, ds)))
+    dof = 2 * (len(idx) - 1)
+    birge = math.sqrt(chi2 / dof) if dof >= 4 else 1.0
+    if birge > 1.0:
+        cov_u *= birge ** 2
+    cov_u += s_common ** 2 * np.eye(2)
+    M = _frame(u, camera_forward)
+    # an error du (tangent, levelled frame) of the estimated up tilts the scene by d_theta = z x du... i.e. the
+    # rotation from the estimated to the true frame: d_theta = (du_y, -du_x, 0) up to sign (a covariance)
+    Bl = M[:3, :3] @ B  # the tangent basis in the levelled frame: its z components are ~0
+    J = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 0.0]]) @ Bl
+    cov = J @ cov_u @ J.T
+    left = [cars[i].number for i in range(len(cars)) if i not in idx]
+    note = (f"levelled from {len(idx)} carriage(s) standing on their wheels ({', '.join(cars[i].number for i in idx)})"
+            + (f"; left out as not upright: {', '.join(left)}" if left else ""))
+    facts = {"chi2": chi2, "dof": dof, "birge_ratio": birge, "sigma_car_deg": sigma_car_deg,
+             "sigma_common_deg": sigma_common_deg,
+             "camera_tilt_deg": _angle_deg(u, cam_up)}
+    return Levelling(M, 0.5 * (cov + cov.T), [cars[i].number for i in idx], left, "carriages", note, facts)
