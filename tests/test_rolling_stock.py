@@ -400,6 +400,30 @@ def test_every_bound_is_stated_with_the_value(tmp_path: Path, old, new, key, val
     assert str(p) in msg and f"'{key}' = {value}:" in msg and bound in msg, msg
 
 
+def test_rounded_end_corners(tmp_path: Path):
+    """An end's corners rounded in plan (``corner_radius_m``): the sharp corner is cut by r (sqrt 2 - 1), the end
+    face and the side stay where they were, the corner anchors stay at the sharp corner (picked from two edges);
+    a radius too large for the body is refused with its bound."""
+    p = tmp_path / "user.toml"
+    p.write_text(_user_toml() + "\n[front]\ncorner_radius_m = 0.6\ncorner_segments = 8\n", encoding="utf-8")
+    t = load_library(extra_dirs=[tmp_path])["test-flat"]
+    m = t.mesh(textured=False)
+    assert m.is_watertight and np.allclose(m.bounds, [[-9.0, -1.5, 0.0], [9.0, 1.5, m.bounds[1][2]]], atol=1e-6)
+    z = 2.0
+    def dist(q):
+        return float(np.linalg.norm(trimesh.proximity.closest_point(m, [q])[0][0] - q))
+    r = 0.6
+    assert dist([8.6, 1.5, z]) == pytest.approx(r * (np.sqrt(2) - 1), abs=0.006)  # the front corners: cut
+    assert dist([8.6, -1.5, z]) == pytest.approx(r * (np.sqrt(2) - 1), abs=0.006)
+    assert dist([-8.6, 1.5, z]) < 1e-6  # the rear: sharp
+    assert dist([8.6, 0.0, z]) < 1e-6 and dist([0.0, 1.5, z]) < 1e-6 and dist([8.0, 1.5, z]) < 1e-6
+    assert np.allclose(t.marked_points["tfl"][:2], [8.6, 1.5])  # anchor body_top_front_left
+    p.write_text(_user_toml() + "\n[front]\ncorner_radius_m = 1.6\n", encoding="utf-8")
+    with pytest.raises(SettingsError) as e:
+        load_library(extra_dirs=[tmp_path])
+    assert "'front.corner_radius_m' = 1.6:" in str(e.value) and "= 1.450 m" in str(e.value), str(e.value)
+
+
 def test_explicit_point_error_states_the_distance_and_the_tolerance(tmp_path: Path):
     p = tmp_path / "bad.toml"
     p.write_text(_user_toml().replace("xyz = [-8.6, -1.5, 1.1]", "xyz = [-8.6, -1.6, 1.1]"), encoding="utf-8")

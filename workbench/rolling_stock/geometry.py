@@ -87,17 +87,27 @@ def nose_x(spec: CarriageSpec, end: str, z: np.ndarray | float) -> np.ndarray | 
 
 
 def body_points(spec: CarriageSpec) -> np.ndarray:
-    """Vertices of the body hull."""
+    """Vertices of the body hull: the cross-section at each end (following the nose's rake), and, where an end's
+    corners are rounded in plan (``corner_radius_m``), that section drawn in along quarter circles."""
     prof = profile_yz(spec)
     hw = spec.dimensions.width_m / 2
     pts = []
     for end in ("front", "rear"):
-        xs = nose_x(spec, end, prof[:, 1])
-        pts.append(np.column_stack([xs, prof[:, 0], prof[:, 1]]))
+        sign = 1.0 if end == "front" else -1.0
         e = getattr(spec, end)
+        xs = nose_x(spec, end, prof[:, 1])
+        r = float(e.corner_radius_m)
+        n = int(e.corner_segments) if r > 0 else 0
+        pts.append(np.column_stack([xs - sign * r, prof[:, 0], prof[:, 1]]))  # where the side leaves the wall
+        for k in range(n + 1 if n else 0):  # the quarter circle from the side (phi = 90 deg) to the end face (phi = 0)
+            phi = 0.5 * np.pi * k / n
+            half = hw - r + r * np.sin(phi)
+            y = np.clip(prof[:, 0], -half, half)
+            pts.append(np.column_stack([xs - sign * r * (1.0 - np.cos(phi)), y, prof[:, 1]]))
         if e.shape == "nose":
             xe = nose_x(spec, end, 0.0)
-            pts.append(np.array([[xe, hw, e.nose_base_height_m], [xe, -hw, e.nose_base_height_m]]))
+            yb = hw - r
+            pts.append(np.array([[xe, yb, e.nose_base_height_m], [xe, -yb, e.nose_base_height_m]]))
     return np.vstack(pts)
 
 

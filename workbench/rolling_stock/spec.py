@@ -172,6 +172,10 @@ class End(_Model):
     nose_base_height_m: Pos | None = None  # height where the sloped nose leaves the vertical lower front
     nose_setback_m: Pos | None = None  # how far back the slope reaches at roof height
     cab: bool = False  # draw a driving cab (windscreen, headlights) on this end
+    # the end's vertical corners rounded in plan (seen from above), radius in metres (0: sharp); the corner
+    # anchors stay at the sharp corner the side and end planes would make (pick it from two edges)
+    corner_radius_m: NonNeg = 0.0
+    corner_segments: Annotated[int, Field(ge=1, le=8)] = 4
 
     @model_validator(mode="after")
     def _nose_params(self) -> "End":
@@ -418,6 +422,13 @@ def _check_profile(spec: CarriageSpec, path: Path) -> float:
     if p.bottom_inset_m > 0 and wall_bottom <= d.body_bottom_m:
         raise _bad(path, "profile.wall_bottom_m", wall_bottom,
                    f"must be above body_bottom_m = {d.body_bottom_m} m when bottom_inset_m > 0")
+    for end in ("front", "rear"):
+        e = getattr(spec, end)
+        r_max = min(d.width_m / 2 - 0.05, d.body_length_m / 4)
+        if e.corner_radius_m > r_max:
+            raise _bad(path, f"{end}.corner_radius_m", e.corner_radius_m,
+                       f"too large: at most min(width_m / 2 - 0.05, body_length_m / 4) = {r_max:.3f} m (a flat "
+                       "strip of at least 10 cm across the end)")
     return wall_bottom
 
 
