@@ -155,3 +155,32 @@ def test_relative_incident_outputs_say_so_and_refuse_gis(tmp_path):
         main(["export", str(project.root), "--force"])
     assert exc.value.code == 2
     assert not (ex / "carriages.geojson").exists() and (ex / "scene.glb").read_bytes() == glb_before
+
+
+@pytest.mark.parametrize("f35_mm, warned", [(29, False), (22, True)])
+def test_an_exif_focal_the_picks_contradict_is_warned(tmp_path, f35_mm, warned):
+    """A photo whose EXIF focal disagrees with the picks (a cropped photo: its EXIF still describes the whole
+    frame) is named in a warning with both focals; a right EXIF focal (29 mm equivalent: 1289 px on 1600 px, the
+    truth 1324 px) is not."""
+    import piexif
+
+    sim = _sim(3)
+    project = _incident(tmp_path / "inc", sim, focal_known=False)
+    toml = project.settings_path.read_text().replace('source = "unknown"', 'source = "exif"')
+    project.settings_path.write_text(toml)
+    photo = project.root / "photos" / "p" / "photo.jpg"
+    exif = piexif.dump({"0th": {}, "Exif": {piexif.ExifIFD.FocalLengthIn35mmFilm: f35_mm}, "GPS": {}, "1st": {}})
+    Image.open(photo).save(photo, exif=exif)
+    project = Project(project.root)
+    Runner(project, STAGES).run(only=["inputs", "georef", "correspond", "solve"])
+    doc = project.solution("test").doc
+    (check,) = doc["exif_focal_check"]
+    assert check["view"] == "photo.jpg" and check["sigma_focal_picks_px"] > 0
+    assert abs(check["focal_picks_px"] - sim.views[0].intrinsics.fx) < 3 * check["sigma_focal_picks_px"]
+    msgs = [w["message"] for w in doc["warnings"] if w.get("kind") == "exif_focal"]
+    print(f"\nEXIF {f35_mm} mm: {check['focal_exif_px']:.0f} px; picks {check['focal_picks_px']:.0f} ± "
+          f"{check['sigma_focal_picks_px']:.0f} px; truth {sim.views[0].intrinsics.fx:.0f} px; warned {bool(msgs)}")
+    assert bool(msgs) == warned
+    if warned:
+        assert "photo.jpg" in msgs[0] and f"{check['focal_exif_px']:.0f} px" in msgs[0]
+        assert f"{check['focal_picks_px']:.0f} ±" in msgs[0]

@@ -189,6 +189,7 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
                     "and is not used to settle the carriages; add control_points.json to georeference it")
     progress(0.3, f"solving {len(carriages)} carriages")
     res, rejected = _solve_rejecting(carriages, links, views, opts, terrain, s.solver, progress)
+    exif_check = _exif_focal_check(carriages, links, views, opts, terrain, cam_doc)
     levelling = None
     if relative and any(c.status != "left_out" for c in res.carriages):
         progress(0.8, "levelling the relative scene")
@@ -207,6 +208,11 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
         rec["sigma_hpr_fit_deg"] = None if sh is None else np.asarray(sh, dtype=float).tolist()
     doc["correspondences"] = corr_stats
     doc["rejected_points"] = rejected
+    doc["exif_focal_check"] = exif_check
+    for c in exif_check:
+        if c.get("warning"):
+            doc["warnings"].append({"car": None, "index": None, "kind": "exif_focal", "message": c["warning"]})
+            log.warning("solve: %s", c["warning"])
     out_dir = project.stage_dir("solve")
     if all(c.status == "left_out" for c in res.carriages):
         attempt = project.write_json(out_dir / "attempt.json", doc)
@@ -301,6 +307,45 @@ def _level(res: Any, carriages: list, links: list, views: list, opts: Any, solve
         log.warning("solve: %s", lev.note)
     log.info("solve: %s; tilt sigma %.2f, %.2f deg", lev.note, *lev.sigma_tilt_deg)
     return res, views, lev
+
+
+EXIF_FOCAL_TOLERANCE = 0.05  # a focal from EXIF is trusted to 5 % (rounded 35 mm-equivalent focal lengths)
+
+
+def _exif_focal_check(carriages: list, links: list, views: list, opts: Any, terrain: Any,
+                      cam_doc: dict) -> list[dict]:
+    """The EXIF focal of each photo checked against the picks: the consist solved again with those focals free;
+    where the picks put a focal more than 3 sigma and 5 % from the EXIF one (a cropped or resized photo whose
+    EXIF still describes the original frame), a warning names the photo and both focals. Nothing is checked
+    where the picks cannot tell the focal (no car pins it: the free solve fails or gives no sigma)."""
+    if cam_doc.get("intrinsics_source") != "exif":
+        return []
+    exif = {v.name: float(v.intrinsics.fx) for v in views if v.focal_known}
+    if not exif:
+        return []
+    free = [replace(v, focal_known=False) if v.name in exif else v for v in views]
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", SolveWarning)
+            res = solve_consist(carriages, links, free, replace(opts, estimate_focal=True, bias_correction=False),
+                                terrain)
+    except Exception as exc:  # noqa: BLE001 - a check, never the reason a solve fails
+        log.info("solve: the EXIF focal could not be checked (%s)", exc)
+        return []
+    out = []
+    for name, f_exif in exif.items():
+        f, s = res.focal_px.get(name), res.sigma_focal_px.get(name)
+        rec: dict[str, Any] = {"view": name, "focal_exif_px": f_exif, "focal_picks_px": _num(f),
+                               "sigma_focal_picks_px": _num(s)}
+        if not res.converged or _num(f) is None or _num(s) is None:
+            rec["note"] = "the picks do not determine the focal: not checked"
+        elif abs(f - f_exif) > max(3.0 * s, EXIF_FOCAL_TOLERANCE * f_exif):
+            rec["warning"] = (f"{name}: the EXIF focal ({f_exif:.0f} px) disagrees with the marked points, which "
+                              f"give {f:.0f} ± {s:.0f} px (1 sigma): a cropped or resized photo whose EXIF "
+                              f"describes the original? Set camera.source = \"unknown\" to estimate the focal, or "
+                              f"give a camera profile")
+        out.append(rec)
+    return out
 
 
 def _levelling_uncertainty(lev: Levelling) -> dict:
