@@ -21,57 +21,16 @@ from workbench.pipeline import STAGES
 from workbench.project import Project
 from workbench.runner import Runner
 from workbench.solve.level import UprightCar, level_from_carriages
-from workbench.solve.simulate import TYPE_CYCLE, simulate_consist
+from workbench.synth.relative import levelled_truth, relative_sim, write_relative_incident
 
-W, H = 1600, 1200
-
-
-def _truth_levelled(sim) -> np.ndarray:
-    """(4, 4) levelled_from_world of the simulation: origin at the camera, z up, y along the ray through the
-    photo's centre pixel."""
-    M = np.asarray(sim.views[0].cam_from_world, float)
-    C = -M[:3, :3].T @ M[:3, 3]
-    k = sim.views[0].intrinsics
-    ray = np.array([((k.width - 1) / 2.0 - k.cx) / k.fx, ((k.height - 1) / 2.0 - k.cy) / k.fy, 1.0])
-    f = M[:3, :3].T @ ray
-    f[2] = 0.0
-    f /= np.linalg.norm(f)
-    yaw = math.atan2(f[0], f[1])
-    c, s = math.cos(yaw), math.sin(yaw)
-    L = np.eye(4)
-    L[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-    L[:3, 3] = -L[:3, :3] @ C
-    return L
 
 
 def _incident(root: Path, sim, *, focal_known: bool) -> Project:
-    root.mkdir(parents=True)
-    cars = []
-    n = len(sim.carriages)
-    for i, c in enumerate(sim.carriages):
-        cars.append(f'[[consist]]\nnumber = "{c.number}"\ntype = "{TYPE_CYCLE[i % len(TYPE_CYCLE)]}"\n'
-                    + ('coupling_to_next = "held"\n' if i < n - 1 else ""))
-    intr = sim.views[0].intrinsics
-    camera = ('[camera]\nsource = "calibrated"\nprofile = "camera_profile.json"\nphotos = "photos/p"\n' if focal_known
-              else '[camera]\nsource = "unknown"\nphotos = "photos/p"\n')
-    (root / "project.toml").write_text(
-        '[incident]\nname = "relative test"\ndate = 2024-05-01\n\n'
-        '[location]\nlat = 35.53\nlon = 139.70\ncrs = "EPSG:32654"\n\n' + "\n".join(cars) + "\n" + camera
-        + '\n[correspond]\nfinder = "off"\n\n[solver]\nslack_held_m = 0.03\n', encoding="utf-8")
-    if focal_known:
-        (root / "camera_profile.json").write_text(json.dumps({"model": "brown", "source": "test",
-                                                               "intrinsics": intr.to_dict()}))
-    (root / "photos" / "p").mkdir(parents=True)
-    Image.new("RGB", (W, H), (120, 120, 120)).save(root / "photos" / "p" / "photo.jpg")
-    obs = [{"carriage": c.number, "point": p, "view": "photo.jpg", "uv": list(uv)}
-           for c in sim.carriages for p, uv in c.observations["photo"].items()]
-    (root / "correspondences.json").write_text(json.dumps({"observations": obs}), encoding="utf-8")
-    return Project(root)
+    return Project(write_relative_incident(root, sim, focal_known=focal_known))
 
 
-def _sim(seed: int):
-    return simulate_consist(3, seed=seed, slope_deg=0.0, width=W, height=H, focal_px=1300.0,
-                            distortion=(0.0, 0.0), pixel_sigma_px=0.5, camera_height_m=12.0)
+_sim = relative_sim
+_truth_levelled = levelled_truth
 
 
 @pytest.mark.parametrize("focal_known", [True, False])

@@ -44,8 +44,9 @@ class UprightCar:
 @dataclass
 class Levelling:
     """``world_from_provisional`` (4, 4): the rotation about the origin (the camera) into the levelled frame;
-    ``cov_rotation`` (3, 3) rad^2: the levelled frame's tilt error (a scene rotation vector, levelled frame; its
-    z row and column zero: the azimuth is defined by the camera); the cars used and left out; a note."""
+    ``cov_rotation`` (3, 3) rad^2: the levelled frame's error (a scene rotation vector, levelled frame): its tilt,
+    and the turn about z that comes with it (y follows the camera's ray projected on the level); the cars used
+    and left out; a note."""
 
     world_from_provisional: np.ndarray
     cov_rotation: np.ndarray
@@ -119,6 +120,22 @@ def _frame(up: np.ndarray, camera_forward: np.ndarray) -> np.ndarray:
     return M
 
 
+def _frame_covariance(u: np.ndarray, camera_forward: np.ndarray, cov_u: np.ndarray) -> np.ndarray:
+    """(3, 3) rad^2: how an error of the estimated up ``u`` (covariance ``cov_u`` (2, 2) in
+    :func:`_tangent_basis`) turns the levelled frame, as a scene rotation vector in that frame: the tilt itself,
+    and the turn about z it brings, since y follows the camera's ray projected on the new level (a numerical
+    derivative; a small rotation's vector is the skew part of R)."""
+    B = _tangent_basis(u)
+    M = _frame(u, camera_forward)
+    J = np.zeros((3, 2))
+    h = 1e-6
+    for k in range(2):
+        Mk = _frame(u + h * B[:, k], camera_forward)
+        dR = Mk[:3, :3] @ M[:3, :3].T
+        J[:, k] = 0.5 * np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]]) / h
+    return J @ cov_u @ J.T
+
+
 def level_from_carriages(cars: list[UprightCar], camera_up: np.ndarray, camera_forward: np.ndarray, *,
                          sigma_car_deg: float = 0.5, sigma_common_deg: float = 0.5) -> Levelling:
     """The levelled frame of a relative scene (module docstring). ``camera_up`` (3,): the reference camera's up
@@ -128,7 +145,7 @@ def level_from_carriages(cars: list[UprightCar], camera_up: np.ndarray, camera_f
     idx = _upright_set(ups, cam_up) if len(cars) else []
     s_car, s_common = math.radians(sigma_car_deg), math.radians(sigma_common_deg)
     if not idx:
-        cov = np.diag([math.radians(CAMERA_LEVEL_SIGMA_DEG) ** 2] * 2 + [0.0])
+        cov = _frame_covariance(cam_up, camera_forward, math.radians(CAMERA_LEVEL_SIGMA_DEG) ** 2 * np.eye(2))
         why = ("no solved carriage stands on its wheels" if cars else "no carriage was solved")
         return Levelling(_frame(cam_up, camera_forward), cov, [], [c.number for c in cars], "camera",
                          f"{why}: the scene is levelled as if the photo had been held level (sigma "
@@ -166,11 +183,7 @@ def level_from_carriages(cars: list[UprightCar], camera_up: np.ndarray, camera_f
         cov_u *= birge ** 2
     cov_u += s_common ** 2 * np.eye(2)
     M = _frame(u, camera_forward)
-    # an error du (tangent, levelled frame) of the estimated up tilts the scene by d_theta = z x du... i.e. the
-    # rotation from the estimated to the true frame: d_theta = (du_y, -du_x, 0) up to sign (a covariance)
-    Bl = M[:3, :3] @ B  # the tangent basis in the levelled frame: its z components are ~0
-    J = np.array([[0.0, 1.0, 0.0], [-1.0, 0.0, 0.0], [0.0, 0.0, 0.0]]) @ Bl
-    cov = J @ cov_u @ J.T
+    cov = _frame_covariance(u, camera_forward, cov_u)
     left = [cars[i].number for i in range(len(cars)) if i not in idx]
     note = (f"levelled from {len(idx)} carriage(s) standing on their wheels ({', '.join(cars[i].number for i in idx)})"
             + (f"; left out as not upright: {', '.join(left)}" if left else ""))
