@@ -86,7 +86,7 @@ def cityjson_document(scene: ExportScene) -> dict:
             "type": "Building", "attributes": {"measuredHeight": round(zmax - zmin, 3)},
             "geometry": [{"type": "MultiSurface", "lod": "1", "boundaries": _triangles(idx, faces)}]}
     for car in scene.carriages:
-        m = car.plain_mesh
+        m = car.mesh(textured=False)
         V = f.crs_from_enu(car.world_from_carriage.apply(np.asarray(m.vertices, dtype=float)))
         idx = verts.add(V)
         faces = _drop_degenerate(V, m.faces)

@@ -17,7 +17,8 @@ from typing import TYPE_CHECKING, Any, Mapping
 import numpy as np
 from scipy.spatial import ConvexHull
 
-from .scene import ExportCarriage, ExportScene, ground_heights
+from ..files.scene import SceneCarriage
+from .scene import ExportScene, ground_heights
 
 if TYPE_CHECKING:  # pragma: no cover
     from ..core.track import TrackPosition
@@ -26,7 +27,7 @@ DECIMALS_DEG = 9  # ~0.1 mm
 DECIMALS_M = 4
 
 
-def footprint_enu(car: ExportCarriage, scene: ExportScene) -> np.ndarray:
+def footprint_enu(car: SceneCarriage, scene: ExportScene) -> np.ndarray:
     """(k, 3) ENU footprint ring of a carriage, counter-clockwise seen from above, not closed."""
     corners = car.body_corners_enu()
     hull = ConvexHull(corners[:, :2])
@@ -40,7 +41,7 @@ def _lonlath(p: np.ndarray) -> list[float]:
     return [round(float(p[0]), DECIMALS_DEG), round(float(p[1]), DECIMALS_DEG), round(float(p[2]), DECIMALS_M)]
 
 
-def carriage_properties(car: ExportCarriage, frame: Any) -> dict[str, Any]:
+def carriage_properties(car: SceneCarriage, frame: Any) -> dict[str, Any]:
     """The properties every export attaches to a carriage (JSON-ready). ``height_m``: the body centre's height
     in the DEM's vertical datum (metres); ``ci95_*``: 95% half widths of the body centre (scene east, north, up)
     and of the angles."""

@@ -22,7 +22,8 @@ import pygltflib as gl
 import trimesh
 from scipy.spatial.transform import Rotation
 
-from .scene import GLTF_FROM_ENU, ExportCarriage, ExportOptions, ExportScene, cap_image
+from ..files.scene import SceneCarriage
+from .scene import GLTF_FROM_ENU, ExportOptions, ExportScene, cap_image
 
 log = logging.getLogger(__name__)
 
@@ -121,7 +122,7 @@ def _flat(mesh: trimesh.Trimesh) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return tri, normals, np.arange(len(tri)).reshape(-1, 3)
 
 
-def carriage_node_trs(car: ExportCarriage) -> tuple[list[float], list[float]]:
+def carriage_node_trs(car: SceneCarriage) -> tuple[list[float], list[float]]:
     """(translation (3,), rotation quaternion xyzw (4,)) of a carriage's node, glTF axes."""
     R = GLTF_FROM_ENU @ car.world_from_carriage.rotation @ GLTF_FROM_ENU.T
     t = GLTF_FROM_ENU @ car.world_from_carriage.translation
@@ -130,7 +131,7 @@ def carriage_node_trs(car: ExportCarriage) -> tuple[list[float], list[float]]:
     return [float(x) for x in t], [float(x) for x in q]
 
 
-def carriage_extras(car: ExportCarriage) -> dict:
+def carriage_extras(car: SceneCarriage) -> dict:
     return {
         "number": car.number, "type": car.type_id, "type_name": car.type_name, "status": car.status,
         "heading_deg": car.heading_deg, "pitch_deg": car.pitch_deg, "roll_deg": car.roll_deg,
@@ -169,10 +170,10 @@ def glb_bytes(scene: ExportScene, options: ExportOptions) -> tuple[bytes, dict]:
         stats["buildings"] = len(scene.buildings)
     car_nodes = []
     for car in scene.carriages:
-        V, N, F = _flat(car.mesh)
-        uv = np.asarray(car.mesh.visual.uv, dtype=float)
+        V, N, F = _flat(car.mesh(textured=True))
+        uv = np.asarray(car.mesh(textured=True).visual.uv, dtype=float)
         uv = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]])  # trimesh: origin bottom-left; glTF: top-left
-        image = car.mesh.visual.material.image
+        image = car.mesh(textured=True).visual.material.image
         tex = b.texture(image, options.livery_max_px, options.jpeg_quality)
         mat = b.material(f"livery {car.number}", texture=tex, double_sided=True)
         m = b.mesh(f"{car.type_id} {car.number}", V @ G.T, N @ G.T, F, mat, uv=uv)

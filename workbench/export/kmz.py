@@ -27,14 +27,15 @@ import numpy as np
 
 from ..core.frames import SceneFrame, hpr_from_rotation, rot_z
 from .geojson import carriage_properties, footprint_enu
-from .scene import ExportCarriage, ExportOptions, ExportScene, cap_image
+from ..files.scene import SceneCarriage
+from .scene import ExportOptions, ExportScene, cap_image
 
 log = logging.getLogger(__name__)
 
 KML_NS = "http://www.opengis.net/kml/2.2"
 
 
-def local_attitude(car: ExportCarriage, frame: SceneFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def local_attitude(car: SceneCarriage, frame: SceneFrame) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(origin [lon, lat, h] of the carriage frame, ``local_from_carriage`` rotation (3, 3) in the ENU frame at
     that point, (heading, pitch, roll) degrees in that frame)."""
     p0 = car.world_from_carriage.translation
@@ -49,15 +50,15 @@ def local_attitude(car: ExportCarriage, frame: SceneFrame) -> tuple[np.ndarray, 
     return geo0, R, np.array(hpr_from_rotation(R))
 
 
-def model_vertices(car: ExportCarriage, local_from_carriage: np.ndarray,
+def model_vertices(car: SceneCarriage, local_from_carriage: np.ndarray,
                    heading_deg: float) -> tuple[np.ndarray, np.ndarray]:
     """((n, 3) the carriage's textured mesh vertices in KML model axes, ``model_from_carriage`` (3, 3)) for an
     ``<Orientation>`` of (heading_deg, tilt 0, roll 0): ``model_from_carriage = Rz(heading) @ local_from_carriage``."""
     M = rot_z(np.deg2rad(heading_deg)) @ local_from_carriage
-    return np.asarray(car.mesh.vertices, dtype=float) @ M.T, M
+    return np.asarray(car.mesh(textured=True).vertices, dtype=float) @ M.T, M
 
 
-def collada_bytes(car: ExportCarriage, vertices: np.ndarray, normals: np.ndarray, texture_name: str) -> bytes:
+def collada_bytes(car: SceneCarriage, vertices: np.ndarray, normals: np.ndarray, texture_name: str) -> bytes:
     """A COLLADA 1.4 document (Z_UP, metres) of one carriage: triangles, normals, UVs, its livery texture."""
     import collada
     from collada import asset, geometry, material, scene, source
@@ -75,7 +76,7 @@ def collada_bytes(car: ExportCarriage, vertices: np.ndarray, normals: np.ndarray
     doc.images.append(image)
     doc.effects.append(effect)
     doc.materials.append(mat)
-    uv = np.asarray(car.mesh.visual.uv, dtype=float)  # origin bottom-left, as COLLADA
+    uv = np.asarray(car.mesh(textured=True).visual.uv, dtype=float)  # origin bottom-left, as COLLADA
     srcs = [source.FloatSource("verts-array", np.asarray(vertices, dtype=float).ravel(), ("X", "Y", "Z")),
             source.FloatSource("normals-array", np.asarray(normals, dtype=float).ravel(), ("X", "Y", "Z")),
             source.FloatSource("uv-array", uv.ravel(), ("S", "T"))]
@@ -141,9 +142,9 @@ def kmz_bytes(scene: ExportScene, options: ExportOptions) -> tuple[bytes, dict]:
         props = carriage_properties(car, f)
         geo0, R_local, hpr = local_attitude(car, f)
         V, M = model_vertices(car, R_local, float(hpr[0]))
-        normals = np.repeat(car.mesh.face_normals, 3, axis=0) @ M.T
+        normals = np.repeat(car.mesh(textured=True).face_normals, 3, axis=0) @ M.T
         stem = f"car_{car.number}"
-        im = cap_image(car.mesh.visual.material.image, options.livery_max_px)
+        im = cap_image(car.mesh(textured=True).visual.material.image, options.livery_max_px)
         buf = io.BytesIO()
         im.save(buf, format="JPEG", quality=options.jpeg_quality)
         files[f"models/{stem}.jpg"] = buf.getvalue()

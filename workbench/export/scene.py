@@ -4,8 +4,8 @@ Everything here is in the scene frame (``world``: the incident's ENU frame, metr
 until a writer converts it. The writers convert *exactly per vertex* with :class:`~workbench.core.frames.SceneFrame`
 (ENU -> WGS84 or ENU -> project CRS), never by adding an offset: the ENU frame is not the CRS grid shifted.
 
-* :func:`export_carriages` turns the solution (read by :mod:`workbench.files.solution`) into
-  :class:`ExportCarriage` records.
+* the carriages are the one scene model of :mod:`workbench.files.scene` (:class:`SceneCarriage`), which the
+  renders, the report and the viewer use too.
 * :func:`decimate_terrain` keeps the terrain at full resolution near the carriages (so a carriage resting on the
   ground still rests on it in every export) and simplifies the rest (quadric error, the seam held exactly).
 * :func:`build_scene` puts it all together for a :class:`~workbench.project.Project`.
@@ -21,11 +21,11 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 import trimesh
 
-from ..core.frames import Rigid, SceneFrame, hpr_from_rotation
+from ..core.frames import SceneFrame
 from ..errors import InputError, SettingsError
+from ..files.scene import SceneCarriage, scene_carriages
 
 if TYPE_CHECKING:  # pragma: no cover
-    from ..files.solution import Solution
     from ..project import Project
 
 log = logging.getLogger(__name__)
@@ -67,41 +67,6 @@ class ExportOptions:
 
 
 @dataclass(kw_only=True)
-class ExportCarriage:
-    """One posed carriage. ``world_from_carriage`` maps the carriage frame (x forward, y left, z up, origin at
-    top-of-rail midway between the couplers) into the scene ENU frame. Angles in degrees, lengths in metres."""
-
-    index: int
-    number: str
-    type_id: str
-    type_name: str
-    status: str  # solved | carried (left_out carriages are not exported)
-    world_from_carriage: Rigid
-    body_centre_carriage: np.ndarray  # (3,) the body centre in the carriage frame
-    body_box: tuple[np.ndarray, np.ndarray]  # (lo (3,), hi (3,)) of the body (no couplers), carriage frame
-    heading_deg: float
-    pitch_deg: float
-    roll_deg: float
-    ci95_body_centre_m: list[float] | None
-    ci95_hpr_deg: list[float] | None
-    length_m: float
-    width_m: float
-    height_m: float
-    mesh: trimesh.Trimesh  # textured (livery atlas), carriage frame; one vertex triple per triangle
-    plain_mesh: trimesh.Trimesh  # shared vertices, carriage frame (for CityJSON)
-
-    @property
-    def body_centre_enu(self) -> np.ndarray:
-        return self.world_from_carriage.apply(self.body_centre_carriage)
-
-    def body_corners_enu(self) -> np.ndarray:
-        """(8, 3) corners of the body box in the scene frame."""
-        lo, hi = self.body_box
-        c = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-        return self.world_from_carriage.apply(c)
-
-
-@dataclass(kw_only=True)
 class TerrainSurface:
     """The terrain as exported: ``vertices`` (n, 3) ENU metres, ``faces`` (m, 3) counter-clockwise seen from above;
     either ``uv`` (n, 2) into ``texture`` (origin top-left, as glTF) or ``colors`` (n, 3) floats in [0, 1]."""
@@ -119,7 +84,7 @@ class TerrainSurface:
 @dataclass(kw_only=True)
 class ExportScene:
     frame: SceneFrame
-    carriages: list[ExportCarriage]
+    carriages: list[SceneCarriage]
     left_out: list[dict]
     terrain: TerrainSurface | None
     buildings: list[trimesh.Trimesh]  # one closed mesh per building, ENU metres
@@ -155,33 +120,6 @@ class ExportScene:
 # ---------------------------------------------------------------------------------------------------------
 # solution.json
 # ---------------------------------------------------------------------------------------------------------
-def export_carriages(solution: "Solution", carriage_types: dict[str, Any]) -> tuple[list[ExportCarriage], list[dict]]:
-    """The posed carriages of a read solution (:meth:`Project.solution`) with their models, and the left-out ones
-    ``[{number, reason}]``. ``carriage_types``: ``{car number: CarriageType}`` (``Project.carriage_types()``)."""
-    cars: list[ExportCarriage] = []
-    left = [{"number": c.number, "reason": c.reason} for c in solution.left_out]
-    for c in solution.posed:
-        ct = carriage_types[c.number]
-        M = c.world_from_carriage
-        w_from_c = Rigid.from_matrix(M, "world", "carriage")
-        bbox = np.asarray(ct.bounding_box(), dtype=float)
-        centre_c = bbox.mean(axis=0)
-        given = c.floats("body_centre_enu")
-        if given is not None and len(given) == 3:
-            centre_c = w_from_c.inverse().apply(np.asarray(given))  # the solver's own definition of the body centre
-        h, p, r = hpr_from_rotation(M[:3, :3])
-        box_centre, box_half = ct.collision_boxes()[0]  # the body, without couplers
-        lo, hi = box_centre - box_half, box_centre + box_half
-        cars.append(ExportCarriage(
-            index=c.index, number=c.number, type_id=ct.id, type_name=ct.name, status=c.status,
-            world_from_carriage=w_from_c, body_centre_carriage=centre_c, body_box=(lo, hi),
-            heading_deg=h, pitch_deg=p, roll_deg=r,
-            ci95_body_centre_m=c.floats("ci95_body_centre_m"), ci95_hpr_deg=c.floats("ci95_hpr_deg"),
-            length_m=ct.length_m, width_m=ct.width_m, height_m=ct.height_m,
-            mesh=ct.mesh(car_number=c.number, textured=True), plain_mesh=ct.mesh(textured=False)))
-    return cars, left
-
-
 # ---------------------------------------------------------------------------------------------------------
 # terrain
 # ---------------------------------------------------------------------------------------------------------
@@ -192,7 +130,7 @@ def _segment_distance_xy(points: np.ndarray, a: np.ndarray, b: np.ndarray) -> np
     return np.linalg.norm(points - (a + t[:, None] * d), axis=1)
 
 
-def near_carriages(points_xy: np.ndarray, carriages: list[ExportCarriage], margin_m: float) -> np.ndarray:
+def near_carriages(points_xy: np.ndarray, carriages: list[SceneCarriage], margin_m: float) -> np.ndarray:
     """(n,) bool: points (n, 2) ENU within ``margin_m`` (horizontally) of a carriage's body (its centre line
     widened by half its width)."""
     near = np.zeros(len(points_xy), dtype=bool)
@@ -298,7 +236,7 @@ def cap_image(image: Any, max_px: int) -> Any:
     return im
 
 
-def build_terrain(mesh: trimesh.Trimesh, frame: SceneFrame, carriages: list[ExportCarriage],
+def build_terrain(mesh: trimesh.Trimesh, frame: SceneFrame, carriages: list[SceneCarriage],
                   options: ExportOptions, ortho: tuple[Path, Path] | None) -> TerrainSurface:
     """The exported terrain from the terrain stage's mesh (ENU): simplified away from the carriages, with the
     orthophoto as texture when there is one, else colours by height."""
@@ -385,7 +323,7 @@ def build_scene(project: "Project", options: ExportOptions | None = None) -> Exp
     frame = project.frame
     types = project.carriage_types()
     sol = project.solution("export")
-    cars, left = export_carriages(sol, types)
+    cars, left = scene_carriages(sol, types)
     doc = sol.doc
     if not cars:
         raise InputError(f"{sol.path}: no carriage has a pose (all left out); nothing to export")

@@ -37,7 +37,7 @@ def scene_bounds_enu(scene: ExportScene) -> tuple[np.ndarray, np.ndarray]:
     for b in scene.buildings:
         pts.append(np.asarray(b.vertices, dtype=float))
     for c in scene.carriages:
-        pts.append(c.world_from_carriage.apply(np.asarray(c.plain_mesh.vertices, dtype=float)))
+        pts.append(c.world_from_carriage.apply(np.asarray(c.mesh(textured=False).vertices, dtype=float)))
     allp = np.vstack(pts)
     return allp.min(axis=0), allp.max(axis=0)
 

@@ -34,7 +34,8 @@ from ..core.stage_api import Progress, StageResult
 from ..core.track import RailwayLine
 from ..errors import RenderError, WorkbenchWarning
 from ..project import Project
-from .scene import IncidentScene, PlacedCarriage, camera_glyph, car_color, load_scene
+from ..files.scene import SceneCarriage
+from .scene import IncidentScene, camera_glyph, car_color, load_scene
 
 log = logging.getLogger(__name__)
 
@@ -110,7 +111,7 @@ class SceneRenderer:
         if sc.buildings is not None:
             self.scene.add(SceneMesh("buildings", sc.buildings))
         for c in sc.carriages:
-            self.scene.add(SceneMesh(f"car_{c.number}", c.mesh, instance_id=c.index))
+            self.scene.add(SceneMesh(f"car_{c.number}", sc.carriage_mesh(c), instance_id=c.index))
         self.centre, self.radius = sc.focus()
         self._glyphs: list[str] = []
         if camera_glyphs:
@@ -368,10 +369,10 @@ def _read_rgb(path: Path, size: tuple[int, int]) -> np.ndarray:
 # ----------------------------------------------------------------------------------------------------------
 # The stage
 # ----------------------------------------------------------------------------------------------------------
-def _closeup_azimuth(c: PlacedCarriage, towards_deg: float) -> tuple[float, float]:
+def _closeup_azimuth(c: SceneCarriage, towards_deg: float) -> tuple[float, float]:
     """(azimuth, elevation) of a close-up: 35° off square to the carriage side nearest the photographer; a carriage
     lying on its side is seen from above its upturned side, from the roof's direction."""
-    R = c.world_from_carriage[:3, :3]
+    R = c.world_from_carriage.rotation
     left, up = R[:, 1], R[:, 2]
     if abs(left[2]) > 0.85:  # on its side (|roll| above about 60°): the up-facing side is +y (left) or -y
         roof_az = math.degrees(math.atan2(up[0], up[1])) % 360.0

@@ -16,6 +16,7 @@ import numpy as np
 import trimesh
 
 from ..core.camera import CameraIntrinsics
+from ..files.scene import SceneCarriage, scene_carriages
 from ..project import Project
 
 log = logging.getLogger(__name__)
@@ -33,46 +34,6 @@ CAR_COLORS = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148
 
 def car_color(index: int) -> tuple[int, int, int]:
     return CAR_COLORS[index % len(CAR_COLORS)]
-
-
-@dataclass
-class PlacedCarriage:
-    """One carriage of the solution with a pose (status ``solved`` or ``carried``)."""
-
-    index: int
-    number: str
-    type_id: str
-    type_name: str
-    status: str
-    world_from_carriage: np.ndarray  # (4, 4)
-    mesh: trimesh.Trimesh  # in the scene frame (textured with its livery when asked for)
-    bbox_carriage: np.ndarray  # (2, 3) min/max corners in the carriage frame
-    record: dict  # the solution.json record
-
-    @property
-    def body_centre_enu(self) -> np.ndarray:
-        return np.asarray(self.record.get("body_centre_enu") or
-                          self.world_from_carriage[:3, :3] @ self.bbox_carriage.mean(axis=0)
-                          + self.world_from_carriage[:3, 3], dtype=float)
-
-    def corners_enu(self) -> np.ndarray:
-        """(8, 3) corners of the model's bounding box in the scene frame."""
-        lo, hi = self.bbox_carriage
-        c = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
-        return c @ self.world_from_carriage[:3, :3].T + self.world_from_carriage[:3, 3]
-
-    def footprint_enu(self) -> np.ndarray:
-        """(k, 2) east/north outline (convex hull, counter-clockwise) of the model's bounding box seen from above."""
-        from scipy.spatial import ConvexHull
-
-        xy = self.corners_enu()[:, :2]
-        return xy[ConvexHull(xy).vertices]
-
-    def front_enu(self) -> np.ndarray:
-        """(3,) the front coupler face's centre (carriage +x end) in the scene frame."""
-        lo, hi = self.bbox_carriage
-        p = np.array([hi[0], 0.5 * (lo[1] + hi[1]), 0.5 * (lo[2] + hi[2])])
-        return self.world_from_carriage[:3, :3] @ p + self.world_from_carriage[:3, 3]
 
 
 @dataclass
@@ -94,11 +55,16 @@ class SceneCamera:
 class IncidentScene:
     terrain: trimesh.Trimesh | None
     buildings: trimesh.Trimesh | None
-    carriages: list[PlacedCarriage]
+    carriages: list[SceneCarriage]
     cameras: list[SceneCamera]
     solution: dict
     cameras_json: dict
     files: dict[str, Path] = field(default_factory=dict)  # what was read
+    textured: bool = True  # the carriages drawn with their liveries
+
+    def carriage_mesh(self, c: SceneCarriage) -> trimesh.Trimesh:
+        """Carriage ``c``'s model placed in the scene (with its livery when the scene is textured)."""
+        return c.mesh(textured=self.textured, in_scene=True)
 
     def focus(self) -> tuple[np.ndarray, float]:
         """(centre (3,), radius m) of the carriages (or the cameras, when no carriage has a pose)."""
@@ -170,14 +136,7 @@ def _buildings_mesh(project: Project) -> trimesh.Trimesh | None:
 def load_scene(project: Project, *, textured: bool = True, with_terrain: bool = True) -> IncidentScene:
     """Read the reconstructed scene of ``project``. :class:`InputError` naming the 'solve' stage if it has not run."""
     sol = project.solution("scene")
-    types = project.carriage_types()
-    cars = []
-    for c in sol.posed:
-        ct = types[c.number]
-        mesh = ct.mesh(car_number=c.number, textured=textured)
-        mesh.apply_transform(c.world_from_carriage)
-        cars.append(PlacedCarriage(c.index, c.number, ct.id, ct.name, c.status, c.world_from_carriage, mesh,
-                                   np.asarray(ct.bounding_box(), float), c.record))
+    cars, _ = scene_carriages(sol, project.carriage_types())
     cam_data, cams = load_cameras(project)
     cams = [SceneCamera(c.name, c.image, c.intrinsics, sol.cam_from_world(c.cam_from_world)) for c in cams]
     cams = with_solved_focal(cams, sol.focal_px)
@@ -187,7 +146,7 @@ def load_scene(project: Project, *, textured: bool = True, with_terrain: bool = 
     files = {"solution": sol.path}
     if project.cameras_path():
         files["cameras"] = project.cameras_path()
-    return IncidentScene(terrain, buildings, cars, cams, sol.doc, cam_data, files)
+    return IncidentScene(terrain, buildings, cars, cams, sol.doc, cam_data, files, textured)
 
 
 # ----------------------------------------------------------------------------------------------------------

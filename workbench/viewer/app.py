@@ -118,7 +118,7 @@ class IncidentViewer:
         if self.sc.buildings is not None:
             add("buildings", "buildings", self.sc.buildings)
         for c in self.sc.carriages:
-            add("carriages", f"car_{c.number}", c.mesh)
+            add("carriages", f"car_{c.number}", self.sc.carriage_mesh(c))
         self.centre, self.radius = self.sc.focus()
         size = float(np.clip(0.05 * self.radius, 1.5, 8.0))
         for i, cam in enumerate(self.sc.cameras):
@@ -128,8 +128,9 @@ class IncidentViewer:
         self._rays = o3d.t.geometry.RaycastingScene()
         self._gid: dict[int, str] = {}
         for c in self.sc.carriages:
-            gid = self._rays.add_triangles(o3d.core.Tensor(np.asarray(c.mesh.vertices, np.float32)),
-                                           o3d.core.Tensor(np.asarray(c.mesh.faces, np.uint32)))
+            m = self.sc.carriage_mesh(c)
+            gid = self._rays.add_triangles(o3d.core.Tensor(np.asarray(m.vertices, np.float32)),
+                                           o3d.core.Tensor(np.asarray(m.faces, np.uint32)))
             self._gid[int(gid)] = c.number
 
         # camera: the report's overview
