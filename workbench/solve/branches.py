@@ -120,12 +120,14 @@ def _cheapest_restart(cp: ChainedProblem, k: int, alts: list, sol: Poses, cost: 
 
 
 def retry_branches(cp: ChainedProblem, solo: Sequence[int], start: Poses, sol: Poses, terrain=None,
-                   max_cars: int = 3, max_nfev: int = 10**9, few_points: bool = True) -> BranchRetry:
+                   max_cars: int = 3, max_nfev: int = 10**9, few_points: bool = True,
+                   one_face: Sequence[int] = ()) -> BranchRetry:
     """Restart carriages of the chained solution ``sol`` (found from step 3's ``start``) on other poses and keep
     the cheapest chained solution: the misfit carriages (worst first, at most ``max_cars``) from their other PnP
     branches (from ``start``), and with ``few_points`` every chained carriage with at most :data:`FEW_POINTS`
-    points (fewest first) also from its neighbours' poses (from ``sol``). No new start once ``max_nfev``
-    evaluations are spent."""
+    points (fewest first) and every carriage of ``one_face`` (one-face carriages posed at an estimated focal,
+    chained or not: a plane's two PnP poses fit about equally) also from its neighbours' poses (from ``sol``).
+    No new start once ``max_nfev`` evaluations are spent."""
     cars, options = cp.cars, cp.options
     solo_set = set(solo)
     chained = [k for ch in cp.chains.members if len(ch) > 1 for k in ch if k in solo_set]
@@ -133,6 +135,7 @@ def retry_branches(cp: ChainedProblem, solo: Sequence[int], start: Poses, sol: P
     flagged = misfit_cars(cp.prob, sol, sig, chained)
     few = sorted((k for k in chained if len(cars[k].distinct) <= FEW_POINTS),
                  key=lambda k: len(cars[k].distinct)) if few_points else []
+    few += [k for k in one_face if k in solo_set and k not in few]
     if not flagged and not few:
         return BranchRetry()
     cost = cp.cost(sol)

@@ -8,20 +8,21 @@ from __future__ import annotations
 
 import math
 import time
+import warnings
 from typing import Any, Sequence
 
 import numpy as np
 
 from ..core.frames import hpr_from_rotation
-from .active_set import ChainedProblem
+from .active_set import ChainedFit, ChainedProblem
 from .bias import correct
 from .layout import full_cost
 from .model import CarriageInput, CarriageResult, ChainLink, SolveOptions, SolveResult, View
 from .plan import Plan, plan_consist
 from .problem import (Car, Chains, Poses, Problem, carriage_weights, chain_cost, focal_groups, held_chains,
                       prepare_cars, record_warning)
-from .steps import (SolveContext, bias_skip_reason, step_alone, step_all, step_bias, step_predictions, step_terrain,
-                    step_translations)
+from .steps import (SolveContext, bias_skip_reason, one_face_check, step_alone, step_all, step_bias, step_predictions,
+                    step_terrain, step_translations)
 from .terrain import Contact
 from .uncertainty import attach_covariance, solution_model
 
@@ -83,16 +84,27 @@ def _warn_focal_at_limit(s: SolveContext, f: np.ndarray) -> None:
 
 
 def _context(carriages: Sequence[CarriageInput], links: Sequence[ChainLink], views: list[View],
-             options: SolveOptions, terrain: Any) -> SolveContext:
+             options: SolveOptions, terrain: Any, refused: dict[int, str] | None = None) -> SolveContext:
     cars = prepare_cars(carriages, views, options)
     wl: list[dict] = []
-    plan = plan_consist(cars, links, options, wl)
+    plan = plan_consist(cars, links, options, wl, views, refused)
     weights = carriage_weights(cars, plan.active, options.weighting)
     prob = Problem(cars, plan.active, views, weights)
     used = [v for v in range(len(views)) if len(prob.by_view[v]) > 0]
     free = [v for v in used if not views[v].focal_known] or used  # the views marked unknown, else every one
     focal_views = focal_groups(views, free) if options.estimate_focal else []
     return SolveContext(cars, views, plan, prob, weights, focal_views, options, terrain, wl)
+
+
+def _step4_facts(s: SolveContext) -> dict:
+    return next(st for st in s.steps if st.name == "4_all").facts
+
+
+def _steps_1_to_4(s: SolveContext) -> ChainedFit:
+    poses, profile = step_alone(s)
+    step_terrain(s, poses)
+    fit3 = step_translations(s, poses)
+    return step_all(s, fit3, poses, profile)
 
 
 def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink], views: Sequence[View],
@@ -103,10 +115,23 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
     options = options or SolveOptions()
     views = list(views)
     s = _context(carriages, links, views, options, terrain)
-    poses, profile = step_alone(s)
-    step_terrain(s, poses)
-    fit3 = step_translations(s, poses)
-    fit = step_all(s, fit3, poses, profile)
+    fit = _steps_1_to_4(s)
+    refused: dict[int, str] = {}
+    while True:  # one-face carriages whose focal the joint problem fixes too weakly: solved again without them
+        more = one_face_check(s, fit.poses)
+        if not more:
+            break
+        refused.update(more)
+        rel, nfev, issued = _step4_facts(s)["focal_rel_sd"], s.nfev, {w["message"] for w in s.warnings}
+        with warnings.catch_warnings(record=True) as caught:  # the plan's warnings again: issue the new ones only
+            warnings.simplefilter("always")
+            s = _context(carriages, links, views, options, terrain, refused)
+        for w in caught:
+            if str(w.message) not in issued:
+                warnings.warn(w.message, w.category, stacklevel=2)
+        s.nfev += nfev
+        fit = _steps_1_to_4(s)
+        _step4_facts(s).setdefault("focal_rel_sd", rel)  # the figures that refused them
     fit, prob = step_predictions(s, fit)
     cost_at_minimum = full_cost(prob, s.cars, s.plan.chains, fit.poses, s.contact, options)
     bias = step_bias(s, prob, fit, cost_at_minimum)

@@ -21,7 +21,7 @@ from .branches import retry_branches
 from .focal import FocalProfile, chained_focal_profile, focal_sweep
 from .layout import full_cost
 from .model import SolveOptions, StepStats, View
-from .plan import Plan
+from .plan import FOCAL_PINNED_REL_SD, Plan, best_view, focal_reason, focal_rel_sd
 from .pnp import place_carried, pnp_start, refine_alone
 from .problem import Car, Poses, Problem, chain_cost, pixel_cost, pose_changes, record_warning
 from .terrain import Contact, rest_on_terrain, surface_samples
@@ -61,7 +61,10 @@ def _initial_focal(s: SolveContext, f: np.ndarray) -> tuple[np.ndarray, FocalPro
     """An unknown focal's start: the per-carriage sweep, then on a chained consist the chained profile."""
     views, plan, options = s.views, s.plan, s.options
     for grp in s.focal_views:
-        fb = focal_sweep(s.prob, s.cars, plan.solo, grp, options)
+        # the carriages that pin the focal by themselves; a one-face carriage's PnP fits any focal about as well
+        fb = focal_sweep(s.prob, s.cars, plan.pinning, grp, options)
+        if fb is None and len(plan.pinning) < len(plan.solo):
+            fb = focal_sweep(s.prob, s.cars, plan.solo, grp, options)
         names = ", ".join(views[v].name for v in grp)
         if fb is not None:
             f[grp] = fb
@@ -80,6 +83,20 @@ def _initial_focal(s: SolveContext, f: np.ndarray) -> tuple[np.ndarray, FocalPro
     return f, profile, note
 
 
+def _pin_focal_first(s: SolveContext, poses: Poses, one_face: list[int]) -> str:
+    """Step 1 with one-face carriages and an unknown focal (in place): the carriages that pin the focal posed by
+    PnP and refined with it, then the one-face ones posed by PnP at that focal (the joint refinement follows)."""
+    cars, pins = s.cars, s.plan.pinning
+    pnp_start(s.prob, cars, pins, poses)
+    fv = [g for g in s.focal_views if any(np.isin(cars[k].views, g).any() for k in pins)]
+    poses_pin, nfev, *_ = refine_alone(Problem(cars, pins, s.views, s.weights), cars, pins, poses, fv, s.options)
+    s.nfev += nfev
+    poses.R[pins], poses.t[pins], poses.f[:] = poses_pin.R[pins], poses_pin.t[pins], poses_pin.f
+    pnp_start(s.prob, cars, one_face, poses)
+    return (f"{len(pins)} car(s) with points off one plane refined with the focal first ({nfev} evaluations), then "
+            f"the one-face car(s) {', '.join(cars[k].number for k in one_face)} posed by PnP at that focal")
+
+
 def step_alone(s: SolveContext) -> tuple[Poses, FocalProfile | None]:
     """Step 1: every carriage observable alone from PnP, then refined on its own pixels (and the focal); the
     carried ones placed from their neighbours. Returns the poses and the chained focal profile (or None)."""
@@ -91,7 +108,11 @@ def step_alone(s: SolveContext) -> tuple[Poses, FocalProfile | None]:
     if options.estimate_focal:
         f, profile, note = _initial_focal(s, f)
     poses = Poses(np.tile(np.eye(3), (N, 1, 1)), np.zeros((N, 3)), f)
-    pnp_start(s.prob, cars, plan.solo, poses)
+    one_face = plan.one_face
+    if one_face and profile is None and plan.pinning:
+        note += ("; " if note else "") + _pin_focal_first(s, poses, one_face)
+    else:
+        pnp_start(s.prob, cars, plan.solo, poses)
     place_carried(poses, cars, plan.chains.members, plan.solo)
     init = poses.copy()
     cost0 = pixel_cost(s.prob, poses)
@@ -108,8 +129,33 @@ def step_alone(s: SolveContext) -> tuple[Poses, FocalProfile | None]:
                              s.changes(init, poses),
                              {"focal_start": None if not options.estimate_focal else
                               "chained_profile" if profile is not None else "sweep",
-                              "n_carried": len(plan.active) - len(plan.solo)}))
+                              "n_carried": len(plan.active) - len(plan.solo),
+                              **({"one_face": [cars[k].number for k in one_face]} if options.estimate_focal else {}),
+                              **plan.observability}))
     return poses, profile
+
+
+def one_face_check(s: SolveContext, poses: Poses) -> dict[int, str]:
+    """After step 4, with one-face carriages admitted: each estimated focal's relative sd in the joint problem at
+    its solution ``poses`` (:func:`.plan.focal_rel_sd`: every active carriage's measured points, the couplings,
+    one focal per camera, at the configured pixel sigma); the one-face carriages whose focal it fixes worse than
+    :data:`.plan.FOCAL_PINNED_REL_SD` are returned with what they miss (the solve starts again without them). The
+    figures go to step 4's facts."""
+    plan = s.plan
+    if not plan.one_face or not s.focal_views:
+        return {}
+    sigma = s.options.pixel_sigma_px
+    rel = focal_rel_sd(s.cars, plan.active, s.views, poses, plan.chains, s.focal_views, sigma)
+    names = [", ".join(s.views[v].name for v in g) for g in s.focal_views]
+    next(st for st in s.steps if st.name == "4_all").facts.update(
+        {"focal_rel_sd": dict(zip(names, rel)), "focal_pinned_rel_sd": FOCAL_PINNED_REL_SD})
+    group_of = {v: i for i, g in enumerate(s.focal_views) for v in g}
+    out = {}
+    for k in plan.one_face:
+        g = group_of.get(best_view(s.cars[k]))
+        if g is not None and not rel[g] <= FOCAL_PINNED_REL_SD:
+            out[k] = focal_reason(names[g], True, rel[g], sigma)
+    return out
 
 
 def step_terrain(s: SolveContext, poses: Poses) -> None:
@@ -183,7 +229,8 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
     note = ""
     if profile is not None:
         fit, note = _profile_check(s, cp, fit, profile)
-    retry = retry_branches(cp, s.plan.solo, start3, fit.poses, terrain, max_nfev=max(200, nfev_34))
+    retry = retry_branches(cp, s.plan.solo, start3, fit.poses, terrain, max_nfev=max(200, nfev_34),
+                           one_face=s.plan.one_face)
     s.nfev += retry.nfev
     nfev += retry.nfev
     if retry.fit is not None:
