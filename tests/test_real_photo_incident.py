@@ -49,7 +49,8 @@ def test_real_photo_fit_and_physical_facts(solved):
     sol = solved.solution("test")
     doc = sol.doc
     assert doc["status"] == "converged" and sol.relative
-    assert [c.status for c in sol.carriages] == ["solved", "carried"]  # car 2 shows one side only: coplanar
+    # car 2 shows one side only (coplanar points): solved through the focal car 1 pins (joint observability)
+    assert [c.status for c in sol.carriages] == ["solved", "solved"]
     (view, f), = doc["focal_px"].items()
     hfov = math.degrees(2 * math.atan(0.5 * 800 / f))
     print(f"\nreal photo: focal {f:.0f} px (hfov {hfov:.2f} deg, sigma {doc['sigma_focal_px'][view]:.0f} px), "
