@@ -804,6 +804,7 @@ def test_live_pose_never_fails_on_odd_picks(synth):
             return
         out = live_pose(project, {"carriage": "6100", "observations": picks, "view": "pano_00.jpg"}, sizes)
         assert (out["pose"] is None) == ("reason" in out)
+        json.dumps(out, allow_nan=False)  # strict JSON: the page's JSON.parse takes no NaN
         seen["pose" if out["pose"] else "reason"] += 1
         if out["pose"]:
             assert np.all(np.isfinite(out["pose"]["world_from_carriage"]))

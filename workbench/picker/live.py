@@ -325,12 +325,15 @@ def live_pose(project: Project, payload: object, sizes: dict[str, tuple[int, int
     picks = []
     for row, pred in zip(rows, uv_all):
         p, v, _, uv, sg = row
-        e = pred - np.asarray(uv)
-        rec = {"point": p, "view": v, "uv": list(uv), "residual_px": [round(float(e[0]), 3), round(float(e[1]), 3)],
-               "distance_px": round(float(np.hypot(*e)), 3), "sigma_px": sg, "used": id(row) not in off,
-               "flagged": id(row) in off}
+        e = pred - np.asarray(uv)  # not finite for a left-out pick the pose puts behind the camera: null
+        fin = bool(np.all(np.isfinite(e)))
+        rec = {"point": p, "view": v, "uv": list(uv),
+               "residual_px": [round(float(e[0]), 3), round(float(e[1]), 3)] if fin else None,
+               "distance_px": round(float(np.hypot(*e)), 3) if fin else None, "sigma_px": sg,
+               "used": id(row) not in off, "flagged": id(row) in off}
         if id(row) in off:
-            rec["off_the_others_px"], rec["off_the_others_sigmas"] = (round(x, 3) for x in off[id(row)])
+            rec["off_the_others_px"], rec["off_the_others_sigmas"] = (round(x, 3) if math.isfinite(x) else None
+                                                                      for x in off[id(row)])
         picks.append(rec)
     rr = np.array([[q["residual_px"] for q in picks if q["used"]]]).reshape(-1, 2)
     focal = {v: {"focal_px": round(float(f[v]), 3), "sigma_px": round(math.sqrt(max(cov[6 + i, 6 + i], 0.0)), 3),

@@ -89,6 +89,17 @@ def residual_record(o: mf.Observation, predicted: list[float] | None, pixel_sigm
     return rec
 
 
+def strict(doc):
+    """``doc`` with every float that is not finite replaced by None (the page parses strict JSON)."""
+    if isinstance(doc, float):
+        return doc if math.isfinite(doc) else None
+    if isinstance(doc, dict):
+        return {k: strict(v) for k, v in doc.items()}
+    if isinstance(doc, (list, tuple)):
+        return [strict(v) for v in doc]
+    return doc
+
+
 def _stale(project: Project, solution_path) -> str | None:
     cam = project.cameras_path()
     try:

@@ -63,7 +63,7 @@ from ..correspond.references import FACES, face_reference
 from ..errors import InputError, OutputError, WorkbenchError
 from ..project import Project
 from .live import live_pose
-from .overlay import solution_overlay
+from .overlay import solution_overlay, strict
 
 log = logging.getLogger(__name__)
 
@@ -467,7 +467,7 @@ class PickerHandler(BaseHTTPRequestHandler):
             view = (parse_qs(self.path.split("?", 1)[1] if "?" in self.path else "").get("view") or [None])[0]
             if view is not None and self.state.photo(view) is None:
                 raise Refused(404, f"no photo {_cut(view)} in the incident")
-            return self._json(200, solution_overlay(self.state.project, view))
+            return self._json(200, strict(solution_overlay(self.state.project, view)))
         if path.startswith("/photo/"):
             name = path[len("/photo/"):]
             p = self.state.photo(name)
@@ -496,7 +496,7 @@ class PickerHandler(BaseHTTPRequestHandler):
         payload = parse_body(self._read_body())
         if path == "/api/pose":  # reads only: the same checks as a save, then nothing written
             try:
-                return self._json(200, live_pose(self.state.project, payload, self.state.image_sizes()))
+                return self._json(200, strict(live_pose(self.state.project, payload, self.state.image_sizes())))
             except InputError as exc:
                 raise Refused(400, f"pose request refused: {exc}") from None
         try:

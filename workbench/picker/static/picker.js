@@ -306,7 +306,7 @@ function drawOverlay(view) {
       ctx.setLineDash([]);
     }
     for (const q of lv.flagged) {  // a pick far from where the others put it: to the live pose's place for it
-      if (q.view !== view) continue;
+      if (q.view !== view || !q.residual_px) continue;
       const [x, y] = toScreen(q.uv), [x2, y2] = toScreen([q.uv[0] + q.residual_px[0], q.uv[1] + q.residual_px[1]]);
       ctx.strokeStyle = "#ff4081"; ctx.lineWidth = 2; ctx.setLineDash([4, 3]);
       ctx.beginPath(); ctx.moveTo(x, y); ctx.lineTo(x2, y2); ctx.stroke(); ctx.setLineDash([]);
@@ -316,7 +316,7 @@ function drawOverlay(view) {
     ctx.font = "11px sans-serif";
     for (const [n, p] of Object.entries(lv.predicted[view] || {})) {  // where the other points should fall
       if (picked.has(n)) continue;
-      const [x, y] = toScreen(p.uv), rad = Math.max(4, 2 * (p.sigma_px || 0) * S.scale);
+      const [x, y] = toScreen(p.uv), rad = Math.min(Math.max(4, 2 * (p.sigma_px || 0) * S.scale), 150);
       // a point the car itself hides: dimmer, dashed
       ctx.strokeStyle = n === S.point ? "#ffd54f" : p.in_sight === false ? "rgba(178, 255, 89, 0.45)" : "#b2ff59";
       ctx.lineWidth = 1.5; ctx.setLineDash(p.in_sight === false ? [2, 3] : []);
@@ -355,7 +355,7 @@ function renderChecks() {
     else {
       const f = Object.entries(lv.focal).map(([v, x]) => `${esc(v)} ${x.focal_px.toFixed(0)} px${x.sigma_px !== undefined ? ` &plusmn; ${x.sigma_px.toFixed(0)}` : ""}`).join(", ");
       parts.push(`<h4 class="live">Live pose of ${esc(S.car)} from ${lv.n_used} of ${lv.n_picks} picks: rms ${lv.rms_px.toFixed(2)} px${lv.checked ? "" : " (not checked: no more picks than the pose needs)"}</h4><div class="note">focal: ${f}${lv.not_used.length ? `; no camera or focal for the picks in ${esc(lv.not_used.join(", "))}` : ""}</div>`);
-      if (lv.flagged.length) parts.push("<ul>" + lv.flagged.map((p) => `<li class="flag" data-go="${esc(JSON.stringify([p.view, S.car, p.point]))}">${esc(p.point)} in ${esc(p.view)}: ${p.off_the_others_px.toFixed(1)} px from where the other picks put it (left out of the live pose)</li>`).join("") + "</ul>");
+      if (lv.flagged.length) parts.push("<ul>" + lv.flagged.map((p) => `<li class="flag" data-go="${esc(JSON.stringify([p.view, S.car, p.point]))}">${esc(p.point)} in ${esc(p.view)}: ${p.off_the_others_px === null ? "far" : p.off_the_others_px.toFixed(1) + " px"} from where the other picks put it (left out of the live pose)</li>`).join("") + "</ul>");
     }
   }
   box.innerHTML = parts.join("");
