@@ -143,3 +143,20 @@ def test_an_exif_focal_the_picks_contradict_is_warned(tmp_path, f35_mm, warned):
     if warned:
         assert "photo.jpg" in msgs[0] and f"{check['focal_exif_px']:.0f} px" in msgs[0]
         assert f"{check['focal_picks_px']:.0f} ±" in msgs[0]
+
+
+def test_the_pickers_overlay_draws_a_relative_scene_in_its_levelled_frame(tmp_path):
+    """The picker's outlines and residuals over the photo use the solution's (levelled) frame: every residual is
+    the solve's own."""
+    from workbench.picker.overlay import solution_overlay
+
+    project = _incident(tmp_path / "inc", _sim(3), focal_known=False)
+    Runner(project, STAGES).run(only=["inputs", "georef", "correspond", "solve"])
+    sol = project.solution("test")
+    ov = solution_overlay(project, "photo.jpg")
+    assert ov["available"]
+    res = {(c.number, p): e for c in sol.carriages for p, e in c.record["residuals_px"]["photo.jpg"].items()}
+    got = {(r["carriage"], r["point"]): r for r in ov["residuals"] if r["view"] == "photo.jpg"}
+    assert set(got) == set(res)
+    for k, e in res.items():
+        assert np.allclose(got[k]["residual_px"], e, atol=0.01), (k, got[k], e)

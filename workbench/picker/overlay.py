@@ -23,6 +23,7 @@ import numpy as np
 from ..core.camera import CameraIntrinsics
 from ..errors import InputError
 from ..files import correspondences as mf
+from ..files.solution import Solution
 from ..project import Project
 from .geometry import model_edges, outline, project_points
 
@@ -41,22 +42,23 @@ class PickerCamera:
     focal_known: bool
 
 
-def picker_cameras(project: Project, focal_px: dict[str, float] | None = None) -> dict[str, PickerCamera]:
+def picker_cameras(project: Project, focal_px: dict[str, float] | None = None,
+                   solution: Solution | None = None) -> dict[str, PickerCamera]:
     """The incident's cameras (``cameras.json``: the incident's own, else georef's), each view's focal replaced
-    by ``focal_px[view]`` where given (a solve's); ``{}`` without a cameras file."""
+    by ``focal_px[view]`` where given (a solve's), and in ``solution``'s frame when given (a relative scene's
+    levelled frame); ``{}`` without a cameras file."""
     cams = project.cameras()
     if cams is None:
         return {}
     every = bool(project.settings.solver.estimate_focal)
     out = {}
     for v in cams.views:
+        M = np.asarray(v.cam_from_world, float) if solution is None else solution.cam_from_world(v.cam_from_world)
         f = (focal_px or {}).get(v.name)
         if f is not None and math.isfinite(f) and f > 0:
-            out[v.name] = PickerCamera(v.name, v.intrinsics.with_focal(float(f)), np.asarray(v.cam_from_world, float),
-                                       "solution", True)
+            out[v.name] = PickerCamera(v.name, v.intrinsics.with_focal(float(f)), M, "solution", True)
         else:
-            out[v.name] = PickerCamera(v.name, v.intrinsics, np.asarray(v.cam_from_world, float), "cameras",
-                                       bool(v.focal_known) and not every)
+            out[v.name] = PickerCamera(v.name, v.intrinsics, M, "cameras", bool(v.focal_known) and not every)
     return out
 
 
@@ -124,7 +126,7 @@ def solution_overlay(project: Project, view: str | None = None,
         sol = project.solution("picker's overlay")
     except InputError as exc:
         return {"available": False, "reason": str(exc)}
-    cams = picker_cameras(project, sol.focal_px)
+    cams = picker_cameras(project, sol.focal_px, sol)  # the solution's poses are in its frame (relative: levelled)
     if not cams:
         return {"available": False, "reason": "no cameras.json (the solve's cameras are gone): run georef"}
     types = project.carriage_types()
