@@ -104,10 +104,11 @@ def body_points(spec: CarriageSpec) -> np.ndarray:
             half = hw - r + r * np.sin(phi)
             y = np.clip(prof[:, 0], -half, half)
             pts.append(np.column_stack([xs - sign * r * (1.0 - np.cos(phi)), y, prof[:, 1]]))
-        if e.shape == "nose":
-            xe = nose_x(spec, end, 0.0)
-            yb = hw - r
-            pts.append(np.array([[xe, yb, e.nose_base_height_m], [xe, -yb, e.nose_base_height_m]]))
+        if e.shape == "nose":  # the vertical lower front up to the nose's base, its corners rounded as below
+            xe, zb = nose_x(spec, end, 0.0), e.nose_base_height_m
+            for phi in (0.5 * np.pi * np.arange(n + 1) / n if n else [0.5 * np.pi]):
+                x, y = xe - sign * r * (1.0 - np.cos(phi)), hw - r + r * np.sin(phi)
+                pts.append(np.array([[x, y, zb], [x, -y, zb]]))
     return np.vstack(pts)
 
 
