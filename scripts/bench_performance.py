@@ -8,7 +8,10 @@ worktree made under the system temp folder, run with PYTHONPATH pointing at it) 
   status       `workbench status INCIDENT` on a run incident (every input hashed; median)
   types        `workbench types` (median)
   run          `workbench run` on a fresh copy of the sample incident (photos there, nothing run), with the
-               run time of every stage from out/state.json
+               run time of every stage from out/state.json, the CPU time of the run (user + sys of the
+               process and its workers) and the load average before and after; ``--rounds N`` repeats it N
+               times, the versions alternating (base, head, base, head, ...), and the versions' outputs are
+               compared: solution.json (every number but the timings) and the render stage's pictures
   stitch       `workbench stitch` on an incident holding one real photo set of ../shared/data/stitching, against
                cv2.Stitcher (PANORAMA defaults) in a fresh process (imread to the written JPEG): the ratio
 
@@ -17,6 +20,10 @@ The same sample incident (``--incident``, default projects/spuyten-duyvil; gener
 (bench_out/performance.json). Run it on an idle machine; it takes a few minutes per version:
 
     .venv/bin/python scripts/bench_performance.py [--base 9f57319] [--parts help,status,types,run,stitch]
+        [--rounds 2] [--head-tree DIR]
+
+``--head-tree`` benchmarks another tree than this working tree as the new code (a snapshot: on a machine where
+others edit the working tree while the benchmark runs).
 """
 
 from __future__ import annotations
@@ -24,6 +31,7 @@ from __future__ import annotations
 import argparse
 import json
 import os
+import resource
 import shutil
 import statistics
 import subprocess
@@ -61,6 +69,14 @@ def _timed(cmd: list[str], env: dict, cwd: Path | None = None, check: bool = Tru
     if check and r.returncode != 0:
         raise RuntimeError(f"{' '.join(cmd)} failed ({r.returncode}): {r.stderr[-2000:]}")
     return dt
+
+
+def _timed_cpu(cmd: list[str], env: dict) -> tuple[float, float]:
+    """(wall s, CPU s: user + sys of the command and the processes it waited for, its workers)."""
+    r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t = _timed(cmd, env)
+    r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return t, (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
 
 
 def _median(cmd: list[str], env: dict, repeat: int) -> dict:
@@ -102,17 +118,7 @@ def _bench_version(v: dict, args, work: Path) -> dict:
         res["types"] = _median([*cli, "types"], env, args.repeat)
         print(f"  {v['name']}: types {res['types']['median_s']:.2f} s", flush=True)
     if "run" in parts or "status" in parts:
-        inc = _copy_incident(args.incident, work / v["name"])
-        t = _timed([*cli, "run", str(inc)], env)
-        state = json.loads((inc / "out" / "state.json").read_text())
-        res["run"] = {"wall_s": round(t, 2), "stages_s": {k: r.get("duration_s") for k, r in state.items()},
-                      "all_done": all(r.get("status") == "done" for r in state.values())}
-        sol = json.loads((inc / "out" / "solve" / "solution.json").read_text())
-        res["run"]["placed"] = sorted(c["number"] for c in sol["carriages"] if c.get("world_from_carriage"))
-        truth = inc / "truth" / "ground_truth.json"
-        if truth.is_file():
-            res["run"]["centre_errors_m"] = _centre_errors(sol, json.loads(truth.read_text()))
-        print(f"  {v['name']}: run {t:.1f} s {res['run']['stages_s']}", flush=True)
+        inc = _run_sample(v, args, work, res)
         if "status" in parts:
             res["status"] = _median([*cli, "status", str(inc)], env, args.repeat)
             print(f"  {v['name']}: status {res['status']['median_s']:.2f} s", flush=True)
@@ -130,6 +136,65 @@ def _bench_version(v: dict, args, work: Path) -> dict:
             res["stitch"][set_name] = {"ours_s": round(t, 2)}
             print(f"  {v['name']}: stitch {set_name} {t:.1f} s", flush=True)
     return res
+
+
+def _run_sample(v: dict, args, work: Path, res: dict, round_: int = 0) -> Path:
+    """`workbench run` on a fresh copy of the sample: res["run"] (the first round) or res["runs"] (each round)."""
+    inc = _copy_incident(args.incident, work / f"{v['name']}_{round_}")
+    load0 = os.getloadavg()[0]
+    t, cpu = _timed_cpu([*v["cli"], "run", str(inc)], v["env"])
+    state = json.loads((inc / "out" / "state.json").read_text())
+    run = {"wall_s": round(t, 2), "cpu_s": round(cpu, 1), "load": [round(load0, 2), round(os.getloadavg()[0], 2)],
+           "stages_s": {k: r.get("duration_s") for k, r in state.items()},
+           "all_done": all(r.get("status") == "done" for r in state.values()), "incident": str(inc)}
+    run["stages_sum_s"] = round(sum(x or 0.0 for x in run["stages_s"].values()), 2)
+    sol = json.loads((inc / "out" / "solve" / "solution.json").read_text())
+    run["placed"] = sorted(c["number"] for c in sol["carriages"] if c.get("world_from_carriage"))
+    truth = inc / "truth" / "ground_truth.json"
+    if truth.is_file():
+        run["centre_errors_m"] = _centre_errors(sol, json.loads(truth.read_text()))
+    res.setdefault("run", run)
+    res.setdefault("runs", []).append(run)
+    print(f"  {v['name']}: run {t:.1f} s (CPU {cpu:.1f} s, load {run['load']}), stages {run['stages_sum_s']} s: "
+          f"{run['stages_s']}", flush=True)
+    return inc
+
+
+_TIMING_KEYS = ("time_s", "duration_s", "timings_s", "time_by_kind_s", "elapsed_s")
+
+
+def _numbers(doc, path: str = "") -> dict:
+    """Every number of a JSON document by its path, but the timings."""
+    out: dict = {}
+    if isinstance(doc, dict):
+        for k, x in doc.items():
+            if k not in _TIMING_KEYS:
+                out.update(_numbers(x, f"{path}/{k}"))
+    elif isinstance(doc, list):
+        for i, x in enumerate(doc):
+            out.update(_numbers(x, f"{path}/{i}"))
+    else:
+        out[path] = doc
+    return out
+
+
+def _compare_outputs(a: Path, b: Path) -> dict:
+    """The two incidents' solution.json (every number but the timings) and render pictures compared."""
+    import numpy as np
+    from PIL import Image
+
+    na = _numbers(json.loads((a / "out" / "solve" / "solution.json").read_text()))
+    nb = _numbers(json.loads((b / "out" / "solve" / "solution.json").read_text()))
+    differ = sorted(k for k in set(na) | set(nb) if na.get(k) != nb.get(k))
+    pictures = sorted(p.name for p in (a / "out" / "render").glob("*.png"))
+    changed = {}
+    for name in pictures:
+        pa = np.asarray(Image.open(a / "out" / "render" / name).convert("RGB")).astype(int)
+        pb = np.asarray(Image.open(b / "out" / "render" / name).convert("RGB")).astype(int)
+        if pa.shape != pb.shape or not np.array_equal(pa, pb):
+            changed[name] = "size" if pa.shape != pb.shape else int(np.count_nonzero(np.any(pa != pb, axis=-1)))
+    return {"solution_numbers": len(na), "solution_numbers_differing": differ[:50],
+            "pictures": len(pictures), "pictures_differing": changed}
 
 
 def _centre_errors(sol: dict, truth: dict) -> dict:
@@ -166,10 +231,21 @@ def _table(results: dict) -> list[str]:
         if key in b:
             rows.append(f"| {label} | {b[key]['median_s']:.2f} s | {h[key]['median_s']:.2f} s | < {TARGETS[key]} s |")
     if "run" in b:
-        rows.append(f"| `workbench run` (sample) | {b['run']['wall_s']:.1f} s | {h['run']['wall_s']:.1f} s | "
+        def each(d: dict, f) -> str:
+            return " / ".join(f(r) for r in d["runs"])
+
+        def stages(r: dict) -> str:
+            return f"{r['stages_sum_s']:.1f}"
+
+        def wall_cpu(r: dict) -> str:
+            return f"{r['wall_s']:.1f}, {r['cpu_s']:.1f}"
+
+        rows.append(f"| `workbench run` (sample), the stages' sum | {each(b, stages)} s | {each(h, stages)} s | "
                     f"< {TARGETS['run']:.0f} s |")
+        rows.append(f"| &nbsp; wall, CPU | {each(b, wall_cpu)} s | {each(h, wall_cpu)} s | |")
         for st in h["run"]["stages_s"]:
-            rows.append(f"| &nbsp; {st} | {b['run']['stages_s'].get(st)} s | {h['run']['stages_s'].get(st)} s | |")
+            rows.append(f"| &nbsp; {st} | {each(b, lambda r: str(r['stages_s'].get(st)))} s | "
+                        f"{each(h, lambda r: str(r['stages_s'].get(st)))} s | |")
     if "stitch" in b and "cv2" in results:
         for set_name, t in results["cv2"].items():
             rb, rh = b["stitch"][set_name]["ours_s"] / t, h["stitch"][set_name]["ours_s"] / t
@@ -184,6 +260,8 @@ def main() -> None:
     ap.add_argument("--incident", type=Path, default=ROOT / "projects" / "spuyten-duyvil")
     ap.add_argument("--parts", default="help,status,types,run,stitch")
     ap.add_argument("--repeat", type=int, default=5)
+    ap.add_argument("--rounds", type=int, default=1, help="runs of the sample per version, alternating")
+    ap.add_argument("--head-tree", type=Path, default=None, help="the new code's tree (default: this one)")
     ap.add_argument("--out", type=Path, default=ROOT / "bench_out" / "performance.json")
     args = ap.parse_args()
     args.parts = set(args.parts.split(","))
@@ -194,12 +272,19 @@ def main() -> None:
     subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-f", str(base_tree), args.base],
                    check=True, capture_output=True)
     try:
-        versions = [_version(f"base {args.base}", base_tree), _version("head", ROOT)]
+        versions = [_version(f"base {args.base}", base_tree), _version("head", args.head_tree or ROOT)]
         results: dict = {"versions": [v["name"] for v in versions], "machine": {"cpus": os.cpu_count(),
                          "load_before": os.getloadavg()}, "date": time.strftime("%Y-%m-%d %H:%M:%S")}
         for v in versions:
             print(f"{v['name']} ({v['tree']})", flush=True)
             results[v["name"]] = _bench_version(v, args, work)
+        if "run" in args.parts:
+            for r in range(1, args.rounds):  # more rounds, back to back, the versions alternating
+                for v in versions:
+                    _run_sample(v, args, work, results[v["name"]], r)
+            a, b = (Path(results[v["name"]]["run"]["incident"]) for v in versions)
+            results["same_outputs"] = _compare_outputs(a, b)
+            print(f"outputs compared: {results['same_outputs']}", flush=True)
         if "stitch" in args.parts and DATA.is_dir():
             results["cv2"] = _cv2_stitch(work)
         results["machine"]["load_after"] = os.getloadavg()

@@ -243,6 +243,19 @@ def test_unique_rows_as_numpy():
     assert np.array_equal(keys, k2) and np.array_equal(inv, i2.ravel())
 
 
+
+def test_sorted_unique_and_first_occurrences_as_numpy():
+    """The Hough's np.unique and np.unique(return_index=True) from one sort (correspond/sorting.py)."""
+    from workbench.correspond.sorting import first_occurrences, sorted_unique
+
+    rng = np.random.default_rng(1)
+    for n in (0, 1, 2, 7, 300, 20000):
+        for hi in (1, 3, 60, 10 ** 9):
+            a = rng.integers(-hi, hi, n)
+            assert np.array_equal(sorted_unique(a), np.unique(a))
+            assert np.array_equal(first_occurrences(a), np.sort(np.unique(a, return_index=True)[1]))
+
+
 def test_photos_in_parallel_in_order_with_progress():
     from workbench.correspond.parallel import map_photos
 

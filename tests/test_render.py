@@ -174,6 +174,31 @@ def test_instance_mask_and_occlusion():
     assert np.all(res.instance[0] == -1)
 
 
+
+def test_depth_and_ids_cast_when_read_against_the_scene_as_rendered():
+    """Depth and ids are cast when first read (most renders are pictures nobody reads them of), against the
+    triangles the scene had at the render: the same arrays as cast at once, whatever the scene became since."""
+    intr = CameraIntrinsics(width=160, height=100, fx=130.0, fy=130.0, cx=85.0, cy=47.5)
+    M = look_at(np.array([0.0, -12.0, 3.0]), np.array([0.0, 0.0, 1.0]))
+    scene = OffscreenScene(intr.width, intr.height)
+    ground = trimesh.creation.box(extents=[80, 80, 0.2])
+    ground.apply_translation([0, 0, -0.1])
+    box = trimesh.creation.box(extents=[2, 2, 2])
+    box.apply_translation([0.0, 0.0, 1.0])
+    scene.add(SceneMesh("ground", ground))
+    scene.add(SceneMesh("box", box, instance_id=4))
+    u, v = np.meshgrid(np.arange(intr.width, dtype=float), np.arange(intr.height, dtype=float))
+    xy = np.stack([(u - intr.cx) / intr.fx, (v - intr.cy) / intr.fy], axis=-1)
+    depth, instance = scene.trace(M, xy)
+    res = scene.render(intr.K, M)
+    photo = render_photo(scene, CameraIntrinsics(width=160, height=100, fx=130.0, fy=130.0, cx=85.0, cy=47.5,
+                                                 k1=-0.05), M, supersample=1)
+    scene.remove("box")  # after the renders: what they cast is the scene they rendered
+    assert np.array_equal(res.depth, depth) and np.array_equal(res.instance, instance)
+    assert np.count_nonzero(photo.instance == 4) > 100
+    assert not np.any(scene.render(intr.K, M).instance == 4)
+
+
 def test_empty_scene_gives_background():
     scene = OffscreenScene(64, 48, background_rgb=(0.2, 0.4, 0.6))
     K = np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]])

@@ -15,6 +15,7 @@ import numpy as np
 
 from ..core.camera import CameraIntrinsics
 from .references import FaceReference, sift_features
+from .sorting import first_occurrences, sorted_unique
 from .undistort import undistorted_image
 
 log = logging.getLogger(__name__)
@@ -222,12 +223,15 @@ def _nearest(photo: PhotoFeatures, ref: FaceReference) -> tuple[np.ndarray, np.n
     out = None
     P, R = photo.descriptors, ref.descriptors
     if len(P) >= 2 and len(R) >= 2 and _integral_cached(photo, P) and _integral_ref(ref):
-        G = P @ R.T  # exact: integer products, partial sums below 2^24
-        D2 = np.einsum("ij,ij->i", P, P)[:, None] + np.einsum("ij,ij->i", R, R)[None, :]
-        D2 -= 2.0 * G
+        # exact: integer products, partial sums below 2^24; every term and sum below is an integer below 2^24,
+        # so computed in place, in any order, it is the same as |p|^2 + |r|^2 - 2 p.r
+        D2 = P @ R.T
+        D2 *= -2.0
+        D2 += _sq_norms(photo, P)[:, None]
+        D2 += np.einsum("ij,ij->i", R, R)[None, :]
         rows = np.arange(len(P))
         j1 = np.argmin(D2, axis=1)  # first index among ties
-        back = np.argmin(D2, axis=0)
+        back = np.argmax(D2 == D2.min(axis=0), axis=0)  # argmin along axis 0 (the first among ties), faster
         d1 = D2[rows, j1].copy()
         D2[rows, j1] = np.inf
         j2 = np.argmin(D2, axis=1)
@@ -237,6 +241,14 @@ def _nearest(photo: PhotoFeatures, ref: FaceReference) -> tuple[np.ndarray, np.n
         out = (knn, dist, back)
     photo.cache[key] = out
     return out
+
+
+def _sq_norms(photo: PhotoFeatures, desc: np.ndarray) -> np.ndarray:
+    """Squared norms of the photo's descriptors (computed once per photo)."""
+    key = ("sq_norms",)
+    if key not in photo.cache:
+        photo.cache[key] = np.einsum("ij,ij->i", desc, desc)
+    return photo.cache[key]
 
 
 def _integral_cached(photo: PhotoFeatures, desc: np.ndarray) -> bool:
@@ -594,7 +606,7 @@ def hough_clusters(photo: PhotoFeatures, ref: FaceReference, *, k: int = 4, min_
     ends = np.append(starts[1:], len(order))
     # a bin's strength: the distinct photo keypoints voting for it
     nq = np.int64(max(len(photo.keypoints), 1))
-    pair = np.unique(inv.astype(np.int64) * nq + qi[V[:, 4]])
+    pair = sorted_unique(inv.astype(np.int64) * nq + qi[V[:, 4]])
     counts = np.bincount(pair // nq, minlength=len(keys))
     # rank bins by how far their votes stand above chance: a bin of a large predicted size covers much of
     # the photo and collects many random votes; the chance count is the band's (size, rotation) votes
@@ -613,7 +625,7 @@ def hough_clusters(photo: PhotoFeatures, ref: FaceReference, *, k: int = 4, min_
     for kk in ranked[counts[ranked] >= min_votes]:
         if len(out) >= max_clusters:
             break
-        m = np.unique(V[order[starts[kk]:ends[kk]], 4])
+        m = sorted_unique(V[order[starts[kk]:ends[kk]], 4])
         if len(out) and np.any(taken[:len(out), m].sum(axis=1) > 0.5 * len(m)):
             continue  # a neighbouring bin of a cluster already returned
         taken[len(out), m] = True
@@ -643,10 +655,8 @@ def hough_detections(photo: PhotoFeatures, ref: FaceReference, opts: MatchOption
             inl = np.nonzero(d < opts.ransac_px)[0]
             # one photo keypoint, one reference keypoint: keep the closest pairing of each
             inl = inl[np.argsort(d[inl])]
-            _, first_q = np.unique(qi[inl], return_index=True)
-            inl = inl[np.sort(first_q)]
-            _, first_t = np.unique(ti[inl], return_index=True)
-            inl = inl[np.sort(first_t)]
+            inl = inl[first_occurrences(qi[inl])]
+            inl = inl[first_occurrences(ti[inl])]
             if len(inl) < 6:
                 break
             H2, _ = cv2.findHomography(R[inl], P[inl], 0)

@@ -246,6 +246,11 @@ class _Renderer:
         size = (int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1))
         if size[0] < 4 or size[1] < 4 or size[0] * size[1] > 400000:
             return -np.inf, np.zeros(2), 0.0
+        r = int(np.ceil(radius_px / self.d))
+        x0, y0 = int(lo[0]) - r + self.pad, int(lo[1]) - r + self.pad
+        Hh, Ww = self.img.shape
+        if x0 < 0 or y0 < 0 or x0 + size[0] + 2 * r > Ww or y0 + size[1] + 2 * r > Hh:
+            return -np.inf, np.zeros(2), 0.0  # the search area reaches far outside the photo
         Tc = np.array([[1.0, 0, -lo[0]], [0, 1, -lo[1]], [0, 0, 1]])
         tmpl = np.zeros((size[1], size[0]), np.float32)
         label = np.zeros((size[1], size[0]), np.uint8)  # 0: no face; else the tile (a third of a long face)
@@ -260,11 +265,6 @@ class _Renderer:
             sel = m > 0
             tmpl[sel] = w[sel]
             label[sel] = m[sel]
-        r = int(np.ceil(radius_px / self.d))
-        x0, y0 = int(lo[0]) - r + self.pad, int(lo[1]) - r + self.pad
-        Hh, Ww = self.img.shape
-        if x0 < 0 or y0 < 0 or x0 + size[0] + 2 * r > Ww or y0 + size[1] + 2 * r > Hh:
-            return -np.inf, np.zeros(2), 0.0  # the search area reaches far outside the photo
         # per tile, zero-mean normalised correlation over the shifts; a tile hidden (a building, another car)
         # correlates with nothing and adds nothing, instead of diluting the whole face's correlation
         total = np.zeros((2 * r + 1, 2 * r + 1), np.float32)

@@ -46,6 +46,7 @@ from .search import chain_search
 from .transfer import PairHomographies, carry
 
 log = logging.getLogger(__name__)
+REFERENCE_THREADS = 2  # the cars' references are built on this many threads
 
 
 def output_path(project: Project) -> Path:
@@ -178,28 +179,38 @@ def _car_references(project: Project, consist: list[tuple], types: dict, opts: M
     refs = {}
     untextured = []
     ref_doc = {}
-    for k, (number, _, _) in enumerate(consist):
-        if not types[number].has_reference_imagery:
-            continue
-        progress(0.05 * k / len(consist), f"references of {number}")
-        rs, aligned = _cached_references(project, types[number], number, opts, cache_dir, cache_used)
-        for r in aligned:  # references of faces aligned only (the roof), shared by the photos
-            ref_cache[(number, r.face)] = r
-        textured = [r for r in rs if r.descriptors is not None and len(r.descriptors) >= opts.min_reference_keypoints]
-        if not textured:
-            untextured.append(number)
-        refs[number] = rs
-        if reference_dir is not None:
-            for r in rs:
-                img_path = reference_dir / f"{number}_{r.face}.png"
-                project.write_image(img_path, r.image)
-                ref_doc.setdefault(number, {})[r.face] = {
-                    "image": project.relative(img_path), "type": r.type_id, "px_per_m": r.px_per_m,
-                    "n_keypoints": int(len(r.keypoints)), "points": {n: p.tolist() for n, p in r.points.items()},
-                    "origin_m": r.origin_m.tolist(), "axis_u_m": r.axis_u_m.tolist(), "axis_v_m": r.axis_v_m.tolist()}
+    searched = [number for number, _, _ in consist if types[number].has_reference_imagery]
+    # the cars' references on two threads (painting the livery and SIFT over the tilts release the interpreter
+    # much of the time; each car's are computed as alone), used in the consist's order
+    from concurrent.futures import ThreadPoolExecutor
+
+    with ThreadPoolExecutor(max_workers=REFERENCE_THREADS) as pool:
+        built = pool.map(lambda n: _cached_references(project, types[n], n, opts, cache_dir, cache_used), searched)
+        for k, (number, (rs, aligned)) in enumerate(zip(searched, built)):
+            progress(0.05 * k / len(searched), f"references of {number}")
+            _keep_references(project, number, rs, aligned, opts, refs, ref_cache, untextured, ref_doc, reference_dir)
     if reference_dir is not None:
         project.write_json(reference_dir / "references.json", ref_doc)
     return refs, ref_cache, untextured
+
+
+def _keep_references(project: Project, number: str, rs: list, aligned: list, opts: MatchOptions, refs: dict,
+                     ref_cache: dict, untextured: list, ref_doc: dict, reference_dir: Path | None) -> None:
+    """One car's references kept (``refs``, ``ref_cache``, ``untextured``) and written for review."""
+    for r in aligned:  # references of faces aligned only (the roof), shared by the photos
+        ref_cache[(number, r.face)] = r
+    textured = [r for r in rs if r.descriptors is not None and len(r.descriptors) >= opts.min_reference_keypoints]
+    if not textured:
+        untextured.append(number)
+    refs[number] = rs
+    if reference_dir is not None:
+        for r in rs:
+            img_path = reference_dir / f"{number}_{r.face}.png"
+            project.write_image(img_path, r.image)
+            ref_doc.setdefault(number, {})[r.face] = {
+                "image": project.relative(img_path), "type": r.type_id, "px_per_m": r.px_per_m,
+                "n_keypoints": int(len(r.keypoints)), "points": {n: p.tolist() for n, p in r.points.items()},
+                "origin_m": r.origin_m.tolist(), "axis_u_m": r.axis_u_m.tolist(), "axis_v_m": r.axis_v_m.tolist()}
 
 
 class _PhotoMatcher:

@@ -17,6 +17,7 @@ direction, so they are exact at every pixel centre. A world point ``X`` appears 
 
 from __future__ import annotations
 
+import threading
 from functools import lru_cache
 
 import cv2
@@ -32,9 +33,18 @@ _MAX_PINHOLE_GROWTH = 2.5
 _MARGIN_PX = 3
 
 
-@lru_cache(maxsize=8)
+_GRID_LOCK = threading.Lock()
+
+
 def _undistorted_grid(intrinsics: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
-    """Undistorted normalised coordinates (h, w, 2) of all pixel centres, and a validity mask (h, w)."""
+    """Undistorted normalised coordinates (h, w, 2) of all pixel centres, and a validity mask (h, w): computed
+    once per lens (the photos of a set share it), also when several threads render photos at once."""
+    with _GRID_LOCK:
+        return _grid(intrinsics)
+
+
+@lru_cache(maxsize=8)
+def _grid(intrinsics: CameraIntrinsics) -> tuple[np.ndarray, np.ndarray]:
     w, h = intrinsics.width, intrinsics.height
     u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
     uv = np.column_stack([u.ravel(), v.ravel()])
@@ -94,11 +104,7 @@ def render_photo(scene: OffscreenScene, intrinsics: CameraIntrinsics, cam_from_w
             return intrinsics.undistort(intrinsics.normalized_from_pixels(uv))
 
         color = scene.raytrace_color(M, xy_of_uv, w, h, supersample)
-        xy_trace = np.where(ok[..., None], xy, 0.0)
-        depth, instance = scene.trace(M, xy_trace)
-        depth[~ok] = np.inf
-        instance[~ok] = -1
-        return RenderResult(color=color, depth=depth, instance=instance)
+        return RenderResult(color, traced=_traced(scene, M, xy, ok))
     Kp, wp, hp = pinhole_for(intrinsics)
     pin = scene.render_color(Kp, M, wp, hp, supersample)
     map_x = (Kp[0, 0] * xy[..., 0] + Kp[0, 2]).astype(np.float32)
@@ -108,9 +114,17 @@ def render_photo(scene: OffscreenScene, intrinsics: CameraIntrinsics, cam_from_w
     bg = tuple(int(round(255 * c)) for c in scene.background_rgb)
     color = cv2.remap(pin, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                       borderValue=bg)
+    return RenderResult(np.ascontiguousarray(color, dtype=np.uint8), traced=_traced(scene, M, xy, ok))
 
-    xy_trace = np.where(ok[..., None], xy, 0.0)
-    depth, instance = scene.trace(M, xy_trace)
-    depth[~ok] = np.inf
-    instance[~ok] = -1
-    return RenderResult(color=np.ascontiguousarray(color, dtype=np.uint8), depth=depth, instance=instance)
+
+def _traced(scene: OffscreenScene, M: np.ndarray, xy: np.ndarray, ok: np.ndarray):
+    """The photo's depth and instance ids (exact per pixel centre), cast when first read (``RenderResult``)."""
+    trace = scene.tracer()
+
+    def traced() -> tuple[np.ndarray, np.ndarray]:
+        depth, instance = trace(M, np.where(ok[..., None], xy, 0.0))
+        depth[~ok] = np.inf
+        instance[~ok] = -1
+        return depth, instance
+
+    return traced

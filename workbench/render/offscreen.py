@@ -54,11 +54,47 @@ class SceneMesh:
     instance_id: int = -1
 
 
-@dataclass
 class RenderResult:
-    color: np.ndarray  # (h, w, 3) uint8 RGB
-    depth: np.ndarray  # (h, w) float32 metres along camera z, inf where nothing
-    instance: np.ndarray  # (h, w) int32 instance id, -1 for background / non-instance objects
+    """A render: ``color`` (h, w, 3) uint8 RGB; ``depth`` (h, w) float32 metres along camera z, inf where nothing;
+    ``instance`` (h, w) int32 instance id, -1 for background / non-instance objects.
+
+    Depth and instance may be given as ``traced``, a function returning both: they are then cast when one of
+    them is first read (most renders are pictures whose depth and ids nobody reads; the scene's triangles are
+    bound when the render is made, so a later change of the scene does not change them)."""
+
+    def __init__(self, color: np.ndarray, depth: np.ndarray | None = None, instance: np.ndarray | None = None, *,
+                 traced=None) -> None:
+        if traced is None and (depth is None or instance is None):
+            raise ValueError("RenderResult needs depth and instance, or traced")
+        self.color = color
+        self._depth, self._instance, self._traced = depth, instance, traced
+        self._lock = threading.Lock()
+
+    def _trace(self) -> None:
+        with self._lock:
+            if self._traced is not None:
+                self._depth, self._instance = self._traced()
+                self._traced = None
+
+    @property
+    def depth(self) -> np.ndarray:
+        self._trace()
+        return self._depth
+
+    @depth.setter
+    def depth(self, value: np.ndarray) -> None:
+        self._trace()
+        self._depth = value
+
+    @property
+    def instance(self) -> np.ndarray:
+        self._trace()
+        return self._instance
+
+    @instance.setter
+    def instance(self, value: np.ndarray) -> None:
+        self._trace()
+        self._instance = value
 
 
 @dataclass
@@ -358,28 +394,15 @@ class OffscreenScene:
         Returns (depth along camera z in metres, ``inf`` on a miss; instance id, -1 on a miss or for
         non-instance objects), both shaped like ``xy[..., 0]``. Triangles are hit from either side.
         """
-        import open3d as o3d
+        return self.tracer()(cam_from_world, xy)
 
-        M = np.asarray(cam_from_world, dtype=float)
-        xy = np.asarray(xy, dtype=float)
-        shape = xy.shape[:-1]
-        R, t = M[:3, :3], M[:3, 3]
-        centre = -R.T @ t
-        d_cam = np.concatenate([xy.reshape(-1, 2), np.ones((xy[..., 0].size, 1))], axis=1)
-        d_world = d_cam @ R  # R.T @ d for each row; z component in camera = 1, so t_hit = camera z
-        rays = np.empty((len(d_world), 6), dtype=np.float32)
-        rays[:, :3] = centre
-        rays[:, 3:] = d_world
+    def tracer(self):
+        """:meth:`trace` bound to the scene's triangles as they are now (a later change of the scene does not
+        change what it casts against)."""
         if not self._items:
-            return np.full(shape, np.inf, np.float32), np.full(shape, -1, np.int32)
+            return _trace_nothing
         rs, lut = self._raycaster()
-        ans = rs.cast_rays(o3d.core.Tensor(rays))
-        depth = ans["t_hit"].numpy().astype(np.float32)
-        gid = ans["geometry_ids"].numpy().astype(np.int64)
-        hit = np.isfinite(depth) & (gid >= 0) & (gid < len(lut) - 1)
-        depth = np.where(hit, depth, np.inf).astype(np.float32)
-        instance = np.where(hit, lut[np.where(hit, gid, len(lut) - 1)], -1).astype(np.int32)
-        return depth.reshape(shape), instance.reshape(shape)
+        return lambda cam_from_world, xy: _trace(rs, lut, cam_from_world, xy)
 
     # -- rasterised colour -----------------------------------------------------------------------------
     def _load(self, r) -> None:
@@ -450,10 +473,41 @@ class OffscreenScene:
         if s < 1:
             raise ValueError(f"supersample={s} must be >= 1")
         color = self.render_color(K, M, w, h, s)
-        u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
-        xy = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]], axis=-1)
-        depth, instance = self.trace(M, xy)
-        return RenderResult(color=color, depth=depth, instance=instance)
+        trace = self.tracer()
+
+        def traced() -> tuple[np.ndarray, np.ndarray]:
+            u, v = np.meshgrid(np.arange(w, dtype=float), np.arange(h, dtype=float))
+            return trace(M, np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]], axis=-1))
+
+        return RenderResult(color, traced=traced)
+
+
+def _trace_nothing(cam_from_world: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    shape = np.shape(xy)[:-1]
+    return np.full(shape, np.inf, np.float32), np.full(shape, -1, np.int32)
+
+
+def _trace(rs, lut: np.ndarray, cam_from_world: np.ndarray, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:meth:`OffscreenScene.trace` against the ray-casting scene ``rs`` (instance id per geometry id: ``lut``)."""
+    import open3d as o3d
+
+    M = np.asarray(cam_from_world, dtype=float)
+    xy = np.asarray(xy, dtype=float)
+    shape = xy.shape[:-1]
+    R, t = M[:3, :3], M[:3, 3]
+    centre = -R.T @ t
+    d_cam = np.concatenate([xy.reshape(-1, 2), np.ones((xy[..., 0].size, 1))], axis=1)
+    d_world = d_cam @ R  # R.T @ d for each row; z component in camera = 1, so t_hit = camera z
+    rays = np.empty((len(d_world), 6), dtype=np.float32)
+    rays[:, :3] = centre
+    rays[:, 3:] = d_world
+    ans = rs.cast_rays(o3d.core.Tensor(rays))
+    depth = ans["t_hit"].numpy().astype(np.float32)
+    gid = ans["geometry_ids"].numpy().astype(np.int64)
+    hit = np.isfinite(depth) & (gid >= 0) & (gid < len(lut) - 1)
+    depth = np.where(hit, depth, np.inf).astype(np.float32)
+    instance = np.where(hit, lut[np.where(hit, gid, len(lut) - 1)], -1).astype(np.int32)
+    return depth.reshape(shape), instance.reshape(shape)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -508,8 +562,12 @@ def _sample_bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
     y1 = np.minimum(y0 + 1, h - 1)
     fx = (x - x0)[:, None].astype(np.float32)
     fy = (y - y0)[:, None].astype(np.float32)
-    top = img[y0, x0] * (1 - fx) + img[y0, x1] * fx
-    bot = img[y1, x0] * (1 - fx) + img[y1, x1] * fx
+    # img[y, x] of the four neighbours, gathered from the flattened texture (the same values, fewer passes)
+    flat = img.reshape(h * w, -1)
+    r0, r1 = y0 * w, y1 * w
+    gx = 1 - fx
+    top = flat.take(r0 + x0, axis=0) * gx + flat.take(r0 + x1, axis=0) * fx
+    bot = flat.take(r1 + x0, axis=0) * gx + flat.take(r1 + x1, axis=0) * fx
     return top * (1 - fy) + bot * fy
 
 
@@ -550,10 +608,16 @@ def _raytrace_shade(self: "OffscreenScene", cam_from_world: np.ndarray, xy: np.n
     w = np.column_stack([1.0 - bary[idx, 0] - bary[idx, 1], bary[idx, 0], bary[idx, 1]]).astype(np.float32)
     albedo = np.zeros((len(idx), 3), np.float32)
     normal = np.zeros((len(idx), 3), np.float32)
+    # the hits grouped by geometry: one stable sort instead of a mask over every hit per geometry (the same
+    # hits, in the same order)
+    g_hit = gid[idx]
+    order = np.argsort(g_hit, kind="stable")
+    g_sorted = g_hit[order]
     for g, name in self._gid_names.items():
-        sel = gid[idx] == g
-        if not np.any(sel):
+        lo, hi = np.searchsorted(g_sorted, [g, g + 1])
+        if lo == hi:
             continue
+        sel = order[lo:hi]
         sd = self._shading[name]
         p = prim[idx[sel]]
         ws = w[sel]  # (n, 3) barycentric weights of the three corners
