@@ -4,8 +4,10 @@ panorama, its frame ``pano`` = ``rig``), or a single photo (``rig`` = the camera
 Unknowns: ``rig_from_world`` (rotation) and the centre (3). Start: P3P (OpenCV) on the control-point rays in the
 rig frame, each triple seen through a virtual pinhole looking along their mean direction; with a centre prior
 (``camera.position_enu`` or EXIF GPS) also the rotation that best aligns the rays with the directions to the
-points (Kabsch). Refinement: reprojection error in every source photo (its own intrinsics and distortion), each
-residual divided by ``sqrt(sigma_px^2 + (f sigma_m / depth)^2)``, plus the prior; robust loss (docs/gis.md).
+points (Kabsch), and with a heading prior (EXIF ``GPSImgDirection``) the rotations that put a photo's optical axis
+on that heading and one pick on its ray. Refinement: reprojection error in every source photo (its own intrinsics
+and distortion), each residual divided by ``sqrt(sigma_px^2 + (f sigma_m / depth)^2)``, plus the priors (centre,
+per axis; heading: the azimuth of a photo's optical axis); robust loss (docs/gis.md).
 """
 
 from __future__ import annotations
@@ -24,7 +26,7 @@ from ..errors import InputError
 from ..files.control_points import ControlPoint
 from .fitting import orthonormal, point_line_distance, rotation_kabsch
 from ..files.panorama import RigView
-from .options import GeorefOptions
+from .options import GeorefOptions, HeadingPrior
 from .picks import Pick, pick_sigma, picks_in_views, summarize_residuals, warn_residuals
 
 __all__ = ["CentralResult", "solve_central", "refine_resection_focal"]
@@ -85,6 +87,51 @@ def _p3p_candidates(bearings: np.ndarray, X: np.ndarray) -> list[tuple[np.ndarra
     return out
 
 
+def _exp(w: np.ndarray) -> np.ndarray:
+    """Rotation matrix of one rotation vector (Rodrigues; ``core.geometry.exp_so3`` for many, this for speed)."""
+    th = math.sqrt(float(w @ w))
+    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    if th < 1e-8:
+        return np.eye(3) + K + 0.5 * (K @ K)
+    return np.eye(3) + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / th ** 2) * (K @ K)
+
+
+def _wrap(a: float) -> float:
+    """An angle (rad) wrapped to [-pi, pi)."""
+    return (a + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def _heading_errors(R: np.ndarray, views: Sequence[RigView], headings: Sequence[HeadingPrior]) -> np.ndarray:
+    """Each heading prior's residual (rad, wrapped): the azimuth of its photo's optical axis (clockwise from north,
+    +y) with ``rig_from_world`` R, less the prior's."""
+    out = []
+    for h in headings:
+        a = (np.asarray(views[h.view].cam_from_rig, float) @ R)[2]  # the optical axis in the scene frame
+        out.append(_wrap(math.atan2(a[0], a[1]) - math.radians(h.azimuth_deg)))
+    return np.asarray(out, float)
+
+
+def _compass_candidates(bear: np.ndarray, pts: np.ndarray, X: np.ndarray, c0: np.ndarray,
+                        views: Sequence[RigView], headings: Sequence[HeadingPrior],
+                        rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Starts at the centre prior ``c0`` from a heading prior: the optical axis on the heading at a pitch from
+    -60 to 60 deg, and one pick's bearing on its point's direction (Kabsch on the two pairs)."""
+    out = []
+    ks = np.arange(len(pts)) if len(pts) <= 8 else rng.choice(len(pts), 8, replace=False)
+    for h in headings[:3]:
+        z_rig = np.asarray(views[h.view].cam_from_rig, float)[2]  # the photo's optical axis in the rig frame
+        az = math.radians(h.azimuth_deg)
+        for k in ks:
+            u = X[pts[k]] - c0
+            if np.linalg.norm(u) < 1e-3:
+                continue
+            u = u / np.linalg.norm(u)
+            for pitch in np.radians(np.arange(-60.0, 61.0, 5.0)):
+                a = np.array([math.sin(az) * math.cos(pitch), math.cos(az) * math.cos(pitch), math.sin(pitch)])
+                out.append((rotation_kabsch(np.array([u, a]), np.array([bear[k], z_rig])), c0))
+    return out
+
+
 def _central_errors(R: np.ndarray, c: np.ndarray, views: Sequence[RigView], obs: list[Pick],
                     X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Reprojection errors (n,) px (inf when behind) and the residual vectors (n, 2) of every observation."""
@@ -107,18 +154,22 @@ def _central_errors(R: np.ndarray, c: np.ndarray, views: Sequence[RigView], obs:
 
 
 def _start_candidates(bear: np.ndarray, pts: np.ndarray, X: np.ndarray, n_pts: int, prior_centre: np.ndarray | None,
-                      opts: GeorefOptions, rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
-    """``(rig_from_world, centre)`` starts: with a centre prior, Kabsch on all picks and on random pairs; with 3
-    or more points, P3P on random triples of distinct points."""
+                      opts: GeorefOptions, rng: np.random.Generator, views: Sequence[RigView] = (),
+                      headings: Sequence[HeadingPrior] = (), n_pairs: int = 100) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``(rig_from_world, centre)`` starts: with a centre prior, Kabsch on all picks and on random pairs, and with
+    a heading prior too the compass starts (:func:`_compass_candidates`); with 3 or more points, P3P on random
+    triples of distinct points."""
     candidates: list[tuple[np.ndarray, np.ndarray]] = []
     if prior_centre is not None:
         c0 = np.asarray(prior_centre, float)
+        if headings:
+            candidates.extend(_compass_candidates(bear, pts, X, c0, views, headings, rng))
         u = X[pts] - c0
         ok = np.linalg.norm(u, axis=1) > 1e-3
         u[ok] /= np.linalg.norm(u[ok], axis=1, keepdims=True)
         if ok.sum() >= 2:
             candidates.append((rotation_kabsch(u[ok], bear[ok]), c0))  # rig_from_world maps world dirs to bearings
-            for _ in range(min(opts.ransac_iterations, 100)):
+            for _ in range(min(opts.ransac_iterations, n_pairs)):
                 i, j = rng.choice(np.nonzero(ok)[0], 2, replace=False)
                 if pts[i] != pts[j]:
                     candidates.append((rotation_kabsch(u[[i, j]], bear[[i, j]]), c0))
@@ -134,10 +185,47 @@ def _start_candidates(bear: np.ndarray, pts: np.ndarray, X: np.ndarray, n_pts: i
     return candidates
 
 
+def _prior_grid(prior_centre: np.ndarray, sig_prior: np.ndarray) -> list[np.ndarray]:
+    """Centres spread over the prior: 0, +-1, +-2 sigma up (+-10, 20, 40 m when the height is free), and +-1
+    sigma east and north."""
+    c0 = np.asarray(prior_centre, float)
+    sh = [float(x) if np.isfinite(x) else 0.0 for x in sig_prior[:2]]
+    dz = [k * float(sig_prior[2]) for k in (0, -1, 1, -2, 2)] if np.isfinite(sig_prior[2]) \
+        else [0.0, -10.0, 10.0, -20.0, 20.0, -40.0, 40.0]
+    return [c0 + np.array([0.0, 0.0, z]) for z in dz] + [c0 + np.array([i * sh[0], j * sh[1], 0.0])
+                                                         for i, j in ((1, 0), (-1, 0), (0, 1), (0, -1))]
+
+
+def _multi_start(bear: np.ndarray, pts: np.ndarray, X: np.ndarray, views: Sequence[RigView], obs: list[Pick],
+                 cps: Sequence[ControlPoint], prior_centre: np.ndarray, sig_prior: np.ndarray,
+                 headings: Sequence[HeadingPrior], opts: GeorefOptions, rng: np.random.Generator,
+                 first: tuple[np.ndarray, np.ndarray]) -> tuple[tuple[np.ndarray, np.ndarray] | None, int]:
+    """With few points the cost has several minima (with 2 map points the camera fits them above or below its
+    true height, tens of metres apart): the RANSAC start ``first`` and a start at each centre of
+    :func:`_prior_grid` (Kabsch on the picks, and the compass starts), each refined, the lowest cost kept.
+    Returns ((rig_from_world, centre) or None, the number of starts)."""
+    best, best_cost, n = None, np.inf, 0
+    for c in [None, *_prior_grid(prior_centre, sig_prior)]:
+        if c is None:
+            R0, c0 = first
+        else:
+            cands = _start_candidates(bear, pts, X, 0, c, opts, rng, views, headings, n_pairs=0)
+            if not cands:
+                continue
+            n += len(cands)
+            R0, c0 = _best_candidate(cands, views, obs, X, prior_centre, sig_prior, opts, headings)
+        info: dict = {}
+        R1, c1, _ = _refine_central(views, obs, X, cps, R0, c0, np.ones(len(obs), bool), prior_centre, sig_prior,
+                                    opts, headings, info_out=info)
+        if info["cost"] < best_cost:
+            best, best_cost = (R1, c1), info["cost"]
+    return best, n
+
+
 def _best_candidate(candidates: list[tuple[np.ndarray, np.ndarray]], views: Sequence[RigView], obs: list[Pick],
                     X: np.ndarray, prior_centre: np.ndarray | None, prior_sigma_m: np.ndarray | float | None,
-                    opts: GeorefOptions) -> tuple[np.ndarray, np.ndarray]:
-    """The candidate with the best bounded (MSAC-like) score, less a small penalty for leaving the prior."""
+                    opts: GeorefOptions, headings: Sequence[HeadingPrior] = ()) -> tuple[np.ndarray, np.ndarray]:
+    """The candidate with the best bounded (MSAC-like) score, less a small penalty for leaving the priors."""
     best, best_score = None, -np.inf
     thr = opts.ransac_threshold_px
     for R, c in candidates:
@@ -147,6 +235,9 @@ def _best_candidate(candidates: list[tuple[np.ndarray, np.ndarray]], views: Sequ
             sig = np.broadcast_to(np.asarray(prior_sigma_m if prior_sigma_m is not None else opts.prior_sigma_m,
                                              float), (3,))
             score -= 0.01 * float(np.sum(((c - np.asarray(prior_centre, float)) / sig) ** 2)) / max(len(obs), 1)
+        if headings:
+            hs = np.radians([h.sigma_deg for h in headings])
+            score -= 0.01 * float(np.sum((_heading_errors(R, views, headings) / hs) ** 2)) / max(len(obs), 1)
         if score > best_score:
             best, best_score = (R, c), score
     return best
@@ -154,9 +245,11 @@ def _best_candidate(candidates: list[tuple[np.ndarray, np.ndarray]], views: Sequ
 
 def _refine_central(views: Sequence[RigView], obs: list[Pick], X: np.ndarray, cps: Sequence[ControlPoint],
                     R_init: np.ndarray, c_init: np.ndarray, use: np.ndarray, prior_centre: np.ndarray | None,
-                    sig_prior: np.ndarray | None, opts: GeorefOptions):
+                    sig_prior: np.ndarray | None, opts: GeorefOptions, headings: Sequence[HeadingPrior] = (),
+                    info_out: dict | None = None):
     """Rotation, centre and their (6, 6) covariance (rig-frame rotation vector, centre; None when singular)
-    refined on the picks ``use`` (robust loss ``opts.loss``), with the centre prior when given."""
+    refined on the picks ``use`` (robust loss ``opts.loss``), with the centre prior when given (an infinite
+    sigma leaves that axis free) and the heading priors."""
     sel = [o for o, u_ in zip(obs, use) if u_]
     depths = []
     for o in sel:
@@ -164,32 +257,90 @@ def _refine_central(views: Sequence[RigView], obs: list[Pick], X: np.ndarray, cp
         depths.append(max(float((v.cam_from_rig @ (R_init @ (X[o.point] - c_init)))[2]), 1e-3))
     sig = np.array([pick_sigma(views[o.view].intrinsics, opts.sigma_px, cps[o.point].sigma_m, d)
                     for o, d in zip(sel, depths)])
+    h_sig = np.radians([h.sigma_deg for h in headings])
+    vi = np.array([o.view for o in sel], int)
+    groups = [(np.nonzero(vi == i)[0], views[i]) for i in np.unique(vi)]  # the picks of each photo, batched
+    Xs = X[[o.point for o in sel]].reshape(-1, 3)
+    UV = np.array([o.uv for o in sel], float).reshape(-1, 2)
+    prior = None if prior_centre is None else np.asarray(prior_centre, float)
 
     def fun(p):
-        R = Rotation.from_rotvec(p[:3]).as_matrix() @ R_init
+        R = _exp(p[:3]) @ R_init
         c = p[3:]
-        res = []
-        for o, s in zip(sel, sig):
-            v = views[o.view]
-            q = v.cam_from_rig @ (R @ (X[o.point] - c))
-            z = max(q[2], 1e-6)
-            xy = v.intrinsics.distort(np.array([[q[0] / z, q[1] / z]]))
-            uv = v.intrinsics.pixels_from_normalized(xy)[0]
-            res.extend((uv - o.uv) / s)
+        P = (Xs - c) @ R.T
+        res = np.empty((len(sel), 2))
+        for k, v in groups:
+            q = P[k] @ np.asarray(v.cam_from_rig, float).T
+            z = np.maximum(q[:, 2], 1e-6)
+            res[k] = v.intrinsics.pixels_from_normalized(v.intrinsics.distort(q[:, :2] / z[:, None]))
+        out = [((res - UV) / sig[:, None]).ravel()]
         if sig_prior is not None:
-            res.extend((c - np.asarray(prior_centre, float)) / sig_prior)
-        return np.asarray(res)
+            out.append((c - prior) / sig_prior)
+        if headings:
+            out.append(_heading_errors(R, views, headings) / h_sig)
+        return np.concatenate(out)
 
     x0 = np.concatenate([np.zeros(3), c_init])
     sol = least_squares(fun, x0, loss=opts.loss, f_scale=opts.loss_scale, x_scale="jac", max_nfev=200)
-    R = Rotation.from_rotvec(sol.x[:3]).as_matrix() @ R_init
+    R = _exp(sol.x[:3]) @ R_init
     cov = None
     try:
         J = sol.jac
         cov = np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
         pass
+    if info_out is not None:
+        info_out["cost"] = float(sol.cost)
     return R, sol.x[3:].copy(), cov
+
+
+def _sample_covariance(views: Sequence[RigView], obs: list[Pick], X: np.ndarray, cps: Sequence[ControlPoint],
+                       R: np.ndarray, c: np.ndarray, use: np.ndarray, prior_centre: np.ndarray | None,
+                       sig_prior: np.ndarray | None, headings: Sequence[HeadingPrior], cov: np.ndarray,
+                       opts: GeorefOptions) -> tuple[np.ndarray, dict]:
+    """``cov`` widened to the scatter of re-solves on perturbed data (few points: with 2 map points and GPS the
+    cost's valley is curved, the camera can slide tens of metres up or down it, and the Jacobian at the solution
+    claims more than it knows). Each of ``opts.sample_count`` re-solves (seeded) moves every pick by its noise
+    (``sqrt(sigma_px^2 + (f sigma_m / depth)^2)``), the centre prior and each heading prior by theirs, and refits
+    from the solution; the second moment of the re-solves about the solution (rotation vector in the rig frame,
+    centre) is compared with ``cov`` and, in each direction where it is larger, replaces it (generalised
+    eigenvalues clipped at 1, so the linear covariance is never narrowed by the sampling noise)."""
+    rng = np.random.default_rng(opts.seed + 1)
+    sel = [k for k, u_ in enumerate(use) if u_]
+    sig = {}
+    for k in sel:
+        o = obs[k]
+        d = max(float((views[o.view].cam_from_rig @ (R @ (X[o.point] - c)))[2]), 1e-3)
+        sig[k] = pick_sigma(views[o.view].intrinsics, opts.sigma_px, cps[o.point].sigma_m, d)
+    devs = []
+    for _ in range(opts.sample_count):
+        obs_k = [Pick(o.point, o.view, o.uv + (rng.normal(0.0, sig[k], 2) if k in sig else 0.0))
+                 for k, o in enumerate(obs)]
+        prior_k = None
+        if prior_centre is not None:
+            fin = np.isfinite(sig_prior)
+            prior_k = np.asarray(prior_centre, float) + np.where(fin, rng.normal(0.0, 1.0, 3) * np.where(fin, sig_prior,
+                                                                                                    0.0), 0.0)
+        heads_k = [HeadingPrior(h.view, h.azimuth_deg + float(rng.normal(0.0, h.sigma_deg)), h.sigma_deg, h.photo)
+                   for h in headings]
+        Rk, ck, _ = _refine_central(views, obs_k, X, cps, R, c, use, prior_k, sig_prior, opts, heads_k)
+        devs.append(np.concatenate([Rotation.from_matrix(orthonormal(Rk) @ R.T).as_rotvec(), ck - c]))
+    D = np.array(devs)
+    S = D.T @ D / len(D)
+    # generalised eigenvalues of S against cov: widen where the samples scatter more
+    try:
+        L = np.linalg.cholesky(0.5 * (cov + cov.T))
+    except np.linalg.LinAlgError:  # the linearisation is singular (as many equations as unknowns): the samples'
+        w, U = np.linalg.eigh(0.5 * (cov + cov.T))
+        out = U @ np.diag(np.maximum(w, 0.0)) @ U.T + S  # scatter on top of what is left of it
+        return 0.5 * (out + out.T), {"sampled_covariance": {"samples": len(D), "widening_sigma_factors": None,
+                                                            "note": "linear covariance singular: samples added"}}
+    Li = np.linalg.inv(L)
+    lam, V = np.linalg.eigh(0.5 * (Li @ S @ Li.T + (Li @ S @ Li.T).T))
+    lam_c = np.maximum(lam, 1.0)
+    out = L @ V @ np.diag(lam_c) @ V.T @ L.T
+    return 0.5 * (out + out.T), {"sampled_covariance": {"samples": len(D),
+                                                        "widening_sigma_factors": np.sqrt(lam_c)[::-1].tolist()}}
 
 
 def _central_residuals(R: np.ndarray, c: np.ndarray, views: Sequence[RigView], obs: list[Pick], X: np.ndarray,
@@ -223,57 +374,93 @@ def _covariance_stats(R: np.ndarray, cov: np.ndarray) -> dict:
             "covariance_world_rotation_centre": (0.5 * (cw + cw.T)).tolist()}
 
 
+def _too_few_points(where: str, n_pts: int, views: Sequence[RigView]) -> InputError:
+    return InputError(f"{where}: {n_pts} control point(s) are picked in the photos {[v.name for v in views]}; "
+                      f"placing the camera needs at least 3 (4 or more to check them), or 2 with the camera "
+                      f"position known (camera.position_enu or GPS in the photos), or 1 with the GPS position and "
+                      f"altitude and the photo's compass direction (EXIF GPSImgDirection, true north); add points "
+                      f"to the file")
+
+
+def _heading_stats(R: np.ndarray, views: Sequence[RigView], headings: Sequence[HeadingPrior]) -> list[dict]:
+    """Each heading prior with the fitted azimuth and the residual (degrees)."""
+    err = np.degrees(_heading_errors(R, views, headings))
+    return [{"view": h.view, "photo": h.photo or views[h.view].name, "prior_deg": float(h.azimuth_deg),
+             "fitted_deg": float((h.azimuth_deg + e) % 360.0), "residual_deg": float(e),
+             "sigma_deg": float(h.sigma_deg)} for h, e in zip(headings, err)]
+
+
 def solve_central(views: Sequence[RigView], cps: Sequence[ControlPoint], *, prior_centre: np.ndarray | None = None,
-                  prior_sigma_m: np.ndarray | float | None = None, opts: GeorefOptions = GeorefOptions(),
-                  where: str = "control_points.json") -> CentralResult:
+                  prior_sigma_m: np.ndarray | float | None = None, heading_priors: Sequence[HeadingPrior] = (),
+                  opts: GeorefOptions = GeorefOptions(), where: str = "control_points.json") -> CentralResult:
     """Place a central rig (panorama or single photo) from control points; see the module docstring.
 
-    ``prior_centre`` (3,) ENU metres with ``prior_sigma_m`` (scalar or (3,)): a soft prior on the centre.
-    Needs 3 control points (4 or more to be safe) seen in the photos, or 2 with a centre prior.
+    ``prior_centre`` (3,) ENU metres with ``prior_sigma_m`` (scalar or (3,); ``inf`` leaves that axis free): a
+    soft prior on the centre. ``heading_priors``: priors on the azimuth of a view's optical axis.
+    Needs 3 control points (4 or more to be safe) seen in the photos, or 2 with a centre prior, or 1 with a
+    centre prior on all three axes and a heading prior (6 equations for the 6 unknowns).
     """
     obs = picks_in_views(cps, views, where)
     X = np.array([cp.enu for cp in cps], float)
     n_pts = len({o.point for o in obs})
     has_prior = prior_centre is not None
-    if n_pts < 3 and not (has_prior and n_pts >= 2):
-        raise InputError(f"{where}: {n_pts} control point(s) are picked in the photos {[v.name for v in views]}; "
-                         f"placing the camera needs at least 3 (4 or more to check them), or 2 with the camera "
-                         f"position known (camera.position_enu or GPS in the photos); add points to the file")
+    headings = list(heading_priors)
+    sig_prior = None
+    if has_prior:
+        sig_prior = np.broadcast_to(np.asarray(prior_sigma_m if prior_sigma_m is not None else opts.prior_sigma_m,
+                                               float), (3,)).copy()
+    n_fixed = (int(np.isfinite(sig_prior).sum()) if has_prior else 0) + len(headings)
+
+    def enough(n: int) -> bool:  # n distinct points, with the priors, fix the 6 unknowns
+        return n >= 3 or (has_prior and n >= 1 and 2 * n + n_fixed >= 6)
+
+    if not enough(n_pts):
+        raise _too_few_points(where, n_pts, views)
     bear = np.array([views[o.view].cam_from_rig.T @ views[o.view].intrinsics.rays(o.uv[None])[0] for o in obs])
     pts = np.array([o.point for o in obs])
     rng = np.random.default_rng(opts.seed)
-    candidates = _start_candidates(bear, pts, X, n_pts, prior_centre, opts, rng)
+    candidates = _start_candidates(bear, pts, X, n_pts, prior_centre, opts, rng, views, headings)
     if not candidates:
         raise InputError(f"{where}: the control points give no camera pose (degenerate geometry: are the points "
                          f"on one line, or all picked at the same place?); add points spread over the view")
     thr = opts.ransac_threshold_px
-    R0, c0_est = _best_candidate(candidates, views, obs, X, prior_centre, prior_sigma_m, opts)
+    R0, c0_est = _best_candidate(candidates, views, obs, X, prior_centre, sig_prior, opts, headings)
+    n_multi = 0
+    if has_prior and n_pts <= opts.sample_max_points:
+        grid_best, n_multi = _multi_start(bear, pts, X, views, obs, cps, prior_centre, sig_prior, headings, opts, rng,
+                                          (R0, c0_est))
+        if grid_best is not None:
+            R0, c0_est = grid_best
     err0, _ = _central_errors(R0, c0_est, views, obs, X)
     inl = err0 < thr
     if inl.sum() < min(3, len(obs)) and not has_prior:
         raise InputError(f"{where}: no camera pose agrees with more than {int(inl.sum())} of the {len(obs)} picks "
                          f"(threshold {thr} px); check the point names, coordinates and pixels")
-    sig_prior = None
-    if has_prior:
-        sig_prior = np.broadcast_to(np.asarray(prior_sigma_m if prior_sigma_m is not None else opts.prior_sigma_m,
-                                               float), (3,)).copy()
     R1, c1, _ = _refine_central(views, obs, X, cps, R0, c0_est, np.ones(len(obs), bool), prior_centre, sig_prior,
-                                opts)
+                                opts, headings)
     err1, _ = _central_errors(R1, c1, views, obs, X)
     inl = err1 < thr
-    if inl.sum() >= (2 if has_prior else 3):
-        R1, c1, cov = _refine_central(views, obs, X, cps, R1, c1, inl, prior_centre, sig_prior, opts)
+    sample_info: dict = {}
+    if enough(len(set(pts[inl].tolist()))):
+        R1, c1, cov = _refine_central(views, obs, X, cps, R1, c1, inl, prior_centre, sig_prior, opts, headings)
+        if n_pts <= opts.sample_max_points and opts.sample_count > 0 and cov is not None \
+                and np.all(np.isfinite(cov)):
+            cov, sample_info = _sample_covariance(views, obs, X, cps, R1, c1, inl, prior_centre, sig_prior, headings,
+                                                  cov, opts)
     else:
         cov = None
     R1 = orthonormal(R1)
     residuals = _central_residuals(R1, c1, views, obs, X, bear, cps, opts)
     stats = summarize_residuals(residuals, opts)
     stats.update({"n_points": n_pts, "n_observations": len(obs), "prior": "yes" if has_prior else "no",
-                  "ransac_candidates": len(candidates)})
+                  "ransac_candidates": len(candidates) + n_multi})
     if cov is not None and np.all(np.isfinite(cov)):
         stats.update(_covariance_stats(R1, cov))
+    stats.update(sample_info)
     if has_prior:
         stats["centre_minus_prior_m"] = (c1 - np.asarray(prior_centre, float)).tolist()
+    if headings:
+        stats["heading_priors"] = _heading_stats(R1, views, headings)
     warns = warn_residuals(residuals, stats, opts, where)
     return CentralResult(R1, c1, residuals, stats, warns)
 

@@ -1,14 +1,12 @@
 """The central routes: the ``panorama`` route (the stitch stage's panorama model placed by ``world_from_pano``)
 and the ``single`` route (one photo, intrinsics from the camera profile or the EXIF focal), both solved by
 :func:`~workbench.georef.central.solve_central` from the control points, with ``camera.position_enu`` or EXIF GPS
-as a prior on the centre."""
+as a prior on the centre and EXIF ``GPSImgDirection`` as a prior on each photo's heading (:mod:`.priors`)."""
 
 from __future__ import annotations
 
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
-
 import numpy as np
 from PIL import Image
 
@@ -21,21 +19,22 @@ from .central import solve_central
 from ..files.control_points import ControlPoint
 from .documents import georeg_block, view_entry
 from ..files.panorama import PanoramaFile, RigView, read_panorama
-from .inputs import PANORAMA_KEY, gps_enu, photos_by_name, require_control_points
+from .inputs import PANORAMA_KEY, photos_by_name, require_control_points
 from .options import GeorefOptions
+from .priors import Priors, central_priors, prior_outcome
 
 __all__ = ["panorama_route", "single_route"]
 
 
-def _prior(project: Project, photo_paths: list[Path | None], opts: GeorefOptions) -> tuple[np.ndarray | None, Any, str]:
-    """(centre prior, its 1-sigma, its source): ``camera.position_enu``, else the photos' mean EXIF GPS."""
-    pos = project.settings.camera.position_enu
-    if pos is not None:
-        return np.asarray(pos, float), opts.prior_sigma_m, "camera.position_enu"
-    gps = [g for g in (gps_enu(project, p) for p in photo_paths) if g is not None]
-    if gps:
-        return np.mean(gps, axis=0), np.asarray(opts.gps_sigma_m, float), "exif_gps"
-    return None, None, "none"
+def _priors(project: Project, photos: list[tuple[str, Path | None]], opts: GeorefOptions) -> Priors:
+    """The centre and heading priors of the rig whose views are ``photos`` (:func:`central_priors`)."""
+    return central_priors(project.frame, project.settings.camera.position_enu, photos, opts)
+
+
+def _prior_stats(pri: Priors, res) -> tuple[dict, dict]:
+    """(the ``georegistration`` block's prior entries, the stage statistics' ones)."""
+    rec = prior_outcome(pri, res.stats)
+    return {"prior_source": pri.source, "priors": rec}, {"prior_source": pri.source, "priors": rec}
 
 
 def panorama_route(project: Project, opts: GeorefOptions, where: str) -> tuple[dict, dict]:
@@ -48,8 +47,10 @@ def panorama_route(project: Project, opts: GeorefOptions, where: str) -> tuple[d
     views, pdoc = list(pano.sources), pano.doc
     cps = _panorama_pixels_to_sources(require_control_points(project), pano, where)
     photos = photos_by_name(project)
-    prior, prior_sigma, prior_src = _prior(project, [photos.get(v.name) for v in views], opts)
-    res = solve_central(views, cps, prior_centre=prior, prior_sigma_m=prior_sigma, opts=opts, where=where)
+    pri = _priors(project, [(v.name, photos.get(v.name)) for v in views], opts)
+    res = solve_central(views, cps, prior_centre=pri.centre, prior_sigma_m=pri.sigma_m, heading_priors=pri.headings,
+                        opts=opts, where=where)
+    block_extra, stats_extra = _prior_stats(pri, res)
     src = str(pdoc.get("intrinsics_source", project.settings.camera.source.value))
     focal_known = src in ("calibrated", "sfm")
     images = pano.images
@@ -58,11 +59,11 @@ def panorama_route(project: Project, opts: GeorefOptions, where: str) -> tuple[d
                             v.intrinsics, res.cam_from_world(v.cam_from_rig), focal_known) for v in views]
     pano_image = project.stage_dir("stitch") / "panorama.jpg"
     doc = {"route": "panorama", "intrinsics_source": src,
-           "georegistration": georeg_block("control_points", res, {"prior_source": prior_src}),
+           "georegistration": georeg_block("control_points", res, block_extra),
            "views": out_views,
            "panorama": {"model": project.relative(pano_path), "image": project.relative(pano_image),
                         "world_from_pano": res.world_from_rig.tolist()}}
-    return doc, {**dict(res.stats), "prior_source": prior_src, "centre_enu": res.centre_enu.tolist()}
+    return doc, {**dict(res.stats), **stats_extra, "centre_enu": res.centre_enu.tolist()}
 
 
 def _panorama_pixels_to_sources(cps: list[ControlPoint], pano: PanoramaFile, where: str) -> list[ControlPoint]:
@@ -110,13 +111,15 @@ def single_route(project: Project, opts: GeorefOptions, where: str) -> tuple[dic
     photo = project.photo_paths()[0]
     intr, src = _single_intrinsics(project, photo)
     cps = require_control_points(project)
-    prior, prior_sigma, prior_src = _prior(project, [photo], opts)
+    pri = _priors(project, [(photo.name, photo)], opts)
     view = RigView(photo.name, intr, np.eye(3))
-    res = solve_central([view], cps, prior_centre=prior, prior_sigma_m=prior_sigma, opts=opts, where=where)
+    res = solve_central([view], cps, prior_centre=pri.centre, prior_sigma_m=pri.sigma_m, heading_priors=pri.headings,
+                        opts=opts, where=where)
+    block_extra, stats_extra = _prior_stats(pri, res)
+    solver = "p3p_ransac_refined" if pri.centre is None else "p3p_and_prior_starts_refined_with_priors"
     doc = {"route": "single", "intrinsics_source": src,
-           "georegistration": georeg_block("control_points", res, {"solver": "p3p_ransac_refined",
-                                                                   "prior_source": prior_src}),
+           "georegistration": georeg_block("control_points", res, {"solver": solver, **block_extra}),
            "views": [view_entry(photo.name, project.relative(photo), intr, res.cam_from_world(np.eye(3)),
                                 src == "calibrated")],
            "panorama": None}
-    return doc, {**dict(res.stats), "prior_source": prior_src, "centre_enu": res.centre_enu.tolist()}
+    return doc, {**dict(res.stats), **stats_extra, "centre_enu": res.centre_enu.tolist()}

@@ -16,7 +16,9 @@ Routes (``route`` in cameras.json; docs/gis.md):
   camera profile (``calibrated``) or the EXIF focal (``exif``).
 
 Control-point residuals (pixels and metres, per point and per photo) go to ``out/georef/stats.json`` and into
-``cameras.json``'s ``georegistration``; large ones are warned about (:class:`GeorefResidualsLarge`).
+``cameras.json``'s ``georegistration``; large ones are warned about (:class:`GeorefResidualsLarge`), and so is a
+malformed EXIF GPS tag, which is ignored (:class:`~workbench.georef.gps.GpsTagIgnored`). The central routes'
+priors (GPS centre, compass heading) and their sigmas are in ``georegistration.priors`` and the statistics.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from typing import Any
 from ..core.layout import CAMERAS_FILE
 from ..project import Project
 from ..core.stage_api import Progress, StageResult
+from .gps import GpsTagIgnored
 from .options import GeorefOptions, GeorefResidualsLarge
 from .route_central import panorama_route, single_route
 from .route_known import known_route
@@ -46,6 +49,7 @@ def run_georef(project: Project, progress: Progress, opts: GeorefOptions = Geore
     progress(0.05, route)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", GeorefResidualsLarge)
+        warnings.simplefilter("always", GpsTagIgnored)
         if route == "known":
             doc, extra = known_route(project, opts)
         elif route == "panorama":
@@ -56,8 +60,12 @@ def run_georef(project: Project, progress: Progress, opts: GeorefOptions = Geore
             doc, extra = relative_route(project)
         else:
             doc, extra = single_route(project, opts, where)
+    for w in caught:  # a malformed GPS tag is also shown to the user (one line each, the CLI's handler)
+        if issubclass(w.category, GpsTagIgnored):
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     stats.update(extra)
-    stats["warnings"] = [str(w.message) for w in caught if issubclass(w.category, GeorefResidualsLarge)]
+    stats["warnings"] = [str(w.message) for w in caught
+                         if issubclass(w.category, (GeorefResidualsLarge, GpsTagIgnored))]
     progress(0.9, "writing cameras.json")
     path = project.write_json(out_dir / CAMERAS_FILE, doc)
     return StageResult(outputs={"cameras": path}, stats=stats)
