@@ -153,7 +153,7 @@ def parse_solution(doc: Any, path: Path | str, *, frame: SceneFrame | None = Non
         cars.append(SolvedCarriage(index, number, status, M, c))
     fr = doc.get("frame")
     W = np.eye(4)
-    if isinstance(fr, dict) and fr.get("kind") == "relative":
+    if isinstance(fr, dict) and fr.get("kind") in ("relative", "gps"):
         W = _rigid(fr.get("world_from_cameras"), f"{where}: frame.world_from_cameras")
     return Solution(Path(path), tuple(cars), _focal(doc, where), doc, W)
 

@@ -17,6 +17,8 @@ from ..files.intrinsics import resolve_intrinsics
 from ..files.panorama import read_panorama
 from ..project import Project
 from .documents import view_entry
+from .options import GeorefOptions
+from .priors import central_priors
 
 __all__ = ["relative_route", "LEVEL_CAM_FROM_WORLD", "RELATIVE_NOTE"]
 
@@ -33,6 +35,25 @@ def _pose(R: np.ndarray) -> np.ndarray:
     M = np.eye(4)
     M[:3, :3] = R
     return M
+
+
+def _anchor(project: Project, reference: str, names: list[str]) -> dict | None:
+    """Where the reference photo's EXIF (or ``camera.position_enu``) puts the camera and which way it looked: the
+    centre (ENU m) and its 1-sigma, the compass azimuth (true north) of the reference photo and its 1-sigma, and
+    what was read (:func:`~workbench.georef.priors.central_priors`); None without a centre. The solve stage
+    places the levelled scene with it when both are there (docs/gis.md, "Relative incidents")."""
+    by_name = {p.name: p for p in project.photo_paths()}
+    opts = GeorefOptions()
+    pr = central_priors(project.frame, project.settings.camera.position_enu,
+                        [(n, by_name.get(n)) for n in names], opts)
+    if pr.centre is None:
+        return None
+    ref = names.index(reference)
+    heading = next((h for h in pr.headings if h.view == ref), None)
+    sig = [float(x) if np.isfinite(x) else None for x in pr.sigma_m]
+    return {"source": pr.source, "centre_enu": pr.centre.tolist(), "sigma_enu_m": sig,
+            "azimuth_deg": None if heading is None else heading.azimuth_deg,
+            "sigma_azimuth_deg": None if heading is None else heading.sigma_deg, "priors": pr.record}
 
 
 def relative_route(project: Project) -> tuple[dict, dict]:
@@ -63,7 +84,9 @@ def relative_route(project: Project) -> tuple[dict, dict]:
                             choice.focal_known[p.name])]
         route, reference, src, panorama = "single", p.name, choice.source, None
     doc = {"route": route, "frame": "relative", "intrinsics_source": src, "georegistration": None,
-           "relative": {"reference_view": reference, "note": RELATIVE_NOTE}, "views": views, "panorama": panorama}
+           "relative": {"reference_view": reference, "note": RELATIVE_NOTE,
+                        "anchor": _anchor(project, reference, [v["name"] for v in views])},
+           "views": views, "panorama": panorama}
     if len(photos) > 1 and panorama is None:
         doc["relative"]["photos_left_out"] = [q.name for q in photos[1:]]
     stats = {"frame": "relative", "reference_view": reference, "n_views": len(views), "note": RELATIVE_NOTE}

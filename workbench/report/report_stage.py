@@ -531,6 +531,8 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
         "sigma_est": _f(solution.get("sigma_px_estimated"), 2), "dof": solution.get("dof", "–"),
         "ci95_factor": _f(solution.get("ci95_factor"), 2),
         "georef": ("none: relative scene, levelled from the carriages" if sol.relative else
+                   "the photo's GPS and compass (levelled from the carriages)"
+                   if (solution.get("frame") or {}).get("kind") == "gps" else
                    (cams.get("georegistration") or {}).get("method", "–")),
         "interval_scope": interval_scope(solution, s.solver, s.terrain.dem_vertical_accuracy_m),
     }
@@ -543,7 +545,7 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
         "generated": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "summary": summary, "rows": rows, "warnings": [_warning_text(w) for w in solution.get("warnings", [])],
         "findings": findings(project, solution), "track": None if sol.relative else track_table(project, sol),
-        "relative": relative_context(sol),
+        "relative": relative_context(sol), "placement": placement_context(sol),
         "overview": (by_kind.get("overview") or [None])[0], "map": (by_kind.get("map") or [None])[0],
         "photos": by_kind.get("photo", []), "closeups": by_kind.get("closeup", []),
         "orbit": (by_kind.get("orbit") or [None])[0], "observations": obs_figs, "panorama": panorama_img,
@@ -570,6 +572,17 @@ def relative_context(sol: Any) -> dict | None:
            "levelled as if the photo had been held level (no carriage stands on its wheels)")
     return {"levelling": how, "tilt": f"{max(tilt):.2f}", "left_out": ", ".join(lev.get("cars_left_out") or []),
             "method": lev.get("method", "?")}
+
+
+def placement_context(sol: Any) -> dict | None:
+    """What the report says of a scene placed by a photo's GPS and compass (``frame.kind = "gps"``), or None."""
+    fr = sol.doc.get("frame") or {}
+    if fr.get("kind") != "gps":
+        return None
+    p = fr.get("placement") or {}
+    s = [x for x in (p.get("sigma_enu_m") or [])[:2] if x is not None]
+    return {"sigma_h": f"{max(s):.1f}" if s else "?", "sigma_az": _f(p.get("sigma_azimuth_deg"), 0),
+            "height_from": p.get("height_from", "?"), "source": p.get("source", "?")}
 
 
 def render_html(ctx: dict) -> str:

@@ -55,6 +55,9 @@ class Levelling:
     method: str  # "carriages" | "camera"
     note: str
     facts: dict = field(default_factory=dict)
+    # where the photo's GPS and compass placed the levelled scene (the solve stage's): world_from_levelled (4, 4),
+    # cov (6, 6), centre_enu (3,), record; None: the scene stays relative
+    placement: dict | None = None
 
     @property
     def sigma_tilt_deg(self) -> list[float]:

@@ -194,6 +194,17 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
     if relative and any(c.status != "left_out" for c in res.carriages):
         progress(0.8, "levelling the relative scene")
         res, views, levelling = _level(res, carriages, links, views, opts, s.solver)
+        placed = _gps_placement(project, cam_doc, levelling)
+        if placed is not None:  # the photo's GPS and compass put the levelled scene on the Earth
+            progress(0.85, "placing the scene by the photo's GPS and compass")
+            inv = np.linalg.inv(placed["world_from_levelled"])
+            views = [replace(v, cam_from_world=np.asarray(v.cam_from_world, float) @ inv) for v in views]
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", SolveWarning)
+                res = solve_consist(carriages, links, views, opts, None)
+            levelling.placement = placed
+            log.info("solve: placed by %s: centre sigma %s m, azimuth sigma %.1f deg", placed["record"]["source"],
+                     placed["record"]["sigma_enu_m"], placed["record"]["sigma_azimuth_deg"])
     progress(0.9, "writing the solution")
     fit_sigmas = {c.number: (c.sigma_body_centre_m, c.sigma_hpr_deg) for c in res.carriages}
     camera_unc = camera_uncertainty(cam_doc) if levelling is None else _levelling_uncertainty(levelling)
@@ -350,10 +361,54 @@ def _exif_focal_check(carriages: list, links: list, views: list, opts: Any, terr
 
 def _levelling_uncertainty(lev: Levelling) -> dict:
     """The levelling's tilt error as a camera-pose covariance about the origin (the camera), for
-    :func:`add_camera_uncertainty`."""
+    :func:`add_camera_uncertainty`; with a GPS placement, its heading and centre errors too, about the camera."""
+    placed = getattr(lev, "placement", None)
+    if placed is not None:
+        return {"cov": placed["cov"], "centre_enu": placed["centre_enu"], "levelling": True, "gps": True}
     C = np.zeros((6, 6))
     C[:3, :3] = lev.cov_rotation
     return {"cov": C, "centre_enu": np.zeros(3), "levelling": True}
+
+
+EYE_HEIGHT_M = 1.6  # a photo without GPS altitude: taken at eye height above the DEM, +-1 m (1 sigma)
+
+
+def _gps_placement(project: Project, cam_doc: dict, lev: Levelling) -> dict | None:
+    """``world_from_levelled`` (4, 4), its covariance as a camera pose (6, 6: rotation vector, centre; about the
+    camera) and a record, where the reference photo's EXIF gives a position and a true-north compass azimuth
+    (``cameras.json`` ``relative.anchor``): y (the photo's centre ray) turned to that azimuth, the camera to that
+    position; the height from GPS altitude, else the DEM plus eye height. None (the scene stays relative) without
+    them; the reason is logged."""
+    a = (cam_doc.get("relative") or {}).get("anchor")
+    if not a:
+        return None
+    sig = a.get("sigma_enu_m") or [None] * 3
+    if a.get("azimuth_deg") is None or sig[0] is None or sig[1] is None:
+        log.info("solve: the photo's EXIF gives a position but no true-north compass direction: the scene stays "
+                 "relative")
+        return None
+    C = np.asarray(a["centre_enu"], float).copy()
+    s_up, height_from = sig[2], "GPS altitude"
+    if s_up is None:
+        if not project.settings.terrain.dem:
+            log.info("solve: the photo's EXIF has no GPS altitude and the incident no DEM: the scene stays relative")
+            return None
+        tm = project.terrain_model()
+        C[2] = float(tm.height_at(C[None, :2])[0]) + EYE_HEIGHT_M
+        s_up = math.hypot(float(project.settings.terrain.dem_vertical_accuracy_m), 1.0)
+        height_from = f"the DEM + {EYE_HEIGHT_M} m (eye height)"
+    al = math.radians(float(a["azimuth_deg"]))
+    Rz = np.array([[math.cos(al), math.sin(al), 0.0], [-math.sin(al), math.cos(al), 0.0], [0.0, 0.0, 1.0]])
+    W = np.eye(4)
+    W[:3, :3], W[:3, 3] = Rz, C
+    cov = np.zeros((6, 6))
+    cov[:3, :3] = Rz @ lev.cov_rotation @ Rz.T
+    cov[2, 2] += math.radians(float(a["sigma_azimuth_deg"])) ** 2
+    cov[3:, 3:] = np.diag([float(sig[0]) ** 2, float(sig[1]) ** 2, float(s_up) ** 2])
+    rec = {"source": a.get("source"), "centre_enu": C.tolist(), "sigma_enu_m": [sig[0], sig[1], s_up],
+           "height_from": height_from, "azimuth_deg": float(a["azimuth_deg"]),
+           "sigma_azimuth_deg": float(a["sigma_azimuth_deg"]), "priors": a.get("priors")}
+    return {"world_from_levelled": W, "cov": cov, "centre_enu": C, "record": rec}
 
 
 def camera_uncertainty(cam_doc: dict) -> dict | None:
@@ -392,6 +447,14 @@ def _camera_uncertainty_record(camera_unc: dict | None, cam_doc: dict) -> dict:
         return {"included": False, "note": why}
     C = camera_unc["cov"]
     sd = np.sqrt(np.clip(np.diag(C), 0.0, None))
+    if camera_unc.get("gps"):
+        return {"included": True,
+                "note": "placed by the photo's GPS and compass: the levelling's tilt, the compass's heading and the "
+                        "GPS centre's uncertainty are added to every carriage's (first order: the scene turns and "
+                        "moves with the camera); sigma_*_fit_* give the fit's alone",
+                "sigma_rotation_deg": np.degrees(sd[:3]).tolist(), "sigma_centre_m": sd[3:].tolist(),
+                "centre_enu": np.asarray(camera_unc["centre_enu"], dtype=float).tolist(),
+                "carriages": camera_unc.get("carriages", [])}
     if camera_unc.get("levelling"):
         return {"included": True,
                 "note": "relative scene: the levelling's tilt uncertainty (from the upright carriages) is added to "
@@ -421,6 +484,11 @@ def _frame_record(project: Project, levelling: Levelling | None) -> dict:
     loc = project.settings.location
     if levelling is None:
         return {"kind": "georeferenced", "crs": loc.crs, "lat": loc.lat, "lon": loc.lon, "height_m": loc.height_m}
+    placed = levelling.placement
+    if placed is not None:  # levelled from the carriages, placed by the photo's GPS and compass
+        W = placed["world_from_levelled"] @ levelling.world_from_provisional
+        return {"kind": "gps", "crs": loc.crs, "lat": loc.lat, "lon": loc.lon, "height_m": loc.height_m,
+                "world_from_cameras": W.tolist(), "levelling": levelling.to_dict(), "placement": placed["record"]}
     return {"kind": "relative", "crs": None,
             "axes": "origin at the camera centre; z up (levelled from the carriages standing on their wheels); y "
                     "along the ray through the reference photo's centre pixel, x to its right; metres (the cars' "
@@ -433,7 +501,7 @@ def solution_document(project: Project, res: Any, views: list, cam_doc: dict, ob
     """The ``solution.json`` document (docs/pipeline.md) of a :class:`SolveResult`; ``levelling`` for a relative
     scene (no CRS or WGS84 figures then)."""
     frame = project.frame
-    georeferenced = levelling is None
+    georeferenced = levelling is None or levelling.placement is not None
     d = res.to_dict()
     s = project.settings
     cars_out = []

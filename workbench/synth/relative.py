@@ -91,3 +91,47 @@ def write_relative_incident(root: Path, sim: SimProblem, *, focal_known: bool, s
            for c in sim.carriages for p, uv in c.observations[view].items()]
     (root / "correspondences.json").write_text(json.dumps({"observations": obs}), encoding="utf-8")
     return root
+
+
+def write_gps_exif(photo: Path, lon_deg: float, lat_deg: float, alt_m: float | None, direction_deg: float | None,
+                   h_error_m: float | None = None) -> None:
+    """Write a phone's EXIF GPS block into ``photo`` (JPEG, rewritten in place): position, altitude, the true-north
+    direction of the image (``GPSImgDirection``, ref ``T``) and ``GPSHPositioningError``, where given."""
+    import piexif
+    from PIL import Image
+
+    def dms(x: float) -> tuple:
+        x = abs(x)
+        d = int(x)
+        m = int((x - d) * 60)
+        s = (x - d - m / 60.0) * 3600.0
+        return ((d, 1), (m, 1), (int(round(s * 10000)), 10000))
+
+    G = piexif.GPSIFD
+    gps = {G.GPSLatitudeRef: b"N" if lat_deg >= 0 else b"S", G.GPSLatitude: dms(lat_deg),
+           G.GPSLongitudeRef: b"E" if lon_deg >= 0 else b"W", G.GPSLongitude: dms(lon_deg)}
+    if alt_m is not None:
+        gps[G.GPSAltitudeRef] = 0 if alt_m >= 0 else 1
+        gps[G.GPSAltitude] = (int(round(abs(alt_m) * 100)), 100)
+    if direction_deg is not None:
+        gps[G.GPSImgDirectionRef] = b"T"
+        gps[G.GPSImgDirection] = (int(round((direction_deg % 360.0) * 100)), 100)
+    if h_error_m is not None:
+        gps[G.GPSHPositioningError] = (int(round(h_error_m * 100)), 100)
+    with Image.open(photo) as im:
+        im.load()
+        im.save(photo, exif=piexif.dump({"0th": {}, "Exif": {}, "GPS": gps, "1st": {}}))
+
+
+def truth_gps(sim: SimProblem, frame, rng: np.random.Generator, sigma_h_m: float, sigma_v_m: float,
+              sigma_deg: float) -> tuple[float, float, float, float]:
+    """(lon, lat, altitude, compass azimuth) a phone would write for the simulation's camera: its centre with
+    Gaussian noise (``sigma_h_m`` per horizontal axis, ``sigma_v_m`` up) in WGS84 through ``frame``, and the true
+    azimuth of the ray through the photo's centre pixel plus N(0, ``sigma_deg``)."""
+    M = np.asarray(sim.views[0].cam_from_world, float)
+    C = -M[:3, :3].T @ M[:3, 3] + rng.normal(0.0, 1.0, 3) * [sigma_h_m, sigma_h_m, sigma_v_m]
+    lon, lat, alt = frame.wgs84_from_enu(C[None])[0]
+    k = sim.views[0].intrinsics
+    f = M[:3, :3].T @ np.array([((k.width - 1) / 2.0 - k.cx) / k.fx, ((k.height - 1) / 2.0 - k.cy) / k.fy, 1.0])
+    az = math.degrees(math.atan2(f[0], f[1])) + rng.normal(0.0, sigma_deg)
+    return float(lon), float(lat), float(alt), az % 360.0
