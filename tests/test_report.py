@@ -284,3 +284,18 @@ def test_solver_warnings_read_as_sentences():
     assert _warning_text(rec) == "car 6240: 0 visible marked point(s); left out"
     assert _warning_text({"car": "6240", "kind": "left_out"}) == "car: 6240; kind: left_out"
     assert _warning_text("focal at the edge of the plausible range") == "focal at the edge of the plausible range"
+
+
+def test_the_report_names_the_georegistrations_priors():
+    """The priors the georegistration used (cameras.json georegistration.priors: EXIF GPS, compass) and those it
+    left out are one line under the facts; none, no line."""
+    from workbench.report.report_stage import priors_text
+
+    g = {"priors": {"used": ["centre", "heading"],
+                    "centre": {"source": "exif_gps", "sigma_enu_m": [3.54, 3.54, 15.0]},
+                    "heading": [{"photo": "p1.jpg", "azimuth_deg": 123.4, "sigma_deg": 15.0}],
+                    "notes": ["p2.jpg: GPSImgDirection 80.0 deg is magnetic (GPSImgDirectionRef = M); not used"]}}
+    t = priors_text(g)
+    assert "the photos' EXIF GPS (±3.5 m, 1σ)" in t and "p1.jpg's compass 123° (±15°)" in t
+    assert "Not used: p2.jpg: GPSImgDirection 80.0 deg is magnetic" in t
+    assert priors_text({}) is None and priors_text({"priors": {"used": [], "notes": []}}) is None

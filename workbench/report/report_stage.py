@@ -546,6 +546,7 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
         "summary": summary, "rows": rows, "warnings": [_warning_text(w) for w in solution.get("warnings", [])],
         "findings": findings(project, solution), "track": None if sol.relative else track_table(project, sol),
         "relative": relative_context(sol), "placement": placement_context(sol),
+        "priors": priors_text(cams.get("georegistration") or {}),
         "overview": (by_kind.get("overview") or [None])[0], "map": (by_kind.get("map") or [None])[0],
         "photos": by_kind.get("photo", []), "closeups": by_kind.get("closeup", []),
         "orbit": (by_kind.get("orbit") or [None])[0], "observations": obs_figs, "panorama": panorama_img,
@@ -572,6 +573,26 @@ def relative_context(sol: Any) -> dict | None:
            "levelled as if the photo had been held level (no carriage stands on its wheels)")
     return {"levelling": how, "tilt": f"{max(tilt):.2f}", "left_out": ", ".join(lev.get("cars_left_out") or []),
             "method": lev.get("method", "?")}
+
+
+def priors_text(georegistration: dict) -> str | None:
+    """One line on the priors the georegistration used (EXIF GPS, compass, ``camera.position_enu``), or None."""
+    pri = georegistration.get("priors") or {}
+    parts = []
+    c = pri.get("centre") or {}
+    if "centre" in (pri.get("used") or []) and c:
+        s = [x for x in (c.get("sigma_enu_m") or [])[:2] if x is not None]
+        src = {"exif_gps": "the photos' EXIF GPS", "camera.position_enu": "camera.position_enu"}.get(
+            c.get("source"), str(c.get("source")))
+        parts.append(f"camera centre from {src}" + (f" (±{max(s):.1f} m, 1σ)" if s else ""))
+    for h in pri.get("heading") or []:
+        parts.append(f"{h.get('photo')}'s compass {float(h.get('azimuth_deg', float('nan'))):.0f}° "
+                     f"(±{float(h.get('sigma_deg', float('nan'))):.0f}°)")
+    notes = [str(n) for n in pri.get("notes") or []]
+    if not parts and not notes:
+        return None
+    return ("Priors used by the georegistration: " + ("; ".join(parts) if parts else "none")
+            + (". Not used: " + " ".join(notes) if notes else "."))
 
 
 def placement_context(sol: Any) -> dict | None:
