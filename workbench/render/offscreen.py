@@ -35,6 +35,7 @@ import trimesh
 from ..errors import RenderError
 
 _MAX_CANVAS = 16384
+PASS_THREADS = 2  # threads for the sub-pixel passes of a supersampled ray-traced render
 
 _INSTALL_HINT = ("install the Vulkan/EGL runtime, e.g. on Debian/Ubuntu: "
                  "`apt-get install libusb-1.0-0 libvulkan1 mesa-vulkan-drivers libegl1 libgl1` "
@@ -664,17 +665,30 @@ def _raytrace_color(self: "OffscreenScene", cam_from_world: np.ndarray, xy_of_uv
     acc = np.zeros((height * width, 3), np.float32)
     u, v = np.meshgrid(np.arange(width, dtype=float), np.arange(height, dtype=float))
     base = np.column_stack([u.ravel(), v.ravel()])
-    for oy in offs:
-        for ox in offs:
-            xy = xy_of_uv(base + [ox, oy])
-            ok = np.all(np.isfinite(xy), axis=1)
-            col = np.broadcast_to(_linear_from_srgb(np.asarray(self.background_rgb, float)).astype(np.float32),
-                                  (len(xy), 3)).copy()
-            shaded, hit = _raytrace_shade(self, cam_from_world, xy[ok])
-            # exposure and a soft shoulder on lit surfaces; the sky keeps its colour
-            shaded[hit] = shaded[hit] * 1.15 / (1.0 + 0.22 * shaded[hit])
-            col[ok] = shaded
-            acc += col
+    def one_pass(o: tuple[float, float]) -> np.ndarray:
+        xy = xy_of_uv(base + [o[1], o[0]])
+        ok = np.all(np.isfinite(xy), axis=1)
+        col = np.broadcast_to(_linear_from_srgb(np.asarray(self.background_rgb, float)).astype(np.float32),
+                              (len(xy), 3)).copy()
+        shaded, hit = _raytrace_shade(self, cam_from_world, xy[ok])
+        # exposure and a soft shoulder on lit surfaces; the sky keeps its colour
+        shaded[hit] = shaded[hit] * 1.15 / (1.0 + 0.22 * shaded[hit])
+        col[ok] = shaded
+        return col
+
+    passes = [(oy, ox) for oy in offs for ox in offs]
+    if len(passes) > 1 and threading.current_thread() is threading.main_thread():
+        # the sub-pixel passes on two threads (each computed as alone, summed in their order: the same picture);
+        # not where the caller already renders several pictures at once on threads
+        from concurrent.futures import ThreadPoolExecutor
+
+        self.prepare()
+        with ThreadPoolExecutor(max_workers=PASS_THREADS) as pool:
+            cols = list(pool.map(one_pass, passes))
+    else:
+        cols = [one_pass(o) for o in passes]
+    for col in cols:
+        acc += col
     acc /= s * s
     return (np.round(_srgb_from_linear(acc) * 255.0)).astype(np.uint8).reshape(height, width, 3)
 
