@@ -117,3 +117,25 @@ def test_scaled_intrinsics_keep_pixel_centres():
     s = c.scaled(2.0)
     assert (s.width, s.height) == (200, 160)
     assert np.isclose(s.cx, 99.5) and np.isclose(s.cy, 79.5)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 1e-5, 0.3, 2.0, np.pi - 1e-2, np.pi - 1e-5, np.pi - 1e-9, np.pi])
+def test_so3_log_inverts_exp_at_every_angle(angle):
+    """``log_so3(exp_so3(w)) = w`` for angles in [0, pi) (at pi, either sign of the axis), and it agrees with
+    scipy's rotation vectors, which the georef solvers used before (the one geometry module, issue 19)."""
+    from scipy.spatial.transform import Rotation
+
+    from workbench.core.geometry import exp_so3, log_so3
+
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        a = rng.normal(size=3)
+        w = a / np.linalg.norm(a) * angle
+        R = exp_so3(w)
+        lw = log_so3(R)
+        assert np.linalg.norm(exp_so3(lw) - R) < 1e-12
+        assert np.linalg.norm(np.cross(lw, w)) < 1e-9 * max(angle, 1.0)  # the same axis
+        if angle < np.pi - 1e-6:
+            assert np.allclose(lw, w, atol=1e-12) and np.allclose(lw, Rotation.from_matrix(R).as_rotvec(), atol=1e-12)
+        else:
+            assert abs(np.linalg.norm(lw) - angle) < 1e-9

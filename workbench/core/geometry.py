@@ -64,3 +64,20 @@ def exp_and_left_jacobian_so3(phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     sinc = np.where(small, 1.0 - th ** 2 / 6.0, s / t)
     eye = np.eye(3)[None]
     return eye + sinc[:, None, None] * K + a[:, None, None] * KK, eye + a[:, None, None] * K + b[:, None, None] * KK
+
+
+def log_so3(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) -> its rotation vector (3,), angle in [0, pi] (the inverse of :func:`exp_so3`);
+    accurate near 0 (the skew part) and near pi (the axis from the symmetric part)."""
+    R = np.asarray(R, dtype=float)
+    w = np.array([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    c = float(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))
+    th = float(np.arctan2(0.5 * np.linalg.norm(w), c))  # sin and cos: accurate at every angle (arccos is not near pi)
+    if th < 1e-6:
+        return 0.5 * w * (1.0 + th * th / 6.0)
+    if np.pi - th < 1e-3:  # the axis from the symmetric part, (1 - cos) a a^T (the skew part vanishes at pi)
+        B = 0.5 * (R + R.T) - c * np.eye(3)
+        k = int(np.argmax(np.diag(B)))
+        v = B[:, k] / np.linalg.norm(B[:, k])
+        return th * v * (1.0 if float(v @ w) >= 0.0 else -1.0)
+    return th / (2.0 * np.sin(th)) * w

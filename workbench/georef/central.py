@@ -19,9 +19,9 @@ from typing import Sequence
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
 from ..core.camera import CameraIntrinsics
+from ..core.geometry import exp_so3, log_so3
 from ..errors import InputError
 from ..files.control_points import ControlPoint
 from .fitting import orthonormal, point_line_distance, rotation_kabsch
@@ -324,7 +324,7 @@ def _sample_covariance(views: Sequence[RigView], obs: list[Pick], X: np.ndarray,
         heads_k = [HeadingPrior(h.view, h.azimuth_deg + float(rng.normal(0.0, h.sigma_deg)), h.sigma_deg, h.photo)
                    for h in headings]
         Rk, ck, _ = _refine_central(views, obs_k, X, cps, R, c, use, prior_k, sig_prior, opts, heads_k)
-        devs.append(np.concatenate([Rotation.from_matrix(orthonormal(Rk) @ R.T).as_rotvec(), ck - c]))
+        devs.append(np.concatenate([log_so3(orthonormal(Rk) @ R.T), ck - c]))
     D = np.array(devs)
     S = D.T @ D / len(D)
     # generalised eigenvalues of S against cov: widen where the samples scatter more
@@ -490,7 +490,7 @@ def refine_resection_focal(intr: CameraIntrinsics, res: CentralResult, cps: Sequ
         return CameraIntrinsics.from_dict({**base, "fx": intr.fx * k, "fy": intr.fy * k})
 
     def fun(p):
-        R = Rotation.from_rotvec(p[:3]).as_matrix() @ R0
+        R = exp_so3(p[:3]) @ R0
         q = (X - p[3:6]) @ R.T
         z = np.maximum(q[:, 2], 1e-6)
         it = intr_of(p[6])
@@ -508,7 +508,7 @@ def refine_resection_focal(intr: CameraIntrinsics, res: CentralResult, cps: Sequ
         cov *= max(1.0, 2.0 * float(sol.cost) / dof)
     if not np.all(np.isfinite(cov)):
         return None
-    R = orthonormal(Rotation.from_rotvec(sol.x[:3]).as_matrix() @ R0)
+    R = orthonormal(exp_so3(sol.x[:3]) @ R0)
     c = sol.x[3:6]
     it = intr_of(sol.x[6])
     M = np.eye(4)

@@ -9,9 +9,9 @@ from typing import Sequence
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import lil_matrix
-from scipy.spatial.transform import Rotation
 
 from ..core.camera import CameraIntrinsics
+from ..core.geometry import exp_so3
 from ..files.control_points import ControlPoint
 from .fitting import orthonormal
 from .options import GeorefOptions
@@ -105,7 +105,7 @@ def adjust_shared_camera(intr: CameraIntrinsics, poses: dict[str, np.ndarray], c
         Rs, cs = [], []
         for i in range(len(names)):
             q = p[ni + 6 * i: ni + 6 * i + 6]
-            Rs.append(Rotation.from_rotvec(q[:3]).as_matrix() @ R0[i])
+            Rs.append(exp_so3(q[:3]) @ R0[i])
             cs.append(c0[i] + q[3:6])
         return it, Rs, cs
 

@@ -14,9 +14,8 @@ from typing import Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
-from ..core.geometry import skew
+from ..core.geometry import exp_so3, skew
 from ..errors import InputError
 from ..files.control_points import ControlPoint
 from .fitting import orthonormal, point_line_distance, triangulate_rays, umeyama
@@ -169,7 +168,7 @@ def _refine_similarity(start: tuple[float, np.ndarray, np.ndarray], obs: list[Pi
     gsig = np.asarray(opts.gps_sigma_m, float)
 
     def sim_from(p):
-        return s0 * math.exp(p[0]), Rotation.from_rotvec(p[1:4]).as_matrix() @ R0, t0 + p[4:7]
+        return s0 * math.exp(p[0]), exp_so3(p[1:4]) @ R0, t0 + p[4:7]
 
     obs_sig = []
     for o in obs:

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from ..core.geometry import log_so3
 from .active_set import ChainedFit, ChainedProblem
 from .bias import correct
 from .branches import retry_branches
@@ -255,14 +256,13 @@ def _prediction_shift(released: Problem, R, t, f, R_kept, t_kept, model: Covaria
     predictions released (``R, t, f``: the measured points' fit, where ``model`` was taken) to the fit with them
     kept, in the released fit's pose covariance. About chi-square with 6 degrees of freedom or less under the
     noise model; larger: the predictions pulled the car where its measured points do not put it."""
-    from scipy.spatial.transform import Rotation  # costly to import; only a solve with predictions needs it
 
     cov, col = model.cov, model.col
     out = {}
     for k in released.active:
         if released.measured[released.by_car[k]].all():
             continue
-        d = np.concatenate([Rotation.from_matrix(R_kept[k] @ R[k].T).as_rotvec(), t_kept[k] - t[k]])
+        d = np.concatenate([log_so3(R_kept[k] @ R[k].T), t_kept[k] - t[k]])
         C = cov[col[k]:col[k] + 6, col[k]:col[k] + 6]
         out[k] = float(d @ np.linalg.pinv(C, rcond=1e-12) @ d) if np.all(np.isfinite(C)) else float("inf")
     return out
