@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from ..core.frames import Rigid, hpr_from_rotation
+from .solution import record_floats
 
 if TYPE_CHECKING:
     import trimesh
@@ -69,12 +70,8 @@ class SceneCarriage:
 
     # -- figures of the solution --------------------------------------------------------------------------
     def floats(self, key: str) -> list[float] | None:
-        v = self.record.get(key)
-        try:
-            a = [float(x) for x in v] if v is not None else None
-        except (TypeError, ValueError):
-            return None
-        return a if a is not None and all(np.isfinite(a)) else None
+        """The record's list of numbers under ``key``, or None when it is absent or not all finite numbers."""
+        return record_floats(self.record, key)
 
     @property
     def ci95_body_centre_m(self) -> list[float] | None:

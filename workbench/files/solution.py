@@ -18,9 +18,21 @@ from ..core.frames import SceneFrame, is_rotation
 from ..core.io import read_json
 from ..errors import InputError
 
-__all__ = ["SolvedCarriage", "Solution", "parse_solution", "read_solution"]
+__all__ = ["SolvedCarriage", "Solution", "parse_solution", "read_solution", "record_floats"]
 
 STATUSES = ("solved", "carried", "left_out")
+
+
+def record_floats(record: dict, key: str) -> list[float] | None:
+    """``record[key]`` as a list of floats, or None when it is absent or not all finite numbers."""
+    v = record.get(key)
+    if v is None:
+        return None
+    try:
+        a = [float(x) for x in v]
+    except (TypeError, ValueError):
+        return None
+    return a if all(math.isfinite(x) for x in a) else None
 
 
 @dataclass(frozen=True)
@@ -44,14 +56,7 @@ class SolvedCarriage:
 
     def floats(self, key: str) -> list[float] | None:
         """The record's list of numbers under ``key``, or None when it is absent or not all finite numbers."""
-        v = self.record.get(key)
-        if v is None:
-            return None
-        try:
-            a = [float(x) for x in v]
-        except (TypeError, ValueError):
-            return None
-        return a if all(math.isfinite(x) for x in a) else None
+        return record_floats(self.record, key)
 
 
 @dataclass(frozen=True)

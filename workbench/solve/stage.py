@@ -305,7 +305,7 @@ def _level(res: Any, carriages: list, links: list, views: list, opts: Any, solve
             for c in res.carriages if c.status == "solved" and c.world_from_carriage is not None]
     R_ref = np.asarray(views[0].cam_from_world, float)[:3, :3]
     intr = views[0].intrinsics  # the frame's y: the ray through the reference photo's centre pixel
-    ray = np.array([((intr.width - 1) / 2.0 - intr.cx) / intr.fx, ((intr.height - 1) / 2.0 - intr.cy) / intr.fy, 1.0])
+    ray = intr.rays(np.array([[(intr.width - 1) / 2.0, (intr.height - 1) / 2.0]]))[0]
     lev = level_from_carriages(cars, -R_ref[1], R_ref.T @ ray, sigma_car_deg=float(solver.level_sigma_car_deg),
                                sigma_common_deg=float(solver.level_sigma_common_deg))
     provisional_from_world = np.linalg.inv(lev.world_from_provisional)

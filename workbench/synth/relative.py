@@ -25,6 +25,11 @@ __all__ = ["relative_sim", "write_relative_incident", "levelled_truth", "tilt_wo
 WIDTH, HEIGHT = 1600, 1200
 
 
+def centre_ray(intr) -> np.ndarray:
+    """(3,) the camera-frame ray through the photo's centre pixel, the relative frame's y (as the solve takes it)."""
+    return intr.rays(np.array([[(intr.width - 1) / 2.0, (intr.height - 1) / 2.0]]))[0]
+
+
 def relative_sim(seed: int, n_cars: int = 3, pixel_sigma_px: float = 0.5) -> SimProblem:
     """A consist on a level track, one 1600 x 1200 photo from 12 m up, no distortion (a fallback camera's
     model), ``pixel_sigma_px`` pick noise. :class:`RuntimeError` when a car falls outside the photo."""
@@ -49,9 +54,7 @@ def levelled_truth(sim: SimProblem, cam_from_world: np.ndarray | None = None) ->
     photo's centre pixel (the relative route's frame). ``cam_from_world``: the camera's (default the view's)."""
     M = np.asarray(sim.views[0].cam_from_world if cam_from_world is None else cam_from_world, float)
     C = -M[:3, :3].T @ M[:3, 3]
-    k = sim.views[0].intrinsics
-    ray = np.array([((k.width - 1) / 2.0 - k.cx) / k.fx, ((k.height - 1) / 2.0 - k.cy) / k.fy, 1.0])
-    f = M[:3, :3].T @ ray
+    f = M[:3, :3].T @ centre_ray(sim.views[0].intrinsics)
     f[2] = 0.0
     f /= np.linalg.norm(f)
     yaw = math.atan2(f[0], f[1])
@@ -131,7 +134,6 @@ def truth_gps(sim: SimProblem, frame, rng: np.random.Generator, sigma_h_m: float
     M = np.asarray(sim.views[0].cam_from_world, float)
     C = -M[:3, :3].T @ M[:3, 3] + rng.normal(0.0, 1.0, 3) * [sigma_h_m, sigma_h_m, sigma_v_m]
     lon, lat, alt = frame.wgs84_from_enu(C[None])[0]
-    k = sim.views[0].intrinsics
-    f = M[:3, :3].T @ np.array([((k.width - 1) / 2.0 - k.cx) / k.fx, ((k.height - 1) / 2.0 - k.cy) / k.fy, 1.0])
+    f = M[:3, :3].T @ centre_ray(sim.views[0].intrinsics)
     az = math.degrees(math.atan2(f[0], f[1])) + rng.normal(0.0, sigma_deg)
     return float(lon), float(lat), float(alt), az % 360.0
