@@ -25,7 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from ..core.frames import SceneFrame, hpr_from_rotation, rot_z
+from ..core.frames import SceneFrame, hpr_from_rotation
+from ..core.geometry import rot_z
 from .geojson import carriage_properties, footprint_enu
 from ..files.scene import SceneCarriage
 from .scene import ExportOptions, ExportScene, cap_image

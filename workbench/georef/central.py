@@ -87,15 +87,6 @@ def _p3p_candidates(bearings: np.ndarray, X: np.ndarray) -> list[tuple[np.ndarra
     return out
 
 
-def _exp(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix of one rotation vector (Rodrigues; ``core.geometry.exp_so3`` for many, this for speed)."""
-    th = math.sqrt(float(w @ w))
-    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if th < 1e-8:
-        return np.eye(3) + K + 0.5 * (K @ K)
-    return np.eye(3) + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / th ** 2) * (K @ K)
-
-
 def _wrap(a: float) -> float:
     """An angle (rad) wrapped to [-pi, pi)."""
     return (a + math.pi) % (2.0 * math.pi) - math.pi
@@ -265,7 +256,7 @@ def _refine_central(views: Sequence[RigView], obs: list[Pick], X: np.ndarray, cp
     prior = None if prior_centre is None else np.asarray(prior_centre, float)
 
     def fun(p):
-        R = _exp(p[:3]) @ R_init
+        R = exp_so3(p[:3]) @ R_init
         c = p[3:]
         P = (Xs - c) @ R.T
         res = np.empty((len(sel), 2))
@@ -282,7 +273,7 @@ def _refine_central(views: Sequence[RigView], obs: list[Pick], X: np.ndarray, cp
 
     x0 = np.concatenate([np.zeros(3), c_init])
     sol = least_squares(fun, x0, loss=opts.loss, f_scale=opts.loss_scale, x_scale="jac", max_nfev=200)
-    R = _exp(sol.x[:3]) @ R_init
+    R = exp_so3(sol.x[:3]) @ R_init
     cov = None
     try:
         J = sol.jac

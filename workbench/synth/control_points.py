@@ -21,6 +21,7 @@ import numpy as np
 
 from ..core.camera import CameraIntrinsics, project_world
 from ..core.frames import SceneFrame
+from ..core.geometry import rot_x, rot_y, rot_z
 from ..core.io import atomic_write_text, to_json
 from ..core.layout import CONTROL_POINTS_FILE as FILE_NAME
 from ..errors import InputError
@@ -303,12 +304,11 @@ def true_reconstruction(root: str | Path, world_from_model: np.ndarray, photo_se
 
 
 def similarity(scale: float, euler_zyx_deg, t) -> np.ndarray:
-    """A 4x4 similarity (``world_from_model``): ``scale`` times the rotation of intrinsic z-y-x Euler angles
-    (degrees), then the translation ``t`` (3,)."""
-    from scipy.spatial.transform import Rotation
-
+    """A 4x4 similarity (``world_from_model``): ``scale`` times the rotation of Euler angles (degrees) about the
+    fixed z, y, x axes in turn (``Rx Ry Rz``: SciPy's extrinsic ``"zyx"``), then the translation ``t`` (3,)."""
+    az, ay, ax = np.radians(np.asarray(euler_zyx_deg, dtype=float))
     S = np.eye(4)
-    S[:3, :3] = scale * Rotation.from_euler("zyx", euler_zyx_deg, degrees=True).as_matrix()
+    S[:3, :3] = scale * (rot_x(ax) @ rot_y(ay) @ rot_z(az))
     S[:3, 3] = t
     return S
 

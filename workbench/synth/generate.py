@@ -26,7 +26,8 @@ import tomli_w
 from PIL import Image
 
 from ..core.camera import CameraIntrinsics, look_at, project_world
-from ..core.frames import SceneFrame, hpr_from_rotation, rot_z
+from ..core.frames import SceneFrame, hpr_from_rotation
+from ..core.geometry import rot_z
 from ..core.io import atomic_write, atomic_write_text, to_json
 from ..core.settings import SETTINGS_FILE, parse_settings
 from ..errors import WorkbenchError
