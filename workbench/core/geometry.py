@@ -111,6 +111,13 @@ def log_so3(R: np.ndarray) -> np.ndarray:
     return th / (2.0 * np.sin(th)) * w
 
 
+def orthonormal(R: np.ndarray) -> np.ndarray:
+    """The rotation nearest to ``R`` (3, 3) (SVD, determinant +1): removes the drift of composed small rotations
+    and the rounding of an estimate stored in single precision."""
+    U, _, Vt = np.linalg.svd(R)
+    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+
+
 def quaternion_xyzw_from_matrix(R: np.ndarray) -> np.ndarray:
     """Rotation matrix (3, 3) -> unit quaternion (4,), ``xyzw`` (scalar last), with SciPy's choice of sign.
 

@@ -21,10 +21,10 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..core.camera import CameraIntrinsics
-from ..core.geometry import exp_so3, log_so3
+from ..core.geometry import exp_so3, log_so3, orthonormal
 from ..errors import InputError
 from ..files.control_points import ControlPoint
-from .fitting import orthonormal, point_line_distance, rotation_kabsch
+from .fitting import point_line_distance, rotation_kabsch
 from ..files.panorama import RigView
 from .options import GeorefOptions, HeadingPrior
 from .picks import Pick, pick_sigma, picks_in_views, summarize_residuals, warn_residuals
