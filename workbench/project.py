@@ -208,6 +208,14 @@ class Project:
     def solution_path(self) -> Path:
         return self.stage_dir("solve") / "solution.json"
 
+    def require_output(self, path: Path, stage: str, needed_by: str, otherwise: str = "") -> Path:
+        """``path``, a file the ``stage`` stage writes; :class:`StageError` naming the stage to run when it is not
+        there (``otherwise``: what the user may do instead, appended to the message)."""
+        if not path.is_file():
+            raise StageError(f"{path}: not found; the {needed_by} needs the {stage} stage's output: run "
+                             f"`workbench run {self.root} --only {stage}` first{otherwise}")
+        return path
+
     def require_solution(self, needed_by: str) -> Path:
         p = self.solution_path
         if not p.is_file():
