@@ -18,6 +18,7 @@ import logging
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from ..core.camera import CameraIntrinsics, project_world
 from ..core.frames import SceneFrame
@@ -25,6 +26,10 @@ from ..core.geometry import rot_x, rot_y, rot_z
 from ..core.io import atomic_write_text, to_json
 from ..core.layout import CONTROL_POINTS_FILE as FILE_NAME
 from ..errors import InputError
+from ..files.buildings import read_buildings_geojson
+from ..files.dem import TerrainModel
+from ..rolling_stock import get_type
+from ..terrain.extrude import building_meshes
 
 log = logging.getLogger(__name__)
 
@@ -55,13 +60,6 @@ def _roof_corners(mesh) -> np.ndarray:
 
 def _scene_meshes(root: Path, truth: dict, frame: SceneFrame):
     """(terrain model, [building meshes], [carriage meshes]) in the scene frame."""
-    import trimesh
-
-    from ..files.dem import TerrainModel
-    from ..rolling_stock import get_type
-    from ..files.buildings import read_buildings_geojson
-    from ..terrain.extrude import building_meshes
-
     layers = truth.get("layers", {})
     dem = root / layers["dem"]
     tm = TerrainModel.from_geotiff(dem, frame)
