@@ -6,7 +6,8 @@ tests/test_picker_map.py and scripts/bench_picker_georef.py.
 PLAN.json: ``{"photo": "pano_01.jpg", "points": [{"name": "cp_a", "uv": [u, v], "en": [E, N]}, ...]}``. For each
 point: New point, rename it, zoom the photo in at ``uv`` (mouse wheel) and click it, fit the photo again; zoom the
 map in at ``(E, N)`` and click it (the page asks the server for the DEM's height), fit the map again. Then Save,
-Run georef, wait for the result, take a screenshot. Prints a JSON summary: the points as the page holds them, the
+Run georef, wait for the result, take a screenshot; optionally (``"roof": [E, N]``) a new point clicked on the
+map near a building's corner (it snaps to it) and given the roof's height (Roof). Prints a JSON summary: the points as the page holds them, the
 georef result the page shows, the status lines and any console error.
 """
 
@@ -92,6 +93,14 @@ def drive(url: str, plan: dict, screenshot: str, chromium: str | None = None) ->
         log["points"] = page.evaluate("() => window.mapState.cps.points")
         log["result"] = page.evaluate("() => window.mapState.result")
         page.screenshot(path=screenshot)
+        if plan.get("roof"):  # a building's corner clicked near it on the map (it snaps), then Roof
+            page.click("#cp-new")
+            _zoom_click(page, _map_screen, plan["roof"], plan.get("map_zoom_steps", 12), "() => window.mapState.scale")
+            page.wait_for_selector("#status:has-text('snapped to a corner')", timeout=30000)
+            log["roof_snap"] = page.inner_text("#status")
+            page.click("#cp-roof")
+            log["roof_status"] = page.inner_text("#status")
+            log["roof_point"] = page.evaluate("() => window.mapState.cps.points.slice(-1)[0]")
         browser.close()
     return log
 

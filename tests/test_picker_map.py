@@ -146,6 +146,18 @@ def test_world_file_and_dem_extent_and_no_georeference(mini):
         abs(A[1, 2] - (n0 + 40)) < 1e-6
     assert np.allclose(im.pixel_from_crs(np.array([[e0 - 40 + 200 * 0.25, n0 + 40 - 100 * 0.25]]))[0], [200, 100])
     assert tuple(_bright_centroid(im.rgba)) == (200.0, 100.0)
+    # a large sheet (1 km at 0.25 m) is cropped to the incident's area (aoi_radius_m 45 m, widened 20 %) and keeps
+    # its resolution; a mark 20 m east of the origin stays at its place
+    big = np.full((4000, 4000, 3), 40, np.uint8)
+    big[2000 - 1:2000 + 2, 2080 - 1:2080 + 2] = 255  # centred on pixel (2080, 2000): (e0 + 20.125, n0 - 0.125)
+    Image.fromarray(big).save(mini / "sheet.png")
+    (mini / "sheet.pgw").write_text(f"0.25\n0\n0\n-0.25\n{e0 - 500 + 0.125:.6f}\n{n0 + 500 - 0.125:.6f}\n")
+    _settings(mini, "sheet.png")
+    im = MapService(Project(mini)).image()
+    assert im.pixel_size_m == 0.25 and 2 * 54 / 0.25 <= im.rgba.shape[1] <= 2 * 54 / 0.25 + 2
+    mark = im.pixel_from_crs(np.array([[e0 + 20.125, n0 - 0.125]]))[0]
+    assert 0 <= np.hypot(*(_bright_centroid(im.rgba) - mark)) < 0.01
+    _settings(mini, "ortho.png")
     # no world file, the DEM's aspect: the terrain.ortho convention (the DEM's extent, row 0 north)
     (mini / "ortho.pgw").unlink()
     ms = MapService(Project(mini))
@@ -267,6 +279,17 @@ def test_control_points_save_is_checked_atomic_and_keeps_a_backup(mini):
             urllib.request.urlopen(req, timeout=30)
         assert e.value.code == 403
         assert path.read_bytes() == first
+        # a pick in a photo of another photo set (the file may name several): kept, checked against its own size
+        (mini / "photos" / "other").mkdir()
+        Image.new("RGB", (100, 80)).save(mini / "photos" / "other" / "x.png")
+        other = {"crs": CRS, "points": [{**pt("a", 1, 2), "pixels": {"p0.png": [1.0, 2.0], "x.png": [99.0, 9.0]}}]}
+        st, r = _post(srv.url, "/api/control_points", {"crs": CRS, "points": [{**pt("a", 1, 2), "pixels": {
+            "x.png": [101.0, 9.0]}}]})
+        assert st == 400 and "outside x.png (100x80)" in r["error"] and path.read_bytes() == first
+        st, r = _post(srv.url, "/api/control_points", other)
+        assert st == 200 and r["n_picks"] == 2
+        st, r = _post(srv.url, "/api/control_points", good)
+        assert st == 200 and path.read_bytes() == first
         # a second, different save keeps the first as the backup; the page reads the file back
         st, r = _post(srv.url, "/api/control_points", {"crs": CRS, "points": good["points"][:2]})
         assert st == 200 and r["backup"] and Path(r["backup"]).read_bytes() == first
@@ -301,8 +324,12 @@ def test_map_picks_in_a_browser_place_the_camera(small_incident, tmp_path, capsy
     spec = importlib.util.spec_from_file_location("picker_map_browser", DRIVER)
     driver = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(driver)
+    layers = MapService(Project(root)).layers()
+    b0 = layers["buildings"][0]
+    corner = np.asarray(b0["ring_crs"][0])
     with PickerServer(root) as srv:
-        log = driver.drive(srv.url, {"photo": photo, "points": picks}, str(tmp_path / "control.png"), _chromium())
+        log = driver.drive(srv.url, {"photo": photo, "points": picks, "roof": (corner + [0.25, -0.2]).tolist()},
+                           str(tmp_path / "control.png"), _chromium())
     assert log["console_errors"] == [], log["console_errors"]
     assert log["saved"].startswith("saved 6 control points (6 photo picks)")
     # what the page wrote is what was clicked: pixels to 0.3 px, map positions to 0.1 m, heights the DEM's
@@ -330,6 +357,11 @@ def test_map_picks_in_a_browser_place_the_camera(small_incident, tmp_path, capsy
     assert 0.05 < err["centre_error_m"] < 3.0 and 0.01 < err["rotation_error_deg"] < 2.5
     assert 0.5 < res["rms_px"] < 8.0
     assert "pano_01.jpg: E 5908" in log["result_text"] and "95 % within" in log["result_text"]
+    # the map's layers: the sample's 10 buildings and its track; a building's corner snaps, Roof takes its roof
+    assert len(layers["buildings"]) == 10 and len(layers["railways"]) == 1 and layers["notes"] == []
+    roof = log["roof_point"]
+    assert np.allclose(roof["coords"][:2], corner, atol=1e-3), log["roof_snap"]
+    assert abs(roof["coords"][2] - (b0["base_m"] + b0["height_m"])) < 1e-3 and roof["h_own"], log["roof_status"]
     # too few points: the georef's message says how many are needed (the page shows it; nothing is written)
     before = (root / "out" / "georef" / "cameras.json").read_bytes()
     with PickerServer(root) as srv:

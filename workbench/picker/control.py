@@ -137,21 +137,44 @@ class ControlPointsApi:
         points = payload.get("points")
         if not isinstance(points, list) or not points:
             raise InputError("points: a save needs a list of at least one point (nothing is written for none)")
-        sizes = self.image_sizes()
+        sizes = dict(self.image_sizes())
+        others = None
         for i, p in enumerate(points):
             pix = p.get("pixels", {}) if isinstance(p, dict) else {}
             if not isinstance(pix, dict):
                 raise InputError(f"points[{i}].pixels must be an object photo -> [u, v]")
             for photo, uv in pix.items():
-                if photo not in sizes:
-                    raise InputError(f"points[{i}] ({str(p.get('name'))[:40]!r}): photo {photo[:60]!r} is not a photo "
-                                     f"of this incident")
+                if photo not in sizes:  # a photo of another photo set (the file may name several; docs/gis.md)
+                    others = self._other_photos() if others is None else others
+                    if photo not in others:
+                        raise InputError(f"points[{i}] ({str(p.get('name'))[:40]!r}): photo {photo[:60]!r} is not "
+                                         f"a photo of this incident (under {self.project.root / 'photos'})")
+                    sizes[photo] = others[photo]
                 w, h = sizes[photo]
                 if (isinstance(uv, list) and len(uv) == 2 and all(isinstance(x, (int, float)) for x in uv)
                         and not (-0.5 <= uv[0] <= w - 0.5 and -0.5 <= uv[1] <= h - 0.5)):
                     raise InputError(f"points[{i}] ({str(p.get('name'))[:40]!r}): pixel {uv} lies outside "
                                      f"{photo} ({w}x{h})")
         return {k: payload[k] for k in ("crs", "description", "points") if k in payload}
+
+    def _other_photos(self) -> dict[str, tuple[int, int]]:
+        """Every photo of the incident under ``photos/`` (all photo sets, inside the folder) by name, with its
+        size."""
+        from PIL import Image
+
+        from ..georef.inputs import photos_by_name
+
+        out = {}
+        root = self.project.root.resolve()
+        for name, path in photos_by_name(self.project).items():
+            try:
+                if not path.resolve().is_relative_to(root):
+                    continue
+                with Image.open(path) as im:
+                    out[name] = im.size
+            except (OSError, ValueError):
+                continue
+        return out
 
     def save(self, payload: Any) -> dict:
         """Check (:meth:`check`, then the georef stage's reader), write atomically keeping a backup."""

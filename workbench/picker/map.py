@@ -13,7 +13,8 @@ Where the orthophoto's georeference comes from, in this order:
    the north edge (the synthetic samples' ``*_ortho.jpg``); used only where the image's aspect ratio is the DEM's
    (within 2 %);
 
-otherwise an :class:`InputError` names the file and says what to add.
+otherwise an :class:`InputError` names the file and says what to add. Only the part of the orthophoto around the
+incident (``terrain.aoi_radius_m``, widened by 20 %) is read and shown, so a large sheet keeps its resolution.
 
 Heights: bilinear between the DEM's nodes (cell centres) as the terrain stage reads the DEM (tiles mosaicked,
 vertical units converted, holes filled, cropped to ``terrain.aoi_radius_m``); a point outside is refused with
@@ -93,12 +94,70 @@ def bilinear_height(heights: np.ndarray, transform, e: float, n: float) -> float
     return float((1 - tr) * ((1 - tc) * z[0, 0] + tc * z[0, 1]) + tr * ((1 - tc) * z[1, 0] + tc * z[1, 1]))
 
 
+AOI_MARGIN = 1.2  # the map covers terrain.aoi_radius_m around the incident, widened by this factor
+
+
+def _georeference(src, path: Path, project: Project) -> tuple[object, str, str]:
+    """(rasterio transform of the whole image, its CRS (WKT or user string), where they came from): the module
+    docstring's order; :class:`InputError` naming the file and what to add when there is none."""
+    import rasterio
+    from rasterio.transform import from_bounds
+
+    if not src.transform.is_identity and src.crs:
+        return src.transform, src.crs.to_wkt(), "the file's own CRS and geotransform"
+    if not src.transform.is_identity:
+        prj = next((p for p in (path.with_suffix(".prj"), Path(str(path) + ".prj")) if p.is_file()), None)
+        if prj is not None:
+            return src.transform, prj.read_text(encoding="utf-8", errors="replace"), \
+                f"its world file, CRS from {prj.name}"
+        return src.transform, project.frame.crs.to_wkt(), "its world file, in the project CRS (no .prj beside it)"
+    dems = project.dem_paths() if project.settings.terrain.dem else []
+    if len(dems) == 1:
+        with rasterio.open(dems[0]) as d:
+            dem_aspect = d.width * abs(d.transform.a) / (d.height * abs(d.transform.e))
+            b, dem_crs = d.bounds, (d.crs.to_wkt() if d.crs else None)
+        if dem_crs and abs(src.width / src.height / dem_aspect - 1.0) <= ASPECT_TOLERANCE:
+            return from_bounds(b.left, b.bottom, b.right, b.top, src.width, src.height), dem_crs, \
+                f"the DEM's extent ({dems[0].name}; the terrain.ortho convention)"
+    names = ", ".join(path.with_suffix(s).name for s in (".jgw", ".pgw", ".wld"))
+    raise InputError(f"{path}: the orthophoto has no georeference: no CRS or geotransform in the file, no world "
+                     f"file beside it ({names}), and it does not cover the DEM's extent as terrain.ortho "
+                     f"otherwise must. Add a world file (6 lines: pixel width, 0, 0, -pixel height, easting and "
+                     f"northing of the top-left pixel's centre, in the project CRS or the CRS of a .prj beside it), "
+                     f"or save it as a GeoTIFF with its CRS (gdal_translate -a_srs EPSG:XXXX -a_ullr ...)")
+
+
+def _aoi_window(T, crs: str, width: int, height: int, project: Project):
+    """The window of an image (transform ``T`` in ``crs``) that covers the incident's area (``terrain.aoi_radius_m``
+    around the reference point, widened by AOI_MARGIN); the whole image where it is rotated or misses the area."""
+    from rasterio.warp import transform_bounds
+    from rasterio.windows import Window, from_bounds
+
+    whole = Window(0, 0, width, height)
+    if T.b != 0 or T.d != 0:
+        return whole
+    o, r = project.frame.origin_crs, project.settings.terrain.aoi_radius_m * AOI_MARGIN
+    b = transform_bounds(project.frame.crs.to_wkt(), crs, o[0] - r, o[1] - r, o[0] + r, o[1] + r, densify_pts=21)
+    from rasterio.errors import WindowError
+
+    w = from_bounds(*b, transform=T)
+    c0, r0 = max(0, math.floor(w.col_off)), max(0, math.floor(w.row_off))
+    c1, r1 = min(width, math.ceil(w.col_off + w.width)), min(height, math.ceil(w.row_off + w.height))
+    try:
+        win = Window(c0, r0, c1 - c0, r1 - r0).intersection(whole)
+    except WindowError:  # no overlap
+        return whole
+    return win if win.width >= 2 and win.height >= 2 else whole
+
+
 def ortho_source(path: Path, project: Project) -> tuple[np.ndarray, object, str, str]:
-    """(rgb (3, h, w) uint8 read at most ~2x the map size, rasterio transform of that array, its CRS as WKT or
-    user string, where the georeference came from) of an orthophoto (module docstring)."""
+    """(rgb (3, h, w) uint8 of the part covering the incident, read at most ~2x the map size; the rasterio
+    transform of that array; its CRS as WKT or user string; where the georeference came from) of an orthophoto
+    (module docstring)."""
     import rasterio
     from rasterio.enums import Resampling
     from rasterio.errors import NotGeoreferencedWarning
+    from rasterio.windows import transform as window_transform
     from affine import Affine
 
     try:
@@ -109,41 +168,20 @@ def ortho_source(path: Path, project: Project) -> tuple[np.ndarray, object, str,
         raise InputError(f"{path}: the orthophoto (terrain.ortho) cannot be read ({exc}); give a GeoTIFF, or a "
                          f"JPEG/PNG with its world file") from None
     with src:
-        f = max(1, math.ceil(max(src.width, src.height) / (2 * MAX_MAP_PX)))
-        h, w = math.ceil(src.height / f), math.ceil(src.width / f)
+        T, crs, how = _georeference(src, path, project)
+        win = _aoi_window(T, crs, src.width, src.height, project)
+        ww, wh = int(win.width), int(win.height)
+        f = max(1, math.ceil(max(ww, wh) / (2 * MAX_MAP_PX)))
+        h, w = math.ceil(wh / f), math.ceil(ww / f)
         bands = [1, 2, 3] if src.count >= 3 else [1, 1, 1]
-        arr = src.read(bands, out_shape=(3, h, w), resampling=Resampling.average)
-        T = src.transform @ Affine.scale(src.width / w, src.height / h)
-        has_transform = not src.transform.is_identity
-        crs = src.crs.to_wkt() if src.crs else None
+        arr = src.read(bands, window=win, out_shape=(3, h, w), resampling=Resampling.average)
+        Tw = window_transform(win, T) @ Affine.scale(ww / w, wh / h)
         dtype = src.dtypes[0]
     if arr.dtype != np.uint8:  # 16-bit or float imagery: stretched to 8 bits (2nd-98th percentile)
         lo, hi = np.nanpercentile(arr, [2, 98])
         arr = np.clip((arr - lo) / max(hi - lo, 1e-9) * 255, 0, 255).astype(np.uint8)
         log.info("%s: %s orthophoto stretched to 8 bits", path, dtype)
-    if has_transform and crs:
-        return arr, T, crs, "the file's own CRS and geotransform"
-    if has_transform:
-        prj = next((p for p in (path.with_suffix(".prj"), Path(str(path) + ".prj")) if p.is_file()), None)
-        if prj is not None:
-            return arr, T, prj.read_text(encoding="utf-8", errors="replace"), f"its world file, CRS from {prj.name}"
-        return arr, T, project.frame.crs.to_wkt(), "its world file, in the project CRS (no .prj beside it)"
-    dems = project.dem_paths() if project.settings.terrain.dem else []
-    if len(dems) == 1:
-        with rasterio.open(dems[0]) as d:
-            dem_aspect = d.width * abs(d.transform.a) / (d.height * abs(d.transform.e))
-            bounds, dem_crs = d.bounds, (d.crs.to_wkt() if d.crs else None)
-        if dem_crs and abs(w / h / dem_aspect - 1.0) <= ASPECT_TOLERANCE:
-            from rasterio.transform import from_bounds
-
-            T = from_bounds(bounds.left, bounds.bottom, bounds.right, bounds.top, w, h)
-            return arr, T, dem_crs, f"the DEM's extent ({dems[0].name}; the terrain.ortho convention)"
-    names = ", ".join(path.with_suffix(s).name for s in (".jgw", ".pgw", ".wld"))
-    raise InputError(f"{path}: the orthophoto has no georeference: no CRS or geotransform in the file, no world "
-                     f"file beside it ({names}), and it does not cover the DEM's extent as terrain.ortho "
-                     f"otherwise must. Add a world file (6 lines: pixel width, 0, 0, -pixel height, easting and "
-                     f"northing of the top-left pixel's centre, in the project CRS or the CRS of a .prj beside it), "
-                     f"or save it as a GeoTIFF with its CRS (gdal_translate -a_srs EPSG:XXXX -a_ullr ...)")
+    return arr, Tw, crs, how
 
 
 def warp_to_crs(rgb: np.ndarray, src_transform, src_crs: str, dst_crs: str,
