@@ -198,6 +198,18 @@ def test_hillshade_heights_and_layers_without_orthophoto(mini):
         assert abs(ms.height_at(e0 + de, n0 + dn) - _plane(e0 + de, n0 + dn)) < 1e-6
     with pytest.raises(InputError, match=r"outside the DEM: its extent here .* is E .* to .*, N .* to"):
         ms.height_at(e0 + 80, n0)
+    # layers that cannot be drawn leave the map and say why: a railway file with no railway=rail line, buildings
+    # in another CRS
+    doc = json.loads((mini / "rail.geojson").read_text())
+    doc["features"][0]["properties"] = {"railway": "abandoned"}
+    (mini / "rail.geojson").write_text(json.dumps(doc))
+    (mini / "b.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": [],
+                                                "crs": {"type": "name", "properties": {"name": "EPSG:4326"}}}))
+    (mini / "project.toml").write_text((mini / "project.toml").read_text().replace(
+        'railways = "rail.geojson"', 'railways = "rail.geojson"\nbuildings = "b.geojson"'))
+    notes = MapService(Project(mini)).document()["notes"]
+    assert len(notes) == 2 and "buildings not drawn: " in notes[0] and "b.geojson" in notes[0], notes
+    assert notes[1] == "railways: rail.geojson holds no railway=rail line", notes
 
 
 # ----------------------------------------------------------------------------------------------------------------

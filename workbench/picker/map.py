@@ -290,25 +290,38 @@ class MapService:
         t = project.settings.terrain
         out: dict = {"buildings": [], "railways": [], "notes": []}
         if t.buildings:
-            path = project.path(t.buildings)
-            from ..terrain.buildings import is_cityjson
+            try:
+                out["buildings"] = self._buildings(project.path(t.buildings))
+            except InputError as exc:  # the map is still useful without them: say why they are missing
+                out["notes"].append(f"buildings not drawn: {exc}")
+        if t.railways:
+            layer = None
+            try:
+                layer = project.railways(heights=False)
+                if layer is None:  # the reader has warned, naming the file
+                    out["notes"].append(f"railways: {t.railways} holds no railway=rail line")
+            except InputError as exc:
+                out["notes"].append(f"railways not drawn: {exc}")
+            for line in (layer.lines if layer is not None else ()):
+                en = project.frame.crs_from_enu(np.asarray(line.points_enu, float))[:, :2]
+                out["railways"].append({"id": line.id, "name": line.name, "line": _round(im.pixel_from_crs(en), 2)})
+        return out
 
-            if is_cityjson(path):
-                out["notes"].append(f"buildings {path.name}: a CityJSON model, not drawn on the map")
-            else:
-                from ..files.buildings import read_buildings_geojson
+    def _buildings(self, path: Path) -> list[dict]:
+        """The footprints of a buildings GeoJSON in map pixels and the project CRS, with base and height."""
+        from ..terrain.buildings import is_cityjson
 
-                for b in read_buildings_geojson(path, expect_crs=project.frame.crs.to_string()):
-                    ring = np.asarray(b["footprint_crs"], float)[:, :2]
-                    base = b.get("base_m")
-                    out["buildings"].append({"id": str(b.get("id", "")), "ring": _round(im.pixel_from_crs(ring), 2),
-                                             "ring_crs": _round(ring, 3),
-                                             "base_m": None if base is None else float(base),
-                                             "height_m": float(b["height_m"])})
-        layer = project.railways(heights=False) if t.railways else None
-        for line in (layer.lines if layer is not None else ()):
-            en = project.frame.crs_from_enu(np.asarray(line.points_enu, float))[:, :2]
-            out["railways"].append({"id": line.id, "name": line.name, "line": _round(im.pixel_from_crs(en), 2)})
+        if is_cityjson(path):
+            raise InputError(f"{path.name} is a CityJSON model (the map draws GeoJSON footprints)")
+        from ..files.buildings import read_buildings_geojson
+
+        im, out = self.image(), []
+        for b in read_buildings_geojson(path, expect_crs=self.project.frame.crs.to_string()):
+            ring = np.asarray(b["footprint_crs"], float)[:, :2]
+            base = b.get("base_m")
+            out.append({"id": str(b.get("id", "")), "ring": _round(im.pixel_from_crs(ring), 2),
+                        "ring_crs": _round(ring, 3), "base_m": None if base is None else float(base),
+                        "height_m": float(b["height_m"])})
         return out
 
     def height_at(self, e: float, n: float) -> float:
