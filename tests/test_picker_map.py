@@ -410,3 +410,7 @@ def test_berlin_gcps_typed_in_the_picker_reproduce_todays_figures(tmp_path):
     assert 1.45 < d["scale"] < 1.56 and 3.3 < d["rms_px"] < 3.5 and 15.0 < d["gps_rms_m"] < 16.0
     assert np.allclose(sorted(d["residuals_px"]), [2.46, 2.87, 4.53], atol=0.05)
     assert row["georef_status"] == 400 and "3 are needed" in row["error"] and "01.jpg" in row["error"]
+    # no orthophoto and no DEM: the page is told there is no map and why (typed coordinates still work)
+    with PickerServer(root) as srv:
+        m = bench.Client(srv.url).get("/api/map")
+    assert m == {"available": False, "reason": m["reason"]} and "terrain.ortho" in m["reason"]

@@ -352,7 +352,7 @@ class MapService:
         and the direction of true north."""
         im = self.image()
         h, w = im.rgba.shape[:2]
-        return {"url": "/map.png", "width": int(w), "height": int(h), "crs": im.crs,
+        return {"available": True, "url": "/map.png", "width": int(w), "height": int(h), "crs": im.crs,
                 "crs_from_pixel": im.crs_from_pixel.tolist(), "pixel_size_m": im.pixel_size_m, "source": im.source,
                 "grid_convergence_deg": self.project.frame.grid_convergence_deg(),
                 "dem_extent": self.dem_extent(), **self.layers()}

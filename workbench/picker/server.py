@@ -478,8 +478,11 @@ class PickerHandler(BaseHTTPRequestHandler):
             return self._send(200, (STATIC / path[1:]).read_bytes(), "text/javascript; charset=utf-8")
         if path == "/map.png":
             return self._send(200, self.state.control.map.png(), "image/png")
-        if path == "/api/map":
-            return self._json(200, strict(self.state.control.map.document()))
+        if path == "/api/map":  # no map (no orthophoto or DEM, or an orthophoto without georeference): said why
+            try:
+                return self._json(200, strict(self.state.control.map.document()))
+            except InputError as exc:
+                return self._json(200, {"available": False, "reason": str(exc)})
         if path == "/api/control_points":
             return self._json(200, strict(self.state.control.document()))
         if path == "/api/state":

@@ -24,7 +24,10 @@ async function loadMap() {
   const ma = await jsonOf(a), cps = await jsonOf(b);
   if (!b.ok) { M.loadError = cps.error; info(cps.error || "cannot read control_points.json", true); M.cps = { crs: "", points: [] }; }
   else M.cps = cps;
-  if (!a.ok) { M.loadError = ma.error; $("cp-info").textContent = "map: " + (ma.error || `HTTP ${a.status}`); renderTable(); return; }
+  if (!a.ok || !ma.available) {  // no map: typed coordinates still work
+    M.loadError = ma.reason || ma.error || `HTTP ${a.status}`; $("cp-info").textContent = "no map: " + M.loadError;
+    renderTable(); noMap(); return;
+  }
   M.doc = ma;
   $("cp-info").textContent = "loading the map…";
   await new Promise((resolve) => { const im = new Image(); im.onload = () => { M.img = im; resolve(); }; im.onerror = resolve; im.src = ma.url; });
@@ -34,6 +37,13 @@ async function loadMap() {
     (M.img ? "" : "; the map image did not load") + (ma.notes && ma.notes.length ? "; " + ma.notes.join("; ") : "");
 }
 
+function noMap() {
+  const r = mcv.getBoundingClientRect(); mcv.width = r.width; mcv.height = r.height;
+  mctx.fillStyle = "#111"; mctx.fillRect(0, 0, mcv.width, mcv.height);
+  mctx.fillStyle = "#bbb"; mctx.font = "13px sans-serif";
+  mctx.fillText("No map for this incident: type the control points' coordinates below.", 16, 28);
+  mctx.fillText("A map needs terrain.ortho (a georeferenced orthophoto) or terrain.dem in project.toml.", 16, 48);
+}
 function mapFit() {
   const r = mcv.getBoundingClientRect(); mcv.width = r.width; mcv.height = r.height;
   if (!M.doc) return;
@@ -268,7 +278,7 @@ function setMode(mode) {
   M.mode = mode; $("mode-select").value = mode;
   $("model-pane").hidden = mode === "control"; $("map-pane").hidden = mode !== "control";
   if (typeof fit === "function" && S.img) fit();
-  if (mode === "control") { if (!M.doc && !M.loadError) loadMap(); else mapFit(); info("control points: New point (N), click it in the photo and on the map (or type it), Save, Run georef"); }
+  if (mode === "control") { if (!M.doc && !M.loadError) loadMap(); else if (M.doc) mapFit(); else noMap(); info("control points: New point (N), click it in the photo and on the map (or type it), Save, Run georef"); }
 }
 function key(e) {
   if ((e.ctrlKey || e.metaKey) && e.key === "s") { e.preventDefault(); saveCps(); return true; }
