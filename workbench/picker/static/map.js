@@ -238,6 +238,15 @@ function renderResult() {
     parts.push(`<div>${esc(c.name)}: E ${f2(c.centre_crs[0])}, N ${f2(c.centre_crs[1])}, h ${f2(c.centre_crs[2])} m (lat ${f2(c.lat, 7)}, lon ${f2(c.lon, 7)}); looking ${f2(c.azimuth_deg, 1)}&deg; from true north, ${f2(c.tilt_deg, 1)}&deg; down` +
       (s ? `; 1&sigma; E/N/U ${f2(s[0])} / ${f2(s[1])} / ${f2(s[2])} m, 95 % within ${f2(c.ci95_centre_max_m)} m; rotation 1&sigma; ${f2(c.sigma_rotation_deg, 3)}&deg;` : "; no uncertainty stated") + "</div>");
   }
+  const pr = r.priors;  // the GPS / compass / camera.position_enu priors the stage used (georef/priors.py)
+  if (pr && pr.used && pr.used.length) {
+    const bits = [];
+    if (pr.centre) bits.push(`centre from ${esc(pr.centre.source)} (1&sigma; E/N/U ${(pr.centre.sigma_enu_m || []).map((x) => f2(x, 1)).join(" / ")} m` +
+      (pr.centre.fitted_minus_prior_m ? `; placed ${pr.centre.fitted_minus_prior_m.map((x) => f2(x, 1)).join(" / ")} m from it` : "") + ")");
+    for (const h of pr.heading || []) bits.push(`compass of ${esc(h.photo)} ${f2(h.azimuth_deg, 1)}&deg; &plusmn; ${f2(h.sigma_deg, 0)}&deg;` +
+      (h.fitted_deg !== undefined ? ` (placed at ${f2(h.fitted_deg, 1)}&deg;)` : ""));
+    parts.push(`<div class="note">priors used: ${bits.join("; ")}</div>`);
+  } else if (r.route === "single" || r.route === "panorama") parts.push(`<div class="note">no priors: the control points alone (no GPS or compass in the photos, no camera.position_enu)</div>`);
   if (r.cameras.length > 12) parts.push(`<div class="note">and ${r.cameras.length - 12} more cameras</div>`);
   const flagged = r.residuals.filter((x) => x.flagged);
   if (flagged.length) parts.push(`<div class="flag">do not fit (beyond ${r.limits.flag_sigmas} sigma of the point and ${r.limits.warn_point_px} px, or outliers): ` +
