@@ -289,9 +289,13 @@ function setMode(mode) {
   if (typeof fit === "function" && S.img) fit();
   if (mode === "control") { if (!M.doc && !M.loadError) loadMap(); else if (M.doc) mapFit(); else noMap(); info("control points: New point (N), click it in the photo and on the map (or type it), Save, Run georef"); }
 }
+function undoCps() {
+  if (!M.undo.length) { info("nothing to undo"); return; }
+  M.cps.points = JSON.parse(M.undo.pop()); select(cp() ? M.sel : null); info("undone — unsaved");
+}
 function key(e) {
   if ((e.ctrlKey || e.metaKey) && e.key === "s") { e.preventDefault(); saveCps(); return true; }
-  if ((e.ctrlKey || e.metaKey) && e.key === "z") { e.preventDefault(); if (M.undo.length) { M.cps.points = JSON.parse(M.undo.pop()); select(cp() ? M.sel : null); info("undone — unsaved"); } return true; }
+  if ((e.ctrlKey || e.metaKey) && e.key === "z") { e.preventDefault(); undoCps(); return true; }
   if (e.key === "n" || e.key === "N") { newPoint(); return true; }
   if (e.key === "Delete") { unpick(); return true; }
   return false;
@@ -317,6 +321,6 @@ $("cp-name").onchange = rename;
 $("cp-coord-kind").onchange = () => select(M.sel);
 $("photo-select").addEventListener("change", () => setTimeout(renderTable, 0));
 
-window.CP = { active: () => M.mode === "control", photoClick, drawPhoto, key };
+window.CP = { active: () => M.mode === "control", photoClick, drawPhoto, key, undo: undoCps, save: saveCps };
 window.mapState = M;  // for tests and debugging
 })();

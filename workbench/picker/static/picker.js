@@ -235,7 +235,9 @@ window.addEventListener("beforeunload", (e) => { if (S.dirty) { e.preventDefault
 $("zoom-in").onclick = () => zoomAt(1.25, cv.width / 2, cv.height / 2);
 $("zoom-out").onclick = () => zoomAt(0.8, cv.width / 2, cv.height / 2);
 $("zoom-fit").onclick = fit;
-$("undo").onclick = undo; $("save").onclick = save; $("delete").onclick = removePick; $("reject").onclick = toggleReject;
+// in the control-point mode the header's Undo and Save act on the control points (map.js)
+$("undo").onclick = () => (window.CP && window.CP.active() ? window.CP.undo() : undo());
+$("save").onclick = () => (window.CP && window.CP.active() ? window.CP.save() : save()); $("delete").onclick = removePick; $("reject").onclick = toggleReject;
 $("edges").onclick = toggleEdges;
 $("show-overlay").onchange = (e) => { S.showOverlay = e.target.checked; draw(); };
 $("magnify").onchange = (e) => { S.magnify = +e.target.value; draw(); };
