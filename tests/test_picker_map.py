@@ -250,6 +250,21 @@ def test_locate_typed_coordinates_and_map_clicks(mini):
             assert st == 400 and msg in c["error"], (bad, c)
 
 
+def test_an_orthophoto_without_a_dem_takes_typed_heights(mini):
+    e0, n0 = _origin_utm()
+    Image.fromarray(np.full((200, 200, 3), 90, np.uint8)).save(mini / "ortho.png")
+    (mini / "ortho.pgw").write_text(f"0.5\n0\n0\n-0.5\n{e0 - 50:.6f}\n{n0 + 50:.6f}\n")
+    _settings(mini, "ortho.png")
+    toml = (mini / "project.toml").read_text().replace('dem = "dem.tif"\n', "").replace('railways = "rail.geojson"\n', "")
+    (mini / "project.toml").write_text(toml)
+    with PickerServer(mini) as srv:
+        m = bench.Client(srv.url).get("/api/map")
+        assert m["available"] and m["dem_extent"] is None and m["pixel_size_m"] == 0.5
+        st, a = _post(srv.url, "/api/locate", {"e": e0 + 3, "n": n0 - 4, "from": "map"})
+    assert st == 200 and a["dem_height_m"] is None and "no terrain.dem" in a["dem_note"]
+    assert np.allclose(a["map_uv"], [106.0, 108.0])
+
+
 def test_control_points_save_is_checked_atomic_and_keeps_a_backup(mini):
     e0, n0 = _origin_utm()
     path = mini / "control_points.json"

@@ -85,7 +85,8 @@ class ControlPointsApi:
     def locate(self, payload: Any) -> dict:
         """``{"e", "n"}`` (project CRS) or ``{"lat", "lon"}`` (WGS84, degrees), ``"from": "map" | "typed"`` ->
         both, the map pixel and the DEM's height (bilinear). A map click outside the DEM is refused with its
-        extent; a typed point outside it gets no DEM height (type one)."""
+        extent; a typed point outside it, or any point of an incident without a DEM, gets no DEM height (type
+        one)."""
         where = "locate"
         if not isinstance(payload, dict):
             raise InputError(f"{where}: send an object {{\"e\", \"n\"}} or {{\"lat\", \"lon\"}}")
@@ -113,9 +114,9 @@ class ControlPointsApi:
         try:
             out["dem_height_m"] = self.map.height_at(e, n)
         except InputError as exc:
-            if source == "map":
+            if source == "map" and self.map.terrain() is not None:  # outside the DEM: refused with its extent
                 raise InputError(f"map click refused: {exc}") from None
-            out["dem_height_m"], out["dem_note"] = None, str(exc)
+            out["dem_height_m"], out["dem_note"] = None, str(exc)  # typed, or no DEM at all: type the height
         return out
 
     def _map_uv(self, e: float, n: float) -> list[float] | None:
