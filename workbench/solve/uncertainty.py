@@ -18,6 +18,8 @@ from scipy.special import gammaincinv, stdtrit  # quantiles as scipy.stats compu
 from ..core.frames import hpr_from_rotation
 from ..core.geometry import exp_so3, skew
 from .model import SolveOptions
+from .variance_components import (FALLBACK_FACE_SIGMA_PX, VarianceComponents, estimate_variance_components,
+                                  face_modes)
 from .problem import (Chains, Poses, Problem, carriage_weights, focal_groups, held_chains, prepare_cars,
                       record_warning)
 
@@ -133,6 +135,8 @@ class CovarianceModel:
     P: int
     H_inv: np.ndarray
     undetermined: np.ndarray | None = None
+    face_sigma: float = 0.0  # the faces' shared misfit used (px per affine mode)
+    components: VarianceComponents | None = None  # when both were estimated from the residuals
 
 
 def undetermined_parameters(H: np.ndarray) -> np.ndarray | None:
@@ -154,7 +158,7 @@ def undetermined_parameters(H: np.ndarray) -> np.ndarray | None:
 
 def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_cfg: float,
                      loss: str = "linear", loss_scale: float = 1.0, prior_dof: float = 5.0,
-                     sigma_fixed: float | None = None, face_sigma: float = 0.0) -> CovarianceModel:
+                     sigma_fixed: float | None = None, face_sigma: float | None = 0.0) -> CovarianceModel:
     """Covariance in free-pose parameters at ``R, t, f`` (see the module doc). ``sigma_fixed``: use that pixel
     sigma (CRB); ``face_sigma``: pixels of the misfit shared by each group of points."""
     J, r, col, P = pixel_rows(prob, R, t, f, focal_views)
@@ -185,8 +189,18 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         Hi = inverse_psd(H)
         return H, Hi
 
+    vc = None
+    if face_sigma is None and sigma_fixed is None:  # the automatic points' noise and faces' misfit from the data
+        modes = face_modes(groups, views, uv_obs, w_row)
+        vc = estimate_variance_components(J * np.sqrt(rho)[:, None], r * np.sqrt(rho), w2, modes,
+                                          lambda s: assemble(s)[1], sigma_cfg)
+    if face_sigma is None:  # not separable from the points' noise (too few points a face): the former default
+        face_sigma = vc.face_sigma_px if vc is not None else FALLBACK_FACE_SIGMA_PX
     if sigma_fixed is not None:
         sigma, sigma_hat, dof, q = float(sigma_fixed), float("nan"), 0.0, 1.959963984540054
+    elif vc is not None:
+        sigma, sigma_hat, dof = vc.sigma_px, vc.sigma_px, vc.dof
+        q = float(stdtrit(dof, 0.975))
     else:
         sig = sigma_cfg
         for _ in range(2):
@@ -209,7 +223,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         G = G + face_sigma**2 / sigma**4 * _shared_misfit(J * rho[:, None], groups, views, uv_obs, w_row)
     cov = Hi @ G @ Hi
     cov = 0.5 * (cov + cov.T)
-    return CovarianceModel(cov, col, sigma, sigma_hat, dof, q, P, Hi, undetermined_parameters(H))
+    return CovarianceModel(cov, col, sigma, sigma_hat, dof, q, P, Hi, undetermined_parameters(H), face_sigma, vc)
 
 
 def _shared_misfit(J: np.ndarray, groups: np.ndarray, views: np.ndarray, uv: np.ndarray,
@@ -354,6 +368,8 @@ def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Cha
     cov, col, q = model.cov, model.col, model.q
     res.sigma_px = model.sigma
     res.sigma_px_estimated = model.sigma_hat
+    res.face_sigma_px = model.face_sigma
+    res.noise_estimated = model.components is not None
     res.dof = model.dof
     res.ci95_factor = q
     res.covariance = cov
