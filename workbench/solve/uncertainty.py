@@ -219,7 +219,10 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         q = float(stdtrit(dof + prior_dof, 0.975)) if dof + prior_dof > 0 else 1.959963984540054
     H, Hi = assemble(sigma)
     G = Gp_unit / sigma**2 + Hprior
-    if face_sigma > 0:
+    if vc is not None and vc.face_sigmas_px:  # each face its own misfit
+        G = G + _shared_misfit(J * rho[:, None], groups, views, uv_obs, w_row,
+                               np.square(vc.face_sigmas_px)) / sigma**4
+    elif face_sigma > 0:
         G = G + face_sigma**2 / sigma**4 * _shared_misfit(J * rho[:, None], groups, views, uv_obs, w_row)
     cov = Hi @ G @ Hi
     cov = 0.5 * (cov + cov.T)
@@ -227,7 +230,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
 
 
 def _shared_misfit(J: np.ndarray, groups: np.ndarray, views: np.ndarray, uv: np.ndarray,
-                   w: np.ndarray) -> np.ndarray:
+                   w: np.ndarray, scale: Sequence[float] | None = None) -> np.ndarray:
     """``sum_g (J_g^T W_g B_g)(J_g^T W_g B_g)^T`` (P, P): the gradient covariance, per pixel^2 of shared misfit,
     of each group's common affine displacement. ``J``: weighted rows (2M, P); ``groups`` (M,) with -1 for none;
     ``views`` (M,) view index; ``uv`` (M, 2) observed pixels; ``w`` (M,) row weights.
@@ -235,10 +238,11 @@ def _shared_misfit(J: np.ndarray, groups: np.ndarray, views: np.ndarray, uv: np.
     Six modes, their coefficients shared by the group's points in every view (a face's misfit is in the face,
     so it repeats from photo to photo): a shift in u and in v, and the four affine terms ``(u - u_c) / s_u``,
     ``(v - v_c) / s_v`` in u and in v, with the centroid and the RMS spreads ``s_u``, ``s_v`` of the group's
-    points in that view (each mode of unit RMS size there; only the shifts where a view has fewer than 3)."""
+    points in that view (each mode of unit RMS size there; only the shifts where a view has fewer than 3).
+    ``scale``: per group (in sorted order) a factor on its term (its own misfit variance), else 1."""
     P = J.shape[1]
     out = np.zeros((P, P))
-    for g in np.unique(groups[groups >= 0]):
+    for i, g in enumerate(np.unique(groups[groups >= 0])):
         A = np.zeros((P, 6))
         for v in np.unique(views[groups == g]):
             idx = np.nonzero((groups == g) & (views == v))[0]
@@ -255,7 +259,7 @@ def _shared_misfit(J: np.ndarray, groups: np.ndarray, views: np.ndarray, uv: np.
                         B[1::2, 4 + j] = d[:, j] / s[j]
             rows = np.stack([2 * idx, 2 * idx + 1], axis=1).reshape(-1)
             A += J[rows].T @ (B * np.repeat(w[idx], 2)[:, None])
-        out += A @ A.T
+        out += (1.0 if scale is None else float(scale[i])) * (A @ A.T)
     return out
 
 

@@ -30,14 +30,15 @@ FALLBACK_FACE_SIGMA_PX = 0.15
 @dataclass(frozen=True)
 class VarianceComponents:
     """``sigma_px``: a point's own noise (px, 1-sigma); ``face_sigma_px``: the misfit a face's points share (px per
-    affine mode); ``dof``: the degrees of freedom of ``sigma_px``'s estimate (Satterthwaite); ``n_faces``: the
-    faces seen; ``iterations`` to settle."""
+    affine mode, pooled over the faces); ``dof``: the degrees of freedom of ``sigma_px``'s estimate; ``n_faces``:
+    the faces seen; ``iterations`` to settle; ``face_sigmas_px``: each face's own misfit (:func:`per_face`)."""
 
     sigma_px: float
     face_sigma_px: float
     dof: float
     n_faces: int
     iterations: int
+    face_sigmas_px: tuple[float, ...] = ()  # per face (in the order of :func:`face_modes`), shrunk to the pooled
 
 
 def face_modes(groups: np.ndarray, views: np.ndarray, uv: np.ndarray, w: np.ndarray) -> list[np.ndarray]:
@@ -66,7 +67,7 @@ def face_modes(groups: np.ndarray, views: np.ndarray, uv: np.ndarray, w: np.ndar
 
 def estimate_variance_components(J: np.ndarray, r: np.ndarray, d: np.ndarray, modes: list[np.ndarray],
                                  h_inverse: Callable[[float], np.ndarray], sigma0: float,
-                                 iterations: int = 6) -> VarianceComponents | None:
+                                 iterations: int = 6, prior_modes: float = 6.0) -> VarianceComponents | None:
     """``(sigma, tau)`` from the weighted residual rows ``r`` (2M,) at the fit, the weighted Jacobian ``J``
     (2M, P), the rows' variance factors ``d`` (2M,), the faces' ``modes`` (:func:`face_modes`) and
     ``h_inverse(sigma)``: the inverse information (P, P) at a pixel sigma (the priors' share depends on it).
@@ -101,4 +102,28 @@ def estimate_variance_components(J: np.ndarray, r: np.ndarray, d: np.ndarray, mo
         sig2, tau2, dof = float(s2), float(t2), tr_rest
         if done:
             break
-    return VarianceComponents(math.sqrt(sig2), math.sqrt(tau2), dof, G, it)
+    taus = per_face(RA, Rm, r, d, sig2, tau2, G, prior_modes)
+    return VarianceComponents(math.sqrt(sig2), math.sqrt(tau2), dof, G, it, tuple(np.sqrt(taus).tolist()))
+
+
+def per_face(RA: np.ndarray, Rm: np.ndarray, r: np.ndarray, d: np.ndarray, sig2: float, tau2: float, G: int,
+             prior_modes: float) -> np.ndarray:
+    """Each face's misfit variance (G,) px^2: its residuals on its own modes, less the points' noise and the other
+    faces' pooled misfit there, over its modes' size; each face's six (or fewer) modes say little alone, so the
+    estimate is shrunk to the pooled ``tau2`` as if the pooled value were ``prior_modes`` more modes' worth."""
+    out = np.full(G, tau2)
+    for g in range(G):
+        RAg = RA[:, 6 * g:6 * g + 6]
+        U, sv, _ = np.linalg.svd(RAg, full_matrices=False)
+        keep = sv > (sv[0] * 1e-9 if len(sv) and sv[0] > 0 else np.inf)
+        k = int(keep.sum())
+        if k == 0:
+            continue
+        Q = U[:, keep]
+        t_noise = float(np.sum((Q.T @ Rm) ** 2 * d[None, :]))
+        cross = Q.T @ RA
+        t_other = float(np.sum(cross**2)) - float(np.sum(cross[:, 6 * g:6 * g + 6] ** 2))
+        qg = float(np.sum((Q.T @ r) ** 2))
+        own = max((qg - sig2 * t_noise - tau2 * t_other) / float(np.sum(RAg**2)), 0.0)
+        out[g] = (prior_modes * tau2 + k * own) / (prior_modes + k)
+    return out
