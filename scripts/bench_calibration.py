@@ -469,8 +469,135 @@ def route_relative_focal(n, seed0, log=print):
     return route_relative_any(n, seed0, True, log)
 
 
+# ----------------------------------------------------------------------------------------------------------
+# route 6: multi-view incidents (SfM model placed by a similarity from control points), hand picks
+# ----------------------------------------------------------------------------------------------------------
+MV_CASES = ((5, 0.5), (4, 1.0))  # (cars, pixel sigma of the hand picks) of each base incident, cycled
+MV_DRAWS = 10  # noise draws per generated incident (its geometry rendered once, ~15 s)
+
+
+def _mv_base(work: Path, seed: int, n_cars: int) -> Path:
+    """A generated incident (``workbench synth``: 800x600 photos, 8 multi-view photos, 2 panorama photos) set up
+    for the multi-view route (camera source sfm, the multi-view photos), with its control points' true pixels
+    and coordinates cached (``cp_exact.json``)."""
+    from workbench.synth.control_points import control_points_document
+    from workbench.synth.generate import SynthOptions, generate_incident
+
+    root = work / f"mv_{seed}" / "projects" / "inc"
+    if not (root / "cp_exact.json").is_file():
+        generate_incident(root, SynthOptions(seed=seed, n_cars=n_cars, photo_width=800, photo_height=600,
+                                             n_panorama=2, n_multiview=8, supersample=1,
+                                             layers_dir="../../terrain"))
+        t = (root / "project.toml").read_text()
+        (root / "project.toml").write_text(t.replace('source = "calibrated"', 'source = "sfm"')
+                                           .replace('photos = "photos/panorama"', 'photos = "photos/multiview"'))
+        (root / "cp_exact.json").write_text(json.dumps(control_points_document(root, sigma_px=0.0)))
+    return root
+
+
+def _sfm_noisy(rec: dict, scale: float, rng, sigma_deg: float, sigma_m: float) -> dict:
+    """The reconstruction with each photo's SfM pose disturbed: its rotation by N(0, ``sigma_deg``) per axis, its
+    centre by N(0, ``sigma_m``) per axis (scene metres; ``scale`` = the model's scene metres per unit): an SfM
+    model that is not exact relative to itself."""
+    from workbench.core.geometry import exp_so3
+
+    for im in rec["images"]:
+        C = np.asarray(im["cam_from_model"], float)
+        centre = -C[:3, :3].T @ C[:3, 3] + rng.normal(0.0, sigma_m, 3) / scale
+        R = C[:3, :3] @ exp_so3(np.radians(rng.normal(0.0, sigma_deg, 3)))
+        C[:3, :3], C[:3, 3] = R, -R @ centre
+        im["cam_from_model"] = C.tolist()
+    return rec
+
+
+def mv_draw(root: Path, draw_seed: int, sigma_px: float, cp_sigma_px: float = 0.5,
+            sfm_noise: tuple[float, float] = (0.0, 0.0)) -> dict:
+    """One noise draw on a multi-view base incident: the control points' pixels + N(0, ``cp_sigma_px``) and
+    their coordinates + N(0, sigma_m) (the survey error they state), an exact SfM model in a random frame (a
+    random similarity; ``sfm_noise`` (deg, m): each SfM pose disturbed, :func:`_sfm_noisy`), hand picks (true
+    pixels + N(0, ``sigma_px``)), then the georef and solve stages.
+    Returns the solution, the truth and the cameras (JSON documents)."""
+    from workbench.core.io import atomic_write_json
+    from workbench.georef.stage import run_georef
+    from workbench.project import Project
+    from workbench.solve.stage import run_solve
+    from workbench.synth.control_points import similarity, true_reconstruction
+    from workbench.synth.handpicks import write_true_correspondences
+
+    rng = np.random.default_rng(draw_seed)
+    truth = json.loads((root / "truth/ground_truth.json").read_text())
+    cp = json.loads((root / "cp_exact.json").read_text())
+    for p in cp["points"]:
+        p["coords"] = [float(x) + rng.normal(0.0, float(p.get("sigma_m") or 0.0)) for x in p["coords"]]
+        p["pixels"] = {k: (np.asarray(uv, float) + rng.normal(0.0, cp_sigma_px, 2)).tolist()
+                       for k, uv in p["pixels"].items()}
+    atomic_write_json(root / "control_points.json", cp)
+    scale = float(np.exp(rng.uniform(-1.5, 1.5)))
+    S = similarity(scale, rng.uniform(-180, 180, 3) * [1, 0.5, 1], rng.normal(0.0, 50.0, 3))
+    rec = true_reconstruction(root, S)
+    if any(sfm_noise):
+        rec = _sfm_noisy(rec, scale, rng, *sfm_noise)
+    atomic_write_json(root / "out" / "sfm" / "reconstruction.json", rec)
+    write_true_correspondences(root, "multiview", sigma_px=sigma_px, seed=draw_seed)
+    t = (root / "project.toml").read_text().split("\n[solver]")[0]
+    (root / "project.toml").write_text(t + f"\n[solver]\npixel_sigma_px = {sigma_px}\n")
+    project = Project(root)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        run_georef(project, lambda *a: None)
+        run_solve(project, lambda *a: None)
+    return {"solution": json.loads((root / "out/solve/solution.json").read_text()), "truth": truth,
+            "cameras": json.loads((root / "out/georef/cameras.json").read_text())}
+
+
+def route_multiview(n: int, seed0: int, log=print, work: Path | None = None, draws: int = MV_DRAWS,
+                    sfm_noise: tuple[float, float] = (0.0, 0.0)) -> tuple[list[dict], dict]:
+    """Generated incidents (seeds from ``seed0``), each solved ``draws`` times with fresh noise (:func:`mv_draw`);
+    the records with the camera term (``camera_uncertainty``) and, in ``info["fit_records"]``, the same carriages
+    against the fit's own intervals (``sigma_*_fit_*``: the intervals before the camera term)."""
+    work = work or REPO / "bench_out" / "calibration_multiview"
+    recs, info = [], {"seeds": [], "failed": [], "left_out": 0, "no_interval": 0, "time_s": 0.0, "work": str(work),
+                      "fit_records": [], "draws": draws, "sfm_noise_deg_m": list(sfm_noise)}
+    t0, k = time.perf_counter(), 0
+    while len(recs) < n:
+        seed = seed0 + k // draws
+        n_cars, sigma = MV_CASES[(k // draws) % len(MV_CASES)]
+        draw_seed = 1000 * seed + k % draws
+        k += 1
+        t1 = time.perf_counter()
+        try:
+            out = mv_draw(_mv_base(work, seed, n_cars), draw_seed, sigma, sfm_noise=sfm_noise)
+        except Exception as e:  # noqa: BLE001 - a failed draw is counted and named, not fatal
+            info["failed"].append({"seed": seed, "draw": draw_seed, "error": f"{type(e).__name__}: {str(e)[:300]}"})
+            log(f"  seed {seed} draw {draw_seed}: failed ({type(e).__name__}: {str(e)[:160]})")
+            if len(info["failed"]) >= 5 and len(info["failed"]) > len(info["seeds"]):
+                log("  most draws fail: stopping (a broken checkout, not a finding)")
+                break
+            continue
+        sol = out["solution"]
+        # the fit's own intervals against the truth itself: the intervals as they were before the camera term
+        r, fit, left, no_int = incident_records(f"mv{draw_seed}", sol, out["truth"], np.eye(4), n_cars=n_cars,
+                                                sigma_px_picks=sigma)
+        recs += r
+        info["fit_records"] += fit
+        info["seeds"].append(draw_seed)
+        info["left_out"] += left
+        info["no_interval"] += no_int
+        cu = sol.get("camera_uncertainty") or {}
+        info.setdefault("views_own_covariance", 0)
+        info.setdefault("views_not_modelled", 0)
+        info["views_own_covariance"] += len(cu.get("views_own_covariance") or [])  # re-posed by the adjustment
+        info["views_not_modelled"] += len(cu.get("views_not_modelled") or [])
+        if len(info["seeds"]) % 5 == 0:
+            log(f"  {len(info['seeds'])} draws, {len(recs)} carriages, last {time.perf_counter() - t1:.1f} s, "
+                f"{time.perf_counter() - t0:.0f} s in all; camera term included: "
+                f"{(sol.get('camera_uncertainty') or {}).get('included')}")
+    info["time_s"] = time.perf_counter() - t0
+    return recs, info
+
+
 ROUTES = {"known": route_known, "focal": route_focal, "auto": route_auto, "relative": route_relative,
-          "relative_focal": route_relative_focal}
+          "relative_focal": route_relative_focal, "multiview": route_multiview}
 
 
 def main(argv=None) -> int:
@@ -480,8 +607,8 @@ def main(argv=None) -> int:
     ap.add_argument("--seed0", type=int, default=210000, help="first seed (fresh seeds: not the tests' or "
                                                                "bench_solver's)")
     ap.add_argument("--out", type=Path, default=None)
-    ap.add_argument("--work", type=Path, default=None, help="route auto: the incidents' folder "
-                                                            "(default bench_out/calibration_auto)")
+    ap.add_argument("--work", type=Path, default=None, help="routes auto, multiview: the incidents' folder "
+                                                            "(default bench_out/calibration_<route>)")
     ap.add_argument("--terrain", action="store_true", help="routes known, focal: solve on the simulated terrain "
                                                            "(resting and the contact term, as the stage with a DEM)")
     ap.add_argument("--terrain-sigma", type=float, default=None,
@@ -491,6 +618,11 @@ def main(argv=None) -> int:
     ap.add_argument("--no-keep", action="store_true", help="route auto: delete each incident once solved")
     ap.add_argument("--resolve", action="store_true", help="route auto: run the solve stage again on incidents "
                                                            "already there (after a change to the solve)")
+    ap.add_argument("--draws", type=int, default=MV_DRAWS, help="route multiview: noise draws per generated "
+                                                                 "incident (each incident ~15 s to generate)")
+    ap.add_argument("--sfm-noise", type=float, nargs=2, default=(0.0, 0.0), metavar=("DEG", "M"),
+                    help="route multiview: disturb each SfM pose by N(0, DEG) per rotation axis and N(0, M) per "
+                         "centre axis (default exact SfM models)")
     ap.add_argument("--merge", type=Path, nargs="*", default=None,
                     help="merge saved runs (their carriage records, route by route) and print the table")
     a = ap.parse_args(argv)
@@ -513,7 +645,9 @@ def main(argv=None) -> int:
     for r in routes:
         print(f"route {r}: solving until {a.n} carriages ...", flush=True)
         kw = {"work": a.work, "keep": not a.no_keep, "resolve": a.resolve, "survey_noise": a.survey_noise} \
-            if r == "auto" else {} if r.startswith("relative") else \
+            if r == "auto" else {} if r.startswith("relative") else {"work": a.work, "draws": a.draws,
+                                                                   "sfm_noise": tuple(a.sfm_noise)} \
+            if r == "multiview" else \
             {"terrain": a.terrain, "terrain_sigma_m": a.terrain_sigma}
         recs, info = ROUTES[r](a.n, a.seed0, log=lambda m: print(m, flush=True), **kw)
         st = axis_stats(recs)
@@ -524,12 +658,14 @@ def main(argv=None) -> int:
         result["routes"][r] = {"stats": st, "info": info, "records": recs}
         if info.get("fit_records"):  # the fit's own intervals against the truth moved by the camera's error
             st_fit = axis_stats(info["fit_records"])
-            zc = np.array([c["z"] for c in info["camera"] if c.get("z") is not None])
+            zc = np.array([c["z"] for c in info.get("camera", []) if c.get("z") is not None])
             extra_c = "" if not len(zc) else (
                 "; camera (georegistration) error / sigma, RMS over incidents: rotation "
                 + " ".join(f"{x:.2f}" for x in np.sqrt(np.mean(zc[:, :3] ** 2, axis=0))) + ", centre "
                 + " ".join(f"{x:.2f}" for x in np.sqrt(np.mean(zc[:, 3:] ** 2, axis=0))))
-            print_table(r + " (the fit alone: its own intervals, the truth moved by the camera's error)", st_fit,
+            print_table(r + (" before: the fit's own intervals (no camera term), against the truth"
+                             if r == "multiview" else
+                             " (the fit alone: its own intervals, the truth moved by the camera's error)"), st_fit,
                         extra_c)
             result["routes"][r]["stats_fit"] = st_fit
         out.parent.mkdir(parents=True, exist_ok=True)

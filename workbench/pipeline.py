@@ -139,17 +139,21 @@ def _dem_files(project: Project) -> dict[str, Path]:
     return {"dem": paths[0]} if len(paths) == 1 else {f"dem:{p.name}": p for p in paths}
 
 
+def _setting_file(project: Project, name: str, key: str) -> dict[str, Path]:
+    """``{name: path}`` of the file that setting ``key`` (``section.field``) names, which must exist; ``{}`` when
+    the setting is empty."""
+    section, field = key.split(".")
+    rel = getattr(getattr(project.settings, section), field)
+    return {name: project.require_file(rel, key)} if rel else {}
+
+
 def _railway_files(project: Project) -> dict[str, Path]:
     """The railway layer, which the map, the report's track table and the GeoJSON export read."""
-    rel = project.settings.terrain.railways
-    return {"railways": project.require_file(rel, "terrain.railways")} if rel else {}
+    return _setting_file(project, "railways", "terrain.railways")
 
 
 def _terrain_inputs(project: Project) -> dict[str, Path]:
-    files = _dem_files(project)
-    if project.settings.terrain.buildings:
-        files["buildings"] = project.require_file(project.settings.terrain.buildings, "terrain.buildings")
-    return files
+    return {**_dem_files(project), **_setting_file(project, "buildings", "terrain.buildings")}
 
 
 def _photo_files(project: Project) -> dict[str, Path]:
@@ -176,10 +180,7 @@ def _stitch_inputs(project: Project) -> dict[str, Path]:
 
 
 def _sfm_inputs(project: Project) -> dict[str, Path]:
-    files = _photo_files(project)
-    if project.settings.camera.profile:
-        files["camera_profile"] = project.require_file(project.settings.camera.profile, "camera.profile")
-    return files
+    return {**_photo_files(project), **_setting_file(project, "camera_profile", "camera.profile")}
 
 
 def _georef_inputs(project: Project) -> dict[str, Path]:

@@ -17,6 +17,7 @@ Nothing else builds paths into the folder. Every write is atomic (temp file, the
 from __future__ import annotations
 
 import datetime as _dt
+import fcntl
 import json
 import logging
 import os
@@ -25,7 +26,7 @@ from functools import cached_property
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from .core.io import atomic_write, atomic_write_json, atomic_write_text
+from .core.io import atomic_write, atomic_write_json, atomic_write_text, read_json, resolve_dem_sources
 from .core.layout import CAMERAS_FILE, CONTROL_POINTS_FILE, CORRESPONDENCES_FILE
 from .core.settings import SETTINGS_FILE, TEMPLATE, ProjectSettings, load_settings, parse_settings
 from .errors import InputError, SettingsError, StageError, UnknownModelType
@@ -208,6 +209,14 @@ class Project:
     def solution_path(self) -> Path:
         return self.stage_dir("solve") / "solution.json"
 
+    def require_output(self, path: Path, stage: str, needed_by: str, otherwise: str = "") -> Path:
+        """``path``, a file the ``stage`` stage writes; :class:`StageError` naming the stage to run when it is not
+        there (``otherwise``: what the user may do instead, appended to the message)."""
+        if not path.is_file():
+            raise StageError(f"{path}: not found; the {needed_by} needs the {stage} stage's output: run "
+                             f"`workbench run {self.root} --only {stage}` first{otherwise}")
+        return path
+
     def require_solution(self, needed_by: str) -> Path:
         p = self.solution_path
         if not p.is_file():
@@ -225,8 +234,6 @@ class Project:
 
     def dem_paths(self) -> list[Path]:
         """The DEM file(s) ``terrain.dem`` names (one file, a folder of tiles or a glob); [] when it is unset."""
-        from .core.io import resolve_dem_sources
-
         dem = self.settings.terrain.dem
         if not dem:
             return []
@@ -343,8 +350,6 @@ class Project:
 
     # -- reading and writing --------------------------------------------------------------------------
     def read_json(self, path: Path) -> Any:
-        from .core.io import read_json
-
         return read_json(path)
 
     def write_json(self, path: Path, data: Any) -> Path:
@@ -407,8 +412,6 @@ class IncidentLock:
         self._fd: int | None = None
 
     def __enter__(self) -> "IncidentLock":
-        import fcntl
-
         self.path.parent.mkdir(parents=True, exist_ok=True)
         fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
         try:

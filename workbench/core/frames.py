@@ -29,6 +29,7 @@ from pyproj.exceptions import CRSError
 from ..errors import InputError
 
 from .crs import parse_projected_crs  # noqa: F401 - re-exported
+from .geometry import rot_x, rot_y, rot_z  # rot_z also re-exported (tests/test_export.py)
 
 
 def _as_points(points: np.ndarray, dim: int = 3, name: str = "points") -> tuple[np.ndarray, bool]:
@@ -44,21 +45,6 @@ def _as_points(points: np.ndarray, dim: int = 3, name: str = "points") -> tuple[
 # ----------------------------------------------------------------------------------------------------------
 # Rotations
 # ----------------------------------------------------------------------------------------------------------
-def rot_x(angle_rad: float) -> np.ndarray:
-    c, s = np.cos(angle_rad), np.sin(angle_rad)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-
-
-def rot_y(angle_rad: float) -> np.ndarray:
-    c, s = np.cos(angle_rad), np.sin(angle_rad)
-    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
-
-
-def rot_z(angle_rad: float) -> np.ndarray:
-    c, s = np.cos(angle_rad), np.sin(angle_rad)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
 def rotation_from_hpr(heading_deg: float, pitch_deg: float, roll_deg: float) -> np.ndarray:
     """``world_from_carriage`` rotation (3, 3) from heading (compass, deg), pitch (nose up, deg), roll (right down, deg)."""
     yaw = np.deg2rad(90.0 - heading_deg)

@@ -1,7 +1,8 @@
-"""Small rotation geometry used by every solver: cross-product matrices, SO(3) exp/log and its left Jacobian.
+"""Small rotation geometry used by every solver: cross-product matrices, rotations about the axes, SO(3) exp/log
+and its left Jacobian, quaternions.
 
-Rotation vectors are axis * angle in radians; ``Exp(w)`` is the rotation matrix (Rodrigues). Conventions:
-``docs/conventions.md``.
+Rotation vectors are axis * angle in radians; ``Exp(w)`` is the rotation matrix (Rodrigues). Quaternions are
+``xyzw`` (scalar last, as SciPy and glTF). Conventions: ``docs/conventions.md``.
 """
 
 from __future__ import annotations
@@ -22,9 +23,36 @@ def skew(v: np.ndarray) -> np.ndarray:
     return S
 
 
+def rot_x(angle_rad: float) -> np.ndarray:
+    """(3, 3) rotation by ``angle_rad`` about x (right-handed)."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def rot_y(angle_rad: float) -> np.ndarray:
+    """(3, 3) rotation by ``angle_rad`` about y (right-handed)."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def rot_z(angle_rad: float) -> np.ndarray:
+    """(3, 3) rotation by ``angle_rad`` about z (right-handed)."""
+    c, s = np.cos(angle_rad), np.sin(angle_rad)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
 def exp_so3(w: np.ndarray) -> np.ndarray:
     """Rotation vector(s) (..., 3) -> rotation matrices (..., 3, 3) (Rodrigues)."""
     w = np.asarray(w, dtype=float)
+    if w.shape == (3,):  # one vector (the solvers' inner loops): the same arithmetic without the array machinery
+        x, y, z = w
+        th2 = x * x + y * y + z * z
+        small = th2 < 1e-16
+        th = np.sqrt(th2)
+        a = 1.0 - th2 / 6.0 if small else np.sin(th) / th
+        b = 0.5 - th2 / 24.0 if small else (1.0 - np.cos(th)) / th2
+        K = np.array([[0.0, -z, y], [z, 0.0, -x], [-y, x, 0.0]])
+        return np.eye(3) + a * K + b * (K @ K)
     th2 = np.sum(w * w, axis=-1)[..., None, None]
     th = np.sqrt(th2)
     small = th2 < 1e-16
@@ -81,3 +109,32 @@ def log_so3(R: np.ndarray) -> np.ndarray:
         v = B[:, k] / np.linalg.norm(B[:, k])
         return th * v * (1.0 if float(v @ w) >= 0.0 else -1.0)
     return th / (2.0 * np.sin(th)) * w
+
+
+def orthonormal(R: np.ndarray) -> np.ndarray:
+    """The rotation nearest to ``R`` (3, 3) (SVD, determinant +1): removes the drift of composed small rotations
+    and the rounding of an estimate stored in single precision."""
+    U, _, Vt = np.linalg.svd(R)
+    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+
+
+def quaternion_xyzw_from_matrix(R: np.ndarray) -> np.ndarray:
+    """Rotation matrix (3, 3) -> unit quaternion (4,), ``xyzw`` (scalar last), with SciPy's choice of sign.
+
+    From the largest of the trace and the diagonal (Markley 2008, as ``scipy.spatial.transform.Rotation``), so
+    no division by a small number at any angle."""
+    R = np.asarray(R, dtype=float)
+    if R.shape != (3, 3):
+        raise ValueError(f"{R.shape=} but expected (3, 3)")
+    tr = R[0, 0] + R[1, 1] + R[2, 2]
+    i = int(np.argmax([R[0, 0], R[1, 1], R[2, 2], tr]))
+    q = np.empty(4)
+    if i == 3:
+        q[:] = (R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1], 1.0 + tr)
+    else:
+        j, k = (i + 1) % 3, (i + 2) % 3
+        q[i] = 1.0 - tr + 2.0 * R[i, i]
+        q[j] = R[j, i] + R[i, j]
+        q[k] = R[k, i] + R[i, k]
+        q[3] = R[k, j] - R[j, k]
+    return q / np.linalg.norm(q)

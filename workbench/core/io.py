@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import errno
+import glob
 import hashlib
 import json
 import math
@@ -11,6 +12,7 @@ import tempfile
 from pathlib import Path
 from typing import Any, Callable
 
+from ..errors import InputError, OutputError
 
 _UMASK: int | None = None
 
@@ -62,7 +64,6 @@ _NO_SPACE_OR_ACCESS = {errno.EACCES, errno.EPERM, errno.EROFS, errno.ENOSPC, err
 
 
 def _output_error(path: Path, exc: OSError) -> Exception:
-    from ..errors import OutputError
 
     if exc.errno in (errno.ENOSPC, errno.EDQUOT):
         todo = "free some space on that disk (or move the incident folder), then run the command again"
@@ -119,8 +120,6 @@ def matrix_from_json(value, shape: tuple[int, ...], where: str):
     """A finite float array of ``shape`` from a JSON value; :class:`InputError` naming ``where`` otherwise."""
     import numpy as np
 
-    from ..errors import InputError
-
     dims = "x".join(str(n) for n in shape)
     try:
         M = np.asarray(value, dtype=float)
@@ -152,7 +151,6 @@ def read_json(path, *, missing: str = ""):
     """The JSON document at ``path``; :class:`InputError` naming the file when it is missing (with ``missing``
     appended: what to do), a folder, unreadable, not valid JSON, nested too deeply, or holding NaN or Infinity
     (which strict JSON does not have and no incident file needs)."""
-    from ..errors import InputError
 
     path = Path(path)
     try:
@@ -179,15 +177,13 @@ def resolve_dem_sources(value: str | Path, base: Path) -> list[Path]:
 
     Relative values are relative to ``base`` (the incident folder). No match is an :class:`InputError`.
     """
-    import glob as _glob
 
-    from ..errors import InputError
 
     raw = str(value)
     p = Path(raw)
     p = p if p.is_absolute() else Path(base) / p
     if any(ch in raw for ch in "*?["):
-        files = sorted(Path(x) for x in _glob.glob(str(p), recursive=True) if Path(x).is_file())
+        files = sorted(Path(x) for x in glob.glob(str(p), recursive=True) if Path(x).is_file())
         what = "pattern"
     elif p.is_dir():
         files = sorted(x for x in p.iterdir() if x.suffix.lower() in (".tif", ".tiff") and not x.name.startswith("."))

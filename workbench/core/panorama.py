@@ -29,21 +29,13 @@ PROJECTIONS = ("planar", "cylindrical", "spherical")
 METADATA_KEYS = ("rejected", "intrinsics_source", "parallax", "registration", "format")
 
 
-def _dirs(d: np.ndarray, name: str = "dirs_pano") -> np.ndarray:
-    a = np.asarray(d, dtype=float)
-    if a.ndim == 1 and a.shape == (3,):
+def _rows(x: np.ndarray, width: int, name: str) -> np.ndarray:
+    """``x`` as an (N, width) float array (one row given as (width,) becomes (1, width)); else ValueError."""
+    a = np.asarray(x, dtype=float)
+    if a.shape == (width,):
         a = a[None, :]
-    if a.ndim != 2 or a.shape[1] != 3:
-        raise ValueError(f"{name}.shape={np.shape(d)} but expected (N, 3)")
-    return a
-
-
-def _uv(uv: np.ndarray, name: str = "uv") -> np.ndarray:
-    a = np.asarray(uv, dtype=float)
-    if a.ndim == 1 and a.shape == (2,):
-        a = a[None, :]
-    if a.ndim != 2 or a.shape[1] != 2:
-        raise ValueError(f"{name}.shape={np.shape(uv)} but expected (N, 2)")
+    if a.ndim != 2 or a.shape[1] != width:
+        raise ValueError(f"{name}.shape={np.shape(x)} but expected (N, {width})")
     return a
 
 
@@ -119,7 +111,7 @@ class PanoramaModel:
     def project_with_jacobian(self, dirs_pano: np.ndarray, jacobian: bool = True
                               ) -> tuple[np.ndarray, np.ndarray | None]:
         """Panorama pixels (N, 2) and the exact Jacobian d(u, v)/d(x, y, z) (N, 2, 3) of :meth:`project`."""
-        d = _dirs(dirs_pano)
+        d = _rows(dirs_pano, 3, "dirs_pano")
         x, y, z = d[:, 0], d[:, 1], d[:, 2]
         s = self.scale
         J = np.zeros((len(d), 2, 3)) if jacobian else None
@@ -162,7 +154,7 @@ class PanoramaModel:
 
     def rays(self, uv: np.ndarray) -> np.ndarray:
         """Panorama pixels (N, 2) -> unit directions in ``pano`` (N, 3)."""
-        p = _uv(uv)
+        p = _rows(uv, 2, "uv")
         a = (p[:, 0] + self.offset[0]) / self.scale
         b = (p[:, 1] + self.offset[1]) / self.scale
         if self.projection == "planar":
@@ -210,7 +202,7 @@ class PanoramaModel:
 
     def from_source(self, index: int | np.ndarray, uv_src: np.ndarray) -> np.ndarray:
         """Pixels of source photo(s) ``index`` (int or (N,) ints) as on disk (N, 2) -> panorama pixels (N, 2)."""
-        p = _uv(uv_src, "uv_src")
+        p = _rows(uv_src, 2, "uv_src")
         idx = np.broadcast_to(np.asarray(index, dtype=int), (len(p),))
         d = np.full((len(p), 3), np.nan)
         for i in np.unique(idx):

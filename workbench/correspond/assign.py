@@ -22,6 +22,7 @@ from ..rolling_stock import CarriageType
 from .complete import guided_face, joint_pose
 from .match import FaceDetection, MatchOptions, PhotoFeatures, quad_overlap, detect_faces, refine_detection, support
 from .references import FACES, FaceReference, face_reference
+from .threads import ordered_map
 
 log = logging.getLogger(__name__)
 
@@ -105,9 +106,9 @@ def find_cars(photo: PhotoFeatures, refs: dict[str, list[FaceReference]], consis
     usable = [r for rs in refs.values() for r in rs
               if r.descriptors is not None and len(r.descriptors) >= opts.min_reference_keypoints]
     # 1. candidates: every car's every face, by its own livery
-    cands: list[FaceDetection] = []
-    for ref in usable:
-        cands.extend(detect_faces(photo, [ref], opts))
+    # (each reference's on its own, ``threads.ordered_map``, in the references' order)
+    cands: list[FaceDetection] = [d for ds in ordered_map(lambda ref: detect_faces(photo, [ref], opts), usable)
+                                  for d in ds]
     # 2. regions: overlapping candidates of the same type and face group (a side's instances compete
     #    with the other side's: their layouts are alike)
     regions: list[list[FaceDetection]] = []

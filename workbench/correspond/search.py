@@ -59,6 +59,7 @@ from .assign import CarInPhoto, face_reference_cached
 from .complete import guided_face, joint_pose, predicted_homography
 from .match import MatchOptions, PhotoFeatures, apply_h, quad_overlap, plausible_homography
 from .references import FACES, FaceReference
+from .threads import ordered_map
 
 log = logging.getLogger(__name__)
 
@@ -398,58 +399,71 @@ class _PoseSearch:
             cls = [(h[0], h[1]) for h in hyps if round(h[4], 3) == roll]
             seed_ids |= {id(M) for _, M in _distinct(cls, SEEDS_PER_ROLL, 1.0, ct)}
         fine = _Renderer(self.photo, self.refs, ct, 1)
-        return [self._refine(fine, a, c, h, down, radius_m) for h in hyps if id(h[1]) in seed_ids]
+        seeds = [h for h in hyps if id(h[1]) in seed_ids]
+        return ordered_map(lambda h: self._refine(fine, a, c, h, down, radius_m), seeds)
 
     def _coarse(self, a: Anchor, c: np.ndarray, coarse: _Renderer, px_per_m: float, radius_m: float) -> list[tuple]:
         """The coarse hypotheses (score, cam_from_carriage, yaw, pitch, roll) with a finite score, in the order
-        scored: heading and roll on the grid, pitch from the terrain (and, over a broken coupling, about it)."""
+        scored: heading and roll on the grid, pitch from the terrain (and, over a broken coupling, about it).
+
+        Each roll class (a column of the grid) is scored on its own (``threads.ordered_map``) and the columns'
+        hypotheses are joined in the roll's order: the same list as scoring them one after the other."""
         ct, cam_from_world, terrain, opts, L = self.ct, self.cam_from_world, self.terrain, self.opts, self.L
-        hyps = []
         yaws = np.deg2rad(np.arange(0.0, 360.0, COARSE_HEADING_DEG) if a.yaw is None else
                           np.rad2deg(a.yaw) + np.arange(-opts.search_yaw_span_deg, opts.search_yaw_span_deg + 1e-6,
                                                         COARSE_HEADING_DEG))
         rolls = np.deg2rad(np.arange(-180.0, 180.0, COARSE_ROLL_DEG))
-        pitches: dict[int, float] = {}
         scores = np.full((len(yaws), len(rolls)), np.nan)  # nan: not evaluated
 
         # a broken coupling's car lies metres from the anchor, where the ground's slope can differ: other
         # pitches about the terrain's are tried at the best PITCH_KEEP headings of every roll class
         dps = [] if a.coupling == "held" else [float(np.deg2rad(x)) for x in opts.search_broken_pitch_deg if x != 0]
         best_dp = np.zeros(scores.shape)  # the pitch offset that scored best at each (heading, roll)
-
-        def trial(i: int, j: int, dp: float) -> float:
-            if i not in pitches:
-                pitches[i] = _pitch_on_terrain(a, float(yaws[i]), L, terrain)
-            M0 = cam_from_world @ _rest(_pose_at(ct, a, float(yaws[i]), pitches[i] + dp, float(rolls[j])),
-                                        self.corners, terrain)
-            sc, sh, _ = coarse.match(M0, self.min_cos, radius_m * px_per_m)
-            if np.isfinite(sc):
-                hyps.append((sc, _shifted(M0, c, sh, self.K), float(yaws[i]), pitches[i] + dp, float(rolls[j])))
-            return sc
-
-        def evaluate(i: int, j: int, dp: float = 0.0) -> None:
-            if np.isnan(scores[i, j]):
-                scores[i, j], best_dp[i, j] = trial(i, j, dp), dp
-
         # coarse to fine over the heading: every HEADING_STRIDE-th heading of the grid first, then the grid's
         # headings around the best STRIDE_KEEP of every roll class (the score's basin is wider than the stride),
         # at the pitch that scored best there
         n_y = len(yaws)
         first = sorted(set(range(0, n_y, HEADING_STRIDE)) | {n_y - 1})
-        for j in range(len(rolls)):
+        # the terrain's pitch at every heading scored (those of the first pass in every roll class; the others
+        # when first needed: a pure function of the heading, whichever thread computes it)
+        pitches: dict[int, float] = {i: _pitch_on_terrain(a, float(yaws[i]), L, terrain) for i in first}
+
+        def pitch(i: int) -> float:
+            if i not in pitches:
+                pitches[i] = _pitch_on_terrain(a, float(yaws[i]), L, terrain)
+            return pitches[i]
+
+        def column(j: int) -> list[tuple]:
+            hyps: list[tuple] = []
+
+            def trial(i: int, dp: float) -> float:
+                p = pitch(i)
+                M0 = cam_from_world @ _rest(_pose_at(ct, a, float(yaws[i]), p + dp, float(rolls[j])),
+                                            self.corners, terrain)
+                sc, sh, _ = coarse.match(M0, self.min_cos, radius_m * px_per_m)
+                if np.isfinite(sc):
+                    hyps.append((sc, _shifted(M0, c, sh, self.K), float(yaws[i]), p + dp, float(rolls[j])))
+                return sc
+
+            def evaluate(i: int, dp: float = 0.0) -> None:
+                if np.isnan(scores[i, j]):
+                    scores[i, j], best_dp[i, j] = trial(i, dp), dp
+
             for i in first:
-                evaluate(i, j)
+                evaluate(i)
             col = scores[:, j]
             ok = np.nonzero(np.isfinite(col))[0]
             for rank, i in enumerate(ok[np.argsort(-col[ok])][:STRIDE_KEEP]):
                 for dp in dps if rank < PITCH_KEEP else []:
-                    sc = trial(i, j, dp)
+                    sc = trial(i, dp)
                     if sc > scores[i, j]:
                         scores[i, j], best_dp[i, j] = sc, dp
                 for di in range(-(HEADING_STRIDE - 1), HEADING_STRIDE):
                     if 0 <= i + di < n_y:
-                        evaluate(int(i + di), j, float(best_dp[i, j]))
-        return hyps
+                        evaluate(int(i + di), float(best_dp[i, j]))
+            return hyps
+
+        return [h for hyps in ordered_map(column, range(len(rolls))) for h in hyps]
 
     def _refine(self, fine: _Renderer, a: Anchor, c: np.ndarray, hyp: tuple, down: int, radius_m: float
                 ) -> tuple[float, np.ndarray, float]:
@@ -497,8 +511,10 @@ def search_car(photo: PhotoFeatures, number: str, ct: CarriageType, refs: dict[s
         chosen += _distinct([(sc, M) for sc, M, r in cands if r == roll], SEEDS_PER_ROLL, 1.0, ct)
     chosen = _distinct(chosen, opts.search_seeds, 1.0, ct)
     accepted = []
-    for sc, M in chosen:
-        res = _verify(photo, number, ct, refs, anchors, M, cam_from_world, opts, taken or [])
+    # each candidate verified as alone (on two threads: ECC dominates), the results taken in their order
+    verified = ordered_map(lambda cand: _verify(photo, number, ct, refs, anchors, cand[1], cam_from_world, opts,
+                                                taken or []), chosen)
+    for (sc, M), res in zip(chosen, verified):
         if log.isEnabledFor(logging.DEBUG):
             _log_candidate(photo, number, sc, M, cam_from_world, res)
         if res is not None:

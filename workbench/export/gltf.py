@@ -20,8 +20,8 @@ from typing import Any
 import numpy as np
 import pygltflib as gl
 import trimesh
-from scipy.spatial.transform import Rotation
 
+from ..core.geometry import quaternion_xyzw_from_matrix
 from ..files.scene import SceneCarriage
 from .scene import GLTF_FROM_ENU, ExportOptions, ExportScene, cap_image
 
@@ -126,8 +126,7 @@ def carriage_node_trs(car: SceneCarriage) -> tuple[list[float], list[float]]:
     """(translation (3,), rotation quaternion xyzw (4,)) of a carriage's node, glTF axes."""
     R = GLTF_FROM_ENU @ car.world_from_carriage.rotation @ GLTF_FROM_ENU.T
     t = GLTF_FROM_ENU @ car.world_from_carriage.translation
-    q = Rotation.from_matrix(R).as_quat()  # x, y, z, w: glTF's order
-    q = q / np.linalg.norm(q)
+    q = quaternion_xyzw_from_matrix(R)  # x, y, z, w: glTF's order
     return [float(x) for x in t], [float(x) for x in q]
 
 

@@ -25,7 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from ..core.frames import SceneFrame, hpr_from_rotation, rot_z
+from ..core.frames import SceneFrame, hpr_from_rotation
+from ..core.geometry import orthonormal, rot_z
 from .geojson import carriage_properties, footprint_enu
 from ..files.scene import SceneCarriage
 from .scene import ExportOptions, ExportScene, cap_image
@@ -44,8 +45,7 @@ def local_attitude(car: SceneCarriage, frame: SceneFrame) -> tuple[np.ndarray, n
     pts = np.vstack([p0, p0 + np.eye(3)])
     q = local.enu_from_wgs84(frame.wgs84_from_enu(pts))
     A = (q[1:] - q[0]).T  # columns: the scene's E, N, U axes in the local frame
-    U, _, Vt = np.linalg.svd(A)
-    local_from_scene = U @ Vt
+    local_from_scene = orthonormal(A)
     R = local_from_scene @ car.world_from_carriage.rotation
     return geo0, R, np.array(hpr_from_rotation(R))
 

@@ -14,6 +14,7 @@ them), the orthophoto (when the project has one) and the rolling-stock models; w
 
 from __future__ import annotations
 
+import json
 import logging
 import time
 from pathlib import Path
@@ -129,8 +130,6 @@ def export_scene(project: Project, options: ExportOptions | None = None,
 
 def _compact_json(data: Any) -> str:
     """JSON without indentation (large vertex lists), NaN refused."""
-    import json
-
     return json.dumps(data, separators=(",", ":"), allow_nan=False) + "\n"
 
 

@@ -13,6 +13,7 @@ import numpy as np
 from pyproj import Transformer
 
 from ..core.frames import SceneFrame
+from ..core.geometry import orthonormal
 from .scene import ExportScene
 
 
@@ -23,9 +24,8 @@ def ecef_from_enu(frame: SceneFrame) -> np.ndarray:
     x, y, z = tr.transform(geo[:, 0], geo[:, 1], geo[:, 2])
     P = np.column_stack([x, y, z])
     A = (P[1:] - P[0]).T
-    U, _, Vt = np.linalg.svd(A)
     M = np.eye(4)
-    M[:3, :3] = U @ Vt
+    M[:3, :3] = orthonormal(A)  # the ENU axes in ECEF: a rotation up to rounding
     M[:3, 3] = P[0]
     return M
 

@@ -84,6 +84,79 @@ class Cameras:
         return [v.name for v in self.views if not v.focal_known]
 
 
+@dataclass(frozen=True)
+class PoseUncertainty:
+    """``georegistration.pose_uncertainty`` of the multi-view route (docs/formats.md): the views' pose errors,
+    each a 6-vector (scene rotation vector of ``world_from_cam`` in rad, centre in m, ENU).
+
+    ``model_covariance``: SfM model -> (7, 7) covariance of its similarity's error (log scale, rotation vector,
+    translation); ``jacobian``: view -> (its model, (6, 7)): the view's error is ``J @ e_model``, the same
+    ``e_model`` for every view of that model (their errors are correlated); ``own_covariance``: view -> (6, 6)
+    for a view whose error is its own (independent of every other view's); ``not_modelled``: views placed
+    without a stated pose covariance."""
+
+    model_covariance: dict[str, np.ndarray]
+    jacobian: dict[str, tuple[str, np.ndarray]]
+    own_covariance: dict[str, np.ndarray]
+    not_modelled: tuple[str, ...]
+
+    def view_covariance(self, name: str) -> np.ndarray | None:
+        """(6, 6) marginal covariance of one view's pose error, or None when it is not modelled."""
+        if name in self.jacobian:
+            label, J = self.jacobian[name]
+            return J @ self.model_covariance[label] @ J.T
+        return self.own_covariance.get(name)
+
+
+def _finite_matrix(x: Any, shape: tuple[int, ...], where: str) -> np.ndarray:
+    M = matrix_from_json(x, shape, where)
+    if not np.all(np.isfinite(M)):
+        raise InputError(f"{where}: must hold finite numbers")
+    return M
+
+
+def parse_pose_uncertainty(doc: dict, path: Path | str) -> PoseUncertainty | None:
+    """The ``georegistration.pose_uncertainty`` block of a cameras document, checked (None when absent);
+    :class:`InputError` naming the key. A model whose covariance is null (the fit left it undetermined) leaves
+    its views not modelled."""
+    block = (doc.get("georegistration") or {}).get("pose_uncertainty") if isinstance(doc, dict) else None
+    if block is None:
+        return None
+    where = f"{path}: georegistration.pose_uncertainty"
+    if not isinstance(block, dict) or not isinstance(block.get("models", {}), dict) \
+            or not isinstance(block.get("views", {}), dict):
+        raise InputError(f"{where}: must be an object with 'models' and 'views' objects; {SEE}")
+    cov: dict[str, np.ndarray] = {}
+    for label, m in block.get("models", {}).items():
+        if not isinstance(m, dict):
+            raise InputError(f"{where}.models.{label}: must be an object with a 'covariance' (7 x 7 or null)")
+        if m.get("covariance") is not None:
+            C = _finite_matrix(m["covariance"], (7, 7), f"{where}.models.{label}.covariance")
+            cov[label] = 0.5 * (C + C.T)
+    jac: dict[str, tuple[str, np.ndarray]] = {}
+    own: dict[str, np.ndarray] = {}
+    missing = []
+    for name, v in block.get("views", {}).items():
+        w = f"{where}.views.{name}"
+        if not isinstance(v, dict):
+            raise InputError(f"{w}: must be an object (source, model, jacobian, covariance_rotation_centre)")
+        label = v.get("model")
+        if label is not None:
+            if label not in block.get("models", {}):
+                raise InputError(f"{w}.model = {label!r} is not one of the models ({', '.join(block['models'])})")
+            J = _finite_matrix(v.get("jacobian"), (6, 7), f"{w}.jacobian")
+            if label in cov:
+                jac[name] = (label, J)
+            else:
+                missing.append(name)
+        elif v.get("covariance_rotation_centre") is not None:
+            C = _finite_matrix(v["covariance_rotation_centre"], (6, 6), f"{w}.covariance_rotation_centre")
+            own[name] = 0.5 * (C + C.T)
+        else:
+            missing.append(name)
+    return PoseUncertainty(cov, jac, own, tuple(sorted(missing)))
+
+
 def rotation_checked(R: np.ndarray, where: str) -> np.ndarray:
     """``R`` (3, 3) if it is a rotation (orthonormal, determinant +1); :class:`InputError` naming ``where``."""
     if not (np.allclose(R @ R.T, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0):
@@ -145,6 +218,7 @@ def parse_cameras(doc: Any, path: Path | str) -> Cameras:
         if "world_from_pano" in pano:
             M = matrix_from_json(pano["world_from_pano"], (4, 4), f"{where}: panorama.world_from_pano")
             rotation_checked(M[:3, :3], f"{where}: panorama.world_from_pano")
+    parse_pose_uncertainty(doc, where)  # checked where it enters; the solve reads it with the same function
     return Cameras(Path(path), doc["route"], views, doc)
 
 

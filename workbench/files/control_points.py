@@ -27,7 +27,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError
 
 from ..core.frames import SceneFrame, enu_from_layer_coords
-from ..core.io import read_json
+from ..core.io import atomic_write_bytes, atomic_write_text, read_json, to_json
 from ..core.layout import CONTROL_POINTS_FILE
 from ..core.settings import describe_validation_error
 from ..errors import InputError
@@ -36,7 +36,10 @@ log = logging.getLogger(__name__)
 
 MAX_DISTANCE_M = 20_000.0  # a control point farther than this from the scene origin is a CRS or axis-order mistake
 
-__all__ = ["CONTROL_POINTS_FILE", "ControlPoint", "ControlPointsDoc", "load_control_points", "parse_control_points"]
+__all__ = ["CONTROL_POINTS_FILE", "ControlPoint", "ControlPointsDoc", "load_control_points", "parse_control_points",
+           "save_control_points", "BACKUP_SUFFIX"]
+
+BACKUP_SUFFIX = ".bak"  # the file as it was before the last save that changed it
 
 
 class _Strict(BaseModel):
@@ -107,3 +110,20 @@ def load_control_points(path: str | Path, frame: SceneFrame) -> list[ControlPoin
     """Read ``control_points.json``; :class:`InputError` naming the file, the point and the value on bad input."""
     path = Path(path)
     return parse_control_points(read_json(path), frame, str(path))
+
+
+def save_control_points(path: str | Path, data: Any, frame: SceneFrame) -> tuple[Path, Path | None]:
+    """Check ``data`` completely as :func:`parse_control_points` reads it (an :class:`InputError` naming the point
+    and the value; nothing written), then write it to ``path`` atomically (temp file, rename), first keeping the
+    previous file, when it differs, as ``control_points.json.bak`` beside it. Returns (path, backup or None)."""
+    path = Path(path)
+    parse_control_points(data, frame, str(path))  # every check the georef stage makes, in the scene frame
+    doc = ControlPointsDoc.model_validate(data)  # valid: parse_control_points has checked it
+    text = to_json(doc.model_dump(exclude_defaults=True))
+    backup = None
+    old = path.read_bytes() if path.is_file() else None
+    if old is not None and old != text.encode("utf-8"):
+        backup = atomic_write_bytes(path.with_name(path.name + BACKUP_SUFFIX), old)
+    atomic_write_text(path, text)
+    log.info("wrote %d control points to %s", len(doc.points), path)
+    return path, backup

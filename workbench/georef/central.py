@@ -21,10 +21,10 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from ..core.camera import CameraIntrinsics
-from ..core.geometry import exp_so3, log_so3
+from ..core.geometry import exp_so3, log_so3, orthonormal
 from ..errors import InputError
 from ..files.control_points import ControlPoint
-from .fitting import orthonormal, point_line_distance, rotation_kabsch
+from .fitting import point_line_distance, rotation_kabsch
 from ..files.panorama import RigView
 from .options import GeorefOptions, HeadingPrior
 from .picks import Pick, pick_sigma, picks_in_views, summarize_residuals, warn_residuals
@@ -85,15 +85,6 @@ def _p3p_candidates(bearings: np.ndarray, X: np.ndarray) -> list[tuple[np.ndarra
         t = Q.T @ np.asarray(tv, float).reshape(3)
         out.append((R, -R.T @ t))
     return out
-
-
-def _exp(w: np.ndarray) -> np.ndarray:
-    """Rotation matrix of one rotation vector (Rodrigues; ``core.geometry.exp_so3`` for many, this for speed)."""
-    th = math.sqrt(float(w @ w))
-    K = np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    if th < 1e-8:
-        return np.eye(3) + K + 0.5 * (K @ K)
-    return np.eye(3) + (math.sin(th) / th) * K + ((1.0 - math.cos(th)) / th ** 2) * (K @ K)
 
 
 def _wrap(a: float) -> float:
@@ -265,7 +256,7 @@ def _refine_central(views: Sequence[RigView], obs: list[Pick], X: np.ndarray, cp
     prior = None if prior_centre is None else np.asarray(prior_centre, float)
 
     def fun(p):
-        R = _exp(p[:3]) @ R_init
+        R = exp_so3(p[:3]) @ R_init
         c = p[3:]
         P = (Xs - c) @ R.T
         res = np.empty((len(sel), 2))
@@ -282,7 +273,7 @@ def _refine_central(views: Sequence[RigView], obs: list[Pick], X: np.ndarray, cp
 
     x0 = np.concatenate([np.zeros(3), c_init])
     sol = least_squares(fun, x0, loss=opts.loss, f_scale=opts.loss_scale, x_scale="jac", max_nfev=200)
-    R = _exp(sol.x[:3]) @ R_init
+    R = exp_so3(sol.x[:3]) @ R_init
     cov = None
     try:
         J = sol.jac

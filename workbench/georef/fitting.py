@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..core.geometry import orthonormal  # re-exported: the georef solvers take it from here with the fits
+
 __all__ = ["rotation_kabsch", "umeyama", "triangulate_rays", "orthonormal", "point_line_distance"]
 
 
@@ -46,12 +48,6 @@ def triangulate_rays(centres: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray,
     X = np.linalg.lstsq(A, b, rcond=None)[0]
     cosines = np.clip(dirs @ dirs.T, -1.0, 1.0)
     return X, float(np.degrees(np.arccos(cosines.min())))
-
-
-def orthonormal(R: np.ndarray) -> np.ndarray:
-    """The rotation nearest to ``R`` (3, 3) (SVD), removing the drift of composed small rotations."""
-    U, _, Vt = np.linalg.svd(R)
-    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
 
 
 def point_line_distance(X: np.ndarray, c: np.ndarray, d: np.ndarray) -> float:

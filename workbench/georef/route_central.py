@@ -12,7 +12,7 @@ from PIL import Image
 
 from ..core.camera import CameraIntrinsics
 from ..core.layout import CAMERAS_FILE
-from ..errors import InputError, StageError
+from ..errors import InputError
 from ..project import Project
 from ..files.exif import read_focal_px
 from .central import solve_central
@@ -39,10 +39,8 @@ def _prior_stats(pri: Priors, res) -> tuple[dict, dict]:
 
 def panorama_route(project: Project, opts: GeorefOptions, where: str) -> tuple[dict, dict]:
     """(cameras.json document, stage statistics) of the panorama route."""
-    pano_path = project.panorama_model_path
-    if not pano_path.is_file():
-        raise StageError(f"{pano_path}: not found; the panorama route needs the stitch stage's panorama model: run "
-                         f"`workbench run {project.root} --only stitch` first (or write a {CAMERAS_FILE} by hand)")
+    pano_path = project.require_output(project.panorama_model_path, "stitch", "panorama route",
+                                       f" (or write a {CAMERAS_FILE} by hand)")
     pano = read_panorama(pano_path)
     views, pdoc = list(pano.sources), pano.doc
     cps = _panorama_pixels_to_sources(require_control_points(project), pano, where)

@@ -177,6 +177,49 @@ def _views_out(placed: dict, resected: dict, images: dict[str, str], src: str) -
     return out
 
 
+POSE_PARAMETRISATION = ("a model's similarity error: [log scale, rotation vector (rad, scene frame, applied on the "
+                        "left), translation (m, ENU)]; a view's pose error: [rotation vector of world_from_cam (rad, "
+                        "scene frame), centre (m, ENU)] = jacobian @ its model's similarity error")
+
+
+def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncertainty: dict) -> dict:
+    """``georegistration.pose_uncertainty`` (docs/formats.md): each placed model's similarity covariance (7, 7)
+    and each view's Jacobian (6, 7) from it, so that views of one model keep their shared (correlated) error; a
+    view whose pose the shared-camera adjustment replaced carries that adjustment's covariance on its own, a view
+    placed on its own (resection) none (not modelled). The SfM poses' own error is not included."""
+    models: dict[str, dict] = {}
+    views: dict[str, dict] = {}
+    for ve in out_views:
+        name = ve["name"]
+        if name in placed and name not in resected:
+            label, res, sv = placed[name]
+            M = np.asarray(ve["cam_from_world"], float)
+            if np.allclose(M, res.cam_from_world(sv.cam_from_model), rtol=0.0, atol=1e-9):
+                if label not in models:
+                    models[label] = {"covariance": None if res.covariance is None else res.covariance.tolist(),
+                                     "translation_enu": np.asarray(res.translation, float).tolist(),
+                                     "scale": float(res.scale)}
+                C = res.view_covariance(sv.cam_from_model)
+                views[name] = {"source": "similarity", "model": label,
+                               "jacobian": res.view_jacobian(sv.cam_from_model).tolist(),
+                               "covariance_rotation_centre": None if C is None else C.tolist()}
+                continue
+            u = uncertainty.get(name) or {}
+            if u.get("cov_centre_enu_m2") is not None and u.get("sigma_rotation_deg") is not None:
+                C = np.zeros((6, 6))
+                C[:3, :3] = np.radians(float(u["sigma_rotation_deg"])) ** 2 * np.eye(3)
+                C[3:, 3:] = np.asarray(u["cov_centre_enu_m2"], float)
+                views[name] = {"source": "camera_adjustment", "model": None, "jacobian": None,
+                               "covariance_rotation_centre": C.tolist()}
+                continue
+        views[name] = {"source": "resection" if name in resected else "other", "model": None, "jacobian": None,
+                       "covariance_rotation_centre": None}
+    return {"parametrisation": POSE_PARAMETRISATION,
+            "not_included": "the SfM poses' own error relative to one another (SfM states none); a photo placed "
+                            "on its own (resection): its pose error is not modelled",
+            "models": models, "views": views}
+
+
 def _no_placement_error(p: _Placement, models, resect_reasons: dict[str, str], where: str) -> InputError:
     if len(models) == 1 and p.main_error is not None and not resect_reasons:
         return p.main_error
@@ -301,7 +344,8 @@ def _placed_doc(project: Project, rec_path: Path, rdoc: dict, src: str, p: _Plac
                               for r in p.reports],
                           "n_views_placed": n_done, "unregistered": unreg,
                           "resected": [r["report"] for _, r in sorted(resected.items())],
-                          "view_uncertainty": uncertainty, "camera_adjustment": adjustments})
+                          "view_uncertainty": uncertainty, "camera_adjustment": adjustments,
+                          "pose_uncertainty": _pose_uncertainty(p.placed, resected, out_views, uncertainty)})
     if p.main_res is None:
         block["main_model_error"] = str(p.main_error)
     doc = {"route": "multiview", "intrinsics_source": src, "georegistration": block, "views": out_views,
@@ -346,7 +390,9 @@ def multiview_route(project: Project, opts: GeorefOptions, where: str) -> tuple[
     if p.main_res is None and p.first_res is None:  # only resected photos
         doc, stats = _resected_only_doc(project, rec_path, src, resected, p.reports, unreg)
         doc["views"] = out_views
-        doc["georegistration"].update({"view_uncertainty": uncertainty, "camera_adjustment": adjustments})
+        doc["georegistration"].update({"view_uncertainty": uncertainty, "camera_adjustment": adjustments,
+                                       "pose_uncertainty": _pose_uncertainty(p.placed, resected, out_views,
+                                                                             uncertainty)})
         if p.main_error is not None:
             doc["georegistration"]["main_model_error"] = str(p.main_error)
         stats.update({"view_uncertainty": uncertainty, "camera_adjustment": adjustments})

@@ -53,6 +53,31 @@ class SimilarityResult:
         C = J @ self.covariance @ J.T
         return float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (C + C.T)).max(), 0.0)))
 
+    def view_jacobian(self, cam_from_model: np.ndarray) -> np.ndarray:
+        """(6, 7) first-order map from an error of the similarity (the order of ``covariance``: log scale,
+        rotation vector on the left in the scene frame, translation) to the error of an SfM camera's scene pose
+        placed by it: the scene rotation vector of ``world_from_cam`` (rad) and the centre (m, ENU), the
+        parametrisation of ``georegistration.covariance_world_rotation_centre`` (docs/formats.md).
+
+        The similarity moves every scene point ``p`` by ``dl (p - t) + dtheta x (p - t) + dt``; a camera turns by
+        ``dtheta`` and its centre ``c`` moves as a point: ``[[0, I, 0], [c - t, -[c - t]x, I]]``."""
+        d = self.scale * self.rotation @ model_centre(cam_from_model)  # centre minus translation, scene frame
+        J = np.zeros((6, 7))
+        J[:3, 1:4] = np.eye(3)
+        J[3:, 0] = d
+        J[3:, 1:4] = -skew(d)
+        J[3:, 4:7] = np.eye(3)
+        return J
+
+    def view_covariance(self, cam_from_model: np.ndarray) -> np.ndarray | None:
+        """(6, 6) covariance of an SfM camera's scene pose (rotation vector, centre) from the similarity's alone
+        (:meth:`view_jacobian`; the SfM pose's own error not included); None when the fit leaves it undetermined."""
+        if self.covariance is None:
+            return None
+        J = self.view_jacobian(cam_from_model)
+        C = J @ self.covariance @ J.T
+        return 0.5 * (C + C.T)
+
     @property
     def matrix(self) -> np.ndarray:
         """(4, 4) similarity ``world_from_model`` (scale in the upper-left block)."""

@@ -15,6 +15,7 @@ import re
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
@@ -107,8 +108,6 @@ def _board_points(pattern: tuple[int, int], square_m: float) -> np.ndarray:
 
 def find_corners(gray: np.ndarray, pattern: tuple[int, int], half_window_px: int = 11) -> tuple[np.ndarray | None, str]:
     """Chessboard inner corners (n, 1, 2) float32 px of a (h, w) uint8 image, or None; and the detector used."""
-    import cv2
-
     flags = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
     found, corners = cv2.findChessboardCorners(gray, pattern, flags=flags)
     if found:
@@ -122,8 +121,6 @@ def find_corners(gray: np.ndarray, pattern: tuple[int, int], half_window_px: int
 
 
 def _calibrate(obj: list[np.ndarray], img: list[np.ndarray], size: tuple[int, int], opts: CalibrationOptions):
-    import cv2
-
     flags = 0
     K0 = np.eye(3)
     if opts.fix_aspect_ratio:
@@ -150,8 +147,6 @@ def calibrate_chessboard(images: list[Path], pattern: tuple[int, int] = (9, 6), 
     the 1-sigma of each intrinsic, the views used and those rejected (with the reason).
     Raises :class:`InputError` for unreadable images, mixed sizes or too few boards found.
     """
-    import cv2
-
     opts = options or CalibrationOptions(pattern=tuple(pattern), square_mm=float(square_mm))
     images = [Path(p) for p in images]
     if not images:

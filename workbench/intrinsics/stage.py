@@ -23,6 +23,7 @@ from ..files.exif import FocalPrior, exif_focal_prior
 from ..files.intrinsics import centred
 from ..files.profile import load_camera_profile
 from ..project import Project
+from .sfm import SfmOptions, run_sfm
 
 log = logging.getLogger(__name__)
 
@@ -30,8 +31,6 @@ log = logging.getLogger(__name__)
 # the sfm stage
 # -------------------------------------------------------------------------------------------------------
 def _sfm_options(project: Project):
-    from .sfm import SfmOptions
-
     section = getattr(project.settings, "sfm", None)  # an optional [sfm] table, when settings have one
     if section is None:
         return SfmOptions()
@@ -67,8 +66,6 @@ def _initial_camera(project: Project, photos: list[Path]) -> tuple[CameraIntrins
 
 
 def run_sfm_stage(project: Project, progress: Progress) -> StageResult:
-    from .sfm import run_sfm
-
     photos = project.photo_paths()
     options = _sfm_options(project)
     progress(0.0, "initial camera")

@@ -15,8 +15,11 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
+from scipy.ndimage import zoom
 
 from ..core.camera import CameraIntrinsics, look_at
+from ..files.exif import write_jpeg
 
 
 @dataclass(frozen=True)
@@ -31,8 +34,6 @@ class _Quad:
 def _texture(rng: np.random.Generator, n: int = 512, cells: tuple[int, ...] = (6, 20, 48)) -> np.ndarray:
     """Random texture (n, n, 3), values 0..255: band-limited luminance blobs with hard edges (SIFT finds them
     at several scales; nothing finer than a few texels, so no aliasing) under a soft colour tint."""
-    from scipy.ndimage import zoom
-
     def field(c: int) -> np.ndarray:
         f = zoom(rng.normal(0.0, 1.0, (c + 1, c + 1)), n / c, order=1)[:n, :n]
         return f / (f.std() + 1e-9)
@@ -137,10 +138,6 @@ def write_multiview_set(folder: Path, n: int = 10, *, width: int = 480, height: 
     """Render ``n`` photos ``mv_00.jpg``... into ``folder`` (with EXIF focal tags of a 6.17 mm wide sensor
     when ``exif``); returns the truth: ``{"intrinsics": {...}, "photos": [{"name", "cam_from_world", "center"}]}``.
     """
-    from PIL import Image
-
-    from ..files.exif import write_jpeg
-
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     f = width / 2.0 / np.tan(np.deg2rad(hfov_deg) / 2.0)

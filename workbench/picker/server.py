@@ -13,6 +13,11 @@ Endpoints: ``GET /`` page; ``GET /picker.js``; ``GET /api/state``; ``GET /photo/
 (:mod:`.overlay`); ``POST /api/pose`` with one carriage's current picks: its pose on the spot and where its
 other marked points should fall (:mod:`.live`; nothing is written). A pick may be made from two edges drawn
 along a rounded or hidden corner (``construction`` in correspondences.json, :mod:`workbench.files.correspondences`).
+Control points (:mod:`.control`, :mod:`.map`; docs/picker.md): ``GET /api/map`` (the map's georeference and
+layers), ``GET /map.png``, ``GET /api/control_points``; ``POST /api/locate`` (a map click or typed coordinates:
+project CRS, WGS84 and the DEM's height), ``POST /api/control_points`` (a save of control_points.json, checked
+as the georef stage reads it, atomic, the previous file kept as ``.bak``), ``POST /api/georef`` (the georef stage
+run in-process: residuals, camera placements and their uncertainty).
 
 The picker holds forensic work, so it trusts no request (docs/formats.md, "correspondences.json"):
 
@@ -62,6 +67,7 @@ from ..files import correspondences as mf
 from ..correspond.references import FACES, face_reference
 from ..errors import InputError, OutputError, WorkbenchError
 from ..project import Project
+from .control import ControlPointsApi
 from .live import live_pose
 from .overlay import solution_overlay, strict
 
@@ -76,6 +82,7 @@ MAX_BODY = 4 << 20  # bytes of a save (thousands of points fit in under 1 MiB)
 MAX_DEPTH = 8  # JSON nesting of a save (a valid one is 4 deep)
 BACKUP_SUFFIX = ".bak"
 SAVE_KEYS = ("observations", "rejected")
+CONTROL_ENDPOINTS = ("/api/locate", "/api/control_points", "/api/georef")
 SECURITY_HEADERS = {
     "Cache-Control": "no-store",
     "X-Content-Type-Options": "nosniff",
@@ -112,6 +119,14 @@ class PickerState:
     project: Project
     _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
     _warned: set = field(default_factory=set, repr=False)
+    _control: ControlPointsApi | None = field(default=None, repr=False)
+
+    @property
+    def control(self) -> ControlPointsApi:
+        """The control-point endpoints (the map is built on first use)."""
+        if self._control is None:
+            self._control = ControlPointsApi(self.project, self.image_sizes)
+        return self._control
 
     @property
     def path(self) -> Path:
@@ -459,8 +474,17 @@ class PickerHandler(BaseHTTPRequestHandler):
         self._gate(token_needed=path.startswith("/api/"), navigation_ok=path in page_paths)
         if path in page_paths:
             return self._send(200, self.page_bytes, "text/html; charset=utf-8")
-        if path == "/picker.js":
-            return self._send(200, (STATIC / "picker.js").read_bytes(), "text/javascript; charset=utf-8")
+        if path in ("/picker.js", "/map.js"):
+            return self._send(200, (STATIC / path[1:]).read_bytes(), "text/javascript; charset=utf-8")
+        if path == "/map.png":
+            return self._send(200, self.state.control.map.png(), "image/png")
+        if path == "/api/map":  # no map (no orthophoto or DEM, or an orthophoto without georeference): said why
+            try:
+                return self._json(200, strict(self.state.control.map.document()))
+            except InputError as exc:
+                return self._json(200, {"available": False, "reason": str(exc)})
+        if path == "/api/control_points":
+            return self._json(200, strict(self.state.control.document()))
         if path == "/api/state":
             return self._json(200, self.state.document())
         if path == "/api/overlay":
@@ -489,11 +513,13 @@ class PickerHandler(BaseHTTPRequestHandler):
         raise Refused(404, f"no such page {_cut(path)}")
 
     def _post(self, path: str) -> None:
-        if path not in ("/api/save", "/api/pose"):
+        if path not in ("/api/save", "/api/pose") + CONTROL_ENDPOINTS:
             self._gate(token_needed=False, navigation_ok=False)
             raise Refused(404, f"no such endpoint {_cut(path)}")
         self._gate(token_needed=True, navigation_ok=False)
         payload = parse_body(self._read_body())
+        if path in CONTROL_ENDPOINTS:
+            return self._control_post(path, payload)
         if path == "/api/pose":  # reads only: the same checks as a save, then nothing written
             try:
                 return self._json(200, strict(live_pose(self.state.project, payload, self.state.image_sizes())))
@@ -505,6 +531,26 @@ class PickerHandler(BaseHTTPRequestHandler):
             raise Refused(400, f"save refused, {mf.FILE_NAME} unchanged: {exc}") from None
         log.info("picker: saved %d points and %d rejections to %s", result["n"], result["n_rejected"],
                  result["saved"])
+        self._json(200, result)
+
+    def _control_post(self, path: str, payload: object) -> None:
+        """The control-point writes and queries (:mod:`.control`): a bad request is a 400 naming the key and
+        the value, and nothing is written."""
+        api = self.state.control
+        if path == "/api/locate":
+            return self._json(200, strict(api.locate(payload)))
+        if path == "/api/georef":
+            if payload not in ({}, None):
+                raise Refused(400, "georef takes an empty object {} (it runs on the saved control_points.json)")
+            try:
+                return self._json(200, strict(api.run_georef()))
+            except WorkbenchError as exc:
+                raise Refused(400, f"georef: {exc}") from None
+        try:
+            result = api.save(payload)
+        except InputError as exc:
+            raise Refused(400, f"save refused, control_points.json unchanged: {exc}") from None
+        log.info("picker: saved %d control points (%d picks) to %s", result["n"], result["n_picks"], result["saved"])
         self._json(200, result)
 
     def do_GET(self) -> None:  # noqa: N802 - http.server API

@@ -386,21 +386,30 @@ def _closeup_azimuth(c: SceneCarriage, towards_deg: float) -> tuple[float, float
 RENDER_THREADS = 2  # renders in flight at once (ray tracer only): Embree casts on every core, the shading on one
 
 
-def _timed_map(sr: "SceneRenderer", fn, items):
-    """``(fn(item), seconds)`` for each item, in order: two at a time with the CPU ray tracer (its renders keep no
-    state, so each picture is the same as rendered alone), one by one with Filament (one GPU context)."""
-    def timed(item):
+def _timed_iter(sr: "SceneRenderer", tasks: list):
+    """``(task(), seconds)`` of each task, in order, as an iterator: the tasks run on two threads with the CPU ray
+    tracer (started at once; each picture is the same as rendered alone), one by one with Filament."""
+    def timed(task):
         t0 = time.perf_counter()
-        return fn(item), time.perf_counter() - t0
+        return task(), time.perf_counter() - t0
 
-    items = list(items)
-    if sr.scene.engine != "raytrace" or len(items) < 2:
-        return [timed(x) for x in items]
+    if sr.scene.engine != "raytrace" or len(tasks) < 2:
+        return (timed(t) for t in tasks)
     from concurrent.futures import ThreadPoolExecutor
 
     sr.scene.prepare()  # built once, before the threads share it
-    with ThreadPoolExecutor(max_workers=RENDER_THREADS) as pool:
-        return list(pool.map(timed, items))
+    pool = ThreadPoolExecutor(max_workers=RENDER_THREADS)
+    futures = [pool.submit(timed, t) for t in tasks]
+    pool.shutdown(wait=False)  # the threads end when the queue is done
+
+    def results():
+        try:
+            for f in futures:
+                yield f.result()
+        finally:
+            for f in futures:
+                f.cancel()
+    return results()
 
 
 class _RenderRun:
@@ -415,6 +424,7 @@ class _RenderRun:
         self.outputs: dict[str, Path] = {}
         self.az0 = viewer_azimuth(sc, sr.centre)
         self.n_steps = 3 + len(sc.carriages) + len(sc.cameras)
+        self.map_view: tuple | None = None  # the map's render (_map_render), made beside the overview
         self.step = 0
 
     def tick(self, msg: str) -> None:
@@ -429,20 +439,29 @@ class _RenderRun:
                            **extra})
 
     def overview(self) -> None:
+        """The overview (its sub-pixel passes on two threads), with the map's render on a third thread meanwhile:
+        both need the camera glyphs, which the other pictures leave out."""
         sr = self.sr
         self.tick("overview")
         t0 = time.perf_counter()
         M = sr.view_from(sr.centre, sr.radius, self.az0 + 25.0, 32.0, OVERVIEW_SIZE, margin=0.8)
-        res = sr.render(M, OVERVIEW_SIZE)
-        p = _write_png(self.project, self.out / "overview.png",
-                       label_carriages(res.color, _pinhole(*OVERVIEW_SIZE), M, self.sc))
-        self.record("overview", "overview", p, t0, width=OVERVIEW_SIZE[0], height=OVERVIEW_SIZE[1], cam_from_world=M)
+        from concurrent.futures import ThreadPoolExecutor
 
-    def top_down_map(self) -> None:
-        """The map: the carriages and cameras from above, with a scale bar, north and the grid convergence."""
-        sc, sr, project = self.sc, self.sr, self.project
-        self.tick("map")
+        if sr.scene.engine == "raytrace":
+            sr.scene.prepare()  # built once, before the threads share it
+        with ThreadPoolExecutor(max_workers=1) as pool:
+            map_render = pool.submit(self._map_render) if sr.scene.engine == "raytrace" else None
+            res = sr.render(M, OVERVIEW_SIZE)
+            p = _write_png(self.project, self.out / "overview.png",
+                           label_carriages(res.color, _pinhole(*OVERVIEW_SIZE), M, self.sc))
+            self.record("overview", "overview", p, t0, width=OVERVIEW_SIZE[0], height=OVERVIEW_SIZE[1],
+                        cam_from_world=M)
+            self.map_view = map_render.result() if map_render is not None else self._map_render()
+
+    def _map_render(self) -> tuple:
+        """(colour of the map's top-down render, its extent, metres per pixel, seconds)."""
         t0 = time.perf_counter()
+        sc, sr = self.sc, self.sr
         pts = [c.footprint_enu() for c in sc.carriages] + [np.array([c.center_enu[:2] for c in sc.cameras])
                                                           if sc.cameras else np.zeros((0, 2))]
         P = np.vstack([q for q in pts if len(q)]) if any(len(q) for q in pts) else np.zeros((1, 2))
@@ -452,6 +471,17 @@ class _RenderRun:
         K, Mt, mpp = top_down_camera(centre_en, half, MAP_SIZE[0], float(sr.centre[2]))
         res = sr.render(Mt, MAP_SIZE, K=K, supersample=1)
         extent = (centre_en[0] - half, centre_en[0] + half, centre_en[1] - half, centre_en[1] + half)
+        return res.color, extent, mpp, time.perf_counter() - t0
+
+    def top_down_map(self) -> None:
+        """The map: the carriages and cameras from above (rendered beside the overview), with a scale bar, north
+        and the grid convergence."""
+        sc, project = self.sc, self.project
+        self.tick("map")
+        if self.map_view is None:  # not rendered beside the overview
+            self.map_view = self._map_render()
+        color, extent, mpp, dt = self.map_view
+        t0 = time.perf_counter() - dt
         relative = (sc.solution.get("frame") or {}).get("kind") == "relative"
         conv = 0.0 if relative else project.frame.grid_convergence_deg()
         map_path = self.out / "map.png"
@@ -463,15 +493,52 @@ class _RenderRun:
                          "warnings": [str(w.message) for w in caught if issubclass(w.category, WorkbenchWarning)]}
         note = ("Origin at the camera." if relative else
                 f"Reference point {_latlon(project.settings.location.lat, project.settings.location.lon)}.")
-        draw_map(map_path, res.color, extent, sc, conv, crs_name, note,
+        draw_map(map_path, color, extent, sc, conv, crs_name, note,
                  railways=layer.lines if layer is not None else (), relative=relative)
         self.record("map", "map", map_path, t0, extent_enu=list(extent), metres_per_px=mpp, grid_convergence_deg=conv,
                     crs=crs_name)
 
-    def photos(self) -> None:
-        """Every photo with the reconstruction over it, and its carriage ids (the views without glyphs)."""
+    def _photo_task(self, cam, scale: float, intr):
+        """The work of one photo overlay (render, blend, write both pictures), for a render thread."""
         from ..render.lens import render_photo
 
+        def task() -> dict:
+            res = render_photo(self.sr.scene, intr, cam.cam_from_world, supersample=1)
+            photo = _read_rgb(cam.image, (intr.width, intr.height))
+            stem = Path(cam.name).stem
+            p = _write_png(self.project, self.out / f"photo_{stem}.png", blend_photo(photo, res.color, res.instance))
+            ids = np.where(res.instance >= 0, res.instance, 255).astype(np.uint8)
+            pid = _write_png(self.project, self.out / f"photo_{stem}_ids.png", ids)
+            return {"stem": stem, "path": p, "ids": pid, "pixels": {str(int(k)): int(n) for k, n in
+                                                                      zip(*np.unique(res.instance[res.instance >= 0],
+                                                                                     return_counts=True))}}
+        return task
+
+    def _closeup_task(self, c: SceneCarriage):
+        """The work of one close-up (its view, render, write), for a render thread."""
+        sr = self.sr
+
+        def task() -> dict:
+            r = 0.5 * float(np.linalg.norm(c.bbox_carriage[1] - c.bbox_carriage[0]))
+            az, el = _closeup_azimuth(c, self.az0)
+            M = sr.view_from(c.body_centre_enu, r, az, el, CLOSEUP_SIZE, margin=1.0)
+            res = sr.render(M, CLOSEUP_SIZE)
+            return {"path": _write_png(self.project, self.out / f"car_{c.number}.png", res.color), "az": az, "el": el}
+        return task
+
+    def _orbit_task(self, k: int):
+        sr = self.sr
+
+        def task() -> np.ndarray:
+            M = sr.view_from(sr.centre, sr.radius, self.az0 + 360.0 * k / ORBIT_FRAMES, 30.0, ORBIT_SIZE, margin=0.8)
+            return sr.render(M, ORBIT_SIZE, supersample=1).color
+        return task
+
+    def pictures(self) -> None:
+        """The map's figure, the photo overlays, the close-ups and the orbit, all but the map without the camera
+        glyphs: their renders (each written by the thread that made it) on the render threads from one queue, the
+        orbit's frames first so that its GIF is made while the others render; the map drawn here meanwhile; each
+        recorded in the stage's order (photos, close-ups, orbit)."""
         sc, sr, project = self.sc, self.sr, self.project
         sr.without_glyphs()
         observed_views = {v for c in sc.solution.get("carriages", []) for v in (c.get("observations") or {})}
@@ -482,56 +549,39 @@ class _RenderRun:
                 continue
             scale = min(1.0, PHOTO_MAX_WIDTH / cam.intrinsics.width)
             present.append((cam, scale, cam.intrinsics.scaled(scale) if scale < 1.0 else cam.intrinsics))
-        overlays = _timed_map(sr, lambda p: render_photo(sr.scene, p[2], p[0].cam_from_world, supersample=1), present)
-        for (cam, scale, intr), (res, dt) in zip(present, overlays):
-            self.tick(f"photo {cam.name}")
-            t0 = time.perf_counter() - dt
-            photo = _read_rgb(cam.image, (intr.width, intr.height))
-            blended = blend_photo(photo, res.color, res.instance)
-            stem = Path(cam.name).stem
-            p = _write_png(project, self.out / f"photo_{stem}.png", blended)
-            ids = np.where(res.instance >= 0, res.instance, 255).astype(np.uint8)
-            pid = _write_png(project, self.out / f"photo_{stem}_ids.png", ids)
-            self.outputs[f"photo_{stem}_ids"] = pid
-            self.record("photo", f"photo_{stem}", p, t0, view=cam.name, width=intr.width, height=intr.height,
-                        scale=scale, ids=project.relative(pid), observed=cam.name in observed_views,
-                        carriage_pixels={str(int(k)): int(n) for k, n in
-                                         zip(*np.unique(res.instance[res.instance >= 0], return_counts=True))})
-
-    def closeups(self) -> None:
-        sr = self.sr
-
-        def closeup_view(c):
-            r = 0.5 * float(np.linalg.norm(c.bbox_carriage[1] - c.bbox_carriage[0]))
-            az, el = _closeup_azimuth(c, self.az0)
-            return sr.view_from(c.body_centre_enu, r, az, el, CLOSEUP_SIZE, margin=1.0), az, el
-
-        views = [closeup_view(c) for c in self.sc.carriages]
-        closeups = _timed_map(sr, lambda v: sr.render(v[0], CLOSEUP_SIZE), views)
-        for c, (_, az, el), (res, dt) in zip(self.sc.carriages, views, closeups):
-            self.tick(f"close-up {c.number}")
-            t0 = time.perf_counter() - dt
-            p = _write_png(self.project, self.out / f"car_{c.number}.png", res.color)
-            self.record("closeup", f"car_{c.number}", p, t0, carriage=c.number, width=CLOSEUP_SIZE[0],
-                        height=CLOSEUP_SIZE[1], azimuth_deg=az, elevation_deg=el)
-
-    def orbit(self) -> None:
-        """The orbit: an animated GIF around the scene, and a sheet of six of its frames."""
-        from PIL import Image
-
-        sr, project, az0 = self.sr, self.project, self.az0
-        self.tick("orbit")
+        tasks = [self._orbit_task(k) for k in range(ORBIT_FRAMES)] + \
+                [self._photo_task(*p) for p in present] + [self._closeup_task(c) for c in sc.carriages]
         t0 = time.perf_counter()
+        results = _timed_iter(sr, tasks)
+        self.top_down_map()
         frames = []
-
-        def orbit_frame(k: int) -> np.ndarray:
-            M = sr.view_from(sr.centre, sr.radius, az0 + 360.0 * k / ORBIT_FRAMES, 30.0, ORBIT_SIZE, margin=0.8)
-            return sr.render(M, ORBIT_SIZE, supersample=1).color
-
-        for k, (frame, _dt) in enumerate(_timed_map(sr, orbit_frame, range(ORBIT_FRAMES))):
+        for k in range(ORBIT_FRAMES):
+            frame, _dt = next(results)
             self.progress(min((self.step + k / ORBIT_FRAMES) / self.n_steps, 0.99),
                           f"orbit frame {k + 1}/{ORBIT_FRAMES}")
             frames.append(frame)
+        orbit = self._write_orbit(frames)
+        t_orbit = time.perf_counter() - t0
+        for (cam, scale, intr), (r, dt) in zip(present, [next(results) for _ in present]):
+            self.tick(f"photo {cam.name}")
+            self.outputs[f"photo_{r['stem']}_ids"] = r["ids"]
+            self.record("photo", f"photo_{r['stem']}", r["path"], time.perf_counter() - dt, view=cam.name,
+                        width=intr.width, height=intr.height, scale=scale, ids=project.relative(r["ids"]),
+                        observed=cam.name in observed_views, carriage_pixels=r["pixels"])
+        for c, (r, dt) in zip(sc.carriages, [next(results) for _ in sc.carriages]):
+            self.tick(f"close-up {c.number}")
+            self.record("closeup", f"car_{c.number}", r["path"], time.perf_counter() - dt, carriage=c.number,
+                        width=CLOSEUP_SIZE[0], height=CLOSEUP_SIZE[1], azimuth_deg=r["az"], elevation_deg=r["el"])
+        self.tick("orbit")
+        gif, sp, sheet_az = orbit
+        self.record("orbit", "orbit", gif, time.perf_counter() - t_orbit, frames=ORBIT_FRAMES, width=ORBIT_SIZE[0],
+                    height=ORBIT_SIZE[1], sheet=project.relative(sp), sheet_azimuths_deg=sheet_az[:6])
+
+    def _write_orbit(self, frames: list[np.ndarray]) -> tuple[Path, Path, list[float]]:
+        """The orbit's GIF and its sheet of six frames: (gif, sheet, the sheet's azimuths)."""
+        from PIL import Image
+
+        project, az0 = self.project, self.az0
         gif = self.out / "orbit.gif"
         imgs = [Image.fromarray(f) for f in frames]
         project.write_with(gif, lambda q: imgs[0].save(q, format="GIF", save_all=True, append_images=imgs[1:],
@@ -546,8 +596,7 @@ class _RenderRun:
         self.outputs["orbit_sheet"] = sp
         sheet_az = [(az0 + 360.0 * k / ORBIT_FRAMES) % 360.0
                     for k in range(0, ORBIT_FRAMES, max(1, ORBIT_FRAMES // 6))]
-        self.record("orbit", "orbit", gif, t0, frames=ORBIT_FRAMES, width=ORBIT_SIZE[0], height=ORBIT_SIZE[1],
-                    sheet=project.relative(sp), sheet_azimuths_deg=sheet_az[:6])
+        return gif, sp, sheet_az
 
 
 def run_render(project: Project, progress: Progress) -> StageResult:
@@ -558,10 +607,7 @@ def run_render(project: Project, progress: Progress) -> StageResult:
     sr = SceneRenderer(sc)
     run = _RenderRun(project, progress, out, sc, sr)
     run.overview()
-    run.top_down_map()
-    run.photos()
-    run.closeups()
-    run.orbit()
+    run.pictures()
 
     total = time.perf_counter() - t_all
     idx = {"engine": sr.scene.engine, "renders": run.index, "time_s": round(total, 3),

@@ -207,6 +207,9 @@ class Door(_Model):
     leaves: Annotated[int, Field(ge=1, le=2)] = 2
     window: bool = True
 
+    def centres(self) -> list[float]:
+        return [self.x_m]
+
 
 class Grille(_Model):
     x_start_m: float
@@ -446,26 +449,19 @@ def _check_layout(spec: CarriageSpec, wall_bottom: float, path: Path) -> None:
             if e.nose_setback_m > most:
                 raise _bad(path, f"{end_name}.nose_setback_m", e.nose_setback_m,
                            f"too long for the body: at most body_length_m / 2 - bogie_centres_m / 4 = {most:.3f} m")
-    for i, g in enumerate(spec.windows):
-        key = f"windows[{i}]"
-        if not wall_bottom <= g.z_bottom_m < g.z_top_m <= p.eave_height_m:
-            raise _bad(path, f"{key}.z_top_m", g.z_top_m,
-                       f"windows must lie on the flat side wall ({wall_bottom} .. {p.eave_height_m} m), bottom < top "
-                       f"(z_bottom_m = {g.z_bottom_m})")
-        for x in g.centres():
-            if abs(x) + g.width_m / 2 > half:
-                raise _bad(path, f"{key}.x_first_m", g.x_first_m,
-                           f"a window at x = {x:.2f} m is off the body: |x| + width_m / 2 must be at most "
+    # windows and doors: on the flat side wall, and every one on the body
+    openings = [(f"windows[{i}]", "window", "x_first_m", g) for i, g in enumerate(spec.windows)]
+    openings += [(f"doors[{i}]", "door", "x_m", dr) for i, dr in enumerate(spec.doors)]
+    for key, kind, x_key, o in openings:
+        if not wall_bottom <= o.z_bottom_m < o.z_top_m <= p.eave_height_m:
+            raise _bad(path, f"{key}.z_top_m", o.z_top_m,
+                       f"{kind}s must lie on the flat side wall ({wall_bottom} .. {p.eave_height_m} m), bottom < top "
+                       f"(z_bottom_m = {o.z_bottom_m})")
+        for x in o.centres():
+            if abs(x) + o.width_m / 2 > half:
+                raise _bad(path, f"{key}.{x_key}", getattr(o, x_key),
+                           f"a {kind} at x = {x:.2f} m is off the body: |x| + width_m / 2 must be at most "
                            f"body_length_m / 2 = {half:.3f} m")
-    for i, dr in enumerate(spec.doors):
-        key = f"doors[{i}]"
-        if not wall_bottom <= dr.z_bottom_m < dr.z_top_m <= p.eave_height_m:
-            raise _bad(path, f"{key}.z_top_m", dr.z_top_m,
-                       f"doors must lie on the flat side wall ({wall_bottom} .. {p.eave_height_m} m), bottom < top "
-                       f"(z_bottom_m = {dr.z_bottom_m})")
-        if abs(dr.x_m) + dr.width_m / 2 > half:
-            raise _bad(path, f"{key}.x_m", dr.x_m,
-                       f"the door is off the body: |x_m| + width_m / 2 must be at most body_length_m / 2 = {half:.3f} m")
     for i, g in enumerate(spec.grilles):
         if g.x_end_m <= g.x_start_m or g.z_top_m <= g.z_bottom_m:
             raise _bad(path, f"grilles[{i}].x_end_m", g.x_end_m,

@@ -25,9 +25,9 @@ from typing import Sequence
 import numpy as np
 
 from ..core.camera import CameraIntrinsics, look_at, project_world
-from ..core.frames import rot_z
-from ..core.geometry import exp_so3
+from ..core.geometry import rot_z
 from ..rolling_stock import get_type
+from .level import rotation_between
 from .model import CarriageInput, ChainLink, View
 
 TYPE_CYCLE = ("shoreliner", "p32ac-dm", "amfleet-i", "acs-64")
@@ -61,17 +61,6 @@ class SimProblem:
     clean_pixels: list[dict] = field(default_factory=list)  # per carriage: point -> noiseless (u, v)
 
 
-def _plane_rotation(terrain: PlaneTerrain) -> np.ndarray:
-    """Rotation taking scene up to the plane normal (minimal rotation)."""
-    n = terrain.normal
-    z = np.array([0.0, 0.0, 1.0])
-    v = np.cross(z, n)
-    s, c = np.linalg.norm(v), float(z @ n)
-    if s < 1e-12:
-        return np.eye(3)
-    return exp_so3(v / s * np.arctan2(s, c))
-
-
 def simulate_consist(n_cars: int = 6, *, seed: int = 0, pixel_sigma_px: float = 1.0, slack_m: float = 0.03,
                      broken: tuple[int, ...] = (), slope_deg: float = 2.0, n_points: int | Sequence[int] = 7,
                      width: int = 4000, height: int = 3000, focal_px: float = 3000.0,
@@ -89,7 +78,7 @@ def simulate_consist(n_cars: int = 6, *, seed: int = 0, pixel_sigma_px: float = 
     az = rng.uniform(0, 2 * np.pi)
     sl = np.tan(np.deg2rad(slope_deg)) * rng.uniform(0.3, 1.0)
     terrain = PlaneTerrain(sl * np.cos(az), sl * np.sin(az), 0.0)
-    Rp = _plane_rotation(terrain)
+    Rp = rotation_between([0.0, 0.0, 1.0], terrain.normal)  # scene up to the plane's normal
     n = terrain.normal
     yaw = rng.uniform(0, 2 * np.pi)
     poses, offsets = [], []

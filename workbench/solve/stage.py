@@ -24,12 +24,12 @@ from ..errors import InputError, StageError
 from ..project import Project
 from ..core.stage_api import Progress, StageResult
 from ..files import correspondences
-from ..files.cameras import read_cameras
+from ..files.cameras import parse_pose_uncertainty, read_cameras
 from ..files.panorama import read_panorama
 from .level import Levelling, UprightCar, level_from_carriages
 from .model import CarriageInput, ChainLink, Observation, SolveOptions, SolveWarning, View
 from .solver import solve_consist
-from .uncertainty import add_camera_uncertainty
+from .uncertainty import add_camera_uncertainty, add_view_camera_uncertainty
 
 log = logging.getLogger(__name__)
 
@@ -211,6 +211,8 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
     camera_unc = camera_uncertainty(cam_doc) if levelling is None else _levelling_uncertainty(levelling)
     if camera_unc is not None:
         camera_unc["carriages"] = add_camera_uncertainty(res, camera_unc["centre_enu"], camera_unc["cov"])
+    elif levelling is None:
+        camera_unc = multiview_camera_uncertainty(res, carriages, links, views, cam_doc, cam_path, opts)
     used = {c.number: c.observations for c in carriages}
     doc = solution_document(project, res, views, cam_doc, used, levelling)
     doc["camera_uncertainty"] = _camera_uncertainty_record(camera_unc, cam_doc)
@@ -418,7 +420,8 @@ def camera_uncertainty(cam_doc: dict) -> dict | None:
     Present when the georef stage registered one central camera (a panorama's photos, or a single photo) from
     control points: ``georegistration.covariance_world_rotation_centre`` (6, 6; scene rotation vector in rad,
     centre in m, ENU) and every view's centre at the same place. Cameras written by hand carry no such
-    covariance (they are taken as exact), nor do the multi-view route's (a camera each: not modelled)."""
+    covariance (they are taken as exact); the multi-view route's (a camera each) are
+    :func:`multiview_camera_uncertainty`'s."""
     g = cam_doc.get("georegistration") or {}
     cov = g.get("covariance_world_rotation_centre")
     if cov is None:
@@ -439,12 +442,61 @@ def camera_uncertainty(cam_doc: dict) -> dict | None:
     return {"cov": C, "centre_enu": centres[0]}
 
 
+def multiview_camera_uncertainty(res: Any, carriages: list, links: list, views: list, cam_doc: dict, cam_path: Path,
+                                 opts: SolveOptions) -> dict | None:
+    """The multi-view route's camera uncertainty (``georegistration.pose_uncertainty``, docs/formats.md) added
+    to every carriage's covariance (:func:`add_view_camera_uncertainty`), and the figures of its record; None
+    when the cameras file states none (cameras written by hand, an older cameras.json) or none of it is modelled."""
+    pu = parse_pose_uncertainty(cam_doc, cam_path)
+    if pu is None or not (pu.jacobian or pu.own_covariance):
+        return None
+    per_car = add_view_camera_uncertainty(res, carriages, links, views, opts.pixel_sigma_px, pu.model_covariance,
+                                          pu.jacobian, pu.own_covariance, opts.weighting)
+    names = {v.name for v in views}
+    sd = np.array([np.sqrt(np.clip(np.diag(C), 0.0, None)) for n in sorted(names)
+                   if (C := pu.view_covariance(n)) is not None]).reshape(-1, 6)
+    models = {}
+    for label, C7 in pu.model_covariance.items():
+        d = np.sqrt(np.clip(np.diag(C7), 0.0, None))
+        models[label] = {"sigma_log_scale": float(d[0]), "sigma_rotation_deg": np.degrees(d[1:4]).tolist(),
+                         "sigma_translation_m": d[4:].tolist(),
+                         "views": sorted(n for n, (m, _) in pu.jacobian.items() if m == label and n in names)}
+    return {"multiview": True, "models": models, "per_carriage": per_car,
+            "own": sorted(n for n in pu.own_covariance if n in names),
+            "not_modelled": sorted(n for n in names if pu.view_covariance(n) is None),
+            "sigma_rotation_deg": np.degrees(sd[:, :3].max(axis=0)).tolist() if len(sd) else [0.0] * 3,
+            "sigma_centre_m": sd[:, 3:].max(axis=0).tolist() if len(sd) else [0.0] * 3}
+
+
+def _multiview_record(camera_unc: dict) -> dict:
+    per_car = camera_unc["per_carriage"]
+    partly = sorted(n for n, r in per_car.items() if r["not_modelled"])
+    note = ("multi-view cameras: each SfM model's similarity covariance (7 x 7: log scale, rotation, translation, "
+            "from the control points) carried to its photos' poses, the photos of one model sharing that error; "
+            "a photo whose pose the shared-camera adjustment replaced carries that adjustment's covariance on its "
+            "own. Each carriage follows the photos it is measured in, weighted by their information on its pose "
+            "and the couplings (first order: a common motion of the cameras moves it rigidly, the scale by its "
+            "cameras' weighted shifts); sigma_*_fit_* give the fit's alone. Not included: the SfM poses' error "
+            "relative to one another, the terrain contact's hold against a camera error")
+    if camera_unc["not_modelled"]:
+        note += "; the pose error of " + ", ".join(camera_unc["not_modelled"]) + " (placed on its own: not modelled)"
+    if partly:
+        note += "; so the camera term of " + ", ".join(partly) + " is partial"
+    return {"included": True, "note": note, "route": "multiview",
+            "sigma_rotation_deg": camera_unc["sigma_rotation_deg"], "sigma_centre_m": camera_unc["sigma_centre_m"],
+            "centre_enu": None, "models": camera_unc["models"], "views_own_covariance": camera_unc["own"],
+            "views_not_modelled": camera_unc["not_modelled"], "carriages": sorted(per_car),
+            "view_shares": {n: r["views"] for n, r in per_car.items()}}
+
+
 def _camera_uncertainty_record(camera_unc: dict | None, cam_doc: dict) -> dict:
+    if camera_unc is not None and camera_unc.get("multiview"):
+        return _multiview_record(camera_unc)
     if camera_unc is None:
         g = cam_doc.get("georegistration") or {}
         why = ("cameras given as exact (no georegistration covariance in the cameras file)" if not g else
-               "the georegistration states no single camera-pose covariance (multi-view route, or an older "
-               "cameras.json): the intervals are the fit's alone")
+               "the georegistration states no camera-pose covariance (an older cameras.json, or a multi-view "
+               "one without georegistration.pose_uncertainty): the intervals are the fit's alone")
         return {"included": False, "note": why}
     C = camera_unc["cov"]
     sd = np.sqrt(np.clip(np.diag(C), 0.0, None))

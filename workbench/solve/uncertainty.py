@@ -18,10 +18,11 @@ from scipy.special import gammaincinv, stdtrit  # quantiles as scipy.stats compu
 from ..core.frames import hpr_from_rotation
 from ..core.geometry import exp_so3, skew
 from .model import SolveOptions
-from .variance_components import (FALLBACK_FACE_SIGMA_PX, VarianceComponents, estimate_variance_components,
-                                  face_modes)
 from .problem import (Chains, Poses, Problem, carriage_weights, focal_groups, held_chains, prepare_cars,
                       record_warning)
+from .projection import project_with_jacobians
+from .variance_components import (FALLBACK_FACE_SIGMA_PX, VarianceComponents, estimate_variance_components,
+                                  face_modes)
 
 
 def pixel_rows(prob, R, t, f, focal_views):
@@ -501,3 +502,147 @@ def add_camera_uncertainty(res: Any, centre_enu: np.ndarray, cov_camera: np.ndar
         _set_pose_covariance(cr, 0.5 * (C + C.T), M[:3, :3], np.asarray(cr.body_centre_m, dtype=float) - M[:3, 3], q)
         changed.append(cr.number)
     return changed
+
+
+def view_information(world_from_carriage: np.ndarray, rows: dict[int, tuple[np.ndarray, np.ndarray]],
+                     views: Sequence[Any]) -> dict[int, np.ndarray]:
+    """Each view's pixel information (6, 6) on one carriage's pose parameters (scene rotation vector, origin: the
+    order of ``covariance_pose``) at ``world_from_carriage`` (4, 4). ``rows``: view index -> (the measured
+    points (n, 3) in the carriage frame, their weights (n,): 1 / sigma^2 in px^-2)."""
+    M = np.asarray(world_from_carriage, dtype=float)
+    out = {}
+    for v, (P, w) in rows.items():
+        _, J, _ = project_with_jacobians(P, M[:3, :3], M[:3, 3], views[v].cam_from_world, views[v].intrinsics, ())
+        out[v] = np.einsum("nai,n,naj->ij", J, np.asarray(w, float), J)
+    return out
+
+
+def view_shares(info: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
+    """``W_v = H^-1 H_v`` (6, 6) per view, ``H = sum_v H_v``: how a carriage's pose follows each view's camera
+    when the cameras move apart (the first-order response of its least-squares pose to a shift of view ``v``'s
+    pixels, each view's shift being the one that camera's own error would cause); the ``W_v`` sum to I, so a
+    motion common to every camera moves the carriage with it exactly. Where ``H`` is singular (the pose rests on
+    the chain as well), scalar shares ``trace H_v / trace H`` times I."""
+    H = sum(info.values())
+    ev = np.linalg.eigvalsh(0.5 * (H + H.T))
+    if ev[0] > 1e-10 * max(ev[-1], 1e-300):
+        return {v: np.linalg.solve(H, Hv) for v, Hv in info.items()}
+    tr = float(np.trace(H))
+    return {v: (float(np.trace(Hv)) / tr if tr > 0 else 1.0 / len(info)) * np.eye(6) for v, Hv in info.items()}
+
+
+def _measured_rows(cin: Any, cr: Any, vindex: dict[str, int], pixel_sigma_px: float
+                   ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    """A solved carriage's measured points in its final fit (its residuals' rows, predictions left out), per view
+    index: (points (n, 3) in the carriage frame, weights (n,): (pixel sigma / the point's sigma)^2)."""
+    rows: dict[int, tuple[list, list]] = {}
+    for vname, pts in (cr.residuals_px or {}).items():
+        for p in pts:
+            o = (cin.observations.get(vname) or {}).get(p)
+            if o is None or getattr(o, "derived", False) or vname not in vindex:
+                continue
+            sig = getattr(o, "sigma_px", None) or pixel_sigma_px
+            P, w = rows.setdefault(vindex[vname], ([], []))
+            P.append(cin.carriage_type.marked_points[p])
+            w.append((pixel_sigma_px / float(sig)) ** 2)
+    return {v: (np.asarray(P, float), np.asarray(w, float)) for v, (P, w) in rows.items()}
+
+
+def _coupler_information(links: Sequence[Any], carriages: Sequence[Any], res: Any, pos: dict[int, int],
+                         P: int) -> np.ndarray:
+    """(P, P) information of the held couplings' offset prior (``T ~ N(0, (slack / sqrt 5)^2 I)``, as the
+    covariance) between carriages both in ``pos`` (consist index -> block)."""
+    H = np.zeros((P, P))
+    for L in links:
+        a, b = int(L.front), int(L.rear)
+        if L.slack_m is None or a not in pos or b not in pos:
+            continue
+        Ra = np.asarray(res.carriages[a].world_from_carriage, float)[:3, :3]
+        Rb = np.asarray(res.carriages[b].world_from_carriage, float)[:3, :3]
+        JT = np.zeros((3, P))
+        ca, cb = 6 * pos[a], 6 * pos[b]
+        JT[:, ca:ca + 3] = skew(Ra @ np.asarray(carriages[a].carriage_type.coupler_rear, float))
+        JT[:, ca + 3:ca + 6] = -np.eye(3)
+        JT[:, cb:cb + 3] = -skew(Rb @ np.asarray(carriages[b].carriage_type.coupler_front, float))
+        JT[:, cb + 3:cb + 6] = np.eye(3)
+        H += JT.T @ JT / (float(L.slack_m) / math.sqrt(5.0)) ** 2
+    return H
+
+
+def add_view_camera_uncertainty(res: Any, carriages: Sequence[Any], links: Sequence[Any], views: Sequence[Any],
+                                pixel_sigma_px: float, model_covariance: dict[str, np.ndarray],
+                                jacobian: dict[str, tuple[str, np.ndarray]], own_covariance: dict[str, np.ndarray],
+                                weighting: str = "per_carriage") -> dict[str, dict]:
+    """Add the multi-view cameras' pose uncertainty to every carriage's covariance, in place (first order).
+
+    A view's pose error ``e_v`` (6: scene rotation vector of ``world_from_cam``, centre) is ``J_v e_m`` for a view
+    placed by SfM model ``m``'s similarity (``jacobian[view] = (m, J_v)``; ``e_m`` of covariance
+    ``model_covariance[m]`` (7, 7), shared by all of ``m``'s views, so their errors are correlated) or its own
+    (``own_covariance[view]`` (6, 6), independent). The carriages' poses respond as the least squares does:
+    ``dx = H^-1 sum_v H_v A_v e_v``, with ``H_v`` view ``v``'s pixel information on every carriage's pose
+    (their measured points, the carriage weighting, the pixel sigma ``res.sigma_px``), ``H`` all of it plus the
+    held couplings' prior, and ``A_v`` (:func:`camera_pose_jacobian` about view ``v``'s centre) the poses that keep
+    view ``v``'s pixels: a carriage seen in one view moves with that camera (as the central route's
+    :func:`add_camera_uncertainty`), a motion common to all cameras moves every carriage rigidly with it, and the
+    scale moves each by its cameras' information-weighted shifts. The terrain contact's resistance is not
+    modelled (the carriages move as on pixels alone, as on the central route). Predictions
+    (``Observation.derived``) carry no information and take no share. The fit's joint covariance
+    ``res.covariance`` stays the fit's. Returns carriage number -> {"views": view -> its share of the carriage's
+    own information (trace of ``H_k^-1 H_kv`` / 6), "not_modelled": the views it is measured in whose error is
+    not modelled}."""
+    q = float(res.ci95_factor) if getattr(res, "ci95_factor", None) else 1.959963984540054
+    vindex = {v.name: i for i, v in enumerate(views)}
+    centres = [-np.asarray(v.cam_from_world, float)[:3, :3].T @ np.asarray(v.cam_from_world, float)[:3, 3]
+               for v in views]
+    info: dict[int, dict[int, np.ndarray]] = {}
+    counts: dict[int, int] = {}
+    for k, (cin, cr) in enumerate(zip(carriages, res.carriages)):
+        if cr.covariance_pose is None or cr.world_from_carriage is None or cr.body_centre_m is None:
+            continue
+        rows = _measured_rows(cin, cr, vindex, pixel_sigma_px)
+        if rows:
+            info[k] = view_information(cr.world_from_carriage, rows, views)
+            counts[k] = sum(len(w) for _, w in rows.values())
+    if not info:
+        return {}
+    pos = {k: i for i, k in enumerate(info)}
+    P = 6 * len(pos)
+    n_mean = float(np.mean(list(counts.values())))
+    sig = float(res.sigma_px) if math.isfinite(float(getattr(res, "sigma_px", math.nan))) else pixel_sigma_px
+    H = _coupler_information(links, carriages, res, pos, P)
+    G = {v: np.zeros((P, 6)) for v in range(len(views))}  # H_v A_v
+    for k, per_view in info.items():
+        c = 6 * pos[k]
+        w2 = (n_mean / counts[k] if weighting == "per_carriage" else 1.0) / sig**2
+        M = np.asarray(res.carriages[k].world_from_carriage, float)
+        for v, Hkv in per_view.items():
+            H[c:c + 6, c:c + 6] += w2 * Hkv
+            G[v][c:c + 6] += w2 * Hkv @ camera_pose_jacobian(M, centres[v])
+    Hi = inverse_psd(0.5 * (H + H.T))
+    C_cam = np.zeros((P, P))
+    B: dict[str, np.ndarray] = {}
+    missing: set[str] = set()
+    for v, Gv in G.items():
+        if not Gv.any():
+            continue
+        Rv = Hi @ Gv  # (P, 6): every carriage's response to view v's pose error
+        name = views[v].name
+        if name in jacobian:
+            label, J = jacobian[name]
+            B[label] = B.get(label, np.zeros((P, 7))) + Rv @ np.asarray(J, float)
+        elif name in own_covariance:
+            C_cam += Rv @ np.asarray(own_covariance[name], float) @ Rv.T
+        else:
+            missing.add(name)
+    for label, Bm in B.items():
+        C_cam += Bm @ np.asarray(model_covariance[label], float) @ Bm.T
+    out = {}
+    for k, i in pos.items():
+        cr = res.carriages[k]
+        M = np.asarray(cr.world_from_carriage, dtype=float)
+        C = np.asarray(cr.covariance_pose, dtype=float) + C_cam[6 * i:6 * i + 6, 6 * i:6 * i + 6]
+        _set_pose_covariance(cr, 0.5 * (C + C.T), M[:3, :3], np.asarray(cr.body_centre_m, dtype=float) - M[:3, 3], q)
+        shares = view_shares(info[k])
+        out[cr.number] = {"views": {views[v].name: float(np.trace(W)) / 6.0 for v, W in shares.items()},
+                          "not_modelled": sorted(views[v].name for v in info[k] if views[v].name in missing)}
+    return out

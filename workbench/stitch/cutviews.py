@@ -13,9 +13,8 @@ from dataclasses import dataclass
 
 import cv2
 import numpy as np
-from scipy.spatial.transform import Rotation
-
 from ..core.camera import CameraIntrinsics
+from ..core.geometry import log_so3, orthonormal, rot_x, rot_y, rot_z
 
 
 @dataclass(frozen=True)
@@ -34,8 +33,9 @@ def grid_rotations(yaws_deg: list[float], pitches_deg: list[float], roll_sigma_d
     for p in pitches_deg:
         for y in yaws_deg:
             # src_from_cam: turn right by yaw (about +y, down), up by pitch (about -x), roll about z
-            src_from_cam = Rotation.from_euler("YXZ", [y, -p, rng.normal(0.0, roll_sigma_deg)], degrees=True)
-            out.append(src_from_cam.inv().as_matrix())
+            roll = rng.normal(0.0, roll_sigma_deg)
+            src_from_cam = rot_y(np.radians(y)) @ rot_x(np.radians(-p)) @ rot_z(np.radians(roll))
+            out.append(src_from_cam.T)
     return out
 
 
@@ -75,9 +75,7 @@ def align_rotation(estimated: dict[str, np.ndarray], truth: dict[str, np.ndarray
     names = [n for n in estimated if n in truth]
     if not names:
         raise ValueError("no photo in common between the estimated and the true rotations")
-    M = sum(estimated[n].T @ truth[n] for n in names)
-    U, _, Vt = np.linalg.svd(M)
-    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return orthonormal(sum(estimated[n].T @ truth[n] for n in names))
 
 
 def rotation_errors_deg(estimated: dict[str, np.ndarray], truth: dict[str, np.ndarray]) -> dict[str, float]:
@@ -87,5 +85,6 @@ def rotation_errors_deg(estimated: dict[str, np.ndarray], truth: dict[str, np.nd
     ``A = align_rotation(estimated, truth)``.
     """
     A = align_rotation(estimated, truth)
-    return {n: float(np.degrees(np.linalg.norm(Rotation.from_matrix(estimated[n] @ A @ truth[n].T).as_rotvec())))
+    # the nearest rotation first: an estimate need not be exactly orthonormal (cv2's are single precision)
+    return {n: float(np.degrees(np.linalg.norm(log_so3(orthonormal(estimated[n] @ A @ truth[n].T)))))
             for n in estimated if n in truth}

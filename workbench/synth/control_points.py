@@ -18,12 +18,18 @@ import logging
 from pathlib import Path
 
 import numpy as np
+import trimesh
 
 from ..core.camera import CameraIntrinsics, project_world
 from ..core.frames import SceneFrame
+from ..core.geometry import rot_x, rot_y, rot_z
 from ..core.io import atomic_write_text, to_json
 from ..core.layout import CONTROL_POINTS_FILE as FILE_NAME
 from ..errors import InputError
+from ..files.buildings import read_buildings_geojson
+from ..files.dem import TerrainModel
+from ..rolling_stock import get_type
+from ..terrain.extrude import building_meshes
 
 log = logging.getLogger(__name__)
 
@@ -54,13 +60,6 @@ def _roof_corners(mesh) -> np.ndarray:
 
 def _scene_meshes(root: Path, truth: dict, frame: SceneFrame):
     """(terrain model, [building meshes], [carriage meshes]) in the scene frame."""
-    import trimesh
-
-    from ..files.dem import TerrainModel
-    from ..rolling_stock import get_type
-    from ..files.buildings import read_buildings_geojson
-    from ..terrain.extrude import building_meshes
-
     layers = truth.get("layers", {})
     dem = root / layers["dem"]
     tm = TerrainModel.from_geotiff(dem, frame)
@@ -303,12 +302,11 @@ def true_reconstruction(root: str | Path, world_from_model: np.ndarray, photo_se
 
 
 def similarity(scale: float, euler_zyx_deg, t) -> np.ndarray:
-    """A 4x4 similarity (``world_from_model``): ``scale`` times the rotation of intrinsic z-y-x Euler angles
-    (degrees), then the translation ``t`` (3,)."""
-    from scipy.spatial.transform import Rotation
-
+    """A 4x4 similarity (``world_from_model``): ``scale`` times the rotation of Euler angles (degrees) about the
+    fixed z, y, x axes in turn (``Rx Ry Rz``: SciPy's extrinsic ``"zyx"``), then the translation ``t`` (3,)."""
+    az, ay, ax = np.radians(np.asarray(euler_zyx_deg, dtype=float))
     S = np.eye(4)
-    S[:3, :3] = scale * Rotation.from_euler("zyx", euler_zyx_deg, degrees=True).as_matrix()
+    S[:3, :3] = scale * (rot_x(ax) @ rot_y(ay) @ rot_z(az))
     S[:3, 3] = t
     return S
 

@@ -16,6 +16,7 @@ import hashlib
 import json
 import logging
 import os
+import tomllib
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -24,14 +25,27 @@ from typing import Callable
 import numpy as np
 import tomli_w
 from PIL import Image
+from shapely.geometry import Point, Polygon
 
 from ..core.camera import CameraIntrinsics, look_at, project_world
-from ..core.frames import SceneFrame, hpr_from_rotation, rot_z
+from ..core.frames import SceneFrame, hpr_from_rotation
+from ..core.geometry import rot_z
 from ..core.io import atomic_write, atomic_write_text, to_json
 from ..core.settings import SETTINGS_FILE, parse_settings
 from ..errors import WorkbenchError
+from ..files.buildings import write_buildings_geojson
+from ..files.dem import TerrainModel
+from ..files.exif import write_jpeg
+from ..render.lens import render_photo
+from ..render.offscreen import OffscreenScene, SceneMesh
+from ..rolling_stock import load_library
+from ..terrain.extrude import building_meshes
+from .buildings import make_buildings
+from .control_points import write_control_points
+from .layout import lay_consist
 from .scenarios import SCENARIOS, plan_consist
-from .track import carriage_track_truth
+from .terrain import make_terrain, write_dem_geotiff
+from .track import carriage_track_truth, write_track_layer
 
 log = logging.getLogger(__name__)
 
@@ -90,8 +104,6 @@ def _pose(R: np.ndarray, centre: np.ndarray) -> np.ndarray:
 
 
 def _inside_any(xy: np.ndarray, polygons, margin: float) -> bool:
-    from shapely.geometry import Point, Polygon
-
     p = Point(float(xy[0]), float(xy[1]))
     return any(Polygon(poly).buffer(margin).contains(p) for poly in polygons)
 
@@ -274,8 +286,6 @@ def _ids_png(instance: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------------------------------
 def _is_synthetic(settings_path: Path) -> bool:
     """Was this project.toml written by `workbench synth` (a sample whose photos are not committed)?"""
-    import tomllib
-
     try:
         return bool(tomllib.loads(settings_path.read_text(encoding="utf-8")).get("incident", {}).get("synthetic"))
     except (tomllib.TOMLDecodeError, UnicodeDecodeError, OSError):
@@ -284,8 +294,6 @@ def _is_synthetic(settings_path: Path) -> bool:
 
 def _write_control_points(root: Path) -> None:
     """control_points.json from the truth (cheap: no rendering; kept when already up to date)."""
-    from .control_points import write_control_points
-
     write_control_points(root)
 
 
@@ -323,12 +331,6 @@ class _Layers:
 
 def _make_layers(root: Path, scn, opts: SynthOptions) -> _Layers:
     """The DEM, the building footprints, the orthophoto and the railway line, written under ``opts.layers_dir``."""
-    from ..files.buildings import write_buildings_geojson
-    from ..files.dem import TerrainModel
-    from .buildings import make_buildings
-    from .terrain import make_terrain, write_dem_geotiff
-    from .track import write_track_layer
-
     frame0 = SceneFrame(scn.crs, scn.lat, scn.lon, 0.0)
     st = make_terrain(scn.terrain, frame0, size_m=opts.terrain_size_m, resolution_m=opts.terrain_resolution_m,
                       seed=opts.seed)
@@ -351,9 +353,6 @@ def _make_layers(root: Path, scn, opts: SynthOptions) -> _Layers:
 
 def _lay_out_consist(scn, lay: _Layers, opts: SynthOptions, rng) -> list:
     """The scenario's consist, derailed along the track, coming to rest around the scene origin."""
-    from ..rolling_stock import load_library
-    from .layout import lay_consist
-
     types = load_library()
     plans = plan_consist(scn, types, rng, opts.n_cars)
     track = np.asarray(lay.st.track_enu, float)
@@ -377,9 +376,6 @@ def _camera_intrinsics(opts: SynthOptions) -> CameraIntrinsics:
 
 def _build_scene(lay: _Layers, placed, w: int, h: int):
     """The scene to render: textured terrain, buildings, the carriages (each its instance id), the sun."""
-    from ..render.offscreen import OffscreenScene, SceneMesh
-    from ..terrain.extrude import building_meshes
-
     scene = OffscreenScene(w, h)
     scene.add(SceneMesh("terrain", lay.tm.mesh(texture=lay.st.texture)))
     for i, m in enumerate(building_meshes(lay.buildings, lay.tm, lay.frame)):
@@ -404,9 +400,6 @@ def _site(lay: _Layers, opts: SynthOptions) -> _Site:
 def _render_photos(root: Path, scn, scene, intr: CameraIntrinsics, all_views: list, placed, opts: SynthOptions,
                    progress: Callable[[float, str], None]) -> list:
     """Render, write (photo with EXIF, instance mask) and observe every view; their truth records, in order."""
-    from ..files.exif import write_jpeg
-    from ..render.lens import render_photo
-
     date = _dt.datetime.fromisoformat(scn.date + "T07:30:00")
     w, fx = intr.width, intr.fx
 

@@ -12,6 +12,7 @@ stage: they only write the inputs a user could have written.
 
 from __future__ import annotations
 
+import json
 import logging
 from pathlib import Path
 
@@ -25,8 +26,6 @@ log = logging.getLogger(__name__)
 
 
 def _truth(root: Path) -> dict:
-    import json
-
     p = Path(root) / "truth" / "ground_truth.json"
     if not p.is_file():
         raise InputError(f"{p}: not found; hand-pick stand-ins are made only for synthetic incidents "

@@ -12,6 +12,7 @@ import logging
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from ..core.frames import Rigid, hpr_from_rotation, rotation_from_hpr
 
@@ -174,8 +175,6 @@ def lay_consist(plans: list[CarPlan], terrain, track_enu: np.ndarray, *, front_s
     base = track[i, :2] + tangent * (front_s_m - s[i])
     left = np.array([-tangent[1], tangent[0]])
     track_heading = np.rad2deg(np.arctan2(tangent[0], tangent[1]))
-
-    from scipy.spatial import cKDTree
 
     nodes = np.asarray(terrain.mesh().vertices)
     tree = cKDTree(nodes[:, :2])

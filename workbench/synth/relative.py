@@ -16,8 +16,10 @@ import math
 from pathlib import Path
 
 import numpy as np
+import piexif
+from PIL import Image
 
-from ..core.geometry import exp_so3
+from ..core.geometry import exp_so3, rot_z
 from ..solve.simulate import TYPE_CYCLE, SimProblem, simulate_consist
 
 __all__ = ["relative_sim", "write_relative_incident", "levelled_truth", "tilt_world"]
@@ -58,9 +60,8 @@ def levelled_truth(sim: SimProblem, cam_from_world: np.ndarray | None = None) ->
     f[2] = 0.0
     f /= np.linalg.norm(f)
     yaw = math.atan2(f[0], f[1])
-    c, s = math.cos(yaw), math.sin(yaw)
     L = np.eye(4)
-    L[:3, :3] = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    L[:3, :3] = rot_z(yaw)
     L[:3, 3] = -L[:3, :3] @ C
     return L
 
@@ -70,8 +71,6 @@ def write_relative_incident(root: Path, sim: SimProblem, *, focal_known: bool, s
     0.03 as simulated, plus the ``[solver]`` lines in ``solver``), one grey photo, the simulation's picks as
     ``correspondences.json``, and a camera profile with the true intrinsics when ``focal_known`` (else the focal
     is estimated: ``camera.source = "unknown"``). Returns ``root``."""
-    from PIL import Image
-
     root = Path(root)
     root.mkdir(parents=True)
     n = len(sim.carriages)
@@ -100,9 +99,6 @@ def write_gps_exif(photo: Path, lon_deg: float, lat_deg: float, alt_m: float | N
                    h_error_m: float | None = None) -> None:
     """Write a phone's EXIF GPS block into ``photo`` (JPEG, rewritten in place): position, altitude, the true-north
     direction of the image (``GPSImgDirection``, ref ``T``) and ``GPSHPositioningError``, where given."""
-    import piexif
-    from PIL import Image
-
     def dms(x: float) -> tuple:
         x = abs(x)
         d = int(x)

@@ -17,6 +17,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .layout import CarPlan
+
 
 @dataclass(frozen=True)
 class Scenario:
@@ -69,8 +71,6 @@ def plan_consist(scn: Scenario, types: dict, rng: np.random.Generator, n_cars: i
     At least one coupling holds and one breaks (when there are two or more couplings), and at least one
     carriage lies on its side, so every sample exercises chains, broken links and large rolls.
     """
-    from .layout import CarPlan
-
     consist = list(scn.consist[: n_cars or len(scn.consist)])
     if n_cars and n_cars > len(scn.consist):  # extend with copies of the last coach type
         last_type = scn.consist[-2][1] if len(scn.consist) > 1 else scn.consist[0][1]

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..core.frames import SceneFrame, hpr_from_rotation
 from ..core.track import wrap_deg
+from ..files.railways import write_railways_geojson
 
 LINE_NAME = "track the train ran on"
 
@@ -28,8 +29,6 @@ def line_id(scenario_id: str) -> str:
 
 def write_track_layer(path: Path, st, frame: SceneFrame, scenario_id: str) -> Path:
     """Write the train's track (``st.track_enu``, ENU of ``frame``) as a GeoJSON railway layer in the project CRS."""
-    from ..files.railways import write_railways_geojson
-
     crs_xyh = frame.crs_from_enu(np.asarray(st.track_enu, dtype=float))
     epsg = frame.crs.to_epsg()
     crs = f"EPSG:{epsg}" if epsg is not None else frame.crs.to_wkt()

@@ -123,7 +123,7 @@ function draw() {
   if (S.showOverlay) drawOverlay(view);
   ctx.font = "11px sans-serif";
   for (const o of S.doc.automatic) {
-    if (o.view !== view) continue;
+    if (o.view !== view || (window.CP && window.CP.active())) continue;
     const [x, y] = toScreen(o.uv), over = man.has(key(o)), mine = o.carriage === S.car;
     if (rej.has(key(o))) {  // rejected: a grey X
       ctx.strokeStyle = "#9e9e9e"; ctx.lineWidth = 2; ctx.beginPath();
@@ -147,6 +147,7 @@ function draw() {
     if (o.construction && mine) drawConstruction(o.construction.segments, o.uv, "#ffd54f");
   }
   if (S.segs.length || S.drawing) drawConstruction(S.drawing ? S.segs.concat([[S.drawing.a, S.drawing.b]]) : S.segs, null, "#eeff41");
+  if (window.CP) window.CP.drawPhoto(ctx, toScreen, view, S.scale);  // map.js: the control points' picks
 }
 
 function pushUndo() { S.undo.push(JSON.stringify([S.manual, S.rejected])); S.dirty = true; }
@@ -209,11 +210,16 @@ cv.addEventListener("mousemove", (e) => {
 });
 cv.addEventListener("mouseup", (e) => {
   if (S.drawing) { S.drawing.b = toImage(e.offsetX, e.offsetY); endSegment(); return; }
-  if (down && !down.moved) { if (S.edgeMode) status("edges: drag along an edge (Shift+drag pans)"); else pick(toImage(e.offsetX, e.offsetY)); }
+  if (down && !down.moved) {
+    if (window.CP && window.CP.active()) window.CP.photoClick(toImage(e.offsetX, e.offsetY));  // map.js: control points
+    else if (S.edgeMode) status("edges: drag along an edge (Shift+drag pans)"); else pick(toImage(e.offsetX, e.offsetY));
+  }
   down = null;
 });
 cv.addEventListener("wheel", (e) => { e.preventDefault(); zoomAt(e.deltaY < 0 ? 1.25 : 0.8, e.offsetX, e.offsetY); }, { passive: false });
 window.addEventListener("keydown", (e) => {
+  if (e.target && e.target.tagName === "INPUT") return;  // typing coordinates or a name
+  if (window.CP && window.CP.active() && window.CP.key(e)) return;  // map.js handles its own keys
   if ((e.ctrlKey || e.metaKey) && e.key === "z") { e.preventDefault(); undo(); }
   else if ((e.ctrlKey || e.metaKey) && e.key === "s") { e.preventDefault(); save(); }
   else if (e.key === "+" || e.key === "=") zoomAt(1.25, cv.width / 2, cv.height / 2);
