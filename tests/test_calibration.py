@@ -128,6 +128,13 @@ def test_report_states_what_the_intervals_include():
                correspondences={"by_source": {"manual": 40}})
     s = interval_scope(sol, solver, 0.25)
     assert any("focal" in x and "120 px" in x for x in s["included"])
+    # the automatic points' noise and faces' misfit estimated from the residuals: said so, with their values
+    sol.update(noise_estimated=True, face_sigma_px=0.21, sigma_px=0.11, dof=180,
+               correspondences={"by_source": {"sift": 60}})
+    text = interval_scope(sol, SimpleNamespace(pixel_sigma_px=1.0, face_sigma_px="estimate", slack_held_m=0.05),
+                          0.25)["text"]
+    assert "0.11 px, estimated from the residuals" in text and "(0.21 px, estimated" in text
+    assert "pooled with the configured" not in text
     assert any("georegistration" in x for x in s["excluded"]) and "face" not in s["text"]
     # the route's calibration figures: automatic points when the finder placed any point, else hand picks
     assert s["calibration"].startswith("On simulated consists with hand-picked points and the focal estimated")

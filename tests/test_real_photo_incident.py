@@ -56,8 +56,9 @@ def test_real_photo_fit_and_physical_facts(solved):
     print(f"\nreal photo: focal {f:.0f} px (hfov {hfov:.2f} deg, sigma {doc['sigma_focal_px'][view]:.0f} px), "
           f"RMS {doc['residual_rms_px']['measured']:.2f} px over {doc['residual_rms_px']['n_measured']} picks")
     assert 2.0 < hfov < 10.0  # a telephoto shot: the cars barely shrink along the train
-    # the fit is at the level of the picks (rounded corners, 800 px) and the models (dimensions from memory):
-    # measured 3.8 px; a wrong pose or focal would be tens of pixels off
+    # the fit is at the level of the picks (rounded corners, 800 px) and the models (some dimensions estimated):
+    # measured 2.6 px (3.8 px with the eave and window line from memory); a wrong pose or focal would be tens of
+    # pixels off
     assert 1.0 < doc["residual_rms_px"]["measured"] < 5.0
     c1, c2 = sol.carriages
     assert c1.record["coupler_gap_to_next_m"] < 0.05 + 1e-6  # the held coupling's slack
@@ -65,9 +66,10 @@ def test_real_photo_fit_and_physical_facts(solved):
     assert abs((h1 - h2 + 180) % 360 - 180) < 3.0  # one straight track
     for c in (c1, c2):
         assert abs(c.record["pitch_deg"]) < 2.0 and abs(c.record["roll_deg"]) < 2.0  # standing on their wheels
-    # about 110 m from the camera (18 m cars, a 4-5 deg field of view), the cars one behind the other
+    # 75 m from the camera (18 m cars, a 7 deg field of view; the distance follows the focal, which the picks fix
+    # to +-5 %, and the models' heights: 113 m with the eave from memory), the cars one behind the other
     d1 = np.linalg.norm(c1.record["body_centre_enu"])
-    assert 80.0 < d1 < 150.0
+    assert 50.0 < d1 < 150.0
     assert np.linalg.norm(np.subtract(c2.record["body_centre_enu"], c1.record["body_centre_enu"])) == \
         pytest.approx(18.0, abs=0.5)
 

@@ -279,6 +279,32 @@ def calibrate(images_dir: Path = typer.Argument(..., help="folder of chessboard 
         out.print(f"  not used: {r}")
 
 
+@app.command(name="type-fit")
+def type_fit(path: Path = typer.Argument(..., help="a folder of photos of intact cars of one type, picked by hand "
+                                              "(an incident folder: project.toml, photos, correspondences.json)"),
+             free: str = typer.Option(..., help="the dimensions to measure, comma-separated, e.g. "
+                                                "profile.eave_height_m,front.nose_base_height_m"),
+             type_id: Optional[str] = typer.Option(None, "--type", help="the type to fit (default: the consist's)"),
+             out_path: Optional[Path] = typer.Option(None, "--out", help="write the fit as JSON here")) -> None:
+    """Measure a carriage type's estimated dimensions from photos of intact cars of its class: every photo its
+    own focal, every car its own pose, the chosen dimensions shared (docs/rolling_stock.md)."""
+    from .core.io import atomic_write_json
+    from .project import Project
+    from .solve.type_fit import fit_type_dimensions, project_picks
+
+    ctype, picks = project_picks(Project(path), type_id)
+    fit = fit_type_dimensions(ctype, picks, [k.strip() for k in free.split(",") if k.strip()])
+    out.print(f"{fit.type_id}: {fit.n_picks} picks on {len(fit.focal_px)} photos, RMS {fit.rms_px:.2f} px "
+              f"(pixel sigma {fit.sigma_px:.2f} px, {fit.dof} degrees of freedom)")
+    for k, v in fit.values.items():
+        out.print(f"  {k:<30} {v:7.3f} m  ± {fit.sigmas[k]:.3f} (1 sigma; the type file has {fit.before[k]:.3f})")
+    for v, f in fit.focal_px.items():
+        out.print(f"  {v}: focal {f:.0f} px, {fit.hfov_deg[v]:.1f} deg horizontal")
+    if out_path is not None:
+        atomic_write_json(out_path, fit.to_json())
+        out.print(f"wrote {out_path}")
+
+
 @app.command(name="control-points")
 def control_points(path: Path = typer.Argument(..., help="synthetic incident folder"),
                    force: bool = typer.Option(False, "--force", help="replace an existing control_points.json")

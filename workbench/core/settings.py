@@ -10,7 +10,7 @@ import datetime as _dt
 import tomllib
 from enum import Enum
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
@@ -114,7 +114,6 @@ class RobustLoss(str, Enum):
     cauchy = "cauchy"
 
 
-FACE_SIGMA_PX = 0.15  # chosen from the coverage on the samples' automatic points: see docs/correspondences.md
 
 
 class Solver(_Strict):
@@ -130,8 +129,10 @@ class Solver(_Strict):
     reject_outliers_sigma: Annotated[float, Field(ge=0.0)] = 5.0
     max_rejection_rounds: Annotated[int, Field(ge=0, le=50)] = 5
     # pixels of misfit shared by the points one homography placed on one face (automatic points): modelled in
-    # the covariance as a common affine displacement of each face's points (docs/solver.md); 0: none
-    face_sigma_px: Annotated[float, Field(ge=0.0, le=10.0)] = FACE_SIGMA_PX
+    # the covariance as a common affine displacement of each face's points (docs/solver.md); 0: none;
+    # "estimate": it and the points' own noise estimated from the residuals (sharper, more gross misses: see
+    # docs/calibration.md, "Automatic points: the noise estimated")
+    face_sigma_px: Annotated[float, Field(ge=0.0, le=10.0)] | Literal["estimate"] = 0.15
     # subtract the second-order bias of the least-squares estimate (workbench/solve/bias.py, docs/solver.md): only
     # with a known focal and no robust loss, and only for carriages whose predicted bias is under one standard
     # deviation (the step "5_bias_correction" of solution.json says what was corrected and what was not)
@@ -316,7 +317,7 @@ slack_held_m = 0.05           # coupler slack of a coupling that held, metres
 estimate_focal = false
 max_iterations = 200
 reject_outliers_sigma = 5.0    # drop a marked point farther than this many pixel sigmas from the fit (0: off)
-face_sigma_px = 0.15          # misfit shared by one face's automatic points, pixels (covariance only; 0: none)
+face_sigma_px = 0.15          # misfit shared by one face's automatic points, pixels (covariance only; 0: none; "estimate")
 bias_correction = true        # remove the estimate's second-order bias (known focal only; docs/solver.md)
 prediction_release = 30.0     # predictions that pull a car off its measured points' fit: sigma x this (1: no check)
 hfov_range_deg = [3.0, 120.0]  # field of view (deg) an unknown focal is searched in: telephoto to wide angle

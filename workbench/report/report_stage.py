@@ -253,15 +253,23 @@ def interval_scope(solution: dict, solver: Any, dem_accuracy_m: float | None) ->
     sig, est, dof = solution.get("sigma_px"), solution.get("sigma_px_estimated"), solution.get("dof")
     q = solution.get("ci95_factor")
     fit = "the fit of the marked points"
-    if sig is not None:
+    estimated = bool(solution.get("noise_estimated"))
+    if sig is not None and estimated:
+        fit += (f" (pixel noise {_f(sig, 2)} px, estimated from the residuals with the faces' shared misfit "
+                f"({_f(dof, 0)} degrees of freedom)" + (f"; ± = {_f(q, 2)} σ" if q is not None else "") + ")")
+    elif sig is not None:
         fit += f" (pixel noise {_f(sig, 2)} px" + (
             f": the residuals' {_f(est, 2)} px ({_f(dof, 0)} degrees of freedom) pooled with the configured "
             f"{_f(solver.pixel_sigma_px, 2)} px" if est is not None and dof else "") + (
             f"; ± = {_f(q, 2)} σ" if q is not None else "") + ")"
     inc.append(fit)
     by_source = (solution.get("correspondences") or {}).get("by_source") or {}
-    if by_source.get("sift") and float(solver.face_sigma_px) > 0:
-        inc.append(f"a misfit shared by each automatically matched face ({_f(solver.face_sigma_px, 2)} px)")
+    face = solution.get("face_sigma_px")
+    if face is None and solver.face_sigma_px != "estimate":  # a solution.json written before the field
+        face = float(solver.face_sigma_px)
+    if by_source.get("sift") and face is not None and float(face) > 0:
+        inc.append(f"a misfit shared by each automatically matched face ({_f(face, 2)} px, "
+                   + ("estimated from the residuals)" if estimated else "configured)"))
     if solution.get("links"):
         inc.append(f"the couplers' play ({_f(100 * float(solver.slack_held_m), 0)} cm)")
     if any((st.get("facts") or {}).get("terrain_contact") for st in solution.get("steps", [])) \

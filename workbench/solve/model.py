@@ -97,7 +97,9 @@ class SolveOptions:
     check_image_bounds: bool = True
     compute_covariance: bool = True
     prior_dof: float = 5.0
-    face_sigma_px: float = 0.0  # shared misfit of a group of points, in the covariance only (see .uncertainty)
+    # shared misfit of a group of points, in the covariance only (see .uncertainty); None: estimated from the
+    # residuals with the points' own noise (.variance_components), where the problem has groups
+    face_sigma_px: float | None = 0.0
     weighting: str = "per_carriage"  # one of WEIGHTINGS
     bias_correction: bool = True  # subtract the second-order bias (see .bias)
     bias_max_over_sd: float = 1.0  # a carriage whose bias exceeds this many sd is left uncorrected
@@ -126,8 +128,8 @@ class SolveOptions:
             bad("terrain_samples", "must be at least 8")
         if not (self.tolerance > 0):
             bad("tolerance", "must be positive")
-        if not (np.isfinite(self.face_sigma_px) and self.face_sigma_px >= 0):
-            bad("face_sigma_px", "must be a non-negative number of pixels")
+        if self.face_sigma_px is not None and not (np.isfinite(self.face_sigma_px) and self.face_sigma_px >= 0):
+            bad("face_sigma_px", "must be a non-negative number of pixels, or None (estimated)")
         if self.weighting not in WEIGHTINGS:
             bad("weighting", f"must be one of {', '.join(WEIGHTINGS)}")
         if not isinstance(self.bias_correction, (bool, np.bool_)):
@@ -190,6 +192,8 @@ class SolveResult:
     sigma_focal_px: dict[str, float]
     sigma_px: float = float("nan")  # pixel sigma used for the covariance
     sigma_px_estimated: float = float("nan")
+    face_sigma_px: float = 0.0  # the shared face misfit in the covariance (px)
+    noise_estimated: bool = False  # sigma_px and face_sigma_px both estimated from the residuals
     dof: float = 0.0
     ci95_factor: float = 1.96
     neighbour_correlation: list[dict] = field(default_factory=list)

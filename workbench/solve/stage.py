@@ -176,7 +176,8 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
                         loss_scale_px=s.solver.loss_scale_px, max_iterations=s.solver.max_iterations,
                         estimate_focal=bool(focal_unknown),
                         terrain_sigma_m=s.terrain.dem_vertical_accuracy_m,
-                        face_sigma_px=s.solver.face_sigma_px, bias_correction=bool(s.solver.bias_correction),
+                        face_sigma_px=None if s.solver.face_sigma_px == "estimate" else s.solver.face_sigma_px,
+                        bias_correction=bool(s.solver.bias_correction),
                         prediction_release=float(s.solver.prediction_release),
                         hfov_range_deg=tuple(float(x) for x in s.solver.hfov_range_deg))
     relative = cam_doc.get("frame") == "relative"
@@ -614,6 +615,7 @@ def solution_document(project: Project, res: Any, views: list, cam_doc: dict, ob
         "georegistration": cam_doc.get("georegistration"),
         "views": [v.name for v in views], "focal_px": d.get("focal_px"), "sigma_focal_px": d.get("sigma_focal_px"),
         "sigma_px": d.get("sigma_px"), "sigma_px_estimated": d.get("sigma_px_estimated"), "dof": d.get("dof"),
+        "face_sigma_px": d.get("face_sigma_px"), "noise_estimated": d.get("noise_estimated"),
         "ci95_factor": d.get("ci95_factor"), "iterations": d.get("iterations"), "time_s": d.get("time_s"),
         "final_cost": d.get("final_cost"), "cost_at_minimum": d.get("cost_at_minimum"),
         "bias_correction": d.get("bias_correction") or {}, "carriages": cars_out, "links": d.get("links", []),

@@ -18,9 +18,11 @@ from scipy.special import gammaincinv, stdtrit  # quantiles as scipy.stats compu
 from ..core.frames import hpr_from_rotation
 from ..core.geometry import exp_so3, skew
 from .model import SolveOptions
-from .projection import project_with_jacobians
 from .problem import (Chains, Poses, Problem, carriage_weights, focal_groups, held_chains, prepare_cars,
                       record_warning)
+from .projection import project_with_jacobians
+from .variance_components import (FALLBACK_FACE_SIGMA_PX, VarianceComponents, estimate_variance_components,
+                                  face_modes)
 
 
 def pixel_rows(prob, R, t, f, focal_views):
@@ -134,6 +136,8 @@ class CovarianceModel:
     P: int
     H_inv: np.ndarray
     undetermined: np.ndarray | None = None
+    face_sigma: float = 0.0  # the faces' shared misfit used (px per affine mode)
+    components: VarianceComponents | None = None  # when both were estimated from the residuals
 
 
 def undetermined_parameters(H: np.ndarray) -> np.ndarray | None:
@@ -155,7 +159,7 @@ def undetermined_parameters(H: np.ndarray) -> np.ndarray | None:
 
 def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_cfg: float,
                      loss: str = "linear", loss_scale: float = 1.0, prior_dof: float = 5.0,
-                     sigma_fixed: float | None = None, face_sigma: float = 0.0) -> CovarianceModel:
+                     sigma_fixed: float | None = None, face_sigma: float | None = 0.0) -> CovarianceModel:
     """Covariance in free-pose parameters at ``R, t, f`` (see the module doc). ``sigma_fixed``: use that pixel
     sigma (CRB); ``face_sigma``: pixels of the misfit shared by each group of points."""
     J, r, col, P = pixel_rows(prob, R, t, f, focal_views)
@@ -186,8 +190,18 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         Hi = inverse_psd(H)
         return H, Hi
 
+    vc = None
+    if face_sigma is None and sigma_fixed is None:  # the automatic points' noise and faces' misfit from the data
+        modes = face_modes(groups, views, uv_obs, w_row)
+        vc = estimate_variance_components(J * np.sqrt(rho)[:, None], r * np.sqrt(rho), w2, modes,
+                                          lambda s: assemble(s)[1], sigma_cfg)
+    if face_sigma is None:  # not separable from the points' noise (too few points a face): the former default
+        face_sigma = vc.face_sigma_px if vc is not None else FALLBACK_FACE_SIGMA_PX
     if sigma_fixed is not None:
         sigma, sigma_hat, dof, q = float(sigma_fixed), float("nan"), 0.0, 1.959963984540054
+    elif vc is not None:
+        sigma, sigma_hat, dof = vc.sigma_px, vc.sigma_px, vc.dof
+        q = float(stdtrit(dof, 0.975))
     else:
         sig = sigma_cfg
         for _ in range(2):
@@ -206,15 +220,18 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         q = float(stdtrit(dof + prior_dof, 0.975)) if dof + prior_dof > 0 else 1.959963984540054
     H, Hi = assemble(sigma)
     G = Gp_unit / sigma**2 + Hprior
-    if face_sigma > 0:
+    if vc is not None and vc.face_sigmas_px:  # each face its own misfit
+        G = G + _shared_misfit(J * rho[:, None], groups, views, uv_obs, w_row,
+                               np.square(vc.face_sigmas_px)) / sigma**4
+    elif face_sigma > 0:
         G = G + face_sigma**2 / sigma**4 * _shared_misfit(J * rho[:, None], groups, views, uv_obs, w_row)
     cov = Hi @ G @ Hi
     cov = 0.5 * (cov + cov.T)
-    return CovarianceModel(cov, col, sigma, sigma_hat, dof, q, P, Hi, undetermined_parameters(H))
+    return CovarianceModel(cov, col, sigma, sigma_hat, dof, q, P, Hi, undetermined_parameters(H), face_sigma, vc)
 
 
 def _shared_misfit(J: np.ndarray, groups: np.ndarray, views: np.ndarray, uv: np.ndarray,
-                   w: np.ndarray) -> np.ndarray:
+                   w: np.ndarray, scale: Sequence[float] | None = None) -> np.ndarray:
     """``sum_g (J_g^T W_g B_g)(J_g^T W_g B_g)^T`` (P, P): the gradient covariance, per pixel^2 of shared misfit,
     of each group's common affine displacement. ``J``: weighted rows (2M, P); ``groups`` (M,) with -1 for none;
     ``views`` (M,) view index; ``uv`` (M, 2) observed pixels; ``w`` (M,) row weights.
@@ -222,10 +239,11 @@ def _shared_misfit(J: np.ndarray, groups: np.ndarray, views: np.ndarray, uv: np.
     Six modes, their coefficients shared by the group's points in every view (a face's misfit is in the face,
     so it repeats from photo to photo): a shift in u and in v, and the four affine terms ``(u - u_c) / s_u``,
     ``(v - v_c) / s_v`` in u and in v, with the centroid and the RMS spreads ``s_u``, ``s_v`` of the group's
-    points in that view (each mode of unit RMS size there; only the shifts where a view has fewer than 3)."""
+    points in that view (each mode of unit RMS size there; only the shifts where a view has fewer than 3).
+    ``scale``: per group (in sorted order) a factor on its term (its own misfit variance), else 1."""
     P = J.shape[1]
     out = np.zeros((P, P))
-    for g in np.unique(groups[groups >= 0]):
+    for i, g in enumerate(np.unique(groups[groups >= 0])):
         A = np.zeros((P, 6))
         for v in np.unique(views[groups == g]):
             idx = np.nonzero((groups == g) & (views == v))[0]
@@ -242,7 +260,7 @@ def _shared_misfit(J: np.ndarray, groups: np.ndarray, views: np.ndarray, uv: np.
                         B[1::2, 4 + j] = d[:, j] / s[j]
             rows = np.stack([2 * idx, 2 * idx + 1], axis=1).reshape(-1)
             A += J[rows].T @ (B * np.repeat(w[idx], 2)[:, None])
-        out += A @ A.T
+        out += (1.0 if scale is None else float(scale[i])) * (A @ A.T)
     return out
 
 
@@ -355,6 +373,8 @@ def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Cha
     cov, col, q = model.cov, model.col, model.q
     res.sigma_px = model.sigma
     res.sigma_px_estimated = model.sigma_hat
+    res.face_sigma_px = model.face_sigma
+    res.noise_estimated = model.components is not None
     res.dof = model.dof
     res.ci95_factor = q
     res.covariance = cov
