@@ -116,7 +116,8 @@ def ground_landmarks(root: Path, sample: Path, photo: str, n: int = 6) -> list[d
             continue
         enu = project.frame.enu_from_crs(np.array([E, N, h]))
         uv = intr.project((M[:3, :3] @ enu + M[:3, 3])[None])[0]
-        out.append({"name": q["name"], "coords": [E, N, h], "uv": uv.tolist()})
+        out.append({"name": q["name"], "coords": [E, N, h], "uv": uv.tolist(),
+                    "distance_m": float(np.linalg.norm(enu - np.asarray(ph["center_enu"], float)))})
     uv = np.array([o["uv"] for o in out])
     sel = [int(np.argmin(uv[:, 0]))]
     while len(sel) < min(n, len(out)):
@@ -196,7 +197,7 @@ def bench_synthetic(sample: Path, work: Path, reps: int, noise_px: float, noise_
             c = np.array([e["centre_error_m"] for e in ok])
             r = np.array([e["rotation_error_deg"] for e in ok])
             row = {"set": "synthetic", "photo": photo, "landmarks": [m["name"] for m in marks],
-                   "distance_m": None, "noise_px": noise_px, "noise_m": nm, "sigma_m_written": max(nm, 0.05),
+                   "distance_m": [round(m["distance_m"], 1) for m in marks], "noise_px": noise_px, "noise_m": nm, "sigma_m_written": max(nm, 0.05),
                    "reps": reps, "failed": len(errs) - len(ok),
                    "centre_error_m": {"median": float(np.median(c)), "p90": float(np.quantile(c, 0.9)),
                                       "max": float(c.max())},
@@ -210,7 +211,7 @@ def bench_synthetic(sample: Path, work: Path, reps: int, noise_px: float, noise_
                    "median_sigma_rotation_deg": float(np.median([e["sigma_rotation_deg"] for e in ok])),
                    "seconds_per_rep": (time.perf_counter() - t0) / reps}
             rows.append(row)
-            print(json.dumps({k: v for k, v in row.items() if k != "landmarks"}))
+            print(json.dumps({k: v for k, v in row.items() if k not in ("landmarks", "distance_m")}))
     return rows
 
 
