@@ -13,7 +13,6 @@ import logging
 from dataclasses import dataclass, replace
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from ..core.camera import CameraIntrinsics
 from .bundle_problem import BundleOptions, Observations, RotationBundleProblem, min_work_scale
@@ -106,6 +105,14 @@ class _Objective:
             return self.last["J"]
         r, J = self.problem.evaluate(x, idx, True)
         return _compress_least_squares(*(self.problem.soft_l1(r, J, 4 * len(idx)) if robust else (r, J)))[1]
+
+
+def least_squares(*args, **kwargs):
+    """``scipy.optimize.least_squares``, imported when first called (0.3-0.5 s: the stitch loads it on a thread
+    while it matches the photos, ``stitcher._import_optimizer``)."""
+    from scipy.optimize import least_squares as solve
+
+    return solve(*args, **kwargs)
 
 
 def _solve(objective: _Objective, x: np.ndarray, idx: np.ndarray, robust: bool, tol: float, rnd: int,
