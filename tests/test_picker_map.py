@@ -317,6 +317,18 @@ def test_control_points_save_is_checked_atomic_and_keeps_a_backup(mini):
         assert st == 200 and r["n_picks"] == 2
         st, r = _post(srv.url, "/api/control_points", good)
         assert st == 200 and path.read_bytes() == first
+        # a georef that cannot run says why, and what the picks' layout says: 4 points on one line, crowded
+        line = {"crs": CRS, "points": [pt(f"l{k}", 3.0 * k, 1.5 * k) for k in range(4)]}
+        for q in line["points"]:
+            q["pixels"] = {"p0.png": [200.0 + q["coords"][0] - e0, 150.0]}
+        assert _post(srv.url, "/api/control_points", line)[0] == 200
+        st, r = _post(srv.url, "/api/georef", {})
+        assert st == 400 and r["error"].startswith("georef: ") and "no EXIF focal length" in r["error"]
+        assert "p0.png: its 4 control points lie nearly on one line in the scene" in r["error"], r
+        assert "p0.png: the picks cover 2 % x 0 % of the photo" in r["error"], r
+        assert not (mini / "out" / "georef" / "cameras.json").exists()
+        st, r = _post(srv.url, "/api/control_points", good)
+        assert st == 200 and path.read_bytes() == first
         # a second, different save keeps the first as the backup; the page reads the file back
         st, r = _post(srv.url, "/api/control_points", {"crs": CRS, "points": good["points"][:2]})
         assert st == 200 and r["backup"] and Path(r["backup"]).read_bytes() == first
@@ -397,6 +409,8 @@ def test_map_picks_in_a_browser_place_the_camera(small_incident, tmp_path, capsy
         assert st == 200
         st, r = c.post("/api/georef", {})
     assert st == 400 and re.search(r"2 control point\(s\) .* at least 3", r["error"]), r
+    assert "pano_01.jpg: 2 control point(s) picked in it; placing it on its own needs 3" in r["error"]
+    assert "pick 2 more, spread over the photo" in r["error"]
     assert (root / "out" / "georef" / "cameras.json").read_bytes() == before
 
 

@@ -19,7 +19,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from ..errors import InputError
+from ..errors import InputError, WorkbenchError
 from ..files.control_points import load_control_points, save_control_points
 from ..project import Project
 from .map import MapService
@@ -29,6 +29,9 @@ log = logging.getLogger(__name__)
 __all__ = ["ControlPointsApi", "CHI2_3_95", "LOCATE_KEYS"]
 
 FLAG_SIGMAS = 3.0  # a pick is flagged beyond this many of its point's 1-sigma
+MIN_POINTS_ALONE = 4  # control points a photo needs to be placed on its own and checked (georef's single route)
+COLLINEAR_RATIO = 0.02  # second over first singular value of the centred points: below it, "on one line"
+MIN_PHOTO_SPAN = 0.05  # the picks' bounding box as a fraction of the photo's area: below it, "crowded"
 CHI2_3_95 = 7.815  # 95 % quantile of chi-squared with 3 degrees of freedom (a 3-D ellipsoid)
 LOCATE_KEYS = {"e", "n", "lat", "lon", "from"}
 SAVE_KEYS = {"crs", "description", "points"}
@@ -193,13 +196,47 @@ class ControlPointsApi:
 
         project = self.project
         t0 = time.perf_counter()
+        notes = self.layout_notes()
         with self._lock, project.lock():
-            result = run_georef(project, lambda fraction, message="": None)
+            try:
+                result = run_georef(project, lambda fraction, message="": None)
+            except WorkbenchError as exc:  # the stage's message, then what the picks' layout says
+                raise InputError(str(exc) + "".join(f". {n}" for n in notes)) from None
             stats = {**dict(result.stats), "stage": "georef", "duration_s": round(time.perf_counter() - t0, 3),
                      "run_by": "picker"}
             project.write_json(project.stage_dir("georef") / "stats.json", stats)
         doc = project.read_json(result.outputs["cameras"])
-        return self.summary(doc, stats)
+        return {**self.summary(doc, stats), "layout_notes": notes}
+
+    def layout_notes(self) -> list[str]:
+        """What the saved control points' layout says before a georef, per photo of the incident's photo set:
+        too few to place it on its own (how many more), points nearly on one line in the scene, or picks crowded
+        into a small part of the photo."""
+        if not self.path.is_file():
+            return []
+        cps = load_control_points(self.path, self.project.frame)
+        out = []
+        for photo, (w, h) in self.image_sizes().items():
+            pts = [cp for cp in cps if photo in cp.pixels]
+            n = len(pts)
+            if 0 < n < MIN_POINTS_ALONE:
+                out.append(f"{photo}: {n} control point(s) picked in it; placing it on its own needs 3 and checking "
+                           f"them a 4th (2 with the camera's GPS position, 1 with GPS and a compass direction): pick "
+                           f"{MIN_POINTS_ALONE - n} more, spread over the photo")
+            if n < 3:
+                continue
+            X = np.array([cp.enu for cp in pts])
+            sv = np.linalg.svd(X - X.mean(axis=0), compute_uv=False)
+            if sv[1] < COLLINEAR_RATIO * sv[0]:
+                out.append(f"{photo}: its {n} control points lie nearly on one line in the scene (spread across it "
+                           f"{sv[1] / math.sqrt(n):.2f} m for {sv[0] / math.sqrt(n):.1f} m along it): add points off "
+                           f"that line")
+            uv = np.array([cp.pixels[photo] for cp in pts])
+            span = np.ptp(uv, axis=0) / np.array([w, h])
+            if span[0] * span[1] < MIN_PHOTO_SPAN:
+                out.append(f"{photo}: the picks cover {100 * span[0]:.0f} % x {100 * span[1]:.0f} % of the photo: "
+                           f"points spread over it place the camera better")
+        return out
 
     def summary(self, doc: dict, stats: dict) -> dict:
         """Residuals (px and m, flagged where the stage warns), each camera's placement (scene frame, project CRS,

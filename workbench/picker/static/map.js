@@ -253,6 +253,7 @@ function renderResult() {
     flagged.map((x) => `${esc(x.point)} in ${esc(x.view)} ${f2(x.error_px, 1)} px / ${f2(x.error_m)} m`).join("; ") + "</div>");
   else parts.push(`<div class="ok">every pick fits (within ${r.limits.flag_sigmas} sigma of its point)</div>`);
   for (const w of r.warnings) parts.push(`<div class="warn">stage: ${esc(w)}</div>`);
+  for (const n of r.layout_notes || []) parts.push(`<div class="warn">layout: ${esc(n)}</div>`);
   $("cp-result").innerHTML = parts.join("");
 }
 function renderTable() {
