@@ -625,13 +625,22 @@ def main(argv=None) -> int:
                          "centre axis (default exact SfM models)")
     ap.add_argument("--merge", type=Path, nargs="*", default=None,
                     help="merge saved runs (their carriage records, route by route) and print the table")
+    ap.add_argument("--exclude", nargs="*", default=[], metavar="PROBLEM_PREFIX:NUMBER",
+                    help="with --merge: leave out these carriages (e.g. mv708:6231, a gross failure named apart)")
     a = ap.parse_args(argv)
     if a.merge:
+        def kept(x: dict) -> bool:  # --exclude PROBLEM_PREFIX:NUMBER (a named gross failure, reported apart)
+            return not any(x["problem"].startswith(e.split(":")[0]) and x["number"] == e.split(":")[1]
+                           for e in a.exclude)
+
         by_route: dict[str, list] = {}
         for p in a.merge:
             d = json.loads(p.read_text())
             for rt, v in d["routes"].items():
-                by_route.setdefault(rt, []).extend(v["records"])
+                by_route.setdefault(rt, []).extend(x for x in v["records"] if kept(x))
+                if rt == "multiview":  # the same carriages with the fit's own intervals: before the camera term
+                    by_route.setdefault(rt + " before", []).extend(
+                        x for x in v["info"].get("fit_records", []) if kept(x))
         for rt, recs in by_route.items():
             print_table(rt, axis_stats(recs))
         return 0
