@@ -92,7 +92,8 @@ def _run_one(index: int, phase: int = 2, token=None):
 
 
 def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int, str, str], None],
-               on_result: Callable[[int, object], None] | None = None, first: Callable | None = None) -> list:
+               on_result: Callable[[int, object], None] | None = None, first: Callable | None = None,
+               on_first: Callable[[int, object], None] | None = None) -> list:
     """``[fn(item, note) for item in items]``, on up to ``workers`` forked processes (in order).
 
     ``fn(item, note)`` does one photo and calls ``note(step, message)`` at each of its steps; the parent calls
@@ -102,8 +103,9 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
     all of them queued first, then ``fn(item, note, token)``, queued as its first task finishes: the workers
     share the first, even tasks, and the uneven second ones start as early as they can (the last photo's
     pose search alone on one core is the imbalance left). With one worker, one item, or no ``fork`` on this
-    platform, the items run here, one after the other. A worker that dies (killed, out of memory) fails the
-    map with a RuntimeError instead of leaving it waiting.
+    platform, the items run here, one after the other. ``on_first(index, token)``: called in the parent as each
+    item's first task finishes (any order). A worker that dies (killed, out of memory) fails the map with a
+    RuntimeError instead of leaving it waiting.
     """
     import cv2
 
@@ -114,7 +116,10 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
         try:
             out = []
             for i in range(len(items)):
-                out.append(_run_one(i, 2, _run_one(i, 1) if first is not None else None))
+                token = _run_one(i, 1) if first is not None else None
+                if first is not None and on_first is not None:
+                    on_first(i, token)
+                out.append(_run_one(i, 2, token))
                 if on_result is not None:
                     on_result(i, out[-1])
             return out
@@ -145,6 +150,8 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
                     g = ex.submit(_run_one, i, 2, f.result())
                     futures[g] = (i, 2)
                     pending.add(g)
+                    if on_first is not None:
+                        on_first(i, f.result())
                     continue
                 results[i] = f.result()  # re-raises a worker's exception here
                 if on_result is not None:

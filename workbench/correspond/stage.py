@@ -293,13 +293,23 @@ def _match_photos(matcher: _PhotoMatcher, photos: list[Path], intrinsics: dict[s
     features: dict[str, PhotoFeatures] = {}
     pairs = PairHomographies([p.name for p in photos]) if carry_on else None
 
+    def features_done(index: int, _token) -> None:
+        # a photo's features, read back from where its first task wrote them (the arrays its second task reads):
+        # the pairs with it are computed while the photos are matched, not after the last one
+        name = photos[index].name
+        hit = cache.load(matcher.photo_file[name]) if pairs is not None else None
+        if hit is not None and {"keypoints", "descriptors"} <= set(hit):
+            features[name] = PhotoFeatures(name, intrinsics[name], None, hit["keypoints"], hit["descriptors"])
+            pairs.advance(features)
+
     def done(index: int, r: PhotoResult) -> None:
-        if r.keypoints is not None:
+        if r.keypoints is not None and r.name not in features:
             features[r.name] = PhotoFeatures(r.name, intrinsics[r.name], None, r.keypoints, r.descriptors)
         if pairs is not None:
             pairs.advance(features)
 
-    results = map_photos(matcher.match, photos, workers, report, on_result=done, first=matcher.features)
+    results = map_photos(matcher.match, photos, workers, report, on_result=done, first=matcher.features,
+                         on_first=features_done)
     features = {r.name: features[r.name] for r in results if r.name in features}  # in the photos' order
     return results, features, pairs
 
