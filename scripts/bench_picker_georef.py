@@ -2,7 +2,7 @@
 real Berlin GCPs entered through the picker's typed-coordinate path.
 
     .venv/bin/python scripts/bench_picker_georef.py [--sample DIR] [--reps 40] [--out bench_out/picker_georef.json]
-        [--sets synthetic,berlin] [--noise-m 0.5] [--noise-px 2]
+        [--sets synthetic,panorama,berlin] [--noise-m 0.5] [--noise-px 2] [--sweep 0.2,0.1,0.05]
 
 *synthetic*: a small generated Spuyten Duyvil incident (``--sample``: an incident folder made by ``workbench
 synth``, else one is generated under the work folder, about 40 s); one photo (the single-photo route), 6 ground
@@ -12,6 +12,9 @@ the height from the DEM (the picker's ``/api/locate``); saved and georeferenced 
 (``/api/control_points``, ``/api/georef``). Per repetition: the camera centre's and rotation's error against the
 truth and whether the truth lies inside the stated 95 % ellipsoid (chi-squared, 3 degrees of freedom). Rows for a
 sweep of the map noise too (``--sweep``).
+
+*panorama*: the same incident with its panorama photos, stitched (the stitch stage), 6 ground landmarks spread in
+azimuth around the camera, each picked in every panorama photo that shows it; the panorama route.
 
 *berlin*: the OpenSfM Berlin photos (``../shared/data/multiview/opensfm_berlin``) as an incident with OpenSfM's
 reconstruction as the SfM model; the two GCPs typed as latitude/longitude/altitude (``/api/locate``, typed) with
@@ -172,6 +175,42 @@ def picks_through_api(client: Client, picks: list[dict], photo: str, sigma_m: fl
     return doc
 
 
+def _stats_row(errs: list[dict], reps: int, t0: float, **head) -> dict:
+    """One row of figures over the repetitions ``errs`` (:func:`truth_errors` each, or ``{"error"}``)."""
+    ok = [e for e in errs if "error" not in e]
+    c = np.array([e["centre_error_m"] for e in ok])
+    r = np.array([e["rotation_error_deg"] for e in ok])
+    row = {**head, "reps": reps, "failed": len(errs) - len(ok),
+           "centre_error_m": {"median": float(np.median(c)), "p90": float(np.quantile(c, 0.9)), "max": float(c.max())},
+           "rotation_error_deg": {"median": float(np.median(r)), "p90": float(np.quantile(r, 0.9)),
+                                  "max": float(r.max())},
+           "within_1m": float(np.mean(c < 1.0)), "within_0.1deg": float(np.mean(r < 0.1)),
+           "both_targets": float(np.mean((c < 1.0) & (r < 0.1))),
+           "coverage_centre_95": float(np.mean([e["inside_95"] for e in ok])),
+           "coverage_rotation_95": float(np.mean([e["mahalanobis2_rotation"] < CHI2_3_95 for e in ok])),
+           "median_sigma_centre_enu_m": np.median([e["sigma_centre_enu_m"] for e in ok], axis=0).tolist(),
+           "median_sigma_rotation_deg": float(np.median([e["sigma_rotation_deg"] for e in ok])),
+           "seconds_per_rep": (time.perf_counter() - t0) / reps}
+    print(json.dumps({k: v for k, v in row.items() if k not in ("landmarks", "distance_m")}))
+    return row
+
+
+def _repeat(client: Client, root: Path, photo: str, reps: int, make_picks) -> list[dict]:
+    """``reps`` georefs through the picker's API, each from ``make_picks(seed)`` (saved by the caller's
+    function); the truth errors of ``photo``'s camera."""
+    errs = []
+    for seed in range(reps):
+        make_picks(seed)
+        st, res = client.post("/api/georef", {})
+        if st != 200:
+            errs.append({"seed": seed, "error": res.get("error")})
+            continue
+        cams = json.loads((root / "out" / "georef" / "cameras.json").read_text())
+        errs.append({"seed": seed, **truth_errors(root, photo, cams), "rms_px": res["rms_px"],
+                     "n_flagged": sum(r["flagged"] for r in res["residuals"])})
+    return errs
+
+
 def bench_synthetic(sample: Path, work: Path, reps: int, noise_px: float, noise_m: float, sweep: list[float],
                     photo: str = "pano_01.jpg") -> list[dict]:
     from workbench.picker import PickerServer
@@ -182,37 +221,103 @@ def bench_synthetic(sample: Path, work: Path, reps: int, noise_px: float, noise_
     with PickerServer(root) as srv:
         client = Client(srv.url)
         for nm in [noise_m] + [x for x in sweep if x != noise_m]:
-            errs = []
             t0 = time.perf_counter()
-            for seed in range(reps):
-                picks_through_api(client, noisy_picks(marks, seed, noise_px, nm), photo, sigma_m=max(nm, 0.05))
-                st, res = client.post("/api/georef", {})
-                if st != 200:
-                    errs.append({"seed": seed, "error": res.get("error")})
-                    continue
-                cams = json.loads((root / "out" / "georef" / "cameras.json").read_text())
-                errs.append({"seed": seed, **truth_errors(root, photo, cams), "rms_px": res["rms_px"],
-                             "n_flagged": sum(r["flagged"] for r in res["residuals"])})
-            ok = [e for e in errs if "error" not in e]
-            c = np.array([e["centre_error_m"] for e in ok])
-            r = np.array([e["rotation_error_deg"] for e in ok])
-            row = {"set": "synthetic", "photo": photo, "landmarks": [m["name"] for m in marks],
-                   "distance_m": [round(m["distance_m"], 1) for m in marks], "noise_px": noise_px, "noise_m": nm, "sigma_m_written": max(nm, 0.05),
-                   "reps": reps, "failed": len(errs) - len(ok),
-                   "centre_error_m": {"median": float(np.median(c)), "p90": float(np.quantile(c, 0.9)),
-                                      "max": float(c.max())},
-                   "rotation_error_deg": {"median": float(np.median(r)), "p90": float(np.quantile(r, 0.9)),
-                                          "max": float(r.max())},
-                   "within_1m": float(np.mean(c < 1.0)), "within_0.1deg": float(np.mean(r < 0.1)),
-                   "both_targets": float(np.mean((c < 1.0) & (r < 0.1))),
-                   "coverage_centre_95": float(np.mean([e["inside_95"] for e in ok])),
-                   "coverage_rotation_95": float(np.mean([e["mahalanobis2_rotation"] < CHI2_3_95 for e in ok])),
-                   "median_sigma_centre_enu_m": np.median([e["sigma_centre_enu_m"] for e in ok], axis=0).tolist(),
-                   "median_sigma_rotation_deg": float(np.median([e["sigma_rotation_deg"] for e in ok])),
-                   "seconds_per_rep": (time.perf_counter() - t0) / reps}
-            rows.append(row)
-            print(json.dumps({k: v for k, v in row.items() if k not in ("landmarks", "distance_m")}))
+            errs = _repeat(client, root, photo, reps, lambda seed: picks_through_api(
+                client, noisy_picks(marks, seed, noise_px, nm), photo, sigma_m=max(nm, 0.05)))
+            rows.append(_stats_row(errs, reps, t0, set="synthetic", route="single", photo=photo,
+                                   landmarks=[m["name"] for m in marks],
+                                   distance_m=[round(m["distance_m"], 1) for m in marks], noise_px=noise_px,
+                                   noise_m=nm, sigma_m_written=max(nm, 0.05)))
     return rows
+
+
+def panorama_incident(sample: Path, dst: Path) -> Path:
+    """A copy of a generated incident with its panorama photos (the panorama route), no ``camera.position_enu``
+    and no control points, stitched (``workbench stitch``: the stitch stage's own panorama model)."""
+    from workbench.pipeline import STAGES
+    from workbench.project import Project
+    from workbench.runner import Runner
+
+    if dst.exists():
+        shutil.rmtree(dst)
+    shutil.copytree(sample.parent.parent / "terrain", dst / "terrain")
+    base = dst / "projects" / sample.name
+    shutil.copytree(sample, base, ignore=shutil.ignore_patterns("out", "control_points.json*", "multiview"))
+    toml = (base / "project.toml").read_text()
+    (base / "project.toml").write_text(re.sub(r"position_enu = \[[^\]]*\]\n?", "", toml))
+    Runner(Project(base), STAGES).run(until="stitch")
+    return base
+
+
+def panorama_landmarks(root: Path, sample: Path, n: int = 6) -> list[dict]:
+    """``n`` synthetic ground control points seen in the panorama photos, spread in azimuth around the camera:
+    name, true E/N/h, true pixel in every panorama photo where the synthetic points say it is visible."""
+    from workbench.core.camera import CameraIntrinsics
+    from workbench.picker.map import MapService
+    from workbench.project import Project
+
+    project = Project(root)
+    heights = MapService(project)
+    truth = json.loads((root / "truth" / "ground_truth.json").read_text())
+    photos = {Path(p["photo"]).name: p for p in truth["photos"] if p["set"] == "panorama"}
+    centre = np.asarray(next(iter(photos.values()))["center_enu"], float)
+    out = []
+    for q in json.loads((sample / "control_points.json").read_text())["points"]:
+        E, N, h = q["coords"]
+        seen = [k for k in q["pixels"] if k in photos]
+        if not seen or abs(h - heights.height_at(E, N)) > 0.05:
+            continue
+        enu = project.frame.enu_from_crs(np.array([E, N, h]))
+        pix = {}
+        for k in seen:
+            M = np.asarray(photos[k]["cam_from_world"], float)
+            pix[k] = CameraIntrinsics(**photos[k]["intrinsics"]).project((M[:3, :3] @ enu + M[:3, 3])[None])[0].tolist()
+        d = enu - centre
+        out.append({"name": q["name"], "coords": [E, N, h], "pixels": pix, "distance_m": float(np.linalg.norm(d)),
+                    "azimuth_deg": float(np.degrees(np.arctan2(d[0], d[1])) % 360.0)})
+    az = np.array([o["azimuth_deg"] for o in out])
+    sel = [int(np.argmin(az))]
+    while len(sel) < min(n, len(out)):
+        gap = np.min(np.abs((az[:, None] - az[sel][None] + 180.0) % 360.0 - 180.0), axis=1)
+        sel.append(int(np.argmax(gap)))
+    return [out[i] for i in sel]
+
+
+def panorama_picks_through_api(client: Client, marks: list[dict], seed: int, noise_px: float, noise_m: float) -> None:
+    """As :func:`picks_through_api`, each landmark picked in every panorama photo that shows it (own noise)."""
+    rng = np.random.default_rng(seed)
+    doc = {"crs": client.get("/api/control_points")["crs"], "points": []}
+    for m in marks:
+        en = np.asarray(m["coords"][:2]) + rng.normal(0, noise_m, 2)
+        st, loc = client.post("/api/locate", {"e": float(en[0]), "n": float(en[1]), "from": "map"})
+        if st != 200:
+            raise RuntimeError(f"locate {m['name']}: {loc}")
+        pix = {k: [round(float(x), 2) for x in np.asarray(uv) + rng.normal(0, noise_px, 2)]
+               for k, uv in sorted(m["pixels"].items())}
+        doc["points"].append({"name": m["name"], "coords": [loc["e"], loc["n"], loc["dem_height_m"]],
+                              "sigma_m": max(noise_m, 0.05), "pixels": pix})
+    st, res = client.post("/api/control_points", doc)
+    if st != 200:
+        raise RuntimeError(f"save: {res}")
+
+
+def bench_panorama(sample: Path, work: Path, reps: int, noise_px: float, noise_m: float) -> list[dict]:
+    """The panorama route: 6 landmarks spread in azimuth over the 4 stitched photos."""
+    from workbench.picker import PickerServer
+
+    root = panorama_incident(sample, work / "panorama")
+    marks = panorama_landmarks(root, sample)
+    photo = sorted({k for m in marks for k in m["pixels"]})[0]
+    with PickerServer(root) as srv:
+        client = Client(srv.url)
+        t0 = time.perf_counter()
+        errs = _repeat(client, root, photo, reps,
+                       lambda seed: panorama_picks_through_api(client, marks, seed, noise_px, noise_m))
+    return [_stats_row(errs, reps, t0, set="synthetic", route="panorama", photo=photo,
+                       landmarks=[m["name"] for m in marks], distance_m=[round(m["distance_m"], 1) for m in marks],
+                       azimuth_deg=[round(m["azimuth_deg"], 1) for m in marks],
+                       n_picks=sum(len(m["pixels"]) for m in marks), noise_px=noise_px, noise_m=noise_m,
+                       sigma_m_written=max(noise_m, 0.05))]
 
 
 # ----------------------------------------------------------------------------------------------------------------
@@ -320,7 +425,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--sample", type=Path, default=None, help="a generated incident (workbench synth) to copy")
     ap.add_argument("--work", type=Path, default=REPO / "bench_out" / "picker_georef_work")
     ap.add_argument("--out", type=Path, default=REPO / "bench_out" / "picker_georef.json")
-    ap.add_argument("--sets", default="synthetic,berlin")
+    ap.add_argument("--sets", default="synthetic,panorama,berlin")
     ap.add_argument("--reps", type=int, default=40)
     ap.add_argument("--noise-px", type=float, default=2.0)
     ap.add_argument("--noise-m", type=float, default=0.5)
@@ -347,6 +452,8 @@ def main(argv: list[str] | None = None) -> int:
                 write_control_points(sample)
         sweep = [float(x) for x in a.sweep.split(",") if x.strip()]
         out["rows"] += bench_synthetic(sample.resolve(), a.work, a.reps, a.noise_px, a.noise_m, sweep, a.photo)
+        if "panorama" in sets:
+            out["rows"] += bench_panorama(sample.resolve(), a.work, a.reps, a.noise_px, a.noise_m)
     if "berlin" in sets and (BERLIN / "ground_control_points.json").is_file():
         out["rows"].append(bench_berlin(a.work))
     a.out.parent.mkdir(parents=True, exist_ok=True)
