@@ -245,6 +245,8 @@ def test_locate_typed_coordinates_and_map_clicks(mini):
         st, c = _post(srv.url, "/api/locate", {"e": e0 + 70, "n": n0, "from": "typed"})
         assert st == 200 and c["dem_height_m"] is None and "outside the DEM" in c["dem_note"]
         for bad, msg in [({"e": "x", "n": 1}, "must be a finite number"), ({"e": 1, "n": 2, "z": 3}, "unknown key"),
+                         ({"e": 10 ** 400, "n": 1}, "must be a finite number"), ({"e": True, "n": 1}, "finite number"),
+                         ({"e": 1e308 * 10, "n": 1}, "finite number"),
                          ({"lat": 95, "lon": 0}, "not a WGS84 position"), ({"e": e0 + 5e4, "n": n0}, "km from")]:
             st, c = _post(srv.url, "/api/locate", bad)
             assert st == 400 and msg in c["error"], (bad, c)

@@ -39,9 +39,13 @@ SAVE_KEYS = {"crs", "description", "points"}
 
 def _number(payload: dict, key: str, where: str) -> float:
     v = payload.get(key)
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(float(v)):
+    try:
+        x = float(v) if isinstance(v, (int, float)) and not isinstance(v, bool) else math.nan
+    except OverflowError:  # an integer of hundreds of digits
+        x = math.nan
+    if not math.isfinite(x):
         raise InputError(f"{where}: {key} = {str(v)[:40]!r} must be a finite number")
-    return float(v)
+    return x
 
 
 def _azimuth_tilt(cam_from_world: np.ndarray) -> tuple[float, float]:
