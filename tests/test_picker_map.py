@@ -445,3 +445,44 @@ def test_berlin_gcps_typed_in_the_picker_reproduce_todays_figures(tmp_path):
     with PickerServer(root) as srv:
         m = bench.Client(srv.url).get("/api/map")
     assert m == {"available": False, "reason": m["reason"]} and "terrain.ortho" in m["reason"]
+
+
+def test_fuzz_control_point_endpoints(mini):
+    """Random JSON (hypothesis) in a save, a locate and a georef request: never a 5xx, and control_points.json
+    byte-identical after every refused save."""
+    from hypothesis import HealthCheck, given, settings
+    from hypothesis import strategies as st
+
+    e0, n0 = _origin_utm()
+    point = {"name": "a", "coords": [e0 + 1, n0 + 2, 10.0], "sigma_m": 0.5, "pixels": {"p0.png": [10.0, 20.0]}}
+    path = mini / "control_points.json"
+    json_value = st.recursive(
+        st.none() | st.booleans() | st.integers(-10 ** 30, 10 ** 30) | st.floats(allow_nan=False, allow_infinity=False)
+        | st.text(max_size=10) | st.sampled_from(["p0.png", "EPSG:4326", CRS, "a"]),
+        lambda inner: st.lists(inner, max_size=4) | st.dictionaries(
+            st.text(max_size=6) | st.sampled_from(["name", "coords", "pixels", "sigma_m", "e", "n", "lat", "lon"]),
+            inner, max_size=4), max_leaves=10)
+    save = st.builds(lambda k, v, top: ({"crs": CRS, "points": [{**point, k: v}]} if not top else
+                                        {"crs": CRS, "points": [point], k: v}),
+                     st.sampled_from(["name", "coords", "sigma_m", "kind", "pixels", "crs", "description", "x"]),
+                     json_value, st.booleans())
+    locate = st.builds(lambda k, v: {"e": e0, "n": n0, "from": "typed", k: v},
+                       st.sampled_from(["e", "n", "lat", "lon", "from", "y"]), json_value)
+    with PickerServer(mini) as srv:
+        assert _post(srv.url, "/api/control_points", {"crs": CRS, "points": [point]})[0] == 200
+        first = path.read_bytes()
+
+        @settings(max_examples=120, deadline=None, suppress_health_check=list(HealthCheck))
+        @given(st.one_of(save.map(lambda b: ("/api/control_points", b)), locate.map(lambda b: ("/api/locate", b)),
+                         json_value.map(lambda b: ("/api/georef", b)), json_value.map(lambda b: ("/api/locate", b))))
+        def one(req):
+            where, body = req
+            st_, r = _post(srv.url, where, body)
+            assert st_ in (200, 400), (where, body, st_, r)
+            assert isinstance(r, dict) and (st_ == 200 or isinstance(r.get("error"), str))
+            if where == "/api/control_points" and st_ != 200:
+                assert path.read_bytes() == first
+            if where == "/api/control_points" and st_ == 200:  # put the first file back for the next example
+                path.write_bytes(first)
+
+        one()
