@@ -162,11 +162,11 @@ async function place(body, how) {
 }
 function mapClick(uv) {
   if (!M.doc) return;
-  let [e, n] = crsOf(uv), snapped = "";
-  const tol = 8 / M.scale * M.doc.pixel_size_m;  // 8 screen pixels, in metres
-  for (const b of M.doc.buildings) for (const q of b.ring_crs) {  // a building corner close by: snap to it
-    const d = Math.hypot(q[0] - e, q[1] - n);
-    if (d < tol) { e = q[0]; n = q[1]; snapped = ` (snapped to a corner of building ${b.id})`; M.lastBuilding = b; }
+  let [e, n] = crsOf(uv), snapped = "", best = 8 / M.scale * M.doc.pixel_size_m;  // 8 screen pixels, in metres
+  const [e0, n0] = [e, n];
+  for (const b of M.doc.buildings) for (const q of b.ring_crs) {  // the nearest building corner close by: snap to it
+    const d = Math.hypot(q[0] - e0, q[1] - n0);
+    if (d < best) { best = d; e = q[0]; n = q[1]; snapped = ` (snapped to a corner of building ${b.id})`; }
   }
   place({ e, n, from: "map" }, "on the map" + snapped);
 }
