@@ -39,6 +39,11 @@ Routes:
     generated incidents (``workbench synth``: 800x600 photos, a 4-photo panorama, 4-7 cars, the seed varying),
     control points from the truth, then the pipeline up to ``solve`` (stitch, georef, correspond with automatic
     points, solve): the demo's route. Its intervals include the georeferenced camera's uncertainty.
+``multiview``
+    generated incidents (800x600, 8 multi-view photos, 4-5 cars), each solved ``--draws`` times with fresh noise:
+    control points (0.5 px, their stated 5 cm survey error), an exact SfM model in a random frame (or disturbed:
+    ``--sfm-noise DEG M``), hand picks (0.5 or 1 px), then the georef (multi-view route) and solve stages. Scored
+    with the camera term and, as "before", with the fit's own intervals (``sigma_*_fit_*``).
 
 Results are saved as JSON (``--out``, default ``bench_out/calibration_<routes>.json``: one record per carriage
 and the table), so runs can be merged (``--merge a.json b.json``) to reach 200 carriages in several sittings.
