@@ -356,3 +356,22 @@ def test_central_route_unchanged(small_incident, tmp_path):
         assert np.allclose(np.asarray(c["sigma_body_centre_m"]), np.sqrt(fit ** 2 + cam), rtol=1e-9)
         assert np.allclose(np.asarray(c["ci95_body_centre_m"]), q * np.asarray(c["sigma_body_centre_m"]), rtol=1e-12)
         assert np.allclose(C, C.T, atol=1e-15)
+
+
+def test_an_undetermined_similarity_is_said_not_included(multiview_incident, tmp_path):
+    """A model whose similarity covariance is null (the fit left it undetermined): its photos are not modelled, the
+    solution says the camera term is not included and why, and the intervals are the fit's."""
+    from workbench.project import Project
+    from workbench.solve.stage import run_solve
+
+    root, _ = multiview_incident
+    shutil.copytree(root.parent.parent, tmp_path, dirs_exist_ok=True)
+    other = tmp_path / "projects" / root.name
+    cams = json.loads((other / "out" / "georef" / "cameras.json").read_text())
+    cams["georegistration"]["pose_uncertainty"]["models"]["main"]["covariance"] = None
+    (other / "cameras.json").write_text(json.dumps(cams))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        run_solve(Project(other), lambda *a: None)
+    cu = json.loads((other / "out" / "solve" / "solution.json").read_text())["camera_uncertainty"]
+    assert cu["included"] is False and "pose_uncertainty states no pose covariance" in cu["note"]

@@ -495,6 +495,9 @@ def _camera_uncertainty_record(camera_unc: dict | None, cam_doc: dict) -> dict:
     if camera_unc is None:
         g = cam_doc.get("georegistration") or {}
         why = ("cameras given as exact (no georegistration covariance in the cameras file)" if not g else
+               "georegistration.pose_uncertainty states no pose covariance for any photo (every model's "
+               "similarity undetermined, or only photos placed on their own): the intervals are the fit's alone"
+               if g.get("pose_uncertainty") else
                "the georegistration states no camera-pose covariance (an older cameras.json, or a multi-view "
                "one without georegistration.pose_uncertainty): the intervals are the fit's alone")
         return {"included": False, "note": why}
