@@ -59,7 +59,10 @@ from .assign import CarInPhoto, face_reference_cached
 from .complete import guided_face, joint_pose, predicted_homography
 from .match import MatchOptions, PhotoFeatures, apply_h, quad_overlap, plausible_homography
 from .references import FACES, FaceReference
+from .resting import collision_corners, pitch_on_terrain, pitches_on_terrain, rest, rest_on_ray, rested
 from .threads import ordered_map
+
+_corners, _rest = collision_corners, rest  # (their names here before resting.py)
 
 log = logging.getLogger(__name__)
 
@@ -121,56 +124,12 @@ def anchors_of(k: int, consist: list[tuple[str, str, str | None]], types: dict[s
     return sorted(out, key=lambda a: a.coupling != "held")
 
 
-def _pitch_on_terrain(a: Anchor, yaw: float, L: float, terrain) -> float:
-    """Pitch (rad) at which the other coupler stands as high above the terrain as the anchored one."""
-    if terrain is None:
-        return 0.0
-    h_a = terrain.height_at(a.world[None, :2])[0]
-    if not np.isfinite(h_a):
-        return 0.0
-    clear = a.world[2] - h_a
-    sign = -1.0 if a.end == "front" else 1.0  # the other coupler lies behind the front one, ahead of the rear one
-    p = 0.0
-    for _ in range(4):
-        other = a.world + sign * L * np.array([np.cos(p) * np.cos(yaw), np.cos(p) * np.sin(yaw), np.sin(p)])
-        h = terrain.height_at(other[None, :2])[0]
-        if not np.isfinite(h):
-            return p
-        s = np.clip(sign * (h + clear - a.world[2]) / L, -0.5, 0.5)
-        p = float(np.arcsin(s))
-    return p
-
-
 def _pose_at(ct: CarriageType, a: Anchor, yaw: float, pitch: float, roll: float) -> np.ndarray:
     R = _rot(yaw, pitch, roll)
     T = np.eye(4)
     T[:3, :3] = R
     T[:3, 3] = a.world - R @ (ct.coupler_front if a.end == "front" else ct.coupler_rear)
     return T
-
-
-def _corners(ct: CarriageType) -> np.ndarray:
-    """(n, 3) carriage-frame corners of the car's collision boxes (body, bogies, equipment)."""
-    out = []
-    for c, h in ct.collision_boxes():
-        for sx in (-1, 1):
-            for sy in (-1, 1):
-                for sz in (-1, 1):
-                    out.append(c + h * [sx, sy, sz])
-    return np.array(out)
-
-
-def _rest(W: np.ndarray, corners: np.ndarray, terrain) -> np.ndarray:
-    """world_from_carriage moved vertically so that its lowest corner touches the terrain (as it is without)."""
-    if terrain is None:
-        return W
-    P = (W[:3, :3] @ corners.T).T + W[:3, 3]
-    h = terrain.height_at(P[:, :2])
-    if not np.any(np.isfinite(h)):
-        return W
-    W = W.copy()
-    W[2, 3] -= float(np.nanmin(P[:, 2] - h))
-    return W
 
 
 _KERNEL3 = np.ones((3, 3), np.uint8)
@@ -308,44 +267,6 @@ def _shifted(cam_from_carriage: np.ndarray, c: np.ndarray, shift: np.ndarray, K)
     return M
 
 
-def _rest_on_ray(cam_from_carriage: np.ndarray, c: np.ndarray, cam_from_world: np.ndarray, corners: np.ndarray,
-                 terrain, reach_m: float) -> np.ndarray:
-    """The pose moved along the line of sight of its coupler ``c`` (the photo keeps the coupler where it is)
-    to where its lowest corner touches the terrain, within ``reach_m``: the depth that an image position leaves
-    open."""
-    if terrain is None:
-        return cam_from_carriage
-    world_from_cam = np.linalg.inv(cam_from_world)
-    X = cam_from_carriage[:3, :3] @ c + cam_from_carriage[:3, 3]
-
-    def at(sc):
-        M = cam_from_carriage.copy()
-        M[:3, 3] += (sc - 1.0) * X
-        return M
-
-    def clearance(sc):
-        W = world_from_cam @ at(sc)
-        P = (W[:3, :3] @ corners.T).T + W[:3, 3]
-        h = terrain.height_at(P[:, :2])
-        return float(np.nanmin(P[:, 2] - h)) if np.any(np.isfinite(h)) else np.nan
-
-    d = float(np.linalg.norm(X))
-    lo, hi = 1.0 - reach_m / d, 1.0 + reach_m / d  # within the anchor's reach along the line of sight
-    g_lo, g_hi = clearance(lo), clearance(hi)
-    if not (np.isfinite(g_lo) and np.isfinite(g_hi)) or np.sign(g_lo) == np.sign(g_hi):
-        return cam_from_carriage  # no contact along the ray within the range: leave it
-    while (hi - lo) * d > 1e-3:  # to a millimetre along the line of sight
-        mid = 0.5 * (lo + hi)
-        g = clearance(mid)
-        if not np.isfinite(g):
-            break
-        if np.sign(g) == np.sign(g_lo):
-            lo, g_lo = mid, g
-        else:
-            hi = mid
-    return at(0.5 * (lo + hi))
-
-
 def _distinct(poses: list[tuple[float, np.ndarray]], k: int, min_sep_m: float, ct: CarriageType
               ) -> list[tuple[float, np.ndarray]]:
     """The k best (score, pose) whose couplers and roof are at least ``min_sep_m`` from any better one's."""
@@ -375,7 +296,7 @@ class _PoseSearch:
         self.K = photo.intrinsics.without_distortion()
         self.L = float(np.linalg.norm(ct.coupler_front - ct.coupler_rear))
         self.min_cos = opts.guided_min_cosine
-        self.corners = _corners(ct)
+        self.corners = collision_corners(ct)
 
     def candidates(self, a: Anchor) -> list[tuple[float, np.ndarray, float]]:
         """(score, cam_from_carriage, roll class) of the refined hypotheses coupled at anchor ``a``."""
@@ -426,20 +347,25 @@ class _PoseSearch:
         first = sorted(set(range(0, n_y, HEADING_STRIDE)) | {n_y - 1})
         # the terrain's pitch at every heading scored (those of the first pass in every roll class; the others
         # when first needed: a pure function of the heading, whichever thread computes it)
-        pitches: dict[int, float] = {i: _pitch_on_terrain(a, float(yaws[i]), L, terrain) for i in first}
+        pitches: dict[int, float] = dict(zip(first, pitches_on_terrain(a, [float(yaws[i]) for i in first], L,
+                                                                        terrain)))
 
         def pitch(i: int) -> float:
             if i not in pitches:
-                pitches[i] = _pitch_on_terrain(a, float(yaws[i]), L, terrain)
+                pitches[i] = pitch_on_terrain(a, float(yaws[i]), L, terrain)
             return pitches[i]
 
         def column(j: int) -> list[tuple]:
             hyps: list[tuple] = []
+            # the first pass's poses rested on the terrain together (one terrain read for the column)
+            first_poses = dict(zip(first, rested([_pose_at(ct, a, float(yaws[i]), pitches[i] + 0.0, float(rolls[j]))
+                                                  for i in first], self.corners, terrain)))
 
             def trial(i: int, dp: float) -> float:
                 p = pitch(i)
-                M0 = cam_from_world @ _rest(_pose_at(ct, a, float(yaws[i]), p + dp, float(rolls[j])),
-                                            self.corners, terrain)
+                W = first_poses.pop(i) if dp == 0.0 and i in first_poses else \
+                    rest(_pose_at(ct, a, float(yaws[i]), p + dp, float(rolls[j])), self.corners, terrain)
+                M0 = cam_from_world @ W
                 sc, sh, _ = coarse.match(M0, self.min_cos, radius_m * px_per_m)
                 if np.isfinite(sc):
                     hyps.append((sc, _shifted(M0, c, sh, self.K), float(yaws[i]), p + dp, float(rolls[j])))
@@ -471,7 +397,7 @@ class _PoseSearch:
         rested on the terrain along its coupler's line of sight, with the seed's roll class."""
         ct, cam_from_world, K = self.ct, self.cam_from_world, self.K
         _, M0, yaw, pitch, roll = hyp
-        M0 = _rest_on_ray(M0, c, cam_from_world, self.corners, self.terrain, radius_m)
+        M0 = rest_on_ray(M0, c, cam_from_world, self.corners, self.terrain, radius_m)
         world0 = np.linalg.inv(cam_from_world) @ M0
         cw = world0[:3, :3] @ c + world0[:3, 3]
         a0 = Anchor(a.end, cw, a.neighbour, a.coupling)
@@ -494,7 +420,7 @@ class _PoseSearch:
         dr_best = best_at[1]
         for dy in np.deg2rad([-FINE_HEADING_DEG, FINE_HEADING_DEG]):
             refine(float(dy), dr_best)
-        return best[0], _rest_on_ray(best[1], c, cam_from_world, self.corners, self.terrain, radius_m), round(roll, 3)
+        return best[0], rest_on_ray(best[1], c, cam_from_world, self.corners, self.terrain, radius_m), round(roll, 3)
 
 
 def search_car(photo: PhotoFeatures, number: str, ct: CarriageType, refs: dict[str, FaceReference],
