@@ -12,8 +12,9 @@ worktree made under the system temp folder, run with PYTHONPATH pointing at it) 
                process and its workers) and the load average before and after; ``--rounds N`` repeats it N
                times, the versions alternating (base, head, base, head, ...), and the versions' outputs are
                compared: solution.json (every number but the timings) and the render stage's pictures
-  stitch       `workbench stitch` on an incident holding one real photo set of ../shared/data/stitching, against
-               cv2.Stitcher (PANORAMA defaults) in a fresh process (imread to the written JPEG): the ratio
+  stitch       `workbench stitch` on a fresh incident holding one real photo set of ../shared/data/stitching,
+               against cv2.Stitcher (PANORAMA defaults) in a fresh process (imread to the written JPEG): per set,
+               --repeat rounds of cv2, the old and the new code back to back; the ratio of the medians
 
 The same sample incident (``--incident``, default projects/spuyten-duyvil; generate it with scripts/demo.sh or
 `workbench synth`) is copied for each version, with its terrain layers. Results: printed, and saved as JSON
@@ -23,7 +24,8 @@ The same sample incident (``--incident``, default projects/spuyten-duyvil; gener
         [--rounds 2] [--head-tree DIR]
 
 ``--head-tree`` benchmarks another tree than this working tree as the new code (a snapshot: on a machine where
-others edit the working tree while the benchmark runs).
+others edit the working tree while the benchmark runs); ``--base-tree`` another tree than a worktree of ``--base``
+as the old code (e.g. a snapshot with only some files put back as they were).
 """
 
 from __future__ import annotations
@@ -122,20 +124,46 @@ def _bench_version(v: dict, args, work: Path) -> dict:
         if "status" in parts:
             res["status"] = _median([*cli, "status", str(inc)], env, args.repeat)
             print(f"  {v['name']}: status {res['status']['median_s']:.2f} s", flush=True)
-    if "stitch" in parts and DATA.is_dir():
-        res["stitch"] = {}
-        for set_name, (folder, files) in STITCH_SETS.items():
-            inc = work / v["name"] / "stitch" / set_name
-            r = subprocess.run([*cli, "init", str(inc), "--lat", "0", "--lon", "0"], env=env, capture_output=True,
-                               cwd=NEUTRAL_CWD)
-            if r.returncode != 0:
-                raise RuntimeError(r.stderr)
-            for f in files:
-                shutil.copy(DATA / folder / f, inc / "photos" / "panorama" / f)
-            t = _timed([*cli, "stitch", str(inc)], env)
-            res["stitch"][set_name] = {"ours_s": round(t, 2)}
-            print(f"  {v['name']}: stitch {set_name} {t:.1f} s", flush=True)
     return res
+
+
+def _stitch_once(v: dict, set_name: str, inc: Path) -> float:
+    """`workbench stitch` on a fresh incident holding the set's photos (made by `workbench init`): its wall time."""
+    folder, files = STITCH_SETS[set_name]
+    r = subprocess.run([*v["cli"], "init", str(inc), "--lat", "0", "--lon", "0"], env=v["env"], capture_output=True,
+                       cwd=NEUTRAL_CWD)
+    if r.returncode != 0:
+        raise RuntimeError(r.stderr)
+    for f in files:
+        shutil.copy(DATA / folder / f, inc / "photos" / "panorama" / f)
+    return _timed([*v["cli"], "stitch", str(inc)], v["env"])
+
+
+def _stitch_rounds(versions: list[dict], work: Path, repeat: int, results: dict) -> None:
+    """Per set, ``repeat`` rounds of cv2.Stitcher, then each version's `workbench stitch`, back to back (fresh
+    processes, fresh incidents): the median of each, in results[version]["stitch"] and results["cv2"]."""
+    results["cv2"] = {}
+    for v in versions:
+        results[v["name"]]["stitch"] = {}
+    for set_name, (folder, files) in STITCH_SETS.items():
+        if not all((DATA / folder / f).is_file() for f in files):
+            print(f"  stitch {set_name}: photos not in {DATA / folder}; left out", flush=True)
+            continue
+        times: dict[str, list[float]] = {}
+        for k in range(repeat):
+            times.setdefault("cv2", []).append(
+                _timed([sys.executable, "-c", CV2_STITCH, str(work / f"cv2_{set_name}.jpg"),
+                        *[str(DATA / folder / f) for f in files]], dict(os.environ), check=False))
+            for v in versions:
+                inc = work / "stitch" / f"{v['name'].replace(' ', '_')}_{set_name}_{k}"
+                times.setdefault(v["name"], []).append(_stitch_once(v, set_name, inc))
+        results["cv2"][set_name] = round(statistics.median(times["cv2"]), 2)
+        for v in versions:
+            results[v["name"]]["stitch"][set_name] = {"ours_s": round(statistics.median(times[v["name"]]), 2),
+                                                      "runs_s": [round(t, 2) for t in times[v["name"]]]}
+        print(f"  stitch {set_name} (medians of {repeat}, load {os.getloadavg()[0]:.1f}): cv2 "
+              f"{results['cv2'][set_name]} s, " + ", ".join(f"{v['name']} {results[v['name']]['stitch'][set_name]['ours_s']} s"
+                                                            for v in versions), flush=True)
 
 
 def _run_sample(v: dict, args, work: Path, res: dict, round_: int = 0) -> Path:
@@ -193,8 +221,11 @@ def _compare_outputs(a: Path, b: Path) -> dict:
         pb = np.asarray(Image.open(b / "out" / "render" / name).convert("RGB")).astype(int)
         if pa.shape != pb.shape or not np.array_equal(pa, pb):
             changed[name] = "size" if pa.shape != pb.shape else int(np.count_nonzero(np.any(pa != pb, axis=-1)))
+    same_bytes = {rel: (a / "out" / rel).read_bytes() == (b / "out" / rel).read_bytes()
+                  for rel in ("correspond/correspondences.json", "render/orbit.gif")
+                  if (a / "out" / rel).is_file() and (b / "out" / rel).is_file()}
     return {"solution_numbers": len(na), "solution_numbers_differing": differ[:50],
-            "pictures": len(pictures), "pictures_differing": changed}
+            "pictures": len(pictures), "pictures_differing": changed, "identical_files": same_bytes}
 
 
 def _centre_errors(sol: dict, truth: dict) -> dict:
@@ -208,17 +239,6 @@ def _centre_errors(sol: dict, truth: dict) -> dict:
             continue
         out[c["number"]] = round(float(np.linalg.norm(np.asarray(c["world_from_carriage"])[:3, 3]
                                                       - np.asarray(t["world_from_carriage"])[:3, 3])), 3)
-    return out
-
-
-def _cv2_stitch(work: Path) -> dict:
-    out = {}
-    env = dict(os.environ)
-    for set_name, (folder, files) in STITCH_SETS.items():
-        t = _timed([sys.executable, "-c", CV2_STITCH, str(work / f"cv2_{set_name}.jpg"),
-                    *[str(DATA / folder / f) for f in files]], env, check=False)
-        out[set_name] = round(t, 2)
-        print(f"  cv2.Stitcher: {set_name} {t:.1f} s", flush=True)
     return out
 
 
@@ -248,6 +268,8 @@ def _table(results: dict) -> list[str]:
                         f"{each(h, lambda r: str(r['stages_s'].get(st)))} s | |")
     if "stitch" in b and "cv2" in results:
         for set_name, t in results["cv2"].items():
+            rows.append(f"| &nbsp; {set_name}: cv2.Stitcher / `workbench stitch` (s, medians) | {t:.2f} / "
+                        f"{b['stitch'][set_name]['ours_s']:.2f} | {t:.2f} / {h['stitch'][set_name]['ours_s']:.2f} | |")
             rb, rh = b["stitch"][set_name]["ours_s"] / t, h["stitch"][set_name]["ours_s"] / t
             rows.append(f"| `workbench stitch` / cv2.Stitcher, {set_name} | {rb:.2f} | {rh:.2f} | "
                         f"<= {TARGETS['stitch_ratio']} |")
@@ -262,15 +284,18 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=5)
     ap.add_argument("--rounds", type=int, default=1, help="runs of the sample per version, alternating")
     ap.add_argument("--head-tree", type=Path, default=None, help="the new code's tree (default: this one)")
+    ap.add_argument("--base-tree", type=Path, default=None,
+                    help="the old code's tree, instead of a worktree of --base (named by --base in the table)")
     ap.add_argument("--out", type=Path, default=ROOT / "bench_out" / "performance.json")
     args = ap.parse_args()
     args.parts = set(args.parts.split(","))
     if ({"run", "status"} & args.parts) and not (args.incident / "truth" / "ground_truth.json").is_file():
         sys.exit(f"{args.incident}: no generated sample incident; run scripts/demo.sh (or `workbench synth`) first")
     work = Path(tempfile.mkdtemp(prefix="bench_performance_"))
-    base_tree = work / "base"
-    subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-f", str(base_tree), args.base],
-                   check=True, capture_output=True)
+    base_tree = args.base_tree or work / "base"
+    if args.base_tree is None:
+        subprocess.run(["git", "-C", str(ROOT), "worktree", "add", "--detach", "-f", str(base_tree), args.base],
+                       check=True, capture_output=True)
     try:
         versions = [_version(f"base {args.base}", base_tree), _version("head", args.head_tree or ROOT)]
         results: dict = {"versions": [v["name"] for v in versions], "machine": {"cpus": os.cpu_count(),
@@ -286,14 +311,16 @@ def main() -> None:
             results["same_outputs"] = _compare_outputs(a, b)
             print(f"outputs compared: {results['same_outputs']}", flush=True)
         if "stitch" in args.parts and DATA.is_dir():
-            results["cv2"] = _cv2_stitch(work)
+            _stitch_rounds(versions, work, args.repeat, results)
         results["machine"]["load_after"] = os.getloadavg()
         print("\n".join(["", *_table(results)]))
         args.out.parent.mkdir(parents=True, exist_ok=True)
         args.out.write_text(json.dumps(results, indent=2, default=str) + "\n")
         print(f"\nsaved {args.out}")
     finally:
-        subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(base_tree)], capture_output=True)
+        if args.base_tree is None:
+            subprocess.run(["git", "-C", str(ROOT), "worktree", "remove", "--force", str(base_tree)],
+                           capture_output=True)
         shutil.rmtree(work, ignore_errors=True)
 
 
