@@ -93,7 +93,8 @@ def _run_one(index: int, phase: int = 2, token=None):
 
 def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int, str, str], None],
                on_result: Callable[[int, object], None] | None = None, first: Callable | None = None,
-               on_first: Callable[[int, object], None] | None = None) -> list:
+               on_first: Callable[[int, object], None] | None = None,
+               before_second: Callable[[], None] | None = None) -> list:
     """``[fn(item, note) for item in items]``, on up to ``workers`` forked processes (in order).
 
     ``fn(item, note)`` does one photo and calls ``note(step, message)`` at each of its steps; the parent calls
@@ -104,16 +105,22 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
     share the first, even tasks, and the uneven second ones start as early as they can (the last photo's
     pose search alone on one core is the imbalance left). With one worker, one item, or no ``fork`` on this
     platform, the items run here, one after the other. ``on_first(index, token)``: called in the parent as each
-    item's first task finishes (any order). A worker that dies (killed, out of memory) fails the map with a
+    item's first task finishes (any order). ``before_second()``: work of the parent's own, done once the workers
+    are forked and the first tasks queued, before any second task is queued (what the second tasks need and the
+    workers, forked before it, read from files). A worker that dies (killed, out of memory) fails the map with a
     RuntimeError instead of leaving it waiting.
     """
     import cv2
 
+    if before_second is not None and first is None:
+        raise ValueError("before_second needs first tasks")
     n = min(max(1, int(workers)), len(items))
     if n <= 1 or "fork" not in mp.get_all_start_methods():
         _JOB.clear()
         _JOB.update(fn=fn, items=items, note=progress, first=first)
         try:
+            if before_second is not None:
+                before_second()
             out = []
             for i in range(len(items)):
                 token = _run_one(i, 1) if first is not None else None
@@ -137,7 +144,11 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
     ex = ProcessPoolExecutor(max_workers=n, mp_context=ctx)
     try:
         phase0 = 1 if first is not None else 2
-        futures = {ex.submit(_run_one, i, phase0): (i, phase0) for i in range(len(items))}
+        futures = {ex.submit(_run_one, i, phase0): (i, phase0) for i in range(len(items))}  # (forks the workers)
+        if before_second is not None:  # the parent's own work, with its own OpenCV threads
+            cv2.setNumThreads(threads)
+            before_second()
+            cv2.setNumThreads(1)
         results: dict[int, object] = {}
         pending = set(futures)
         while pending:

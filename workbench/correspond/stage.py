@@ -220,12 +220,32 @@ class _PhotoMatcher:
     camera pose) and their marked points."""
 
     def __init__(self, project: Project, intrinsics: dict[str, CameraIntrinsics], opts: MatchOptions,
-                 photo_file: dict[str, Path], refs: dict[str, list], ref_cache: dict, consist: list[tuple],
-                 types: dict, poses: dict[str, np.ndarray], terrain, carry_on: bool):
+                 photo_file: dict[str, Path], refs: dict[str, list] | None, ref_cache: dict | None,
+                 consist: list[tuple], types: dict, poses: dict[str, np.ndarray], terrain, carry_on: bool,
+                 cache_dir: Path | None = None):
         self.project, self.intrinsics, self.opts, self.photo_file = project, intrinsics, opts, photo_file
-        self.refs, self.ref_cache, self.consist, self.types = refs, ref_cache, consist, types
+        self.consist, self.types, self.cache_dir = consist, types, cache_dir
         self.poses, self.terrain, self.carry_on = poses, terrain, carry_on
+        self.refs: dict[str, list] | None = None
+        if refs is not None:
+            self.use_references(refs, ref_cache or {})
+
+    def use_references(self, refs: dict[str, list], ref_cache: dict) -> None:
+        self.refs, self.ref_cache = refs, ref_cache
         self.by_number = {n: {r.face: r for r in rs} for n, rs in refs.items()}
+
+    def _references(self) -> None:
+        """The cars' references in a worker forked before the parent built them: read from the cache, where the
+        parent wrote them before it queued any photo's second task (the same arrays as a rerun reads)."""
+        refs, ref_cache = {}, {}
+        for number, _, _ in self.consist:
+            ct = self.types[number]
+            if not ct.has_reference_imagery:
+                continue
+            rs, aligned = _cached_references(self.project, ct, number, self.opts, self.cache_dir, set())
+            refs[number] = rs
+            ref_cache.update({(number, r.face): r for r in aligned})
+        self.use_references(refs, ref_cache)
 
     def features(self, p: Path, note) -> float:
         t0 = time.perf_counter()
@@ -242,6 +262,8 @@ class _PhotoMatcher:
     def match(self, p: Path, note, t_features: float) -> PhotoResult:
         opts, consist, types = self.opts, self.consist, self.types
         t0 = time.perf_counter() - t_features
+        if self.refs is None:
+            self._references()
         # (an entry that cannot be read, or could not be written, is computed here)
         pf = _cached_photo_features(self.project, p, self.intrinsics[p.name], opts, self.photo_file[p.name])
         found = find_cars(pf, self.refs, consist, types, opts, self.ref_cache)
@@ -268,10 +290,12 @@ class _PhotoMatcher:
 
 
 def _match_photos(matcher: _PhotoMatcher, photos: list[Path], intrinsics: dict[str, CameraIntrinsics],
-                  opts: MatchOptions, progress: Progress, carry_on: bool
+                  opts: MatchOptions, progress: Progress, carry_on: bool, references=None
                   ) -> tuple[list[PhotoResult], dict[str, PhotoFeatures], PairHomographies | None]:
     """Every photo matched on worker processes: the results, in the photos' order, and, to carry points between
-    the photos of a panorama set, their features and the homographies between them."""
+    the photos of a panorama set, their features and the homographies between them. ``references()``: builds the
+    cars' references (into the cache, where the workers read them) once the workers are computing the photos'
+    features."""
     steps_done: set = set()
 
     def report(index: int, step: str, message: str) -> None:
@@ -286,8 +310,12 @@ def _match_photos(matcher: _PhotoMatcher, photos: list[Path], intrinsics: dict[s
                       * K.width * K.height + 14.0 * K.width * K.height
                       for K in (intrinsics[p.name] for p in photos)] or [0.0])
     workers = opts.workers or default_workers(per_worker)
-    if photos:
-        progress(0.05, f"matching {len(photos)} photos on {min(workers, len(photos))} processes")
+
+    def before_second() -> None:
+        if references is not None:
+            references()
+        if photos:
+            progress(0.05, f"matching {len(photos)} photos on {min(workers, len(photos))} processes")
     # kept only to carry points between the photos of a panorama set; the homographies between them are
     # computed in the photos' order as soon as both photos of a pair are done, while the others are matched
     features: dict[str, PhotoFeatures] = {}
@@ -309,7 +337,7 @@ def _match_photos(matcher: _PhotoMatcher, photos: list[Path], intrinsics: dict[s
             pairs.advance(features)
 
     results = map_photos(matcher.match, photos, workers, report, on_result=done, first=matcher.features,
-                         on_first=features_done)
+                         on_first=features_done, before_second=before_second)
     features = {r.name: features[r.name] for r in results if r.name in features}  # in the photos' order
     return results, features, pairs
 
@@ -326,11 +354,6 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
     consist = [(c.number, types[c.number].id, c.coupling_to_next.value if c.coupling_to_next else None)
                for c in s.consist]
     cache_used: set[str] = set()
-    refs, ref_cache, untextured = _car_references(project, consist, types, opts, progress, reference_dir, cache_dir,
-                                                  cache_used)
-    obs: list[mf.Observation] = []
-    if len(untextured) == len(refs):
-        photos = []  # nothing to match against
     carry_on = opts.carry_between_photos and len(photos) > 1 and s.camera.source.value != "sfm"
     # the chain/terrain pose search needs each photo's camera in the scene frame, and uses the terrain
     poses = camera_poses(project, photos) if opts.search else {}
@@ -347,13 +370,32 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
         K = intrinsics[p.name]
         if not photo_file[p.name].is_file() and K.has_distortion:
             undistortion_maps(K, K.width, K.height)
-    matcher = _PhotoMatcher(project, intrinsics, opts, photo_file, refs, ref_cache, consist, types, poses, terrain,
-                            carry_on)
+    matcher = _PhotoMatcher(project, intrinsics, opts, photo_file, None, None, consist, types, poses, terrain,
+                            carry_on, cache_dir)
+    built: dict = {}
+
+    def references() -> None:
+        # the cars' references (SIFT over the tilts of every face), built here while the workers compute the
+        # photos' features; written to the cache, where workers forked before read them (with no cache, the
+        # references are built first and the workers inherit them)
+        built["refs"], built["ref_cache"], built["untextured"] = _car_references(
+            project, consist, types, opts, progress, reference_dir, cache_dir, cache_used)
+        matcher.use_references(built["refs"], built["ref_cache"])
+
+    if cache_dir is None:
+        references()
     try:
-        results, features, pairs = _match_photos(matcher, photos, intrinsics, opts, progress, carry_on)
+        results, features, pairs = _match_photos(matcher, photos, intrinsics, opts, progress, carry_on,
+                                                 references if cache_dir is not None else None)
     finally:
         if cache_dir is None:
             shutil.rmtree(work_dir, ignore_errors=True)
+    if "refs" not in built:  # no photo: nothing matched, the references still listed
+        references()
+    refs, untextured = built["refs"], built["untextured"]
+    if len(untextured) == len(refs):  # nothing to match against: no photo's result counts
+        results, features, pairs, carry_on = [], {}, None, False
+    obs: list[mf.Observation] = []
     per_view = {r.name: r.points for r in results}
     per_photo = {r.name: r.stats for r in results}
     if cache_dir is not None:
