@@ -800,7 +800,7 @@ def test_live_pose_never_fails_on_odd_picks(synth):
     @settings(max_examples=150, deadline=None, database=None, derandomize=True, suppress_health_check=list(HealthCheck))
     @given(picks=st.lists(pick, min_size=0, max_size=14, unique_by=lambda o: (o["point"], o["view"])))
     def one(picks):
-        if time.monotonic() - t0 > 3:
+        if time.monotonic() - t0 > 6:  # bounded: on a loaded machine fewer examples run
             return
         out = live_pose(project, {"carriage": "6100", "observations": picks, "view": "pano_00.jpg"}, sizes)
         assert (out["pose"] is None) == ("reason" in out)

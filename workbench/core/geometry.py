@@ -111,6 +111,12 @@ def log_so3(R: np.ndarray) -> np.ndarray:
     return th / (2.0 * np.sin(th)) * w
 
 
+def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
+    """The angle (deg) of the rotation between ``Ra`` and ``Rb`` (3, 3): ``arccos((tr(Ra Rb^T) - 1) / 2)``."""
+    c = (np.trace(np.asarray(Ra)[:3, :3] @ np.asarray(Rb)[:3, :3].T) - 1.0) / 2.0
+    return float(np.rad2deg(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
 def orthonormal(R: np.ndarray) -> np.ndarray:
     """The rotation nearest to ``R`` (3, 3) (SVD, determinant +1): removes the drift of composed small rotations
     and the rounding of an estimate stored in single precision."""

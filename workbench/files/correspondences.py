@@ -29,6 +29,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, StrictFloat, ValidationError, field_validator, model_validator
 
+from ..core.io import read_json
 from ..core.layout import CORRESPONDENCES_FILE
 from ..errors import InputError
 
@@ -273,8 +274,6 @@ def validate(cf: CorrespondenceFile, path: Path | str, *, points: dict[str, list
 
 def load(path: Path, *, points: dict[str, list[str]], image_sizes: dict[str, tuple[int, int]]) -> CorrespondenceFile:
     """Read and validate a correspondence file."""
-    from ..core.io import read_json
-
     path = Path(path)
     data = read_json(path)
     return validate(parse(data, path), path, points=points, image_sizes=image_sizes)

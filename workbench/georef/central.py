@@ -353,11 +353,13 @@ def _central_residuals(R: np.ndarray, c: np.ndarray, views: Sequence[RigView], o
 def _covariance_stats(R: np.ndarray, cov: np.ndarray) -> dict:
     """1-sigma rotation (deg) and centre (m), and the covariance in the scene frame, for the solve to carry into
     the carriages' poses: the rotation was perturbed in the rig frame (rig_from_world <- Exp(x) rig_from_world),
-    i.e. by R^T x in the scene frame (world_from_rig <- Exp(R^T x) world_from_rig); order: rotation vector
-    (rad), centre (m), ENU."""
+    i.e. by -R^T x in the scene frame (world_from_rig = R^T <- R^T Exp(-x) = Exp(-R^T x) R^T, R =
+    rig_from_world); order: rotation vector (rad), centre (m), ENU. The sign is that of the rotation's
+    correlation with the centre (a camera shifted sideways is turned back towards the control points), which
+    decides how much of the camera's error reaches a carriage near them."""
     sd = np.sqrt(np.clip(np.diag(cov), 0, None))
     T = np.zeros((6, 6))
-    T[:3, :3] = R.T
+    T[:3, :3] = -R.T
     T[3:, 3:] = np.eye(3)
     cw = T @ cov @ T.T
     return {"sigma_rotation_deg": [float(np.degrees(x)) for x in sd[:3]],

@@ -14,6 +14,7 @@ import numpy as np
 
 from PIL import Image
 
+from ..core.geometry import rotation_angle_deg
 from ..core.layout import CAMERAS_FILE, CONTROL_POINTS_FILE
 from ..errors import InputError, StageError
 from ..project import Project
@@ -41,11 +42,6 @@ class _Placement:
     main_res: SimilarityResult | None = None
     main_error: InputError | None = None
     first_res: SimilarityResult | None = None
-
-
-def _rot_deg(A: np.ndarray, B: np.ndarray) -> float:
-    c = (np.trace(np.asarray(A)[:3, :3] @ np.asarray(B)[:3, :3].T) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
 def _similarity(views: list[SfmView], cps: list[ControlPoint], gps: dict, opts: GeorefOptions, where: str):
@@ -122,7 +118,7 @@ def _record_placed(label: str, views: list[SfmView], res: SimilarityResult, reje
             overlap[v.name] = {"placed_by": placed[v.name][0],
                                "centre_difference_m": float(np.linalg.norm(
                                    (-A[:3, :3].T @ A[:3, 3]) - (-B[:3, :3].T @ B[:3, 3]))),
-                               "rotation_difference_deg": _rot_deg(A, B)}
+                               "rotation_difference_deg": rotation_angle_deg(A, B)}
         else:
             placed[v.name] = (label, res, v)
     if overlap:

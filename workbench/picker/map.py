@@ -23,6 +23,7 @@ that extent.
 
 from __future__ import annotations
 
+import io
 import logging
 import math
 import threading
@@ -271,8 +272,6 @@ class MapService:
 
     def png(self) -> bytes:
         """The map image as PNG (encoded once)."""
-        import io
-
         from PIL import Image
 
         im = self.image()

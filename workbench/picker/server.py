@@ -53,6 +53,7 @@ import logging
 import re
 import secrets
 import socket
+import sys
 import threading
 from dataclasses import dataclass, field
 from http import HTTPStatus
@@ -590,8 +591,6 @@ class _Server(ThreadingHTTPServer):
     daemon_threads = True
 
     def handle_error(self, request, client_address) -> None:  # not socketserver's traceback on stderr
-        import sys
-
         exc = sys.exc_info()[1]
         log.warning("picker: connection from %s ended: %s: %s", client_address[0], type(exc).__name__,
                     _cut(str(exc), 120))

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..core.geometry import exp_so3
+from ..core.geometry import exp_so3, rotation_angle_deg
 from .problem import Chains, Poses
 from ..core.camera import distort_with_derivs
 from .uncertainty import CovarianceModel, contact_rows, inverse_psd, pixel_rows, prior_rows
@@ -280,7 +280,7 @@ def correct(prob, cars, poses: Poses, focal_views, chains: Chains, contact, mode
     per, mx, mr = [], 0.0, 0.0
     for k in prob.active:
         e = (Rn[k] @ cars[k].c_body + tn[k]) - (R[k] @ cars[k].c_body + t[k])
-        ang = float(np.degrees(np.arccos(np.clip((np.trace(Rn[k] @ R[k].T) - 1.0) / 2.0, -1.0, 1.0))))
+        ang = rotation_angle_deg(Rn[k], R[k])
         per.append({"number": cars[k].number, "moved_m": float(np.linalg.norm(e)), "dz_m": float(e[2]),
                     "rotated_deg": ang, "corrected": not any(x["number"] == cars[k].number for x in skipped)})
         mx, mr = max(mx, float(np.linalg.norm(e))), max(mr, ang)

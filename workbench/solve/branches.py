@@ -13,9 +13,10 @@ from typing import Sequence
 import numpy as np
 from scipy.special import gammaincinv  # the chi-square quantile as scipy.stats computes it, without its import
 
+from ..core.geometry import rotation_angle_deg
 from .active_set import ChainedFit, ChainedProblem
 from .pnp import pnp_branches
-from .problem import Car, Poses, Problem, rotation_angle_deg
+from .problem import Car, Poses, Problem
 from .terrain import rest_on_terrain
 
 # A carriage with at most this many distinct points cannot show a wrong PnP branch in its own pixels (4 or 5

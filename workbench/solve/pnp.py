@@ -12,10 +12,10 @@ from dataclasses import replace
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
-from ..core.geometry import exp_so3
+from ..core.geometry import exp_so3, rotation_angle_deg
 from .layout import ChainLayout
 from .model import SolveOptions
-from .problem import Car, Chains, Poses, Problem, pixel_cost, rotation_angle_deg
+from .problem import Car, Chains, Poses, Problem, pixel_cost
 from .trust_region import levenberg_marquardt
 
 log = logging.getLogger(__name__)

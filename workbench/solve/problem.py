@@ -16,6 +16,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
+from ..core.geometry import rotation_angle_deg
 from ..errors import InputError, SettingsError
 from .model import WEIGHTINGS, CarriageInput, Observation, SolveOptions, SolveWarning, View
 from .projection import project_world_points_with_jacobians
@@ -322,11 +323,6 @@ def chain_cost(prob: Problem, poses: Poses, links: list[list[np.ndarray]], slack
             r = np.asarray(T) * (prior_px * SQRT5 / s)
             c += 0.5 * float(r @ r)
     return c
-
-
-def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    c = (np.trace(Ra @ Rb.T) - 1.0) / 2.0
-    return float(np.rad2deg(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
 def pose_changes(cars: Sequence[Car], active: Sequence[int], before: Poses, after: Poses) -> list[dict]:

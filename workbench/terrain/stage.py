@@ -19,6 +19,7 @@ from ..core.stage_api import Progress, StageResult
 from ..errors import InputError, WorkbenchWarning
 from ..files.dem import TerrainModel, simplify_terrain_mesh
 from ..project import Project
+from .buildings import read_buildings
 
 log = logging.getLogger(__name__)
 
@@ -76,8 +77,6 @@ def _check_origin_height(project: Project, tm: TerrainModel, where: str) -> dict
 
 
 def run_terrain(project: Project, progress: Progress) -> StageResult:
-    from .buildings import read_buildings
-
     t = project.settings.terrain
     paths = project.dem_paths()
     where = str(paths[0]) if len(paths) == 1 else f"tiles {[p.name for p in paths]}"

@@ -18,11 +18,14 @@ from __future__ import annotations
 
 import logging
 import math
+import os
+import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
+from ..core.io import atomic_write
 from ..errors import RenderError
 from ..project import Project
 
@@ -301,7 +304,6 @@ class IncidentViewer:
                 break
             time.sleep(0.1)
         log.info("viewer: frame ready after %.1f s", time.perf_counter() - t0)
-        from ..core.io import atomic_write
 
         if img is None:
             f = self.widget.frame
@@ -323,9 +325,6 @@ def view(root: str | Path, *, screenshot: str | Path | None = None, select: str 
     project.settings  # validate first
 
     project.require_solution("viewer")
-    import os
-    import sys
-
     if sys.platform.startswith("linux") and not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         # Open3D aborts the process (no exception) when it cannot open a window
         raise RenderError("the viewer needs a display (DISPLAY is not set); on a machine without one run it "
