@@ -49,3 +49,43 @@ def test_camera_covariance_is_honest_jointly_and_at_the_carriages():
     assert 4.5 < m2.mean() < 8.0, (m2.mean(), np.median(m2))
     rms = np.sqrt(np.mean(z**2, axis=0))
     assert np.all((0.75 < rms) & (rms < 1.3)), rms
+
+
+def test_a_landmark_picked_in_several_photos_counts_once():
+    """A three-photo panorama (each photo turned 25 deg from the next, overlapping), 10 landmarks 30-90 m away
+    placed on a map at 0.3 m (as the picker's map picks) and each picked in every photo that sees it (1 px): the landmark's map
+    error is one error shared by its picks, and the stated covariance says so (mean squared Mahalanobis distance
+    over 60 draws in 4.5-8; counting each pick's share of it as independent gave a covariance too narrow)."""
+    rng = np.random.default_rng(11)
+    intr = CameraIntrinsics(width=1200, height=900, fx=1100.0, fy=1100.0, cx=599.5, cy=449.5)
+    centre = np.array([0.0, 0.0, 8.0])
+    M = look_at(centre, np.array([0.0, 90.0, 0.0]))
+    R = M[:3, :3]  # rig = the middle photo
+    from workbench.core.geometry import rot_y
+
+    rigs = [RigView(f"p{k}.jpg", intr, rot_y(np.radians(25.0 * (k - 1)))) for k in range(3)]
+    ang = np.radians(rng.uniform(-40, 40, 10))
+    dist = rng.uniform(30, 90, 10)
+    X = np.column_stack([dist * np.sin(ang), dist * np.cos(ang), rng.uniform(0, 12, 10)])
+    m2, n_multi = [], 0
+    for _ in range(60):
+        cps = []
+        for k, x in enumerate(X):
+            xm = x + rng.normal(0, 0.3, 3)  # placed on the map
+            obs = {}
+            for v in rigs:
+                q = np.asarray(v.cam_from_rig) @ (R @ (x - centre))
+                if q[2] <= 0:
+                    continue
+                uv = intr.project(q[None])[0]
+                if intr.in_image(uv[None], margin=5.0)[0]:
+                    obs[v.name] = uv + rng.normal(0, 1.0, 2)
+            n_multi += len(obs) > 1
+            cps.append(ControlPoint(f"p{k}", xm, 0.3, obs))
+        res = solve_central(rigs, [c for c in cps if c.pixels], opts=GeorefOptions())
+        C = np.asarray(res.stats["covariance_world_rotation_centre"], float)
+        e = np.concatenate([log_so3(res.rig_from_world.T @ R), res.centre_enu - centre])
+        m2.append(float(e @ np.linalg.solve(C, e)))
+    assert n_multi > 150, n_multi  # landmarks seen in two photos or three
+    m2 = np.array(m2)
+    assert 4.5 < m2.mean() < 8.0, (m2.mean(), np.median(m2))

@@ -276,13 +276,37 @@ def _refine_central(views: Sequence[RigView], obs: list[Pick], X: np.ndarray, cp
     R = exp_so3(sol.x[:3]) @ R_init
     cov = None
     try:
-        J = sol.jac
-        cov = np.linalg.inv(J.T @ J)
+        cov = _shared_point_covariance(sol.jac, [o.point for o in sel], sig, opts.sigma_px,
+                                       np.array([cps[o.point].sigma_m for o in sel], float))
     except np.linalg.LinAlgError:
         pass
     if info_out is not None:
         info_out["cost"] = float(sol.cost)
     return R, sol.x[3:].copy(), cov
+
+
+def _shared_point_covariance(J: np.ndarray, points: list[int], sig: np.ndarray, sigma_px: float,
+                             sigma_m: np.ndarray) -> np.ndarray:
+    """(6, 6) covariance of (rotation vector, centre) from the whitened Jacobian ``J`` (2 n picks + the priors'
+    rows, 6) of a fit whose picks were weighted by ``sig`` (n,: the pick's noise and its point's position error
+    seen at its depth, :func:`pick_sigma`): the sandwich ``H^-1 G H^-1``, in which a control point's position error
+    (``sigma_m`` (n,) m, isotropic) is one error shared by all its picks (a landmark picked in three photos of a
+    panorama is off by the same metres in all three), and the pick's own noise (``sigma_px``) is independent. The
+    picks' residuals depend on the point less the centre, so a point's pixel Jacobian is minus the centre's."""
+    n = len(points)
+    Jp, Jq = J[:2 * n], J[2 * n:]
+    H = J.T @ J
+    w_own = np.repeat((sigma_px / sig) ** 2, 2)
+    G = Jq.T @ Jq + (Jp * w_own[:, None]).T @ Jp
+    pts = np.asarray(points)
+    for p in np.unique(pts):
+        rows = np.stack([2 * np.nonzero(pts == p)[0], 2 * np.nonzero(pts == p)[0] + 1], axis=1).ravel()
+        s = float(sigma_m[pts == p][0])
+        A = Jp[rows].T @ (-Jp[rows, 3:6] * s)  # (6, 3): the gradient's response to the point's error
+        G += A @ A.T
+    Hi = np.linalg.inv(H)
+    C = Hi @ G @ Hi
+    return 0.5 * (C + C.T)
 
 
 def _sample_covariance(views: Sequence[RigView], obs: list[Pick], X: np.ndarray, cps: Sequence[ControlPoint],
@@ -334,10 +358,25 @@ def _sample_covariance(views: Sequence[RigView], obs: list[Pick], X: np.ndarray,
                                                         "widening_sigma_factors": np.sqrt(lam_c)[::-1].tolist()}}
 
 
+def inlier_limits(R: np.ndarray, c: np.ndarray, views: Sequence[RigView], obs: list[Pick], X: np.ndarray,
+                  cps: Sequence[ControlPoint], opts: GeorefOptions) -> np.ndarray:
+    """Each pick's inlier limit (px): ``opts.ransac_threshold_px``, or 4 times the pick's own sigma where that is
+    larger (:func:`pick_sigma`: a landmark placed on a map to 0.5 m and seen 50 m away is 11 px uncertain, and
+    a 12 px limit would throw out a good pick of it)."""
+    lim = np.full(len(obs), float(opts.ransac_threshold_px))
+    for k, o in enumerate(obs):
+        d = float((views[o.view].cam_from_rig @ (R @ (X[o.point] - c)))[2])
+        if d > 1e-3:
+            lim[k] = max(lim[k], 4.0 * pick_sigma(views[o.view].intrinsics, opts.sigma_px, cps[o.point].sigma_m, d))
+    return lim
+
+
 def _central_residuals(R: np.ndarray, c: np.ndarray, views: Sequence[RigView], obs: list[Pick], X: np.ndarray,
                        bear: np.ndarray, cps: Sequence[ControlPoint], opts: GeorefOptions) -> list[dict]:
-    """Every pick's residual (px, and the point's distance from its ray in metres) and whether it is an inlier."""
+    """Every pick's residual (px, and the point's distance from its ray in metres) and whether it is an inlier
+    (:func:`inlier_limits`)."""
     err, vec = _central_errors(R, c, views, obs, X)
+    lim = inlier_limits(R, c, views, obs, X, cps, opts)
     residuals = []
     for k, o in enumerate(obs):
         v = views[o.view]
@@ -346,7 +385,7 @@ def _central_residuals(R: np.ndarray, c: np.ndarray, views: Sequence[RigView], o
                           "residual_px": vec[k].tolist() if np.isfinite(err[k]) else None,
                           "error_px": float(err[k]) if np.isfinite(err[k]) else None,
                           "error_m": point_line_distance(X[o.point], c, d_world),
-                          "inlier": bool(err[k] < opts.ransac_threshold_px)})
+                          "inlier": bool(err[k] < lim[k])})
     return residuals
 
 
@@ -432,7 +471,7 @@ def solve_central(views: Sequence[RigView], cps: Sequence[ControlPoint], *, prio
     R1, c1, _ = _refine_central(views, obs, X, cps, R0, c0_est, np.ones(len(obs), bool), prior_centre, sig_prior,
                                 opts, headings)
     err1, _ = _central_errors(R1, c1, views, obs, X)
-    inl = err1 < thr
+    inl = err1 < inlier_limits(R1, c1, views, obs, X, cps, opts)
     sample_info: dict = {}
     if enough(len(set(pts[inl].tolist()))):
         R1, c1, cov = _refine_central(views, obs, X, cps, R1, c1, inl, prior_centre, sig_prior, opts, headings)
