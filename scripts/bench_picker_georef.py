@@ -211,11 +211,20 @@ def _repeat(client: Client, root: Path, photo: str, reps: int, make_picks) -> li
     return errs
 
 
+def state_pick_sigma(root: Path, noise_px: float) -> None:
+    """The incident states its picks' pixel sigma (``georef.pick_sigma_px``), as a user who picks at that
+    accuracy would."""
+    toml = (root / "project.toml").read_text()
+    if "[georef]" not in toml:
+        (root / "project.toml").write_text(toml.rstrip() + f"\n\n[georef]\npick_sigma_px = {noise_px}\n")
+
+
 def bench_synthetic(sample: Path, work: Path, reps: int, noise_px: float, noise_m: float, sweep: list[float],
                     photo: str = "pano_01.jpg") -> list[dict]:
     from workbench.picker import PickerServer
 
     root = single_photo_incident(sample, work / "synthetic", photo)
+    state_pick_sigma(root, noise_px)
     marks = ground_landmarks(root, sample, photo)
     rows = []
     with PickerServer(root) as srv:
@@ -306,6 +315,7 @@ def bench_panorama(sample: Path, work: Path, reps: int, noise_px: float, noise_m
     from workbench.picker import PickerServer
 
     root = panorama_incident(sample, work / "panorama")
+    state_pick_sigma(root, noise_px)
     marks = panorama_landmarks(root, sample)
     photo = sorted({k for m in marks for k in m["pixels"]})[0]
     with PickerServer(root) as srv:

@@ -345,7 +345,7 @@ STAGES: list[StageSpec] = [
               "workbench.intrinsics.stage:run_sfm_stage", inputs=_sfm_inputs, settings_sections=("camera", "sfm"),
               depends_on=("inputs",), applies=lambda project: project.settings.camera.source.value == "sfm"),
     StageSpec("georef", "place the cameras in the scene frame from control points (or known cameras)",
-              "workbench.georef.stage:run_georef", inputs=_georef_inputs, settings_sections=("location", "camera"),
+              "workbench.georef.stage:run_georef", inputs=_georef_inputs, settings_sections=("location", "camera", "georef"),
               depends_on=("stitch", "sfm"), applies=_georef_applies),
     StageSpec("correspond", "marked points in the photos: SIFT against each car's livery, plus manual picks",
               "workbench.correspond.stage:run_correspond", inputs=_correspond_inputs,

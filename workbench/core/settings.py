@@ -173,6 +173,13 @@ class Correspond(_Strict):
     finder: Annotated[FinderMode, _LAX] = FinderMode.AUTO
 
 
+class Georef(_Strict):
+    # 1-sigma of a control point's pick in a photo (px): a survey target's centre 0.5-1 px, a landmark's corner
+    # picked by hand on a phone photo 2-3 px; with each point's sigma_m it weights the picks, sets the camera's
+    # covariance and the inlier limit (docs/gis.md)
+    pick_sigma_px: Annotated[float, Field(gt=0.0, le=50.0)] = 1.0
+
+
 class ExportFormat(str, Enum):
     GLB = "glb"  # glTF 2.0 binary (the only one a relative scene gets: it needs no place on the Earth)
     GEOJSON = "geojson"
@@ -200,6 +207,7 @@ class ProjectSettings(_Strict):
     sfm: dict[str, Any] | None = None
     solver: Solver = Solver()
     correspond: Correspond = Correspond()
+    georef: Georef = Georef()
     export: Export = Export()
 
     @model_validator(mode="after")
@@ -307,6 +315,9 @@ photos = "photos/panorama"
 
 [correspond]
 finder = "auto"               # auto: find the carriages' liveries in the photos | off: hand picks only
+
+[georef]
+pick_sigma_px = 1.0           # 1-sigma of a control point's pick in a photo, px (hand picks on a phone photo: 2-3)
 
 [solver]
 pixel_sigma_px = 1.0

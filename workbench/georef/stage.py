@@ -24,6 +24,7 @@ priors (GPS centre, compass heading) and their sigmas are in ``georegistration.p
 from __future__ import annotations
 
 import warnings
+from dataclasses import replace
 from typing import Any
 
 from ..core.layout import CAMERAS_FILE
@@ -43,6 +44,7 @@ def run_georef(project: Project, progress: Progress, opts: GeorefOptions = Geore
     """Run the incident's georef route and write ``cameras.json``; the stage statistics include every residual
     warning raised."""
     route = project.georef_route()
+    opts = replace(opts, sigma_px=float(project.settings.georef.pick_sigma_px))
     out_dir = project.stage_dir("georef")
     where = str(project.control_points_path)
     stats: dict[str, Any] = {"route": route}
