@@ -33,7 +33,8 @@ class Plan:
     carriages observable alone among them (``solo``), all solved or carried ones (``active``), and the solo ones
     that pin an unknown focal by themselves (``pinning``: points off one plane; the others of ``solo`` show one
     face and are posed at the focal the pinning ones give). ``observability``: the one-face carriages admitted and
-    refused (step 1's facts)."""
+    refused (step 1's facts). ``coplanar``: the solo carriages whose points lie on one plane, at a known focal
+    too (their PnP has two poses that fit about equally: the branch check tries both)."""
 
     status: list[str]
     n_points: list[int]
@@ -42,6 +43,7 @@ class Plan:
     active: list[int]
     pinning: list[int] = field(default_factory=list)
     observability: dict = field(default_factory=dict)
+    coplanar: list[int] = field(default_factory=list)
 
     @property
     def one_face(self) -> list[int]:
@@ -272,11 +274,13 @@ def plan_consist(cars: list[Car], links: Sequence[ChainLink], options: SolveOpti
     N = len(cars)
     link_slack = link_slacks(links, N)
     n_pts = [len(c.distinct) for c in cars]
-    degenerate = []
-    for c in cars:
+    degenerate, planar = [], []
+    for k, c in enumerate(cars):
         d = degeneracy(c.ctype, c.distinct) if len(c.distinct) >= 2 else "too few"
-        if d == "coplanar" and not options.estimate_focal and len(c.distinct) >= 4:
-            d = ""
+        if d == "coplanar" and len(c.distinct) >= 4:
+            planar.append(k)
+            if not options.estimate_focal:
+                d = ""
         degenerate.append(d)
     alone_ok = [n_pts[k] >= 4 and degenerate[k] == "" for k in range(N)]
     pins = set(k for k in range(N) if alone_ok[k])
@@ -298,5 +302,6 @@ def plan_consist(cars: list[Car], links: Sequence[ChainLink], options: SolveOpti
              if _settle_chain(ch, cars, n_pts, degenerate, alone_ok, status, options, wl, focal_why)]
     active = [k for ch in final for k in ch]
     chains = Chains(final, [[link_slack[ch[j]] for j in range(len(ch) - 1)] for ch in final])
-    return Plan(status, n_pts, chains, [k for k in active if alone_ok[k]], active,
-                [k for k in active if k in pins], facts)
+    solo = [k for k in active if alone_ok[k]]
+    return Plan(status, n_pts, chains, solo, active, [k for k in active if k in pins], facts,
+                [k for k in solo if k in planar])

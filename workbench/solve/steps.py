@@ -231,7 +231,7 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
     if profile is not None:
         fit, note = _profile_check(s, cp, fit, profile)
     retry = retry_branches(cp, s.plan.solo, start3, fit.poses, terrain, max_nfev=max(200, nfev_34),
-                           one_face=s.plan.one_face)
+                           one_face=sorted(set(s.plan.one_face) | set(s.plan.coplanar)))
     s.nfev += retry.nfev
     nfev += retry.nfev
     if retry.fit is not None:
