@@ -16,7 +16,7 @@ from PIL import Image
 
 from ..core.geometry import rotation_angle_deg
 from ..core.layout import CAMERAS_FILE, CONTROL_POINTS_FILE
-from ..errors import InputError, StageError
+from ..errors import InputError
 from ..project import Project
 from .camera_adjustment import adjust_cameras
 from ..files.control_points import ControlPoint
@@ -359,10 +359,8 @@ def _placed_doc(project: Project, rec_path: Path, rdoc: dict, src: str, p: _Plac
 
 def multiview_route(project: Project, opts: GeorefOptions, where: str) -> tuple[dict, dict]:
     """(cameras.json document, stage statistics) of the multi-view route (module docstring)."""
-    rec_path = project.reconstruction_path
-    if not rec_path.is_file():
-        raise StageError(f"{rec_path}: not found; the multiview route needs the sfm stage's reconstruction: run "
-                         f"`workbench run {project.root} --only sfm` first (or write a {CAMERAS_FILE} by hand)")
+    rec_path = project.require_output(project.reconstruction_path, "sfm", "multiview route",
+                                      f" (or write a {CAMERAS_FILE} by hand)")
     rec = read_reconstruction(rec_path)
     models, rdoc = [(label, list(vs)) for label, vs in rec.models], rec.doc
     cp_path = project.control_points_path
