@@ -83,6 +83,11 @@ def _run_one(index: int, phase: int = 2, token=None):
         elif job.get("note") is not None:
             job["note"](index, step, message)
 
+    left = job.get("left")
+    if left is not None:  # a worker: a second thread only while no other photo is left for the other workers
+        from .threads import use_threads_when
+
+        use_threads_when(lambda: left.value < job["workers"])
     item = job["items"][index]
     if job.get("first") is None:
         return job["fn"](item, note)
@@ -137,8 +142,9 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
 
     ctx = mp.get_context("fork")
     q = ctx.SimpleQueue()
+    left = ctx.Value("i", len(items), lock=False)  # the items not finished (the workers read it)
     _JOB.clear()
-    _JOB.update(fn=fn, items=items, queue=q, first=first)
+    _JOB.update(fn=fn, items=items, queue=q, first=first, left=left, workers=n)
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # in the workers (set here: in a forked child it hangs)
     ex = ProcessPoolExecutor(max_workers=n, mp_context=ctx)
@@ -165,6 +171,7 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
                         on_first(i, f.result())
                     continue
                 results[i] = f.result()  # re-raises a worker's exception here
+                left.value = len(items) - len(results)
                 if on_result is not None:
                     on_result(i, results[i])
         while not q.empty():
