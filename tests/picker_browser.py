@@ -30,18 +30,27 @@ def _screen(page, uv):
              return [r.left + (u + 0.5) * S.scale + S.ox, r.top + (v + 0.5) * S.scale + S.oy]; }""", list(uv))
 
 
+def open_page(p, url: str, chromium: str | None, width: int, height: int):
+    """(browser, page, errors): Chromium (``chromium``, else Playwright's own) with a page of that size at ``url``;
+    ``errors`` collects the page's console errors and uncaught exceptions (a script error or a resource the page's
+    CSP refused shows there)."""
+    browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox"]) if chromium \
+        else p.chromium.launch(args=["--no-sandbox"])
+    page = browser.new_page(viewport={"width": width, "height": height})
+    errors: list[str] = []
+    page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
+    page.on("pageerror", lambda e: errors.append(str(e)))
+    page.goto(url)
+    return browser, page, errors
+
+
 def drive(url: str, plan: dict, screenshot: str, chromium: str | None = None) -> dict:
     from playwright.sync_api import sync_playwright
 
     log = {}
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox"]) if chromium \
-            else p.chromium.launch(args=["--no-sandbox"])
-        page = browser.new_page(viewport={"width": 1400, "height": 800})
-        errors = log["console_errors"] = []  # a script error or a refused resource (the page's CSP) shows here
-        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(url)
+        browser, page, errors = open_page(p, url, chromium, 1400, 800)
+        log["console_errors"] = errors
         # selectors, not wait_for_function: the page's CSP forbids the eval that a JS string would need
         page.wait_for_selector("#status:has-text('automatic')", timeout=30000)
         log["loaded"] = page.inner_text("#status")
@@ -106,13 +115,8 @@ def look(url: str, plan: dict, screenshot: str, chromium: str | None = None) -> 
 
     log = {}
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox"]) if chromium \
-            else p.chromium.launch(args=["--no-sandbox"])
-        page = browser.new_page(viewport={"width": plan.get("width", 1400), "height": plan.get("height", 800)})
-        errors = log["console_errors"] = []
-        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(url)
+        browser, page, errors = open_page(p, url, chromium, plan.get("width", 1400), plan.get("height", 800))
+        log["console_errors"] = errors
         page.wait_for_selector("#status:has-text('automatic')", timeout=30000)
         page.select_option("#photo-select", plan["view"])
         page.wait_for_timeout(500)

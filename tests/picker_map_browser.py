@@ -17,6 +17,8 @@ import argparse
 import json
 import sys
 
+from picker_browser import open_page  # the sibling driver (tests/ is on the path when either runs)
+
 
 def _photo_screen(page, uv):
     """Page coordinates of photo pixel ``uv`` (inverse of picker.js toImage)."""
@@ -57,13 +59,8 @@ def drive(url: str, plan: dict, screenshot: str, chromium: str | None = None) ->
 
     log: dict = {"steps": []}
     with sync_playwright() as p:
-        browser = p.chromium.launch(executable_path=chromium, args=["--no-sandbox"]) if chromium \
-            else p.chromium.launch(args=["--no-sandbox"])
-        page = browser.new_page(viewport={"width": plan.get("width", 1500), "height": plan.get("height", 850)})
-        errors = log["console_errors"] = []
-        page.on("console", lambda m: errors.append(m.text) if m.type == "error" else None)
-        page.on("pageerror", lambda e: errors.append(str(e)))
-        page.goto(url)
+        browser, page, errors = open_page(p, url, chromium, plan.get("width", 1500), plan.get("height", 850))
+        log["console_errors"] = errors
         page.wait_for_selector("#status:has-text('automatic')", timeout=30000)
         page.select_option("#photo-select", plan["photo"])
         page.wait_for_timeout(300)
