@@ -18,8 +18,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from workbench.core.camera import project_world
+from workbench.core.geometry import skew
 from workbench.pipeline import STAGES
 from workbench.project import Project
 from workbench.runner import Runner
@@ -31,18 +33,34 @@ PHOTOS = [REPO / line.strip() for line in (SAMPLE / "photos.txt").read_text().sp
 pytestmark = pytest.mark.skipif(not all(p.is_file() for p in PHOTOS), reason="../shared/data (the real photo) absent")
 
 
-@pytest.fixture(scope="module")
-def solved(tmp_path_factory) -> Project:
-    root = tmp_path_factory.mktemp("real") / "keikyu-n1000-photo"
+def _solve_copy(root: Path, unlinked: bool) -> Project:
     root.mkdir()
-    for name in ("project.toml", "correspondences.json"):
-        shutil.copy(SAMPLE / name, root / name)
+    shutil.copy(SAMPLE / "correspondences.json", root / "correspondences.json")
+    toml = (SAMPLE / "project.toml").read_text()
+    if unlinked:  # the coupling declared broken, no link: each car placed by its own picks
+        assert 'coupling_to_next = "held"' in toml
+        toml = toml.replace('coupling_to_next = "held"', 'coupling_to_next = "broken"')
+    (root / "project.toml").write_text(toml)
     (root / "photos").mkdir()
     for p in PHOTOS:
         shutil.copy(p, root / "photos" / p.name)
     project = Project(root)
     Runner(project, STAGES).run(only=["inputs", "georef", "correspond", "solve"])
     return project
+
+
+@pytest.fixture(scope="module")
+def solved(tmp_path_factory) -> Project:
+    return _solve_copy(tmp_path_factory.mktemp("real") / "keikyu-n1000-photo", unlinked=False)
+
+
+def test_the_picks_six_or_more_a_car_rounded_corners_from_edges():
+    """Issue 16's protocol: 6-10 hand picks a car; the rounded or hidden corners picked from two drawn edges."""
+    obs = json.loads((SAMPLE / "correspondences.json").read_text())["observations"]
+    per_car = {c: [o for o in obs if o["carriage"] == c] for c in ("1", "2")}
+    assert all(6 <= len(v) <= 10 for v in per_car.values()), {c: len(v) for c, v in per_car.items()}
+    edges = [o for o in obs if (o.get("construction") or {}).get("method") == "edges"]
+    assert len(edges) >= 8  # car 2's six and car 1's far corners and rear corners
 
 
 def test_real_photo_fit_and_physical_facts(solved):
@@ -55,23 +73,46 @@ def test_real_photo_fit_and_physical_facts(solved):
     hfov = math.degrees(2 * math.atan(0.5 * 800 / f))
     print(f"\nreal photo: focal {f:.0f} px (hfov {hfov:.2f} deg, sigma {doc['sigma_focal_px'][view]:.0f} px), "
           f"RMS {doc['residual_rms_px']['measured']:.2f} px over {doc['residual_rms_px']['n_measured']} picks")
-    assert 2.0 < hfov < 10.0  # a telephoto shot: the cars barely shrink along the train
-    # the fit is at the level of the picks (rounded corners, 800 px) and the models (some dimensions estimated):
-    # measured 2.6 px (3.8 px with the eave and window line from memory); a wrong pose or focal would be tens of
-    # pixels off
-    assert 1.0 < doc["residual_rms_px"]["measured"] < 5.0
+    assert 5.0 < hfov < 10.0  # a telephoto shot: the cars barely shrink along the train (measured 7.4 deg)
+    # measured 2.16 px over 13 picks (2026-11-26; 2.56 px over the 11 picks before): the issue's 1.5 px is not met,
+    # the misfit is the models' (car 1's coupler overhang, car 2's middle door assumed at its centre: README.md);
+    # a wrong pose or focal would be tens of pixels off, and a pick on the wrong feature several pixels
+    assert 1.5 < doc["residual_rms_px"]["measured"] < 2.8
     c1, c2 = sol.carriages
     assert c1.record["coupler_gap_to_next_m"] < 0.05 + 1e-6  # the held coupling's slack
     h1, h2 = c1.record["heading_deg"], c2.record["heading_deg"]
-    assert abs((h1 - h2 + 180) % 360 - 180) < 3.0  # one straight track
+    assert abs((h1 - h2 + 180) % 360 - 180) < 1.5  # one straight track (measured 0.5 deg)
     for c in (c1, c2):
         assert abs(c.record["pitch_deg"]) < 2.0 and abs(c.record["roll_deg"]) < 2.0  # standing on their wheels
     # 75 m from the camera (18 m cars, a 7 deg field of view; the distance follows the focal, which the picks fix
-    # to +-5 %, and the models' heights: 113 m with the eave from memory), the cars one behind the other
+    # to +-4 %, and the models' heights: 113 m with the eave from memory), the cars one behind the other
     d1 = np.linalg.norm(c1.record["body_centre_enu"])
     assert 50.0 < d1 < 150.0
     assert np.linalg.norm(np.subtract(c2.record["body_centre_enu"], c1.record["body_centre_enu"])) == \
         pytest.approx(18.0, abs=0.5)
+
+
+def test_unlinked_the_cars_come_out_coupled_and_in_line(tmp_path):
+    """The same picks with the coupling declared broken and no link (issue 16's check; as
+    scripts/bench_real_photo.py): car 2 relative to car 1 within 1.5 deg in roll, pitch and yaw, and zero inside
+    the relative rotation's 95 % region; the coupler gap (measured 1.56 m, along the line of sight, where the
+    focal leaves metres of doubt) with zero inside its 95 % region."""
+    sol = _solve_copy(tmp_path / "unlinked", unlinked=True).solution("test")
+    a, b = sol.posed
+    types = Project(tmp_path / "unlinked").carriage_types()
+    Ma, Mb = a.world_from_carriage, b.world_from_carriage
+    Ca, Cb = np.asarray(a.record["covariance_pose"], float), np.asarray(b.record["covariance_pose"], float)
+    pa, pb = Ma[:3, :3] @ types[a.number].coupler_rear, Mb[:3, :3] @ types[b.number].coupler_front
+    gap = (pa + Ma[:3, 3]) - (pb + Mb[:3, 3])
+    Ja, Jb = np.hstack([-skew(pa), np.eye(3)]), np.hstack([-skew(pb), np.eye(3)])
+    Cg = Ja @ Ca @ Ja.T + Jb @ Cb @ Jb.T
+    rel = Rotation.from_matrix(Ma[:3, :3].T @ Mb[:3, :3]).as_rotvec()
+    Cr = Ma[:3, :3].T @ (Ca[:3, :3] + Cb[:3, :3]) @ Ma[:3, :3]
+    print(f"\nunlinked: gap {np.linalg.norm(gap):.2f} m, roll/pitch/yaw {np.degrees(rel).round(2)} deg")
+    assert np.all(np.abs(np.degrees(rel)) < 1.5)
+    assert rel @ np.linalg.solve(Cr, rel) < 7.8147  # chi-square, 3 dof, 95 %
+    assert 0.3 < np.linalg.norm(gap) < 3.0  # the target 0.5 m is not met (README.md)
+    assert gap @ np.linalg.solve(Cg, gap) < 7.8147
 
 
 def test_what_renders_draw_puts_every_point_on_its_pick(solved):
