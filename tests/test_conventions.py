@@ -185,3 +185,24 @@ def test_quaternion_from_matrix_matches_scipy(angle):
         assert np.abs(Rotation.from_quat(q).as_matrix() - R).max() < 1e-12
     with pytest.raises(ValueError, match="expected"):
         quaternion_xyzw_from_matrix(np.eye(4))
+
+
+def test_rotation_between_is_the_smallest_rotation():
+    """``rotation_between(a, b)`` is a rotation that takes ``a``'s direction to ``b``'s, about their common normal
+    (the smallest: its angle is the angle between them), at every angle including opposite directions."""
+    from workbench.core.geometry import log_so3, rotation_between
+
+    rng = np.random.default_rng(3)
+    cases = [(rng.normal(size=3), rng.normal(size=3)) for _ in range(200)]
+    cases += [(np.array([0.0, 0.0, 2.0]), np.array([0.0, 0.0, -1.0])), (np.array([1.0, 0, 0]), np.array([3.0, 0, 0])),
+              (np.array([0.3, -0.2, 0.9]), -np.array([0.3, -0.2, 0.9]) + 1e-9)]
+    for a, b in cases:
+        R = rotation_between(a, b)
+        ua, ub = a / np.linalg.norm(a), b / np.linalg.norm(b)
+        assert is_rotation(R)
+        assert np.abs(R @ ua - ub).max() < 1e-7
+        angle = np.arccos(np.clip(ua @ ub, -1.0, 1.0))
+        w = log_so3(R)
+        assert abs(np.linalg.norm(w) - angle) < 1e-6
+        if 1e-6 < angle < np.pi - 1e-6:  # the axis: the common normal
+            assert abs(w @ ua) < 1e-9 and abs(w @ ub) < 1e-9

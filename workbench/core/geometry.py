@@ -117,6 +117,19 @@ def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
     return float(np.rad2deg(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """(3, 3) the smallest rotation taking the direction ``a`` (3,) to the direction ``b`` (3,) (any lengths)."""
+    a = np.asarray(a, float) / np.linalg.norm(a)
+    b = np.asarray(b, float) / np.linalg.norm(b)
+    v, c = np.cross(a, b), float(np.dot(a, b))
+    if c < -1.0 + 1e-12:  # opposite: half a turn about any axis normal to a
+        n = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+        n /= np.linalg.norm(n)
+        return 2.0 * np.outer(n, n) - np.eye(3)
+    K = skew(v)
+    return np.eye(3) + K + K @ K / (1.0 + c)
+
+
 def orthonormal(R: np.ndarray) -> np.ndarray:
     """The rotation nearest to ``R`` (3, 3) (SVD, determinant +1): removes the drift of composed small rotations
     and the rounding of an estimate stored in single precision."""

@@ -9,7 +9,6 @@ from typing import Any
 
 import numpy as np
 
-from ..core.layout import CAMERAS_FILE
 from ..project import Project
 from ..files.cameras import read_cameras
 from .inputs import control_points_of_photos, photos_by_name, unknown_photo_error
@@ -22,7 +21,7 @@ __all__ = ["known_route"]
 
 def known_route(project: Project, opts: GeorefOptions) -> tuple[dict, dict]:
     """(cameras.json document, stage statistics) of the known route."""
-    path = project.root / CAMERAS_FILE
+    path = project.own_cameras_path
     cameras = read_cameras(path)
     views = cameras.views
     photos = photos_by_name(project)

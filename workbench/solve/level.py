@@ -21,9 +21,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..core.geometry import skew
+from ..core.geometry import rotation_between, skew
 
-__all__ = ["Levelling", "UprightCar", "level_from_carriages", "rotation_between"]
+__all__ = ["Levelling", "UprightCar", "level_from_carriages"]
 
 UPRIGHT_TOL_DEG = 10.0    # cars whose z axes agree within this are taken to stand on the same track
 # a photo is held within this of level: an "up" farther from the camera's is a car on its side
@@ -67,19 +67,6 @@ class Levelling:
         return {"method": self.method, "cars_used": self.used, "cars_left_out": self.left_out,
                 "sigma_tilt_deg": self.sigma_tilt_deg, "cov_rotation_rad2": self.cov_rotation.tolist(),
                 "world_from_provisional": self.world_from_provisional.tolist(), "note": self.note, **self.facts}
-
-
-def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """(3, 3) the smallest rotation taking unit vector ``a`` to unit vector ``b``."""
-    a = np.asarray(a, float) / np.linalg.norm(a)
-    b = np.asarray(b, float) / np.linalg.norm(b)
-    v, c = np.cross(a, b), float(np.dot(a, b))
-    if c < -1.0 + 1e-12:  # opposite: half a turn about any axis normal to a
-        n = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
-        n /= np.linalg.norm(n)
-        return 2.0 * np.outer(n, n) - np.eye(3)
-    K = skew(v)
-    return np.eye(3) + K + K @ K / (1.0 + c)
 
 
 def _tangent_basis(u: np.ndarray) -> np.ndarray:

@@ -25,9 +25,8 @@ from typing import Sequence
 import numpy as np
 
 from ..core.camera import CameraIntrinsics, look_at, project_world
-from ..core.geometry import rot_z
+from ..core.geometry import rot_z, rotation_between
 from ..rolling_stock import get_type
-from .level import rotation_between
 from .model import CarriageInput, ChainLink, View
 
 TYPE_CYCLE = ("shoreliner", "p32ac-dm", "amfleet-i", "acs-64")
