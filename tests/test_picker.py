@@ -863,6 +863,12 @@ def test_overlay_and_edges_in_a_browser(synth, tmp_path):
     assert log["live"]["pose"] and log["live"]["flagged"] == []
     pick = log["edge_pick"]
     assert pick["construction"]["method"] == "edges" and pick["point"] == "rear_door_bottom_rear_left"
+    # the status says the edges' angle and, below 19.5 deg, how far a pixel's error moves the corner (here the car's
+    # side seen at a grazing angle: 18 deg, 3.2 px)
+    d1, d2 = (np.subtract(*pick["construction"]["segments"][i][::-1]) for i in (0, 1))
+    angle = np.degrees(np.arcsin(abs(np.cross(d1, d2)) / np.linalg.norm(d1) / np.linalg.norm(d2)))
+    assert f"from two edges {angle:.0f} deg apart" in log["edges"], (angle, log["edges"])
+    assert (f"moves it {1 / np.sin(np.radians(angle)):.1f} px" in log["edges"]) == (angle < 19.47), log["edges"]
     assert np.hypot(*(np.asarray(pick["uv"]) - true_uv)) < 0.3, (pick["uv"], true_uv)
     img = np.asarray(Image.open(shot).convert("RGB")).astype(int)
     photo = img[80:, : img.shape[1] * 3 // 5]

@@ -162,7 +162,8 @@ function pick(uv, construction) {
   S.manual = S.manual.filter((m) => key(m) !== key(o)); S.manual.push(o);
   S.rejected = S.rejected.filter((m) => key(m) !== key(o));  // picked now: no longer rejected
   listPoints(); draw(); changed();
-  status(`${o.carriage} ${o.point} at (${o.uv[0]}, ${o.uv[1]}) in ${o.view}${construction ? " (from two edges)" : ""} — unsaved`);
+  status(`${o.carriage} ${o.point} at (${o.uv[0]}, ${o.uv[1]}) in ${o.view}${construction ? edgeNote(construction) : ""} — unsaved`,
+         construction && edgeGain(construction) > EDGE_GAIN_WARN);
 }
 function undo() {
   if (!S.undo.length) { status("nothing to undo"); return; }
@@ -391,6 +392,14 @@ function intersect(a, b) {  // as workbench/files/correspondences.py lines_inter
   const angle = Math.asin(Math.min(1, Math.abs(cross) / (n1 * n2))) * 180 / Math.PI;
   const k = ((b[0][0] - a[0][0]) * d2[1] - (b[0][1] - a[0][1]) * d2[0]) / cross;
   return [[a[0][0] + k * d1[0], a[0][1] + k * d1[1]], angle];
+}
+// How far the crossing moves for a pixel's error across either edge: 1 / sin(angle between them). Two edges at a
+// shallow angle (the two bottom edges at a near corner seen at a grazing angle) put the corner far off: say so.
+const EDGE_GAIN_WARN = 3;  // 19.5 degrees
+function edgeGain(c) { const a = intersect(c.segments[0], c.segments[1])[1]; return 1 / Math.sin(a * Math.PI / 180); }
+function edgeNote(c) {
+  const a = intersect(c.segments[0], c.segments[1])[1], g = edgeGain(c);
+  return ` (from two edges ${a.toFixed(0)} deg apart${g > EDGE_GAIN_WARN ? `: a pixel off across an edge moves it ${g.toFixed(1)} px; edges closer to square are safer` : ""})`;
 }
 function endSegment() {
   const r2 = (p) => [+p[0].toFixed(2), +p[1].toFixed(2)];
