@@ -453,7 +453,8 @@ def test_stage_writes_panorama_and_exact_model(sample_small, tmp_path):
 
 
 def test_cli_runs_the_stitch_stage(sample_small, tmp_path):
-    """`workbench run PATH --only inputs --only stitch` on a copy of the sample (reduced photos, scaled profile)."""
+    """`workbench run PATH --only inputs --only stitch` on a copy of the sample (reduced photos, scaled profile): the
+    photos described while the inputs stage runs."""
     import subprocess
     import sys
 
@@ -464,14 +465,73 @@ def test_cli_runs_the_stitch_stage(sample_small, tmp_path):
     shutil.copy(sample_small["root"] / "project.toml", root / "project.toml")
     shutil.copy(sample_small["root"] / "camera_profile.json", root / "camera_profile.json")
     exe = Path(sys.executable).parent / "workbench"
-    r = subprocess.run([str(exe), "run", str(root), "--only", "inputs", "--only", "stitch"], capture_output=True,
-                       text=True, timeout=300)
+    r = subprocess.run([str(exe), "-v", "run", str(root), "--only", "inputs", "--only", "stitch"],
+                       capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
+    assert "photos described ahead of the stage" in r.stderr  # the runner's prefetch, during the inputs stage
     state = json.loads((root / "out" / "state.json").read_text())
     assert state["stitch"]["status"] == "done"
     assert set(state["stitch"]["outputs"]) >= {"panorama_image", "panorama_model", "stats"}
     model = PanoramaModel.from_dict(json.loads((root / "out" / "stitch" / "panorama.json").read_text()))
     assert len(model.sources) == len(sample_small["paths"])
+
+
+def test_minpack_called_as_scipy_calls_it():
+    """bundle.least_squares calls MINPACK's lmder (the extension loaded without the package scipy.optimize) as
+    scipy.optimize.least_squares(method="lm") does: the same steps, the same result to the bit."""
+    from scipy.optimize import least_squares as scipy_lsq
+
+    from workbench.stitch import bundle
+
+    assert bundle._minpack() is not None
+    t = np.linspace(0.0, 3.0, 40)
+    y = 2.5 * np.exp(-1.3 * t) + 0.4 * np.sin(3.0 * t) + np.random.default_rng(1).normal(0, 0.01, len(t))
+
+    def fun(x, scale):
+        return scale * (x[0] * np.exp(-x[1] * t) + x[2] * np.sin(x[3] * t) - y)
+
+    def jac(x, scale):
+        return scale * np.column_stack([np.exp(-x[1] * t), -x[0] * t * np.exp(-x[1] * t), np.sin(x[3] * t),
+                                        x[2] * t * np.cos(x[3] * t)])
+
+    x0 = np.array([1.0, 1.0, 0.1, 2.8])
+    for tol, nfev in ((1e-10, 200), (1e-4, 200), (1e-10, 3)):
+        ours = bundle.least_squares(fun, x0, jac, (2.0,), xtol=tol, ftol=tol, max_nfev=nfev)
+        ref = scipy_lsq(fun, x0, jac=jac, args=(2.0,), method="lm", xtol=tol, ftol=tol, max_nfev=nfev)
+        assert np.array_equal(ours.x, ref.x) and ours.cost == ref.cost and ours.nfev == ref.nfev
+
+
+@needs_data
+def test_prefetched_photos_give_the_same_panorama(sample_small, tmp_path, caplog):
+    """The photos described ahead of the stage (stage.prefetch, while the inputs stage runs) give the panorama of
+    the stage's own description, and are dropped when a photo changed since."""
+    import logging
+    import os
+
+    from workbench.project import Project
+    from workbench.stitch import stage
+
+    root = tmp_path / "inc"
+    (root / "photos" / "panorama").mkdir(parents=True)
+    for p in sample_small["paths"]:
+        shutil.copy(p, root / "photos" / "panorama" / p.name)
+    shutil.copy(sample_small["root"] / "project.toml", root / "project.toml")
+    shutil.copy(sample_small["root"] / "camera_profile.json", root / "camera_profile.json")
+    project = Project(root)
+    plain = stage.stitch_project(project)
+    caplog.set_level(logging.INFO, logger="workbench.stitch.stage")
+    runs = []
+    for touch in (False, True):
+        stage.prefetch(project)
+        if touch:  # a photo rewritten after it was described: described again by the stage
+            p = project.photo_paths()[0]
+            os.utime(p, ns=(p.stat().st_atime_ns, p.stat().st_mtime_ns + 1_000_000))
+        runs.append(stage.stitch_project(project))
+        assert not stage._PREFETCH
+    assert "described ahead of the stage" in caplog.text and "changed since" in caplog.text
+    for r in runs:
+        assert r.model.to_dict() == plain.model.to_dict()
+        assert np.array_equal(r.image, plain.image)
 
 
 # ----------------------------------------------------------------------------------------------------------

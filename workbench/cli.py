@@ -162,9 +162,25 @@ def _execute(path: Path, **kw) -> None:
                 console.print(f"{spec.name}: done in {rec['duration_s']:.1f} s")
 
         steps = kw.pop("steps", None) or [kw]
+        # the early work of the stages that will run (the panorama's features while inputs and terrain run)
+        runner.prefetch(_stages_of(runner, steps), force=any(st.get("force") for st in steps))
         for step in steps:
             statuses = runner.run(progress_factory=factory, on_event=event, **step)
     _print_outputs(project, statuses)
+
+
+def _stages_of(runner, steps: list[dict]) -> list[str] | None:
+    """The stages that the runner's ``steps`` (``run`` arguments) may run; None: every stage."""
+    names: list[str] = []
+    order = [s.name for s in runner.stages]
+    for st in steps:
+        if st.get("only"):
+            names += st["only"]
+        elif st.get("until"):
+            names += order[:order.index(st["until"]) + 1]
+        else:
+            return None
+    return names
 
 
 @app.command()

@@ -340,7 +340,7 @@ STAGES: list[StageSpec] = [
               applies=lambda project: project.settings.terrain.dem is not None),
     StageSpec("stitch", "stitch the panorama photos into one panorama with its exact camera model",
               "workbench.stitch.stage:run_stitch", inputs=_stitch_inputs, settings_sections=("camera",),
-              depends_on=("inputs",), applies=_stitch_applies),
+              depends_on=("inputs",), applies=_stitch_applies, prefetch="workbench.stitch.stage:prefetch"),
     StageSpec("sfm", "multi-view structure from motion (pycolmap): intrinsics and every camera's pose",
               "workbench.intrinsics.stage:run_sfm_stage", inputs=_sfm_inputs, settings_sections=("camera", "sfm"),
               depends_on=("inputs",), applies=lambda project: project.settings.camera.source.value == "sfm"),

@@ -49,6 +49,9 @@ class StageSpec:
     settings_sections: tuple[str, ...] = ()
     depends_on: tuple[str, ...] = ()
     applies: Callable[[Project], bool] = lambda project: True  # False: the stage has nothing to do here
+    # "module:function" ``(project) -> None`` that starts, on threads, work the stage will take when it runs (its
+    # photos' features while the stages before it run); what it leaves unused is dropped
+    prefetch: str | None = None
 
 
     def function(self) -> Callable[[Project, Progress], StageResult]:
@@ -156,6 +159,22 @@ class Runner:
         return StageStatus(spec.name, "done", "", rec)
 
     # -- running -------------------------------------------------------------------------------------------
+    def prefetch(self, names: list[str] | None = None, force: bool = False) -> None:
+        """Start the early work (``StageSpec.prefetch``) of the stages among ``names`` (default all) that will run
+        (not done, or ``force``). Nothing depends on it: a stage uses what is ready and still valid."""
+        state = self.project.read_state()
+        for spec in self.stages:
+            if not spec.prefetch or (names is not None and spec.name not in names):
+                continue
+            try:
+                if self._status_of(spec, state).status == "skipped" or (
+                        not force and self._status_of(spec, state).status == "done"):
+                    continue
+                module, _, attr = spec.prefetch.partition(":")
+                getattr(importlib.import_module(module), attr)(self.project)
+            except WorkbenchError as exc:  # the stage reports it when it runs
+                log.debug("stage %s: no prefetch (%s)", spec.name, exc)
+
     def run(self, *, only: list[str] | None = None, until: str | None = None, force: bool = False,
             progress_factory: Callable[[StageSpec], Progress] | None = None,
             on_event: Callable[[str, StageSpec, dict], None] | None = None) -> list[StageStatus]:

@@ -143,7 +143,7 @@ class LMResult:
     x: np.ndarray
     cost: float
     nfev: int
-    status: int
+    info: int  # MINPACK's termination code (SciPy's own path: its status)
     message: str = ""
 
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 import logging
 import os
 import time
-from concurrent.futures import ThreadPoolExecutor, as_completed
+from concurrent.futures import Future, ThreadPoolExecutor, as_completed
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -22,7 +22,8 @@ from .options import ProgressFn, StitchOptions
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Registration", "connected_set", "decode_reduced", "read_and_match", "read_reduced", "resize_to"]
+__all__ = ["Registration", "connected_set", "decode_reduced", "describe_photo", "read_and_match", "read_reduced",
+           "resize_to"]
 
 
 def decode_reduced(path: Path, scale: float, *, flags: int = cv2.IMREAD_COLOR) -> tuple[np.ndarray, tuple[int, int]]:
@@ -87,9 +88,10 @@ class Registration:
     pairs: list[reg.PairMatch]
 
 
-def _read_and_detect(p: Path, name: str, k: int, opts: StitchOptions, calib: CameraIntrinsics | None) -> tuple:
-    """features, seam-size photo, full size, smoothed grey, FLANN index, linearised keypoints, full photo (or
-    None) of photo ``k``; ``calib``: its calibrated intrinsics (route ``calibrated``)."""
+def describe_photo(p: Path, name: str, k: int, opts: StitchOptions) -> tuple:
+    """What photo ``k`` gives the registration whatever its lens: features, seam-size photo, full size, smoothed
+    grey, FLANN index, full photo (or None). Depends only on the photo and ``opts`` (started early by
+    :func:`workbench.stitch.stage.prefetch`)."""
     try:
         with Image.open(p) as im:
             w, h = im.size
@@ -130,14 +132,21 @@ def _read_and_detect(p: Path, name: str, k: int, opts: StitchOptions, calib: Cam
     # same whichever thread builds it, so the same photos give the same panorama
     cv2.setRNGSeed(opts.seed + 7 * k + 1)
     index = reg.build_index(f, opts.flann_trees)
-    lin_k = f.keypoints  # linearised keypoints for matching: undistorted pixels when the lens is known
-    if calib is not None:
-        if (calib.width, calib.height) != (w, h):
-            raise InputError(f"{p}: {w}x{h} px, but the camera profile is for {calib.width}x{calib.height}; use "
-                             f"photos at the profile's size or recalibrate")
-        if calib.has_distortion and len(f.keypoints):
-            lin_k = calib.pixels_from_normalized(calib.undistort(calib.normalized_from_pixels(f.keypoints)))
-    return f, sm, (w, h), smooth, index, lin_k, full
+    return f, sm, (w, h), smooth, index, full
+
+
+def _linearised(p: Path, f: reg.PhotoFeatures, size: tuple[int, int], calib: CameraIntrinsics | None) -> np.ndarray:
+    """The keypoints to match with: undistorted pixels when the lens is known (``calib``: the photo's calibrated
+    intrinsics, route ``calibrated``), else as detected."""
+    w, h = size
+    if calib is None:
+        return f.keypoints
+    if (calib.width, calib.height) != (w, h):
+        raise InputError(f"{p}: {w}x{h} px, but the camera profile is for {calib.width}x{calib.height}; use "
+                         f"photos at the profile's size or recalibrate")
+    if calib.has_distortion and len(f.keypoints):
+        return calib.pixels_from_normalized(calib.undistort(calib.normalized_from_pixels(f.keypoints)))
+    return f.keypoints
 
 
 def _match(pair: tuple[int, int], found: Registration, opts: StitchOptions) -> reg.PairMatch:
@@ -167,22 +176,26 @@ def _match(pair: tuple[int, int], found: Registration, opts: StitchOptions) -> r
 
 
 def read_and_match(photos: list[Path], names: list[str], opts: StitchOptions, calibrated: dict[str, CameraIntrinsics],
-                   progress: ProgressFn, timings: dict[str, float]) -> Registration:
+                   progress: ProgressFn, timings: dict[str, float],
+                   described: dict[int, Future] | None = None) -> Registration:
     """Every photo read and described, every pair matched (pipelined in threads: a pair as soon as both its photos
-    are described; the result does not depend on the order). ``timings`` gets ``features_s`` and ``matching_s``."""
+    are described; the result does not depend on the order). ``timings`` gets ``features_s`` and ``matching_s``.
+    ``described``: photo index -> a future of its :func:`describe_photo` started earlier (with ``opts``)."""
     n = len(photos)
     found = Registration([None] * n, [None] * n, [None] * n, [None] * n, [None] * n, [None] * n, {}, [])
     t0 = time.perf_counter()
     n_pairs = n * (n - 1) // 2
     with ThreadPoolExecutor(max_workers=_workers()) as pool:
-        futs = {pool.submit(_read_and_detect, photos[k], names[k], k, opts, calibrated.get(names[k])): k
+        described = described or {}
+        futs = {described[k] if k in described else pool.submit(describe_photo, photos[k], names[k], k, opts): k
                 for k in range(n)}
         match_futs = []
         ready: list[int] = []
         for fu in as_completed(futs):
             k = futs[fu]
-            (found.feats[k], found.small[k], found.sizes[k], found.grays[k], found.indexes[k], found.lin[k],
+            (found.feats[k], found.small[k], found.sizes[k], found.grays[k], found.indexes[k],
              full) = fu.result()
+            found.lin[k] = _linearised(photos[k], found.feats[k], found.sizes[k], calibrated.get(names[k]))
             if full is not None:
                 found.fulls[k] = full
             progress(0.02 + 0.18 * (len(ready) + 1) / n, f"features {photos[k].name}")

@@ -16,6 +16,8 @@ with an :class:`InputError` that recommends ``camera.source = "sfm"``.
 from __future__ import annotations
 
 import logging
+import threading
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import cv2
@@ -26,6 +28,7 @@ from ..files.exif import read_focal_px
 from ..files.intrinsics import photo_size
 from ..core.stage_api import Progress, StageResult
 from .options import StitchOptions, StitchResult
+from .photo_matching import describe_photo
 from .stitcher import stitch_photos
 
 log = logging.getLogger(__name__)
@@ -33,11 +36,48 @@ log = logging.getLogger(__name__)
 JPEG_QUALITY = 92
 
 
+_PREFETCH: dict = {}  # the photos described ahead of the stage (prefetch): their stamps, options and futures
+_PREFETCH_LOCK = threading.Lock()
+
+
+def _stamps(photos: list[Path]) -> tuple:
+    return tuple((str(p.resolve()), p.stat().st_size, p.stat().st_mtime_ns) for p in photos)
+
+
+def prefetch(project: Project, options: StitchOptions = StitchOptions()) -> None:
+    """Start describing the panorama photos (read, SIFT, FLANN index: ``photo_matching.describe_photo``) on two
+    threads while the command does what comes before the stage (starting, the inputs and terrain stages): OpenCV
+    releases the interpreter, so the second core works. The stage takes the results when its photos are
+    unchanged since (paths, sizes, modification times) and its options the same; else they are dropped."""
+    photos = project.photo_paths()
+    stamps = _stamps(photos)  # before reading: a photo changed meanwhile is described again by the stage
+    pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="stitch prefetch")
+    futures = {k: pool.submit(describe_photo, p, p.name, k, options) for k, p in enumerate(photos)}
+    pool.shutdown(wait=False)
+    with _PREFETCH_LOCK:
+        _PREFETCH.update(stamps=stamps, options=options, futures=futures)
+
+
+def _take_prefetch(photos: list[Path], options: StitchOptions) -> dict | None:
+    """The prefetched descriptions of ``photos`` (index -> future), if they are of these photos as they are now."""
+    with _PREFETCH_LOCK:
+        pre = dict(_PREFETCH)
+        _PREFETCH.clear()
+    if not pre:
+        return None
+    if pre["options"] != options or pre["stamps"] != _stamps(photos):
+        log.info("stitch: the photos changed since they were described ahead of the stage; described again")
+        return None
+    log.info("stitch: %d photos described ahead of the stage", len(pre["futures"]))
+    return pre["futures"]
+
+
 def stitch_project(project: Project, progress: Progress = lambda f, m="": None,
                    options: StitchOptions = StitchOptions()) -> StitchResult:
     """Stitch the project's photo set along its intrinsics route (no files written)."""
     cam = project.settings.camera
     photos = project.photo_paths()
+    described = _take_prefetch(photos, options)
     names = [p.name for p in photos]
     calibrated = None
     priors = None
@@ -56,7 +96,7 @@ def stitch_project(project: Project, progress: Progress = lambda f, m="": None,
         if missing:
             log.warning("stitch: no EXIF focal length in %s; the focal is estimated from the photos", missing)
     return stitch_photos(photos, names=names, options=options, calibrated=calibrated, focal_priors_px=priors,
-                         image_refs=[project.relative(p) for p in photos], progress=progress)
+                         image_refs=[project.relative(p) for p in photos], progress=progress, described=described)
 
 
 def panorama_json(result: StitchResult) -> dict:
