@@ -178,6 +178,9 @@ class Georef(_Strict):
     # picked by hand on a phone photo 2-3 px; with each point's sigma_m it weights the picks, sets the camera's
     # covariance and the inlier limit (docs/gis.md)
     pick_sigma_px: Annotated[float, Field(gt=0.0, le=50.0)] = 1.0
+    # 1-sigma of a track pick (a point picked on a rail or the track centre, control_points.json track_picks)
+    # across the line, px: a rail is a thin line, but a hand pick on a phone photo is 1-3 px off it (docs/gis.md)
+    track_sigma_px: Annotated[float, Field(gt=0.0, le=50.0)] = 2.0
 
 
 class ExportFormat(str, Enum):
@@ -318,6 +321,7 @@ finder = "auto"               # auto: find the carriages' liveries in the photos
 
 [georef]
 pick_sigma_px = 1.0           # 1-sigma of a control point's pick in a photo, px (hand picks on a phone photo: 2-3)
+track_sigma_px = 2.0          # 1-sigma of a track pick (a point picked on a rail) across the rail, px
 
 [solver]
 pixel_sigma_px = 1.0

@@ -111,6 +111,22 @@ class RailwayLine:
     def length_m(self) -> float:
         return float(self._segments[3][-1])
 
+    def rail_polyline(self, offset_m: float = 0.0, step_m: float = 0.5) -> np.ndarray:
+        """(k, 3) the line offset horizontally by ``offset_m`` (positive to the LEFT of the direction of increasing
+        chainage: a rail at half the gauge), each vertex moved along the left normal of its track direction (the
+        blended vertex tangent), heights kept; densified to at most ``step_m`` between consecutive points (linear
+        between vertices: a chord of the curve as drawn)."""
+        T = self._vertex_tangents
+        left = np.column_stack([-T[:, 1], T[:, 0]])
+        P = self.points_enu.copy()
+        P[:, :2] += float(offset_m) * left
+        out = [P[:1]]
+        for a, b in zip(P[:-1], P[1:]):
+            n = max(1, int(math.ceil(float(np.linalg.norm(b[:2] - a[:2])) / float(step_m))))
+            t = (np.arange(1, n + 1) / n)[:, None]
+            out.append(a + t * (b - a))
+        return np.vstack(out)
+
     def at(self, chainage_m: float) -> tuple[np.ndarray, float]:
         """(east/north (2,), compass bearing of the track direction) at ``chainage_m`` (clamped to the line)."""
         a, d, L, cum = self._segments

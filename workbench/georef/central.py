@@ -28,6 +28,7 @@ from .fitting import point_line_distance, rotation_kabsch
 from ..files.panorama import RigView
 from .options import GeorefOptions, HeadingPrior
 from .picks import Pick, pick_sigma, picks_in_views, summarize_residuals, warn_residuals
+from .track_picks import TrackTerm, track_fit_stats, track_inliers, track_rotation_candidates
 
 __all__ = ["CentralResult", "solve_central", "refine_resection_focal"]
 
@@ -146,10 +147,12 @@ def _central_errors(R: np.ndarray, c: np.ndarray, views: Sequence[RigView], obs:
 
 def _start_candidates(bear: np.ndarray, pts: np.ndarray, X: np.ndarray, n_pts: int, prior_centre: np.ndarray | None,
                       opts: GeorefOptions, rng: np.random.Generator, views: Sequence[RigView] = (),
-                      headings: Sequence[HeadingPrior] = (), n_pairs: int = 100) -> list[tuple[np.ndarray, np.ndarray]]:
-    """``(rig_from_world, centre)`` starts: with a centre prior, Kabsch on all picks and on random pairs, and with
-    a heading prior too the compass starts (:func:`_compass_candidates`); with 3 or more points, P3P on random
-    triples of distinct points."""
+                      headings: Sequence[HeadingPrior] = (), n_pairs: int = 100,
+                      track: TrackTerm | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """``(rig_from_world, centre)`` starts: with a centre prior, Kabsch on all picks and on random pairs, with
+    a heading prior too the compass starts (:func:`_compass_candidates`), and with track picks the rotations that
+    fit them best there (:func:`~workbench.georef.track_picks.track_rotation_candidates`); with 3 or more points,
+    P3P on random triples of distinct points."""
     candidates: list[tuple[np.ndarray, np.ndarray]] = []
     if prior_centre is not None:
         c0 = np.asarray(prior_centre, float)
@@ -190,7 +193,8 @@ def _prior_grid(prior_centre: np.ndarray, sig_prior: np.ndarray) -> list[np.ndar
 def _multi_start(bear: np.ndarray, pts: np.ndarray, X: np.ndarray, views: Sequence[RigView], obs: list[Pick],
                  cps: Sequence[ControlPoint], prior_centre: np.ndarray, sig_prior: np.ndarray,
                  headings: Sequence[HeadingPrior], opts: GeorefOptions, rng: np.random.Generator,
-                 first: tuple[np.ndarray, np.ndarray]) -> tuple[tuple[np.ndarray, np.ndarray] | None, int]:
+                 first: tuple[np.ndarray, np.ndarray], track: TrackTerm | None = None
+                 ) -> tuple[tuple[np.ndarray, np.ndarray] | None, int]:
     """With few points the cost has several minima (with 2 map points the camera fits them above or below its
     true height, tens of metres apart): the RANSAC start ``first`` and a start at each centre of
     :func:`_prior_grid` (Kabsch on the picks, and the compass starts), each refined, the lowest cost kept.
@@ -200,14 +204,14 @@ def _multi_start(bear: np.ndarray, pts: np.ndarray, X: np.ndarray, views: Sequen
         if c is None:
             R0, c0 = first
         else:
-            cands = _start_candidates(bear, pts, X, 0, c, opts, rng, views, headings, n_pairs=0)
+            cands = _start_candidates(bear, pts, X, 0, c, opts, rng, views, headings, n_pairs=0, track=track)
             if not cands:
                 continue
             n += len(cands)
-            R0, c0 = _best_candidate(cands, views, obs, X, prior_centre, sig_prior, opts, headings)
+            R0, c0 = _best_candidate(cands, views, obs, X, prior_centre, sig_prior, opts, headings, track)
         info: dict = {}
         R1, c1, _ = _refine_central(views, obs, X, cps, R0, c0, np.ones(len(obs), bool), prior_centre, sig_prior,
-                                    opts, headings, info_out=info)
+                                    opts, headings, info_out=info, track=track)
         if info["cost"] < best_cost:
             best, best_cost = (R1, c1), info["cost"]
     return best, n
@@ -215,13 +219,19 @@ def _multi_start(bear: np.ndarray, pts: np.ndarray, X: np.ndarray, views: Sequen
 
 def _best_candidate(candidates: list[tuple[np.ndarray, np.ndarray]], views: Sequence[RigView], obs: list[Pick],
                     X: np.ndarray, prior_centre: np.ndarray | None, prior_sigma_m: np.ndarray | float | None,
-                    opts: GeorefOptions, headings: Sequence[HeadingPrior] = ()) -> tuple[np.ndarray, np.ndarray]:
-    """The candidate with the best bounded (MSAC-like) score, less a small penalty for leaving the priors."""
+                    opts: GeorefOptions, headings: Sequence[HeadingPrior] = (),
+                    track: TrackTerm | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The candidate with the best bounded (MSAC-like) score over the control-point and track picks, less a small
+    penalty for leaving the priors."""
     best, best_score = None, -np.inf
     thr = opts.ransac_threshold_px
+    coarse = track.coarse() if track is not None else None
     for R, c in candidates:
         err, _ = _central_errors(R, c, views, obs, X)
         score = float(np.sum(np.maximum(0.0, 1.0 - (np.minimum(err, thr) / thr) ** 2)))  # MSAC-like, bounded
+        if coarse is not None:
+            e_t = np.abs(np.nan_to_num(coarse.errors(R, c, views)[0], nan=np.inf))
+            score += float(np.sum(np.maximum(0.0, 1.0 - (np.minimum(e_t, thr) / thr) ** 2)))
         if prior_centre is not None:
             sig = np.broadcast_to(np.asarray(prior_sigma_m if prior_sigma_m is not None else opts.prior_sigma_m,
                                              float), (3,))
@@ -237,10 +247,17 @@ def _best_candidate(candidates: list[tuple[np.ndarray, np.ndarray]], views: Sequ
 def _refine_central(views: Sequence[RigView], obs: list[Pick], X: np.ndarray, cps: Sequence[ControlPoint],
                     R_init: np.ndarray, c_init: np.ndarray, use: np.ndarray, prior_centre: np.ndarray | None,
                     sig_prior: np.ndarray | None, opts: GeorefOptions, headings: Sequence[HeadingPrior] = (),
-                    info_out: dict | None = None):
+                    info_out: dict | None = None, track: TrackTerm | None = None, track_use: np.ndarray | None = None,
+                    max_nfev: int = 200):
     """Rotation, centre and their (6, 6) covariance (rig-frame rotation vector, centre; None when singular)
-    refined on the picks ``use`` (robust loss ``opts.loss``), with the centre prior when given (an infinite
-    sigma leaves that axis free) and the heading priors."""
+    refined on the picks ``use`` and the track picks ``track_use`` (all when None) (robust loss ``opts.loss``),
+    with the centre prior when given (an infinite sigma leaves that axis free) and the heading priors. The rows:
+    the control-point picks (2 each), the track picks (1 each), the priors. ``info_out`` gets the cost and the
+    whitened Jacobian's track rows (``J_track``)."""
+    t_use = np.ones(track.n, bool) if track is not None and track_use is None else track_use
+    t_sig = None
+    if track is not None:
+        t_sig = track.sigmas(track.errors(R_init, c_init, views)[1], views)
     sel = [o for o, u_ in zip(obs, use) if u_]
     depths = []
     for o in sel:
@@ -255,7 +272,7 @@ def _refine_central(views: Sequence[RigView], obs: list[Pick], X: np.ndarray, cp
     UV = np.array([o.uv for o in sel], float).reshape(-1, 2)
     prior = None if prior_centre is None else np.asarray(prior_centre, float)
 
-    def fun(p):
+    def fun(p, segments=None):
         R = exp_so3(p[:3]) @ R_init
         c = p[3:]
         P = (Xs - c) @ R.T
@@ -265,39 +282,70 @@ def _refine_central(views: Sequence[RigView], obs: list[Pick], X: np.ndarray, cp
             z = np.maximum(q[:, 2], 1e-6)
             res[k] = v.intrinsics.pixels_from_normalized(v.intrinsics.distort(q[:, :2] / z[:, None]))
         out = [((res - UV) / sig[:, None]).ravel()]
+        if track is not None:
+            out.append(track.whitened(R, c, views, t_use, t_sig, segments))
         if sig_prior is not None:
             out.append((c - prior) / sig_prior)
         if headings:
             out.append(_heading_errors(R, views, headings) / h_sig)
         return np.concatenate(out)
 
+    def jac(p):  # forward differences; the track picks each against the segment nearest at p
+        segments = None if track is None else track.nearest(exp_so3(p[:3]) @ R_init, p[3:], views)
+        f0 = fun(p, segments)
+        J = np.empty((len(f0), 6))
+        for i in range(6):
+            h = 1e-7 * max(1.0, abs(float(p[i])))
+            dp = p.copy()
+            dp[i] += h
+            J[:, i] = (fun(dp, segments) - f0) / h
+        return J
+
     x0 = np.concatenate([np.zeros(3), c_init])
-    sol = least_squares(fun, x0, loss=opts.loss, f_scale=opts.loss_scale, x_scale="jac", max_nfev=200)
+    sol = least_squares(fun, x0, jac=jac if track is not None else "2-point", loss=opts.loss, f_scale=opts.loss_scale,
+                        x_scale="jac", max_nfev=max_nfev)
     R = exp_so3(sol.x[:3]) @ R_init
     cov = None
+    t_rows = None
+    if track is not None:
+        idx = np.nonzero(t_use)[0]
+        pos = {int(k): j for j, k in enumerate(idx)}
+        groups = [(np.array([pos[int(k)] for k in ks if int(k) in pos], int), s) for ks, s in track.line_groups()]
+        t_rows = (len(idx), (track.sigma_px / t_sig[idx]) ** 2, groups)
     try:
         cov = _shared_point_covariance(sol.jac, [o.point for o in sel], sig, opts.sigma_px,
-                                       np.array([cps[o.point].sigma_m for o in sel], float))
+                                       np.array([cps[o.point].sigma_m for o in sel], float), t_rows)
     except np.linalg.LinAlgError:
         pass
     if info_out is not None:
         info_out["cost"] = float(sol.cost)
+        n2 = 2 * len(sel)
+        info_out["J_track"] = sol.jac[n2:n2 + (t_rows[0] if t_rows else 0)]
     return R, sol.x[3:].copy(), cov
 
 
 def _shared_point_covariance(J: np.ndarray, points: list[int], sig: np.ndarray, sigma_px: float,
-                             sigma_m: np.ndarray) -> np.ndarray:
+                             sigma_m: np.ndarray, track_rows: tuple | None = None) -> np.ndarray:
     """(6, 6) covariance of (rotation vector, centre) from the whitened Jacobian ``J`` (2 n picks + the priors'
     rows, 6) of a fit whose picks were weighted by ``sig`` (n,: the pick's noise and its point's position error
     seen at its depth, :func:`pick_sigma`): the sandwich ``H^-1 G H^-1``, in which a control point's position error
     (``sigma_m`` (n,) m, isotropic) is one error shared by all its picks (a landmark picked in three photos of a
     panorama is off by the same metres in all three), and the pick's own noise (``sigma_px``) is independent. The
-    picks' residuals depend on the point less the centre, so a point's pixel Jacobian is minus the centre's."""
+    picks' residuals depend on the point less the centre, so a point's pixel Jacobian is minus the centre's.
+    ``track_rows`` = (t, own-noise weight (t,), [(rows among the t, (3,) 1-sigma east/north/up)] per line): the t
+    track-pick rows after the picks' (each weighted by its noise and its line's error at its depth), their own
+    noise independent and each railway line's position error one shift shared by all its picks."""
     n = len(points)
-    Jp, Jq = J[:2 * n], J[2 * n:]
+    t = track_rows[0] if track_rows is not None else 0
+    Jp, Jt, Jq = J[:2 * n], J[2 * n:2 * n + t], J[2 * n + t:]
     H = J.T @ J
     w_own = np.repeat((sigma_px / sig) ** 2, 2)
     G = Jq.T @ Jq + (Jp * w_own[:, None]).T @ Jp
+    if t:
+        G += (Jt * track_rows[1][:, None]).T @ Jt
+        for rows, s in track_rows[2]:
+            A = Jt[rows].T @ (-Jt[rows, 3:6] * s[None, :])
+            G += A @ A.T
     pts = np.asarray(points)
     for p in np.unique(pts):
         rows = np.stack([2 * np.nonzero(pts == p)[0], 2 * np.nonzero(pts == p)[0] + 1], axis=1).ravel()
@@ -422,18 +470,70 @@ def _heading_stats(R: np.ndarray, views: Sequence[RigView], headings: Sequence[H
              "sigma_deg": float(h.sigma_deg)} for h, e in zip(headings, err)]
 
 
+def _too_few_with_track(where: str, n_pts: int) -> InputError:
+    return InputError(f"{where}: track picks and {n_pts} control point(s) do not place the camera: points picked on "
+                      f"a track that is straight, or curved at one radius and grade, look the same from anywhere "
+                      f"along it, so the camera's place along the track is not fixed by them (docs/gis.md, \"Track "
+                      f"picks\"); add a position prior (GPS in the photos, or camera.position_enu), or control "
+                      f"points: {max(3 - n_pts, 1)} more (3 in all), or 2 with the prior")
+
+
+def _track_start(bear, pts, X, views, obs, cps, prior_centre, sig_prior, headings, opts, rng, track):
+    """With track picks, a centre prior and fewer than 3 points: at the prior's centre and 1 and 2 sigma above and
+    below it, the rotations that fit the track picks best (and, with points, Kabsch on them), each refined briefly
+    (40 evaluations); the lowest cost. Returns (R, centre, number of candidates)."""
+    centres = _prior_grid(prior_centre, sig_prior)[:5]
+    cands = track_rotation_candidates(track, views, centres, keep=4)
+    if len(pts):
+        for c in centres:
+            kab = _start_candidates(bear, pts, X, 0, c, opts, rng, views, headings, n_pairs=0)
+            if kab:
+                cands.append(_best_candidate(kab, views, obs, X, prior_centre, sig_prior, opts, headings, track))
+    best, best_cost = cands[0], np.inf
+    for R0, c0 in cands:
+        info: dict = {}
+        R1, c1, _ = _refine_central(views, obs, X, cps, R0, c0, np.ones(len(obs), bool), prior_centre, sig_prior,
+                                    opts, headings, info_out=info, track=track, max_nfev=40)
+        if info["cost"] < best_cost:
+            best, best_cost = (R1, c1), info["cost"]
+    return best[0], best[1], len(cands)
+
+
+def _start(bear, pts, X, n_pts, views, obs, cps, prior_centre, sig_prior, headings, opts, rng, track, where):
+    """The refinement's start (R, centre) and the number of candidates tried (RANSAC, then, with a prior and few
+    points, the multi-start over the prior; with track picks and fewer than 3 points, :func:`_track_start`)."""
+    if track is not None and prior_centre is not None and n_pts < 3:
+        return _track_start(bear, pts, X, views, obs, cps, prior_centre, sig_prior, headings, opts, rng, track)
+    candidates = _start_candidates(bear, pts, X, n_pts, prior_centre, opts, rng, views, headings, track=track)
+    if not candidates:
+        raise InputError(f"{where}: the control points give no camera pose (degenerate geometry: are the points "
+                         f"on one line, or all picked at the same place?); add points spread over the view")
+    R0, c0 = _best_candidate(candidates, views, obs, X, prior_centre, sig_prior, opts, headings, track)
+    n_multi = 0
+    if prior_centre is not None and n_pts <= opts.sample_max_points:
+        grid_best, n_multi = _multi_start(bear, pts, X, views, obs, cps, prior_centre, sig_prior, headings, opts, rng,
+                                          (R0, c0), track)
+        if grid_best is not None:
+            R0, c0 = grid_best
+    return R0, c0, len(candidates) + n_multi
+
+
 def solve_central(views: Sequence[RigView], cps: Sequence[ControlPoint], *, prior_centre: np.ndarray | None = None,
                   prior_sigma_m: np.ndarray | float | None = None, heading_priors: Sequence[HeadingPrior] = (),
-                  opts: GeorefOptions = GeorefOptions(), where: str = "control_points.json") -> CentralResult:
-    """Place a central rig (panorama or single photo) from control points; see the module docstring.
+                  opts: GeorefOptions = GeorefOptions(), where: str = "control_points.json",
+                  track: TrackTerm | None = None) -> CentralResult:
+    """Place a central rig (panorama or single photo) from control points and track picks; see the module
+    docstring.
 
     ``prior_centre`` (3,) ENU metres with ``prior_sigma_m`` (scalar or (3,); ``inf`` leaves that axis free): a
-    soft prior on the centre. ``heading_priors``: priors on the azimuth of a view's optical axis.
+    soft prior on the centre. ``heading_priors``: priors on the azimuth of a view's optical axis. ``track``: points
+    picked on the railway line (:mod:`.track_picks`), residuals to the line as projected.
     Needs 3 control points (4 or more to be safe) seen in the photos, or 2 with a centre prior, or 1 with a
-    centre prior on all three axes and a heading prior (6 equations for the 6 unknowns).
+    centre prior on all three axes and a heading prior (6 equations for the 6 unknowns); with track picks, a
+    centre prior or 2 control points (the track does not fix the camera's place along it).
     """
     obs = picks_in_views(cps, views, where)
-    X = np.array([cp.enu for cp in cps], float)
+    X = np.array([cp.enu for cp in cps], float).reshape(-1, 3)
     n_pts = len({o.point for o in obs})
     has_prior = prior_centre is not None
     headings = list(heading_priors)
@@ -443,40 +543,39 @@ def solve_central(views: Sequence[RigView], cps: Sequence[ControlPoint], *, prio
                                                float), (3,)).copy()
     n_fixed = (int(np.isfinite(sig_prior).sum()) if has_prior else 0) + len(headings)
 
-    def enough(n: int) -> bool:  # n distinct points, with the priors, fix the 6 unknowns
+    def enough(n: int) -> bool:  # n distinct points, with the priors (and the track), fix the 6 unknowns
+        if track is not None and has_prior:
+            return True
         return n >= 3 or (has_prior and n >= 1 and 2 * n + n_fixed >= 6)
 
     if not enough(n_pts):
-        raise _too_few_points(where, n_pts, views)
-    bear = np.array([views[o.view].cam_from_rig.T @ views[o.view].intrinsics.rays(o.uv[None])[0] for o in obs])
-    pts = np.array([o.point for o in obs])
+        raise _too_few_with_track(where, n_pts) if track is not None else _too_few_points(where, n_pts, views)
+    bear = np.array([views[o.view].cam_from_rig.T @ views[o.view].intrinsics.rays(o.uv[None])[0]
+                     for o in obs]).reshape(-1, 3)
+    pts = np.array([o.point for o in obs], int)
     rng = np.random.default_rng(opts.seed)
-    candidates = _start_candidates(bear, pts, X, n_pts, prior_centre, opts, rng, views, headings)
-    if not candidates:
-        raise InputError(f"{where}: the control points give no camera pose (degenerate geometry: are the points "
-                         f"on one line, or all picked at the same place?); add points spread over the view")
     thr = opts.ransac_threshold_px
-    R0, c0_est = _best_candidate(candidates, views, obs, X, prior_centre, sig_prior, opts, headings)
-    n_multi = 0
-    if has_prior and n_pts <= opts.sample_max_points:
-        grid_best, n_multi = _multi_start(bear, pts, X, views, obs, cps, prior_centre, sig_prior, headings, opts, rng,
-                                          (R0, c0_est))
-        if grid_best is not None:
-            R0, c0_est = grid_best
+    R0, c0_est, n_cand = _start(bear, pts, X, n_pts, views, obs, cps, prior_centre, sig_prior, headings, opts, rng,
+                                track, where)
     err0, _ = _central_errors(R0, c0_est, views, obs, X)
     inl = err0 < thr
     if inl.sum() < min(3, len(obs)) and not has_prior:
         raise InputError(f"{where}: no camera pose agrees with more than {int(inl.sum())} of the {len(obs)} picks "
                          f"(threshold {thr} px); check the point names, coordinates and pixels")
     R1, c1, _ = _refine_central(views, obs, X, cps, R0, c0_est, np.ones(len(obs), bool), prior_centre, sig_prior,
-                                opts, headings)
+                                opts, headings, track=track)
     err1, _ = _central_errors(R1, c1, views, obs, X)
     inl = err1 < inlier_limits(R1, c1, views, obs, X, cps, opts)
+    t_inl = None if track is None else track_inliers(track, R1, c1, views, opts)
     sample_info: dict = {}
+    info: dict = {}
     if enough(len(set(pts[inl].tolist()))):
-        R1, c1, cov = _refine_central(views, obs, X, cps, R1, c1, inl, prior_centre, sig_prior, opts, headings)
+        R1, c1, cov = _refine_central(views, obs, X, cps, R1, c1, inl, prior_centre, sig_prior, opts, headings,
+                                      info_out=info, track=track, track_use=t_inl)
+        # the sampled widening (few map points: a curved valley); with track picks the sandwich alone (measured:
+        # scripts/bench_track_georef.py; docs/gis.md)
         if n_pts <= opts.sample_max_points and opts.sample_count > 0 and cov is not None \
-                and np.all(np.isfinite(cov)):
+                and np.all(np.isfinite(cov)) and track is None:
             cov, sample_info = _sample_covariance(views, obs, X, cps, R1, c1, inl, prior_centre, sig_prior, headings,
                                                   cov, opts)
     else:
@@ -485,8 +584,9 @@ def solve_central(views: Sequence[RigView], cps: Sequence[ControlPoint], *, prio
     residuals = _central_residuals(R1, c1, views, obs, X, bear, cps, opts)
     stats = summarize_residuals(residuals, opts)
     stats.update({"n_points": n_pts, "n_observations": len(obs), "prior": "yes" if has_prior else "no",
-                  "ransac_candidates": len(candidates) + n_multi})
-    if cov is not None and np.all(np.isfinite(cov)):
+                  "ransac_candidates": n_cand})
+    ok_cov = cov is not None and np.all(np.isfinite(cov))
+    if ok_cov:
         stats.update(_covariance_stats(R1, cov))
     stats.update(sample_info)
     if has_prior:
@@ -494,6 +594,9 @@ def solve_central(views: Sequence[RigView], cps: Sequence[ControlPoint], *, prio
     if headings:
         stats["heading_priors"] = _heading_stats(R1, views, headings)
     warns = warn_residuals(residuals, stats, opts, where)
+    if track is not None:
+        stats["track"] = track_fit_stats(track, R1, c1, views, opts, t_inl, info.get("J_track", np.zeros((0, 6))),
+                                         cov[3:6, 3:6] if ok_cov else None, where, warns)
     return CentralResult(R1, c1, residuals, stats, warns)
 
 

@@ -27,7 +27,7 @@ def georeg_block(method: str, res, extra: dict | None = None) -> dict:
              "residuals": res.residuals, "warnings": res.warnings}
     for k in ("sigma_centre_m", "sigma_rotation_deg", "covariance_world_rotation_centre", "prior",
               "centre_minus_prior_m", "scale", "n_triangulated",
-              "n_gps_centres", "gps_residuals_m", "gps_rms_m"):
+              "n_gps_centres", "gps_residuals_m", "gps_rms_m", "track"):
         if k in s:
             block[k] = s[k]
     block.update(extra or {})

@@ -3,6 +3,7 @@ file name), their EXIF GPS and the control points picked in them."""
 
 from __future__ import annotations
 
+import math
 import os
 from pathlib import Path
 
@@ -11,11 +12,13 @@ import numpy as np
 from ..core.layout import CAMERAS_FILE
 from ..errors import InputError
 from ..project import Project
-from ..files.control_points import ControlPoint, load_control_points
+from ..files.control_points import ControlPoint, TrackPick, load_control_points, load_track_picks
 from .gps import read_gps
+from .options import GeorefOptions
+from .track_picks import TrackTerm, build_track_term
 
 __all__ = ["PANORAMA_KEY", "photos_by_name", "gps_enu", "require_control_points", "control_points_of_photos",
-           "unknown_photo_error"]
+           "unknown_photo_error", "track_term"]
 
 PANORAMA_KEY = "panorama"  # pixel key of a pick made in the stitched panorama image
 
@@ -78,3 +81,45 @@ def control_points_of_photos(project: Project, path: Path) -> list[ControlPoint]
                 if name != PANORAMA_KEY and name not in photos:
                     raise unknown_photo_error(project, name, f"{path}: point {cp.name!r}", "pixels of photo")
     return cps
+
+
+def _track_picks_of_photos(project: Project, path: Path) -> list[TrackPick]:
+    picks = load_track_picks(path)
+    photos = photos_by_name(project)
+    for i, tp in enumerate(picks):
+        if tp.photo == PANORAMA_KEY:
+            raise InputError(f"{path}: track_picks[{i}]: picks in the stitched panorama are not read for the track; "
+                             f"pick the rail in a source photo (its file name as 'photo')")
+        if photos and tp.photo not in photos:
+            raise unknown_photo_error(project, tp.photo, f"{path}: track_picks[{i}]", "photo")
+    return picks
+
+
+def track_term(project: Project, views, opts: GeorefOptions, where: str) -> TrackTerm | None:
+    """The incident's track picks in ``views`` (``control_points.json`` ``track_picks``) on its railway layer, or None
+    when it has none. The lines' heights (top of rail): the layer's own where every vertex has one (their 1-sigma
+    ``opts.track_height_sigma_m``), else the DEM's under the line (1-sigma: the DEM's ``dem_vertical_accuracy_m``
+    and ``opts.track_height_sigma_m`` for the rail above the ground the DEM sees); neither is an error."""
+    path = project.control_points_path
+    if not path.is_file():
+        return None
+    picks = _track_picks_of_photos(project, path)
+    if not picks:
+        return None
+    if not project.settings.terrain.railways:
+        raise InputError(f"{path}: has track_picks, but the incident has no railway layer; set terrain.railways in "
+                         f"project.toml to the line the picks are on (GeoJSON or OpenStreetMap XML, docs/gis.md)")
+    layer = project.railways(heights=False)
+    if layer is None:
+        raise InputError(f"{path}: has track_picks, but the railway layer {project.settings.terrain.railways} holds no "
+                         f"railway line (railway=rail); give the layer the track the picks are on")
+    h_sigma = float(opts.track_height_sigma_m)
+    if layer.heights != "file":
+        if not project.settings.terrain.dem:
+            raise InputError(f"{path}: track picks need the track's heights: the railway layer "
+                             f"{project.settings.terrain.railways} has none, and the incident has no DEM "
+                             f"(terrain.dem); give [x, y, h] positions (top of rail) or a DEM")
+        layer = project.railways(heights=True)
+        h_sigma = math.hypot(float(project.settings.terrain.dem_vertical_accuracy_m), h_sigma)
+    return build_track_term(picks, layer.lines, views, sigma_px=opts.track_sigma_px,
+                            line_sigma_m=opts.track_line_sigma_m, height_sigma_m=h_sigma, where=where)

@@ -61,6 +61,14 @@ class GeorefOptions:
     # _sample_covariance): with 2 map points the linearised covariance alone held the truth 89 % of the time
     sample_max_points: int = 3
     sample_count: int = 64  # 0: the linearised covariance only
+    # track picks (points picked on a rail or the track centre in a photo; georef/track_picks.py): their 1-sigma
+    # across the line (px; a rail is a thin line, but a hand pick on a phone photo is 1-3 px off it), the railway
+    # line's horizontal 1-sigma where the layer gives no ``accuracy_m`` (OpenStreetMap tracks traced off aerial
+    # imagery: about 0.5 m), and the vertical 1-sigma of the top of rail taken from the DEM (ballast and the rail
+    # stand 0.2-0.5 m above the ground a DEM sees) or from the file
+    track_sigma_px: float = 2.0
+    track_line_sigma_m: float = 0.5
+    track_height_sigma_m: float = 0.3
     warn_rms_px: float = 3.0
     warn_point_px: float = 6.0
     warn_point_m: float = 0.5
@@ -104,7 +112,10 @@ class GeorefOptions:
         if not (0.0 <= self.model_max_outlier_fraction < 1.0):
             raise ValueError(f"model_max_outlier_fraction={self.model_max_outlier_fraction} must be in [0, 1)")
         for name in ("sigma_px", "loss_scale", "ransac_threshold_px", "prior_sigma_m", "gps_h_sigma_m",
-                     "gps_v_sigma_m", "compass_sigma_deg", "warn_rms_px",
+                     "gps_v_sigma_m", "compass_sigma_deg", "warn_rms_px", "track_sigma_px",
                      "warn_point_px", "warn_point_m", "model_min_spread_m", "model_max_sigma_centre_m"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}={getattr(self, name)} must be positive")
+        for name in ("track_line_sigma_m", "track_height_sigma_m"):
+            if not getattr(self, name) >= 0:
+                raise ValueError(f"{name}={getattr(self, name)} must be 0 or more")

@@ -19,7 +19,7 @@ from .central import solve_central
 from ..files.control_points import ControlPoint
 from .documents import georeg_block, view_entry
 from ..files.panorama import PanoramaFile, RigView, read_panorama
-from .inputs import PANORAMA_KEY, photos_by_name, require_control_points
+from .inputs import PANORAMA_KEY, photos_by_name, require_control_points, track_term
 from .options import GeorefOptions
 from .priors import Priors, central_priors, prior_outcome
 
@@ -47,7 +47,7 @@ def panorama_route(project: Project, opts: GeorefOptions, where: str) -> tuple[d
     photos = photos_by_name(project)
     pri = _priors(project, [(v.name, photos.get(v.name)) for v in views], opts)
     res = solve_central(views, cps, prior_centre=pri.centre, prior_sigma_m=pri.sigma_m, heading_priors=pri.headings,
-                        opts=opts, where=where)
+                        opts=opts, where=where, track=track_term(project, views, opts, where))
     block_extra, stats_extra = _prior_stats(pri, res)
     src = str(pdoc.get("intrinsics_source", project.settings.camera.source.value))
     focal_known = src in ("calibrated", "sfm")
@@ -112,7 +112,7 @@ def single_route(project: Project, opts: GeorefOptions, where: str) -> tuple[dic
     pri = _priors(project, [(photo.name, photo)], opts)
     view = RigView(photo.name, intr, np.eye(3))
     res = solve_central([view], cps, prior_centre=pri.centre, prior_sigma_m=pri.sigma_m, heading_priors=pri.headings,
-                        opts=opts, where=where)
+                        opts=opts, where=where, track=track_term(project, [view], opts, where))
     block_extra, stats_extra = _prior_stats(pri, res)
     solver = "p3p_ransac_refined" if pri.centre is None else "p3p_and_prior_starts_refined_with_priors"
     doc = {"route": "single", "intrinsics_source": src,

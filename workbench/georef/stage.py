@@ -44,7 +44,8 @@ def run_georef(project: Project, progress: Progress, opts: GeorefOptions = Geore
     """Run the incident's georef route and write ``cameras.json``; the stage statistics include every residual
     warning raised."""
     route = project.georef_route()
-    opts = replace(opts, sigma_px=float(project.settings.georef.pick_sigma_px))
+    opts = replace(opts, sigma_px=float(project.settings.georef.pick_sigma_px),
+                   track_sigma_px=float(project.settings.georef.track_sigma_px))
     out_dir = project.stage_dir("georef")
     where = str(project.control_points_path)
     stats: dict[str, Any] = {"route": route}

@@ -27,13 +27,15 @@ from ..core.io import atomic_write_text, to_json
 from ..core.layout import CONTROL_POINTS_FILE as FILE_NAME
 from ..errors import InputError
 from ..files.buildings import read_buildings_geojson
+from ..files.control_points import STANDARD_GAUGE_M, TrackPick
+from ..files.railways import read_railways
 from ..files.dem import TerrainModel
 from ..rolling_stock import get_type
 from ..terrain.extrude import building_meshes
 
 log = logging.getLogger(__name__)
 
-__all__ = ["control_points_document", "write_control_points", "PIXEL_SIGMA_PX"]
+__all__ = ["control_points_document", "write_control_points", "track_picks_document", "PIXEL_SIGMA_PX"]
 
 PIXEL_SIGMA_PX = 0.5
 
@@ -95,11 +97,87 @@ def _ground_marks(truth: dict, tm) -> list[tuple[str, np.ndarray]]:
     return out
 
 
+def _raycaster(meshes):
+    """An Open3D ray-casting scene of ``meshes`` (trimesh-like: vertices, faces)."""
+    import open3d as o3d
+
+    scene = o3d.t.geometry.RaycastingScene()
+    for m in meshes:
+        scene.add_triangles(o3d.core.Tensor(np.asarray(m.vertices, np.float32)),
+                            o3d.core.Tensor(np.asarray(m.faces, np.uint32)))
+    return scene
+
+
+def _visible(scene, ph: dict, P: np.ndarray, max_range_m: float, margin_px: float = 8.0
+             ) -> tuple[np.ndarray, np.ndarray]:
+    """(visible (k,), true pixel (k, 2), NaN where not) of the points ``P`` (k, 3) in the truth's photo ``ph``:
+    in front, inside the image by ``margin_px``, within ``max_range_m``, and not hidden (a ray from the camera
+    centre hits nothing before the point, to a tolerance of 5 cm plus 2 px at its distance)."""
+    import open3d as o3d
+
+    intr = CameraIntrinsics.from_dict(ph["intrinsics"])
+    uv, depth = project_world(intr, np.asarray(ph["cam_from_world"], float), P)
+    c = np.asarray(ph["center_enu"], float)
+    d = P - c
+    dist = np.linalg.norm(d, axis=1)
+    cand = (depth > 1.0) & (dist < max_range_m) & np.all(np.isfinite(uv), axis=1)
+    cand &= intr.in_image(np.nan_to_num(uv, nan=-1e9), margin=margin_px)
+    vis = np.zeros(len(P), bool)
+    out = np.full((len(P), 2), np.nan)
+    if not cand.any():
+        return vis, out
+    rays = np.zeros((int(cand.sum()), 6), np.float32)
+    rays[:, :3] = c
+    rays[:, 3:] = d[cand] / dist[cand, None]
+    t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+    ok = t >= dist[cand] - (0.05 + 2.0 * dist[cand] / intr.fx)
+    idx = np.nonzero(cand)[0][ok]
+    vis[idx] = True
+    out[idx] = uv[idx]
+    return vis, out
+
+
+def track_picks_document(root: str | Path, *, rails: tuple[str, ...] = ("left", "right"), per_rail: int = 12,
+                         sigma_px: float = PIXEL_SIGMA_PX, seed: int = 0, spacing_m: float = 1.0,
+                         max_range_m: float = 250.0, photo_set: str | None = "panorama") -> list[dict]:
+    """``track_picks`` entries (docs/gis.md) for a synthetic incident: points on the rails (or the centre line) of
+    the track its layer holds (the file's top-of-rail heights; rails at (gauge + head) / 2 from the centre line,
+    as georef reads them), every ``spacing_m`` along the line, projected into each photo of ``photo_set`` (None:
+    every photo) where visible (:func:`_visible`), ``per_rail`` of them spread evenly along what is seen, with
+    Gaussian noise of ``sigma_px`` (seed ``seed``)."""
+    root = Path(root)
+    truth = _truth(root)
+    fr = truth["frame"]
+    frame = SceneFrame(fr["crs"], fr["lat"], fr["lon"], fr["height_m"])
+    layer = read_railways(root / truth["layers"]["railways"], frame)
+    if layer is None:
+        raise InputError(f"{root}: the truth's railway layer holds no line")
+    line = layer.lines[0]
+    tm, blds, cars, _ = _scene_meshes(root, truth, frame)
+    scene = _raycaster([tm.mesh(), *blds, *cars])
+    rng = np.random.default_rng(seed)
+    out = []
+    for ph in truth["photos"]:
+        if photo_set is not None and ph["set"] != photo_set:
+            continue
+        for rail in rails:
+            off = TrackPick("", "", rail, STANDARD_GAUGE_M, np.zeros((0, 2))).offset_m
+            P = line.rail_polyline(off, spacing_m)
+            vis, uv = _visible(scene, ph, P, max_range_m, margin_px=4.0)
+            idx = np.nonzero(vis)[0]
+            if len(idx) < 2:
+                continue
+            pick = idx[np.unique(np.linspace(0, len(idx) - 1, min(per_rail, len(idx))).round().astype(int))]
+            w, h = ph["intrinsics"]["width"], ph["intrinsics"]["height"]
+            noisy = np.clip(uv[pick] + rng.normal(0.0, sigma_px, (len(pick), 2)), -0.5, [w - 0.5, h - 0.5])
+            out.append({"photo": Path(ph["photo"]).name, "line": line.id, "rail": rail,
+                        "pixels": [[round(float(a), 2), round(float(b), 2)] for a, b in noisy]})
+    return out
+
+
 def control_points_document(root: str | Path, *, per_photo: int = 8, sigma_px: float = PIXEL_SIGMA_PX,
                             seed: int = 0, max_range_m: float = 350.0) -> dict:
     """The ``control_points.json`` document (docs/gis.md) of a synthetic incident, from its truth."""
-    import open3d as o3d
-
     root = Path(root)
     truth = _truth(root)
     fr = truth["frame"]
@@ -128,34 +206,12 @@ def control_points_document(root: str | Path, *, per_photo: int = 8, sigma_px: f
         raise InputError(f"{root}: no landmarks (no buildings and no terrain under the carriages)")
     P = np.array(pts)
 
-    scene = o3d.t.geometry.RaycastingScene()
-    for m in [tm.mesh(), *blds, *cars]:
-        scene.add_triangles(o3d.core.Tensor(np.asarray(m.vertices, np.float32)),
-                            o3d.core.Tensor(np.asarray(m.faces, np.uint32)))
-
+    scene = _raycaster([tm.mesh(), *blds, *cars])
     photos = truth["photos"]
     vis = np.zeros((len(photos), len(P)), bool)
     uvs = np.full((len(photos), len(P), 2), np.nan)
     for i, ph in enumerate(photos):
-        intr = CameraIntrinsics.from_dict(ph["intrinsics"])
-        M = np.asarray(ph["cam_from_world"], float)
-        uv, depth = project_world(intr, M, P)
-        c = np.asarray(ph["center_enu"], float)
-        d = P - c
-        dist = np.linalg.norm(d, axis=1)
-        cand = (depth > 1.0) & (dist < max_range_m) & np.all(np.isfinite(uv), axis=1)
-        cand &= intr.in_image(np.nan_to_num(uv, nan=-1e9), margin=8.0)
-        if not cand.any():
-            continue
-        rays = np.zeros((int(cand.sum()), 6), np.float32)
-        rays[:, :3] = c
-        rays[:, 3:] = d[cand] / dist[cand, None]
-        t = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-        tol = 0.05 + 2.0 * dist[cand] / intr.fx
-        ok = t >= dist[cand] - tol
-        idx = np.nonzero(cand)[0][ok]
-        vis[i, idx] = True
-        uvs[i, idx] = uv[idx]
+        vis[i], uvs[i] = _visible(scene, ph, P, max_range_m)
 
     # choose: per photo, up to per_photo points (counting ones already chosen), spread over the image,
     # preferring points seen in more photos of the same set (SfM needs two views to triangulate)
