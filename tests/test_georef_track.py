@@ -161,3 +161,21 @@ def test_panorama_route_uses_track_picks_from_the_file(small_incident, tmp_path)
     atomic_write_json(root / "control_points.json", doc)
     with pytest.raises(InputError, match=r"control_points.json: track_picks\[0\].*no-such-line.*spuyten-duyvil-track"):
         run_georef(Project(root), lambda f, m="": None)
+
+
+def test_picker_save_keeps_the_files_track_picks(small_incident, tmp_path):
+    """The picker's control-point page edits the points only; saving from it keeps the file's track picks."""
+    from workbench.picker.control import ControlPointsApi
+
+    src, _ = small_incident
+    shutil.copytree(src.parent.parent, tmp_path, dirs_exist_ok=True, ignore=shutil.ignore_patterns("out", "photos"))
+    root = tmp_path / "projects" / src.name
+    doc = json.loads((root / "control_points.json").read_text())
+    tp = [{"photo": "pano_00.jpg", "rail": "left", "pixels": [[10.0, 20.0]]}]
+    atomic_write_json(root / "control_points.json", {**doc, "track_picks": tp})
+    api = ControlPointsApi(Project(root), lambda: {"pano_00.jpg": (800, 600)})
+    points = [{k: p[k] for k in ("name", "coords", "sigma_m")} for p in doc["points"][:3]]
+    api.save({"crs": doc["crs"], "points": points})
+    saved = json.loads((root / "control_points.json").read_text())
+    assert [p["name"] for p in saved["points"]] == [p["name"] for p in points]
+    assert saved["track_picks"] == tp

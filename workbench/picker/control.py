@@ -19,6 +19,7 @@ from typing import Any, Callable
 
 import numpy as np
 
+from ..core.io import read_json
 from ..errors import InputError, WorkbenchError
 from ..files.control_points import load_control_points, save_control_points
 from ..project import Project
@@ -184,10 +185,23 @@ class ControlPointsApi:
                 continue
         return out
 
+    def _kept_track_picks(self) -> list:
+        """The ``track_picks`` of the file as it is (docs/gis.md), which a save from the page keeps; none when the
+        file is missing or unreadable (the save then checks and writes the points alone)."""
+        try:
+            old = read_json(self.path) if self.path.is_file() else {}
+        except (InputError, OSError):
+            return []
+        tp = old.get("track_picks") if isinstance(old, dict) else None
+        return tp if isinstance(tp, list) else []
+
     def save(self, payload: Any) -> dict:
         """Check (:meth:`check`, then the georef stage's reader), write atomically keeping a backup."""
         with self._lock:
             doc = self.check(payload)
+            kept = self._kept_track_picks()
+            if kept:  # the page edits the points only: the file's track picks are kept as they are
+                doc["track_picks"] = kept
             path, backup = save_control_points(self.path, doc, self.project.frame)
         return {"saved": str(path), "backup": str(backup) if backup else None, "n": len(doc["points"]),
                 "n_picks": sum(len(p.get("pixels", {})) for p in doc["points"])}
