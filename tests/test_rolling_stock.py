@@ -102,16 +102,20 @@ def test_marked_points_on_surface(lib, tid):
     assert pts.shape == (len(names), 3)
     # a corner anchor of an end rounded in plan (corner_radius_m r) stays at the sharp corner the side and end
     # planes would make (picked from two edges): r (sqrt 2 - 1) off the rounded surface; every other point on it
-    expected = np.zeros(len(names))
+    # (an end also bowed in plan, corner_setback_m, meets the side at a wider angle: cut by less, but cut)
+    expected, bowed = np.zeros(len(names)), np.zeros(len(names), bool)
     for i, n in enumerate(names):
         faces = set(ct.marked_point_faces[n])
         for end in ("front", "rear"):
-            r = float(getattr(getattr(ct.spec, end, None), "corner_radius_m", 0.0) or 0.0)
+            e = getattr(ct.spec, end, None)
+            r = float(getattr(e, "corner_radius_m", 0.0) or 0.0)
             if end in faces and faces & {"left", "right"} and r > 0:
                 expected[i] = r * (np.sqrt(2.0) - 1.0)
+                bowed[i] = float(getattr(e, "corner_setback_m", 0.0) or 0.0) > 0
     for textured in (False, True):
         d = _surface_distance(ct.mesh(textured=textured), pts)
-        assert np.all(np.abs(d - expected) < 1e-3), dict(zip(names, d - expected))
+        ok = np.where(bowed, (d > 0.005) & (d < expected + 1e-3), np.abs(d - expected) < 1e-3)
+        assert np.all(ok), dict(zip(names, d - expected))
     for n in names:
         assert ct.marked_point_faces[n] and set(ct.marked_point_faces[n]) <= {"left", "right", "front", "rear", "roof"}
         assert np.linalg.norm(ct.marked_point_normals[n]) == pytest.approx(1.0)
@@ -431,6 +435,37 @@ def test_rounded_end_corners(tmp_path: Path):
     with pytest.raises(SettingsError) as e:
         load_library(extra_dirs=[tmp_path])
     assert "'front.corner_radius_m' = 1.6:" in str(e.value) and "= 1.450 m" in str(e.value), str(e.value)
+
+
+def test_an_end_bowed_in_plan(tmp_path: Path):
+    """An end bowed in plan (``corner_setback_m`` s, a cab front swept back to its corners): its middle stays at
+    body_length_m / 2, its surface falls back as s (y / half width)^2, the corner anchors stand s behind the middle,
+    the coupler stays at length_over_couplers_m / 2; a setback too long for the body, or a door it would cut, is
+    refused with its bound."""
+    p = tmp_path / "user.toml"
+    p.write_text(_user_toml() + "\n[front]\ncorner_setback_m = 0.5\n", encoding="utf-8")
+    t = load_library(extra_dirs=[tmp_path])["test-flat"]
+    m = t.mesh(textured=False)
+    assert m.is_watertight
+    def dist(q):
+        return float(np.linalg.norm(trimesh.proximity.closest_point(m, [q])[0][0] - q))
+    for y in (0.0, 0.375, 0.75, 1.125, 1.35, 1.5):  # the face's samples (the body 17.2 m long): on the surface
+        assert dist([8.6 - 0.5 * (y / 1.5) ** 2, y, 2.5]) < 1e-6, y
+        assert dist([8.6 - 0.5 * (y / 1.5) ** 2, -y, 1.5]) < 1e-6, y
+    assert dist([8.62, 0.0, 2.5]) == pytest.approx(0.02, abs=1e-6)  # nothing ahead of the middle
+    assert dist([8.1, 1.5, 2.5]) < 1e-6 and dist([7.0, 1.5, 2.5]) < 1e-6  # the side up to the corner
+    assert dist([-8.6, 1.5, 2.5]) < 1e-6 and dist([-8.6, 0.0, 2.5]) < 1e-6  # the rear: flat, sharp
+    assert np.allclose(t.marked_points["tfl"][:2], [8.1, 1.5])  # anchor body_top_front_left
+    assert np.allclose(t.coupler_front, [t.spec.dimensions.length_over_couplers_m / 2, 0.0,
+                                         t.spec.dimensions.coupler_height_m])
+    p.write_text(_user_toml() + "\n[front]\ncorner_setback_m = 7.0\n", encoding="utf-8")
+    with pytest.raises(SettingsError) as e:
+        load_library(extra_dirs=[tmp_path])
+    assert "'front.corner_setback_m' = 7.0:" in str(e.value) and "= 5.600 m" in str(e.value), str(e.value)
+    p.write_text(_user_toml() + "\n[front]\ncorner_setback_m = 3.2\n", encoding="utf-8")  # the door at 4.5-5.5 m
+    with pytest.raises(SettingsError) as e:
+        load_library(extra_dirs=[tmp_path])
+    assert "'doors[0].x_m' = 5.0:" in str(e.value) and "corner_setback_m = 5.400 m" in str(e.value), str(e.value)
 
 
 def test_explicit_point_error_states_the_distance_and_the_tolerance(tmp_path: Path):

@@ -56,6 +56,29 @@ def test_dimensions_recovered_with_honest_sigmas():
     assert 0.3 < fit.sigma_px < 0.8 and fit.rms_px < 1.2
 
 
+def test_a_cab_front_bowed_in_plan_is_measured():
+    """``front.corner_setback_m`` (the cab's corners behind its middle, where the coupler stands) comes back from
+    the two views: 5 draws at 0.5 px, the truth 0.20 m, started from the type file's value."""
+    t = get_type("keikyu-n1000")
+    truth = {"front.corner_setback_m": 0.20}
+    rng = np.random.default_rng(5)
+    for _ in range(5):
+        P = type_points(t, truth)
+        picks = []
+        for k, (az, dist, hf) in enumerate(VIEWS):
+            intr = photo_intrinsics((1024, 683), 512 / math.tan(math.radians(hf / 2)))
+            a = math.radians(az)
+            M = look_at(np.array([dist * math.cos(a) + 5.0, dist * math.sin(a), 3.0]), np.array([0.0, 0.0, 2.0]))
+            names = [n for n in P if P[n][1] * math.sin(a) > 0 or "coupler" in n]
+            uv = intr.project(np.array([P[n] for n in names]) @ M[:3, :3].T + M[:3, 3])
+            uv = uv + rng.normal(0, 0.5, uv.shape)
+            pts = {n: (float(a), float(b)) for n, (a, b) in zip(names, uv)}
+            picks.append(PhotoPicks(f"p{k}.jpg", (1024, 683), "1", pts))
+        fit = fit_type_dimensions(t, picks, list(truth))
+        s = fit.sigmas["front.corner_setback_m"]
+        assert abs(fit.values["front.corner_setback_m"] - 0.20) < max(4 * s, 0.02) and 0.001 < s < 0.1, fit.values
+
+
 def test_bad_requests_are_refused_with_what_to_do():
     t = get_type("keikyu-n1000")
     picks = _picks(t, np.random.default_rng(0))

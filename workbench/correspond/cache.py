@@ -19,6 +19,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .references import FaceReference
+
 log = logging.getLogger(__name__)
 
 VERSION = 1
@@ -128,8 +130,6 @@ def references_to_arrays(refs: list, prefix: str = "") -> dict[str, np.ndarray]:
 
 
 def references_from_arrays(a: dict[str, np.ndarray], type_id: str, car_number: str, prefix: str = "") -> list:
-    from .references import FaceReference
-
     refs = []
     for i, face in enumerate(a[f"{prefix}faces"].tolist()):
         k = f"{prefix}{i}_"

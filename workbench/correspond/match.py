@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
-from .references import FaceReference, sift_features
+from .references import FaceReference, resize_linear_light, sift_features
 from .sorting import first_occurrences, sorted_unique
 from .undistort import undistorted_image
 
@@ -347,8 +347,6 @@ def ecc_refine(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray,
     ``min_cc``, an alignment whose correlation stays below it (the caller rejects it) is returned after the
     first (blurred) pass, without the second.
     """
-    from .references import resize_linear_light
-
     poly = apply_h(H, ref.corners())
     h_ref, w_ref = ref.image.shape[:2]
     # photo pixels per reference pixel along the face (mean edge ratio)

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import ctypes.util
 import glob
+import hashlib
 import os
 import threading
 from dataclasses import dataclass, field
@@ -206,8 +207,6 @@ _TEXTURES: dict[tuple, object] = {}
 
 
 def _texture_handle(tex: np.ndarray):
-    import hashlib
-
     import open3d as o3d
 
     key = (tex.shape, hashlib.blake2b(tex.tobytes(), digest_size=16).hexdigest())

@@ -86,6 +86,19 @@ def nose_x(spec: CarriageSpec, end: str, z: np.ndarray | float) -> np.ndarray | 
     return out if zz.ndim else float(out)
 
 
+def end_x(spec: CarriageSpec, end: str, z: np.ndarray | float, y: np.ndarray | float) -> np.ndarray | float:
+    """x of the body end surface at height z and lateral offset y: :func:`nose_x` on the centre line, and an end
+    bowed in plan (``corner_setback_m``) falling back towards its corners as (y / half width)^2."""
+    e = getattr(spec, end)
+    x = nose_x(spec, end, z)
+    if not e.corner_setback_m:
+        return x
+    sign = 1.0 if end == "front" else -1.0
+    f = np.clip(np.abs(np.asarray(y, dtype=float)) / (spec.dimensions.width_m / 2), 0.0, 1.0)
+    out = x - sign * e.corner_setback_m * f ** 2
+    return out if np.ndim(out) else float(out)
+
+
 def body_points(spec: CarriageSpec) -> np.ndarray:
     """Vertices of the body hull: the cross-section at each end (following the nose's rake), and, where an end's
     corners are rounded in plan (``corner_radius_m``), that section drawn in along quarter circles."""
@@ -95,7 +108,7 @@ def body_points(spec: CarriageSpec) -> np.ndarray:
     for end in ("front", "rear"):
         sign = 1.0 if end == "front" else -1.0
         e = getattr(spec, end)
-        xs = nose_x(spec, end, prof[:, 1])
+        xs = end_x(spec, end, prof[:, 1], hw)  # the end's x at its corners (at every height of the section)
         r = float(e.corner_radius_m)
         n = int(e.corner_segments) if r > 0 else 0
         pts.append(np.column_stack([xs - sign * r, prof[:, 0], prof[:, 1]]))  # where the side leaves the wall
@@ -103,12 +116,23 @@ def body_points(spec: CarriageSpec) -> np.ndarray:
             phi = 0.5 * np.pi * k / n
             half = hw - r + r * np.sin(phi)
             y = np.clip(prof[:, 0], -half, half)
-            pts.append(np.column_stack([xs - sign * r * (1.0 - np.cos(phi)), y, prof[:, 1]]))
+            pts.append(np.column_stack([end_x(spec, end, prof[:, 1], y) - sign * r * (1.0 - np.cos(phi)), y,
+                                        prof[:, 1]]))
+        if e.corner_setback_m:  # a bowed end: its face sampled across the width
+            for f in (0.0, 0.25, 0.5, 0.75, 0.9):
+                y = f * np.clip(prof[:, 0], -(hw - r), hw - r)
+                pts.append(np.column_stack([end_x(spec, end, prof[:, 1], y), y, prof[:, 1]]))
         if e.shape == "nose":  # the vertical lower front up to the nose's base, its corners rounded as below
-            xe, zb = nose_x(spec, end, 0.0), e.nose_base_height_m
+            zb = e.nose_base_height_m
             for phi in (0.5 * np.pi * np.arange(n + 1) / n if n else [0.5 * np.pi]):
-                x, y = xe - sign * r * (1.0 - np.cos(phi)), hw - r + r * np.sin(phi)
+                y = hw - r + r * np.sin(phi)
+                x = end_x(spec, end, 0.0, min(y, hw - r) if n else y) - sign * r * (1.0 - np.cos(phi))
                 pts.append(np.array([[x, y, zb], [x, -y, zb]]))
+            if e.corner_setback_m:
+                for f in (0.0, 0.25, 0.5, 0.75, 0.9):
+                    y = f * (hw - r)
+                    x = end_x(spec, end, 0.0, y)
+                    pts.append(np.array([[x, y, zb], [x, -y, zb]]))
     return np.vstack(pts)
 
 
@@ -218,14 +242,14 @@ def anchor_point(spec: CarriageSpec, anchor: str) -> tuple[np.ndarray, tuple[str
         ys = 1.0 if side == "left" else -1.0
         if which == "top":
             z = p.eave_height_m
-            return np.array([nose_x(spec, end, z), ys * hw, z]), (side, end)
+            return np.array([end_x(spec, end, z, hw), ys * hw, z]), (side, end)
         z = d.body_bottom_m
-        return np.array([nose_x(spec, end, z), ys * (hw - p.bottom_inset_m), z]), (side, end)
+        return np.array([end_x(spec, end, z, hw - p.bottom_inset_m), ys * (hw - p.bottom_inset_m), z]), (side, end)
     if m.group(5):
         end, side = m.group(5), m.group(6)
         ys = 1.0 if side == "left" else -1.0
         z = getattr(spec, end).nose_base_height_m
-        return np.array([nose_x(spec, end, z), ys * hw, z]), (side, end)
+        return np.array([end_x(spec, end, z, hw), ys * hw, z]), (side, end)
     if m.group(11):  # the top or the bottom of an end, on the centre line
         which, end = m.group(11), m.group(12)
         z = d.height_m if which == "roof" else d.body_bottom_m

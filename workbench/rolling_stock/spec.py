@@ -51,9 +51,11 @@ less a little), ``roof_segments = bottom_segments = 8``.
   ``roof_edge_inset_m`` and ``bottom_inset_m`` ``< width_m / 2 - 0.05``.
 * a nose: ``wall_bottom_m <= nose_base_height_m <= eave_height_m``;
   ``nose_setback_m <= body_length_m / 2 - bogie_centres_m / 4``.
+* an end bowed in plan: ``corner_setback_m`` (>= 0) ``<= body_length_m / 2 - bogie_centres_m / 4`` less the nose's
+  ``nose_setback_m``; the corner anchors (``body_*``, ``nose_*``) stand that far behind the end's middle.
 * windows and doors on the flat side wall: ``wall_bottom_m <= z_bottom_m < z_top_m <= eave_height_m``, and
-  within the body: ``|x| + width / 2 <= body_length_m / 2``; grilles: ``x_start_m < x_end_m``,
-  ``z_bottom_m < z_top_m``.
+  within the body: ``|x| + width / 2 <= body_length_m / 2`` less that end's ``corner_setback_m``; grilles:
+  ``x_start_m < x_end_m``, ``z_bottom_m < z_top_m``.
 * a marked point given by ``xyz`` must lie within ``POINT_TOLERANCE_M`` (5 mm) of the model's surface (the
   built mesh, or the mesh file); the message names the point and its distance.
 
@@ -176,6 +178,10 @@ class End(_Model):
     # anchors stay at the sharp corner the side and end planes would make (pick it from two edges)
     corner_radius_m: NonNeg = 0.0
     corner_segments: Annotated[int, Field(ge=1, le=8)] = 4
+    # the end bowed in plan: how far its side corners stand behind its middle (a cab front swept back to its
+    # corners); the end's surface at lateral offset y lies corner_setback_m * (y / (width_m / 2))^2 behind its
+    # middle, and the corner anchors move back with it (body_length_m stays the length on the centre line)
+    corner_setback_m: NonNeg = 0.0
 
     @model_validator(mode="after")
     def _nose_params(self) -> "End":
@@ -449,6 +455,11 @@ def _check_layout(spec: CarriageSpec, wall_bottom: float, path: Path) -> None:
             if e.nose_setback_m > most:
                 raise _bad(path, f"{end_name}.nose_setback_m", e.nose_setback_m,
                            f"too long for the body: at most body_length_m / 2 - bogie_centres_m / 4 = {most:.3f} m")
+        most = half - d.bogie_centres_m / 4 - ((e.nose_setback_m or 0.0) if e.shape == "nose" else 0.0)
+        if e.corner_setback_m > most:
+            raise _bad(path, f"{end_name}.corner_setback_m", e.corner_setback_m,
+                       f"too long for the body: at most body_length_m / 2 - bogie_centres_m / 4 (less the nose's "
+                       f"setback) = {most:.3f} m")
     # windows and doors: on the flat side wall, and every one on the body
     openings = [(f"windows[{i}]", "window", "x_first_m", g) for i, g in enumerate(spec.windows)]
     openings += [(f"doors[{i}]", "door", "x_m", dr) for i, dr in enumerate(spec.doors)]
@@ -458,10 +469,12 @@ def _check_layout(spec: CarriageSpec, wall_bottom: float, path: Path) -> None:
                        f"{kind}s must lie on the flat side wall ({wall_bottom} .. {p.eave_height_m} m), bottom < top "
                        f"(z_bottom_m = {o.z_bottom_m})")
         for x in o.centres():
-            if abs(x) + o.width_m / 2 > half:
+            end = spec.front if x >= 0 else spec.rear
+            if abs(x) + o.width_m / 2 > half - end.corner_setback_m:
+                what = "body_length_m / 2" + (" less the end's corner_setback_m" if end.corner_setback_m else "")
                 raise _bad(path, f"{key}.{x_key}", getattr(o, x_key),
                            f"a {kind} at x = {x:.2f} m is off the body: |x| + width_m / 2 must be at most "
-                           f"body_length_m / 2 = {half:.3f} m")
+                           f"{what} = {half - end.corner_setback_m:.3f} m")
     for i, g in enumerate(spec.grilles):
         if g.x_end_m <= g.x_start_m or g.z_top_m <= g.z_bottom_m:
             raise _bad(path, f"grilles[{i}].x_end_m", g.x_end_m,

@@ -34,8 +34,8 @@ __all__ = ["PhotoPicks", "TypeFit", "FITTABLE", "fit_type_dimensions", "photo_in
 FITTABLE = {
     "dimensions": ("body_length_m", "width_m", "height_m", "body_bottom_m", "floor_height_m", "coupler_height_m"),
     "profile": ("eave_height_m", "roof_edge_inset_m", "bottom_inset_m"),
-    "front": ("nose_base_height_m", "nose_setback_m"),
-    "rear": ("nose_base_height_m", "nose_setback_m"),
+    "front": ("nose_base_height_m", "nose_setback_m", "corner_setback_m"),
+    "rear": ("nose_base_height_m", "nose_setback_m", "corner_setback_m"),
 }
 
 

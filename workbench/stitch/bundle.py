@@ -9,8 +9,12 @@ and comes near the minimum; the final pass starts there with every inlier and co
 
 from __future__ import annotations
 
+import importlib.machinery
+import importlib.util
 import logging
+import sys
 from dataclasses import dataclass, replace
+from pathlib import Path
 
 import numpy as np
 
@@ -107,18 +111,71 @@ class _Objective:
         return _compress_least_squares(*(self.problem.soft_l1(r, J, 4 * len(idx)) if robust else (r, J)))[1]
 
 
-def least_squares(*args, **kwargs):
-    """``scipy.optimize.least_squares``, imported when first called (0.3-0.5 s: the stitch loads it on a thread
-    while it matches the photos, ``stitcher._import_optimizer``)."""
-    from scipy.optimize import least_squares as solve
+def _minpack():
+    """SciPy's MINPACK extension (``scipy.optimize._minpack``), loaded from its file without the package
+    ``scipy.optimize`` (whose ``__init__`` imports every optimiser: 0.5-0.9 s of CPU, more than a small panorama's
+    whole registration); None where that fails (then :func:`least_squares` imports SciPy's own)."""
+    if "minpack" not in _MINPACK:
+        _MINPACK["minpack"] = None
+        try:
+            name = "scipy.optimize._minpack"
+            mod = sys.modules.get(name)
+            if mod is None:
+                spec = importlib.util.find_spec("scipy")
+                folder = Path(next(iter(spec.submodule_search_locations))) / "optimize"
+                path = next(iter(sorted(folder.glob("_minpack.*.so")) + sorted(folder.glob("_minpack.*.pyd"))))
+                loader = importlib.machinery.ExtensionFileLoader(name, str(path))
+                mod = importlib.util.module_from_spec(importlib.util.spec_from_loader(name, loader))
+                loader.exec_module(mod)
+            _MINPACK["minpack"] = mod if callable(getattr(mod, "_lmder", None)) else None
+        except (ImportError, OSError, StopIteration, TypeError, AttributeError) as exc:
+            log.debug("stitch: MINPACK not loaded from its file (%s); scipy.optimize is imported", exc)
+    return _MINPACK["minpack"]
 
-    return solve(*args, **kwargs)
+
+_MINPACK: dict = {}
+
+
+@dataclass
+class LMResult:
+    """What :func:`least_squares` returns (the fields of SciPy's ``OptimizeResult`` that the adjustment reads)."""
+
+    x: np.ndarray
+    cost: float
+    nfev: int
+    status: int
+    message: str = ""
+
+
+def least_squares(fun, x0: np.ndarray, jac, args: tuple = (), *, xtol: float, ftol: float,
+                  max_nfev: int) -> LMResult:
+    """``scipy.optimize.least_squares(fun, x0, jac, args=args, method="lm", xtol=xtol, ftol=ftol,
+    max_nfev=max_nfev)``: MINPACK's ``lmder`` with SciPy's defaults for ``lm`` (gtol 1e-8, step bound factor 100,
+    scaling by the Jacobian's columns), called as SciPy calls it (``_lsq.least_squares.call_minpack``), so the
+    same steps and result; through SciPy itself where the extension could not be loaded on its own."""
+    mp = _minpack()
+    if mp is None:
+        from scipy.optimize import least_squares as solve
+
+        sol = solve(fun, x0, jac=jac, args=args, method="lm", xtol=xtol, ftol=ftol, max_nfev=max_nfev)
+        return LMResult(sol.x, float(sol.cost), int(sol.nfev), int(sol.status), str(sol.message))
+    x0 = np.atleast_1d(np.asarray(x0, dtype=float))
+
+    def f(x):
+        return np.atleast_1d(fun(x, *args))
+
+    def J(x):
+        return np.atleast_2d(jac(x, *args))
+
+    x, info, status = mp._lmder(f, J, x0.copy(), (), True, False, ftol, xtol, 1e-8, max_nfev, 100.0, None)
+    r = info["fvec"]
+    return LMResult(x, float(0.5 * np.dot(r, r)), int(info["nfev"]), int(status), f"MINPACK info {status}")
 
 
 def _solve(objective: _Objective, x: np.ndarray, idx: np.ndarray, robust: bool, tol: float, rnd: int,
            opts: BundleOptions) -> tuple[np.ndarray, float, int]:
     """One LM pass over the observations ``idx``: (parameters, cost, evaluations)."""
-    sol = least_squares(objective.fun, x, jac=objective.jac, args=(idx, robust), method="lm", xtol=tol, ftol=tol,
+    sol = least_squares(objective.fun, x, jac=objective.jac, args=(idx, robust), xtol=tol, ftol=tol,
                         max_nfev=opts.max_nfev * 2)
     log.debug("BA round %d: %d evaluations, cost %.4g, %s", rnd, sol.nfev, float(sol.cost), sol.message)
     return sol.x, float(sol.cost), sol.nfev

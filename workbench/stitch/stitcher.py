@@ -241,17 +241,6 @@ def _compose_kept(model: PanoramaModel, photos: list[Path], kept: list[int], fou
                    progress=lambda f, m="": progress(0.55 + 0.43 * f, m))
 
 
-def _import_optimizer() -> None:
-    """SciPy's optimiser (the bundle adjustment's least squares: 0.3-0.5 s to import) loaded on a thread while the
-    photos are read and matched (OpenCV, which releases the interpreter); the adjustment's own import then finds
-    it loaded, or waits for it."""
-    import sys
-    import threading
-
-    if "scipy.optimize" not in sys.modules:
-        threading.Thread(target=__import__, args=("scipy.optimize",), name="import scipy.optimize").start()
-
-
 def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options: StitchOptions = StitchOptions(),
                   calibrated: dict[str, CameraIntrinsics] | None = None,
                   focal_priors_px: dict[str, float | None] | None = None, image_refs: list[str] | None = None,
@@ -276,7 +265,6 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
     calibrated = calibrated or {}
     focal_priors_px = focal_priors_px or {}
     fixed, source = _intrinsics_route(names, calibrated, focal_priors_px)
-    _import_optimizer()
     found = read_and_match(photos, names, opts, calibrated, progress, timings)
     kept, rejected, kept_pairs = connected_set(found, photos, names, opts)
     progress(0.42, "rotations and focal")
