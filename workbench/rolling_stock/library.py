@@ -318,6 +318,17 @@ def _load_type(path: Path) -> CarriageType:
     return ct
 
 
+def _type_files(extra_dirs: Iterable[Path | str]) -> list[Path]:
+    """The type files in load order: the shipped ones, then each extra folder's ``*.toml`` (a missing folder:
+    :class:`SettingsError`)."""
+    files = []
+    for folder in [TYPES_DIR, *[Path(d) for d in extra_dirs]]:
+        if not folder.is_dir():
+            raise SettingsError(f"{folder}: rolling-stock folder not found")
+        files += sorted(folder.glob("*.toml"))
+    return files
+
+
 def load_library(extra_dirs: Iterable[Path | str] = ()) -> dict[str, CarriageType]:
     """All carriage types: the shipped ones, then one per ``*.toml`` in each of ``extra_dirs`` (in order).
 
@@ -325,14 +336,21 @@ def load_library(extra_dirs: Iterable[Path | str] = ()) -> dict[str, CarriageTyp
     the file and the key; a missing extra folder raises :class:`SettingsError` too.
     """
     lib: dict[str, CarriageType] = {}
-    dirs = [TYPES_DIR, *[Path(d) for d in extra_dirs]]
-    for folder in dirs:
-        if not folder.is_dir():
-            raise SettingsError(f"{folder}: rolling-stock folder not found")
-        for path in sorted(folder.glob("*.toml")):
-            ct = _load_type(path)
-            lib[ct.id] = ct
+    for path in _type_files(extra_dirs):
+        ct = _load_type(path)
+        lib[ct.id] = ct
     return lib
+
+
+def load_specs(extra_dirs: Iterable[Path | str] = ()) -> dict[str, tuple[AnySpec, Path]]:
+    """Every type's validated file, ``id -> (spec, path)``, in :func:`load_library`'s order and precedence,
+    without building a model: what a listing needs. The checks that need the model (an ``xyz`` marked point on
+    its surface, a mesh type's mesh file) are :func:`load_library`'s."""
+    specs: dict[str, tuple[AnySpec, Path]] = {}
+    for path in _type_files(extra_dirs):
+        spec = load_spec(path)
+        specs[spec.id] = (spec, path.resolve())
+    return specs
 
 
 def get_type(type_id: str, extra_dirs: Iterable[Path | str] = ()) -> CarriageType:
