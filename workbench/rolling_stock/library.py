@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
 
+from ..core.layout import LIBRARY_TYPES_DIR
 from ..errors import SettingsError, UnknownModelType
 from . import mesh_type
 from .geometry import FACE_NORMALS, Part, anchor_point, bogie_boxes, build_parts, equipment_box
@@ -17,7 +18,7 @@ from .spec import POINT_TOLERANCE_M, AnySpec, CarriageSpec, MeshCarriageSpec, lo
 if TYPE_CHECKING:  # trimesh takes seconds to import: loaded when a mesh is built, not to list or check types
     import trimesh
 
-TYPES_DIR = Path(__file__).with_name("types")
+TYPES_DIR = LIBRARY_TYPES_DIR
 
 
 def _classify(part: Part, normals: np.ndarray) -> np.ndarray:
