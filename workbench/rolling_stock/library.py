@@ -355,12 +355,13 @@ def load_specs(extra_dirs: Iterable[Path | str] = ()) -> dict[str, tuple[AnySpec
 
 
 def get_type(type_id: str, extra_dirs: Iterable[Path | str] = ()) -> CarriageType:
-    """The carriage type called ``type_id`` (case-insensitive); :class:`UnknownModelType` if there is none."""
-    lib = load_library(extra_dirs)
+    """The carriage type called ``type_id`` (case-insensitive); :class:`UnknownModelType` if there is none. Every
+    type file is read and checked (:func:`load_specs`), only this one's model is built."""
+    specs = load_specs(extra_dirs)
     key = str(type_id).strip().lower()
-    if key not in lib:
+    if key not in specs:
         raise UnknownModelType(
-            f"unknown carriage type {type_id!r}; known types: {', '.join(sorted(lib))}. "
+            f"unknown carriage type {type_id!r}; known types: {', '.join(sorted(specs))}. "
             "Add a type by writing its TOML file into the incident's rolling_stock/ folder."
         )
-    return lib[key]
+    return _load_type(specs[key][1])
