@@ -104,11 +104,26 @@ def test_init_refuses_to_overwrite(tmp_path):
     assert (root / "project.toml").read_text() == before
 
 
-def test_types_lists_the_library():
+def test_types_lists_the_library(tmp_path):
+    """`workbench types` lists the files (read and their keys checked, no model built); `--check` builds every
+    model and refuses a marked point off its surface, naming the file, the point and its distance."""
     r = wb("types")
     assert r.returncode == 0
-    for t in ("shoreliner", "p32ac-dm", "amfleet-i", "acs-64"):
+    for t in ("shoreliner", "p32ac-dm", "amfleet-i", "acs-64", "dot-111", "meitetsu-3500"):
         assert t in r.stdout
+    assert wb("types", "--check").returncode == 0
+    from workbench.rolling_stock import TYPES_DIR
+
+    own = tmp_path / "inc" / "rolling_stock"
+    own.mkdir(parents=True)
+    text = (TYPES_DIR / "keikyu-n1000-m.toml").read_text(encoding="utf-8")
+    assert text.count("xyz = [-0.65, 1.40, 0.95]") == 1
+    bad = text.replace('id = "keikyu-n1000-m"', 'id = "my-car"').replace("xyz = [-0.65, 1.40, 0.95]",
+                                                                          "xyz = [-0.65, 1.10, 2.00]")
+    (own / "my-car.toml").write_text(bad, encoding="utf-8")
+    r = wb("types", "--project", tmp_path / "inc")
+    assert r.returncode == 0 and "my-car" in r.stdout
+    one_line_error(wb("types", "--check", "--project", tmp_path / "inc"), "my-car.toml", "xyz", "from the model's surface")
 
 
 def test_synth_bad_options(tmp_path):

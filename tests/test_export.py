@@ -568,7 +568,8 @@ def test_export_without_terrain_and_with_a_left_out_car(tmp_path):
                          {"index": 1, "number": "A2", "type": "shoreliner", "status": "left_out",
                           "world_from_carriage": None}]}
     atomic_write_json(project.stage_dir("solve") / "solution.json", sol)
-    assert set(EXPORT_STAGE.inputs(project)) == {"solution"}
+    # the solution, and the consist's type files (the models exported); no terrain
+    assert set(EXPORT_STAGE.inputs(project)) == {"solution"} | {f"library:{c.type}.toml" for c in project.settings.consist}
     scene = build_scene(project)
     assert scene.terrain is None and [c.number for c in scene.carriages] == ["A1"]
     assert scene.left_out[0]["number"] == "A2"

@@ -195,3 +195,42 @@ def test_correspond_and_solve_are_not_rerun_for_settings_they_do_not_read(tmp_pa
         assert _settings_hash(p, stage(n).settings_sections) != hashes[n], n
     assert p.settings_section("terrain.dem", "solver") == {"terrain.dem": "b.tif",
                                                           "solver": p.settings.solver.model_dump(mode="json")}
+
+
+def test_a_changed_library_type_makes_the_solve_stale(tmp_path, monkeypatch):
+    """The shipped type files of the consist's types are inputs of the stages that read the models, so an
+    updated type (a corrected dimension, a new marked point) makes them stale; a type the consist does not use
+    is not an input."""
+    import shutil
+
+    from workbench import pipeline
+    from workbench.rolling_stock import TYPES_DIR
+
+    lib = tmp_path / "types"
+    shutil.copytree(TYPES_DIR, lib)
+    monkeypatch.setattr(pipeline, "LIBRARY_TYPES_DIR", lib)
+    p = make_project(tmp_path)
+    consist = sorted({str(c.type) for c in p.settings.consist})
+    assert consist, "the default incident has a consist"
+    solve = next(s for s in pipeline.STAGES if s.name == "solve")
+    assert {k for k in solve.inputs(p) if k.startswith("library:")} == {f"library:{t}.toml" for t in consist}
+    calls = []
+
+    def models(project, progress):  # the solve's model inputs, with a stand-in for its work
+        calls.append(1)
+        return StageResult(outputs={})
+
+    stage = StageSpec("models", "the solve's models", models,
+                      inputs=lambda q: {k: v for k, v in solve.inputs(q).items() if k.startswith("library:")})
+    r = Runner(p, [stage])
+    r.run()
+    assert r.status()[0].status == "done"
+    unused = next(f for f in lib.glob("*.toml") if f.stem not in consist)
+    unused.write_text(unused.read_text() + "\n# not this incident's\n")
+    assert r.status()[0].status == "done"
+    f = lib / f"{consist[0]}.toml"
+    f.write_text(f.read_text() + "\n# corrected\n")
+    st = r.status()[0]
+    assert st.status == "stale" and f"library:{consist[0]}.toml" in st.reason, st.reason
+    r.run()
+    assert len(calls) == 2

@@ -232,18 +232,25 @@ def status(path: Path = typer.Argument(..., help="incident folder")) -> None:
 
 
 @app.command()
-def types(project: Optional[Path] = typer.Option(None, help="also list an incident's own types")) -> None:
+def types(project: Optional[Path] = typer.Option(None, help="also list an incident's own types"),
+          check: bool = typer.Option(False, "--check", help="also build every model and check it (marked points "
+                                                           "given by xyz on its surface, a mesh type's file)")
+          ) -> None:
     """List the rolling-stock types (carriage models) the workbench knows."""
     from rich.table import Table
 
-    from .rolling_stock import load_library
+    from .rolling_stock import load_library, load_specs
 
     extra = [project / "rolling_stock"] if project and (project / "rolling_stock").is_dir() else []
-    table = Table(title="rolling stock")
+    specs = load_specs(extra_dirs=extra)  # every file read and its keys checked
+    if check:
+        load_library(extra_dirs=extra)
+    table = Table(title="rolling stock" + (" (models built and checked)" if check else ""))
     for col in ("id", "name", "length over couplers (m)", "marked points", "file"):
         table.add_column(col)
-    for tid, t in sorted(load_library(extra_dirs=extra).items()):
-        table.add_row(tid, t.name, f"{t.length_m:.2f}", str(len(t.marked_points)), str(t.source_path))
+    for tid, (spec, path) in sorted(specs.items()):
+        table.add_row(tid, spec.name, f"{spec.dimensions.length_over_couplers_m:.2f}", str(len(spec.marked_points)),
+                      str(path))
     out.print(table)
 
 

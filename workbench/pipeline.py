@@ -12,6 +12,7 @@ import warnings
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from .core.layout import LIBRARY_TYPES_DIR
 from .core.stage_api import Progress, StageResult
 from .errors import InputError
 from .runner import StageSpec
@@ -112,14 +113,19 @@ def run_inputs(project: Project, progress: Progress) -> StageResult:
 # The stages' input files: what each stage reads, for the runner's hashes (every path from the Project)
 # ---------------------------------------------------------------------------------------------------
 def _rolling_stock_files(project: Project) -> dict[str, Path]:
-    """The incident's own type files, and the files a mesh type's ``[mesh] file`` names (with whatever else
-    its folder holds: a glTF's buffers and textures), so a changed CAD export makes the stages stale."""
+    """The shipped type files of the consist's types, the incident's own type files, and the files a mesh type's
+    ``[mesh] file`` names (with whatever else its folder holds: a glTF's buffers and textures), so a changed
+    type or CAD export makes the stages stale."""
     import tomllib
 
+    files = {}
+    for tid in sorted({str(c.type).strip().lower() for c in project.settings.consist}):
+        shipped = LIBRARY_TYPES_DIR / f"{tid}.toml"
+        if shipped.is_file():
+            files[f"library:{shipped.name}"] = shipped
     d = project.rolling_stock_dir
     if not d.is_dir():
-        return {}
-    files = {}
+        return files
     for t in sorted(d.glob("*.toml")):
         files[f"rolling_stock:{t.name}"] = t
         try:

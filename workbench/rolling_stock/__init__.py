@@ -11,7 +11,7 @@ parametric (built from its dimensions) or a mesh type (a glTF/OBJ/STL file, e.g.
     mesh = ct.mesh(car_number="6221")        # textured trimesh, carriage frame
 """
 
-from .library import TYPES_DIR, CarriageType, get_type, load_library
+from .library import TYPES_DIR, CarriageType, get_type, load_library, load_specs
 from .spec import CarriageSpec, load_spec
 
-__all__ = ["CarriageType", "CarriageSpec", "get_type", "load_library", "load_spec", "TYPES_DIR"]
+__all__ = ["CarriageType", "CarriageSpec", "get_type", "load_library", "load_spec", "load_specs", "TYPES_DIR"]

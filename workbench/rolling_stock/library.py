@@ -8,6 +8,7 @@ from typing import TYPE_CHECKING, Iterable
 
 import numpy as np
 
+from ..core.layout import LIBRARY_TYPES_DIR
 from ..errors import SettingsError, UnknownModelType
 from . import mesh_type
 from .geometry import FACE_NORMALS, Part, anchor_point, bogie_boxes, build_parts, equipment_box
@@ -17,7 +18,7 @@ from .spec import POINT_TOLERANCE_M, AnySpec, CarriageSpec, MeshCarriageSpec, lo
 if TYPE_CHECKING:  # trimesh takes seconds to import: loaded when a mesh is built, not to list or check types
     import trimesh
 
-TYPES_DIR = Path(__file__).with_name("types")
+TYPES_DIR = LIBRARY_TYPES_DIR
 
 
 def _classify(part: Part, normals: np.ndarray) -> np.ndarray:
@@ -318,6 +319,17 @@ def _load_type(path: Path) -> CarriageType:
     return ct
 
 
+def _type_files(extra_dirs: Iterable[Path | str]) -> list[Path]:
+    """The type files in load order: the shipped ones, then each extra folder's ``*.toml`` (a missing folder:
+    :class:`SettingsError`)."""
+    files = []
+    for folder in [TYPES_DIR, *[Path(d) for d in extra_dirs]]:
+        if not folder.is_dir():
+            raise SettingsError(f"{folder}: rolling-stock folder not found")
+        files += sorted(folder.glob("*.toml"))
+    return files
+
+
 def load_library(extra_dirs: Iterable[Path | str] = ()) -> dict[str, CarriageType]:
     """All carriage types: the shipped ones, then one per ``*.toml`` in each of ``extra_dirs`` (in order).
 
@@ -325,23 +337,31 @@ def load_library(extra_dirs: Iterable[Path | str] = ()) -> dict[str, CarriageTyp
     the file and the key; a missing extra folder raises :class:`SettingsError` too.
     """
     lib: dict[str, CarriageType] = {}
-    dirs = [TYPES_DIR, *[Path(d) for d in extra_dirs]]
-    for folder in dirs:
-        if not folder.is_dir():
-            raise SettingsError(f"{folder}: rolling-stock folder not found")
-        for path in sorted(folder.glob("*.toml")):
-            ct = _load_type(path)
-            lib[ct.id] = ct
+    for path in _type_files(extra_dirs):
+        ct = _load_type(path)
+        lib[ct.id] = ct
     return lib
 
 
+def load_specs(extra_dirs: Iterable[Path | str] = ()) -> dict[str, tuple[AnySpec, Path]]:
+    """Every type's validated file, ``id -> (spec, path)``, in :func:`load_library`'s order and precedence,
+    without building a model: what a listing needs. The checks that need the model (an ``xyz`` marked point on
+    its surface, a mesh type's mesh file) are :func:`load_library`'s."""
+    specs: dict[str, tuple[AnySpec, Path]] = {}
+    for path in _type_files(extra_dirs):
+        spec = load_spec(path)
+        specs[spec.id] = (spec, path.resolve())
+    return specs
+
+
 def get_type(type_id: str, extra_dirs: Iterable[Path | str] = ()) -> CarriageType:
-    """The carriage type called ``type_id`` (case-insensitive); :class:`UnknownModelType` if there is none."""
-    lib = load_library(extra_dirs)
+    """The carriage type called ``type_id`` (case-insensitive); :class:`UnknownModelType` if there is none. Every
+    type file is read and checked (:func:`load_specs`), only this one's model is built."""
+    specs = load_specs(extra_dirs)
     key = str(type_id).strip().lower()
-    if key not in lib:
+    if key not in specs:
         raise UnknownModelType(
-            f"unknown carriage type {type_id!r}; known types: {', '.join(sorted(lib))}. "
+            f"unknown carriage type {type_id!r}; known types: {', '.join(sorted(specs))}. "
             "Add a type by writing its TOML file into the incident's rolling_stock/ folder."
         )
-    return lib[key]
+    return _load_type(specs[key][1])
