@@ -13,7 +13,8 @@ panorama route) places the panorama's rig with the railway layer as written (exa
 
 Cases: ``track_gps`` (track picks and the GPS prior: no landmark), ``track_2pts_gps`` (plus 2 map points),
 ``gps_2pts`` (the 2 map points and GPS without the track, for comparison), ``track_only`` (no prior at all: the
-solver refuses, and why is printed once).
+solver refuses, and why is printed once), ``track_position_1m`` (track picks and a camera position known to 1 m per
+axis, as ``camera.position_enu`` states it: drawn at 1 m).
 
 Printed and saved (``--out``, JSON) per case and incident: placed, camera centre error (median, 90 %, max) and its
 component along the track, rotation error, the carriages' chainage error from the camera's placement (carriages
@@ -28,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 import sys
 import time
 import warnings
@@ -50,7 +52,8 @@ from workbench.synth.track_georef import chainage_errors, noisy_track_term, pano
 CHI2_3_95 = 7.8147
 GPS_SIGMA = np.array([5.0, 5.0, 15.0])
 MAP_SIGMA_M, MAP_PICK_PX = 0.5, 2.0
-CASES = ("track_gps", "track_2pts_gps", "gps_2pts", "track_only")
+CASES = ("track_gps", "track_2pts_gps", "gps_2pts", "track_only", "track_position_1m")
+KNOWN_SIGMA = np.array([1.0, 1.0, 1.0])  # camera.position_enu's stated 1-sigma (a camera position known to a metre)
 
 
 def _two_points(doc: dict, views, rng, pt) -> list:
@@ -70,16 +73,22 @@ def _two_points(doc: dict, views, rng, pt) -> list:
 def _run_case(case: str, pt, entries, doc, seed: int, opts: GeorefOptions, pick_sigma: float) -> dict:
     rng = np.random.default_rng(seed)
     track = noisy_track_term(pt, entries, rng, pick_sigma, line_sigma_m=0.02, height_sigma_m=0.02)
-    gps = pt.centre_enu + rng.normal(0.0, 1.0, 3) * GPS_SIGMA
+    z = rng.normal(0.0, 1.0, 3)
+    gps = pt.centre_enu + z * GPS_SIGMA
     cps = _two_points(doc, pt.views, rng, pt)
+    if case == "track_position_1m":
+        gps, sig = pt.centre_enu + z * KNOWN_SIGMA, KNOWN_SIGMA
+    else:
+        sig = GPS_SIGMA
     kw = {"track_gps": dict(cps=[], prior=True, track=True), "track_2pts_gps": dict(cps=cps, prior=True, track=True),
-          "gps_2pts": dict(cps=cps, prior=True, track=False), "track_only": dict(cps=[], prior=False, track=True)}[case]
+          "gps_2pts": dict(cps=cps, prior=True, track=False), "track_only": dict(cps=[], prior=False, track=True),
+          "track_position_1m": dict(cps=[], prior=True, track=True)}[case]
     t0 = time.perf_counter()
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         try:
             res = solve_central(pt.views, kw["cps"], prior_centre=gps if kw["prior"] else None,
-                                prior_sigma_m=GPS_SIGMA if kw["prior"] else None, opts=opts,
+                                prior_sigma_m=sig if kw["prior"] else None, opts=opts,
                                 track=track if kw["track"] else None, where=f"{case} seed {seed}")
         except InputError as exc:
             return {"placed": False, "reason": str(exc)}
@@ -148,6 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--cases", default=",".join(CASES))
     ap.add_argument("--out", default=str(ROOT / "bench_out" / "track_georef.json"))
     a = ap.parse_args(argv)
+    logging.getLogger("workbench").setLevel(logging.ERROR)  # the residual warnings of every run: in the JSON
     incidents = a.incident or [str(ROOT / "projects" / "spuyten-duyvil"), str(ROOT / "projects" / "frankford-junction")]
     cases = [c for c in a.cases.split(",") if c]
     opts = replace(GeorefOptions(), sigma_px=MAP_PICK_PX, track_sigma_px=a.pick_sigma)

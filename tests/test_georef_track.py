@@ -134,7 +134,7 @@ def test_track_picks_alone_are_refused_with_the_reason(track_truth):
 # ----------------------------------------------------------------------------------------------------------
 # The panorama route reads them from control_points.json
 # ----------------------------------------------------------------------------------------------------------
-def test_panorama_route_uses_track_picks_from_the_file(small_incident, tmp_path):
+def test_panorama_route_uses_track_picks_from_the_file(small_incident, track_truth, tmp_path):
     src, truth = small_incident
     shutil.copytree(src.parent.parent, tmp_path, dirs_exist_ok=True, ignore=shutil.ignore_patterns("out", "photos"))
     root = tmp_path / "projects" / src.name
@@ -142,7 +142,11 @@ def test_panorama_route_uses_track_picks_from_the_file(small_incident, tmp_path)
     for sub in ("panorama", "multiview"):
         (root / "photos" / sub).symlink_to(src / "photos" / sub)
     doc = json.loads((root / "control_points.json").read_text())
-    entries = track_picks_document(root, sigma_px=1.0, seed=3)
+    rng = np.random.default_rng(3)
+    entries = [{**e, "pixels": np.clip(np.asarray(e["pixels"]) + rng.normal(0.0, 1.0, (len(e["pixels"]), 2)), 0.0,
+                                       [799.0, 599.0]).round(2).tolist()} for e in track_truth[2]]
+    assert {e["rail"] for e in entries} == {"left", "right"} and {e["photo"] for e in entries} <= {
+        f"pano_0{i}.jpg" for i in range(4)}
     doc["track_picks"] = entries
     atomic_write_json(root / "control_points.json", doc)
     atomic_write_json(root / "out" / "stitch" / "panorama.json", true_panorama_model(root))

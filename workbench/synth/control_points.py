@@ -251,10 +251,14 @@ def control_points_document(root: str | Path, *, per_photo: int = 8, sigma_px: f
 
 
 def write_control_points(root: str | Path, *, per_photo: int = 8, sigma_px: float = PIXEL_SIGMA_PX, seed: int = 0,
-                         force: bool = False) -> Path:
+                         force: bool = False, track_picks: bool = False, track_sigma_px: float = PIXEL_SIGMA_PX
+                         ) -> Path:
     """Write ``<root>/control_points.json`` for a synthetic incident (atomically); returns its path.
 
-    Kept as it is when it was already written for the same truth (same generator spec hash) unless ``force``.
+    Kept as it is when it was already written for the same truth (same generator spec hash, and track picks when
+    asked for) unless ``force``. ``track_picks``: also the true picks of the rails in the panorama's photos
+    (:func:`track_picks_document`, noise ``track_sigma_px``, seed ``seed``); off by default, so the samples'
+    georegistration stays that of their landmarks (docs/gis.md, "Track picks").
     """
     root = Path(root)
     path = root / FILE_NAME
@@ -263,7 +267,7 @@ def write_control_points(root: str | Path, *, per_photo: int = 8, sigma_px: floa
     if path.is_file() and not force:
         try:
             old = json.loads(path.read_text(encoding="utf-8"))
-            if f"spec {spec})" in str(old.get("description", "")):
+            if f"spec {spec})" in str(old.get("description", "")) and (bool(old.get("track_picks")) or not track_picks):
                 log.info("%s is up to date", path)
                 return path
             if "Synthetic control points" not in str(old.get("description", "")):
@@ -272,6 +276,9 @@ def write_control_points(root: str | Path, *, per_photo: int = 8, sigma_px: floa
         except (json.JSONDecodeError, UnicodeDecodeError):
             pass
     doc = control_points_document(root, per_photo=per_photo, sigma_px=sigma_px, seed=seed)
+    if track_picks:
+        doc["track_picks"] = track_picks_document(root, sigma_px=track_sigma_px, seed=seed)
+        doc["description"] += f" Track picks: the rails in the panorama's photos, true pixels + {track_sigma_px} px."
     atomic_write_text(path, to_json(doc))
     log.info("wrote %s (%d control points)", path, len(doc["points"]))
     return path
