@@ -32,9 +32,9 @@ Routes:
 ``focal``
     the same problems with the focal unknown (``SolveOptions(estimate_focal=True)``);
 ``relative``, ``relative_focal``
-    relative incidents (no survey; docs/gis.md, "Relative incidents"): 3 cars, hand picks at 0.5 px, one photo,
-    no control points, the track tilted N(0, 0.5 deg) per axis against gravity; known focal (a camera profile)
-    or estimated; through the pipeline up to ``solve`` (georef's relative route, the levelling);
+    relative incidents (no survey; docs/gis.md, "Relative incidents"): 3 cars, hand picks at 0.5 px (stated),
+    one photo, the track tilted N(0, 0.5 deg) per axis; known focal (a camera profile) or estimated (and the
+    principal point: drawn as the solve states it); the pipeline up to ``solve``;
 ``auto``
     generated incidents (``workbench synth``: 800x600 photos, a 4-photo panorama, 4-7 cars, the seed varying),
     control points from the truth, then the pipeline up to ``solve`` (stitch, georef, correspond with automatic
@@ -408,38 +408,43 @@ def route_auto(n: int, seed0: int, log=print, work: Path | None = None, keep: bo
 # routes 4 and 5: relative incidents (no survey), through the pipeline, the track tilted against gravity
 # ----------------------------------------------------------------------------------------------------------
 TRACK_TILT_DEG = 0.5  # the simulated track's grade and cant, per horizontal axis, and what the incidents state
+RELATIVE_PICK_SIGMA_PX = 0.5  # the picks' noise, and the pixel sigma the incidents state
 
 
-def route_relative_any(n: int, seed0: int, estimate_focal: bool, log=print) -> tuple[list[dict], dict]:
-    """Simulated consists (3 cars, 0.5 px picks, one photo from 12 m up) written as incidents with no control
-    points (``workbench.synth.relative``), the whole scene tilted by N(0, 0.5 deg) per horizontal axis against
-    gravity (the track's grade and cant, which the levelling cannot see; the incidents state it as
-    ``solver.level_sigma_common_deg = 0.5`` and ``level_sigma_car_deg = 0``, the simulation having no car tilted
-    on its own track), run through inputs, georef (route relative), correspond (finder off) and solve; the truth
-    moved into the levelled frame the route reconstructs."""
+def route_relative_any(n: int, seed0: int, estimate_focal: bool, log=print,
+                       pp_uniform: bool = False) -> tuple[list[dict], dict]:
+    """Simulated consists (3 cars, 0.5 px picks, one photo from 12 m up) as incidents with no control points
+    (``workbench.synth.relative``), the scene tilted by N(0, 0.5 deg) per horizontal axis against gravity (the
+    track's grade and cant; stated as ``solver.level_sigma_common_deg = 0.5``, ``level_sigma_car_deg = 0``: no
+    car tilted on its own), the pick noise stated (``solver.pixel_sigma_px = 0.5``, as the hand routes give the
+    true sigma), run through inputs, georef (relative), correspond (finder off) and solve; the truth moved into
+    the levelled frame. Focal estimated: the principal point (the solve takes it at the centre) drawn N(0, the
+    sigma the solve states) per axis, or ``simulate_consist``'s uniform +-10 px (``pp_uniform``)."""
     import tempfile
 
     from workbench.pipeline import STAGES
     from workbench.project import Project
     from workbench.runner import Runner
-    from workbench.synth.relative import levelled_truth, relative_sim, tilt_world, write_relative_incident
+    from workbench.solve.principal_point import guessed_principal_point_sigma_px
+    from workbench.synth import relative as rel
 
-    recs, info = [], {"seeds": [], "skipped_seeds": [], "failed": [], "left_out": 0, "time_s": 0.0,
-                      "track_tilt_deg": TRACK_TILT_DEG}
-    solver = f"level_sigma_common_deg = {TRACK_TILT_DEG}\nlevel_sigma_car_deg = 0.0\n"
-    s, t0 = seed0, time.perf_counter()
+    pp_sigma = guessed_principal_point_sigma_px(rel.WIDTH, rel.HEIGHT) if estimate_focal and not pp_uniform else None
+    recs, info = [], {"seeds": [], "skipped_seeds": [], "failed": [], "left_out": 0, "time_s": 0.0, "track_tilt_deg":
+                      TRACK_TILT_DEG, "principal_point_sigma_px": pp_sigma, "pick_sigma_px": RELATIVE_PICK_SIGMA_PX}
+    solver = (f"level_sigma_common_deg = {TRACK_TILT_DEG}\nlevel_sigma_car_deg = 0.0\n"
+              f"pixel_sigma_px = {RELATIVE_PICK_SIGMA_PX}\n")
+    seed, t0 = seed0 - 1, time.perf_counter()
     while len(recs) < n:
-        seed = s
-        s += 1
+        seed += 1
         try:
-            sim = relative_sim(seed)
+            sim = rel.relative_sim(seed, pixel_sigma_px=RELATIVE_PICK_SIGMA_PX, principal_point_sigma_px=pp_sigma)
         except RuntimeError:
             info["skipped_seeds"].append(seed)
             continue
-        truth, cam = tilt_world(sim, np.random.default_rng(seed), TRACK_TILT_DEG)
-        L = levelled_truth(sim, cam)
+        truth, cam = rel.tilt_world(sim, np.random.default_rng(seed), TRACK_TILT_DEG)
+        L = rel.levelled_truth(sim, cam)
         with tempfile.TemporaryDirectory() as tmp:
-            project = Project(write_relative_incident(Path(tmp) / "inc", sim, focal_known=not estimate_focal,
+            project = Project(rel.write_relative_incident(Path(tmp) / "inc", sim, focal_known=not estimate_focal,
                                                       solver=solver))
             try:
                 with warnings.catch_warnings():
@@ -466,12 +471,12 @@ def route_relative_any(n: int, seed0: int, estimate_focal: bool, log=print) -> t
     return recs, info
 
 
-def route_relative(n, seed0, log=print):
-    return route_relative_any(n, seed0, False, log)
+def route_relative(n, seed0, log=print, pp_uniform=False):
+    return route_relative_any(n, seed0, False, log, pp_uniform)
 
 
-def route_relative_focal(n, seed0, log=print):
-    return route_relative_any(n, seed0, True, log)
+def route_relative_focal(n, seed0, log=print, pp_uniform=False):
+    return route_relative_any(n, seed0, True, log, pp_uniform)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -628,6 +633,8 @@ def main(argv=None) -> int:
     ap.add_argument("--sfm-noise", type=float, nargs=2, default=(0.0, 0.0), metavar=("DEG", "M"),
                     help="route multiview: disturb each SfM pose by N(0, DEG) per rotation axis and N(0, M) per "
                          "centre axis (default exact SfM models)")
+    ap.add_argument("--pp-uniform", action="store_true", help="route relative_focal: the principal point "
+                    "uniform +-10 px off the centre (simulate_consist's), not drawn with the sigma the solve states")
     ap.add_argument("--merge", type=Path, nargs="*", default=None,
                     help="merge saved runs (their carriage records, route by route) and print the table")
     ap.add_argument("--exclude", nargs="*", default=[], metavar="PROBLEM_PREFIX:NUMBER",
@@ -659,9 +666,8 @@ def main(argv=None) -> int:
     for r in routes:
         print(f"route {r}: solving until {a.n} carriages ...", flush=True)
         kw = {"work": a.work, "keep": not a.no_keep, "resolve": a.resolve, "survey_noise": a.survey_noise} \
-            if r == "auto" else {} if r.startswith("relative") else {"work": a.work, "draws": a.draws,
-                                                                   "sfm_noise": tuple(a.sfm_noise)} \
-            if r == "multiview" else \
+            if r == "auto" else {"pp_uniform": a.pp_uniform} if r.startswith("relative") else \
+            {"work": a.work, "draws": a.draws, "sfm_noise": tuple(a.sfm_noise)} if r == "multiview" else \
             {"terrain": a.terrain, "terrain_sigma_m": a.terrain_sigma}
         recs, info = ROUTES[r](a.n, a.seed0, log=lambda m: print(m, flush=True), **kw)
         st = axis_stats(recs)

@@ -58,6 +58,26 @@ class Levelling:
     # where the photo's GPS and compass placed the levelled scene (the solve stage's): world_from_levelled (4, 4),
     # cov (6, 6), centre_enu (3,), record; None: the scene stays relative
     placement: dict | None = None
+    # car number -> (3, 3): how the levelled frame turns (its scene rotation vector) when that car's solved rotation
+    # moves (its scene rotation vector), both in the levelled frame; the cars used only (a car's own tilt feeds the
+    # frame): :meth:`frame_turn`
+    tilt_response: dict[str, np.ndarray] = field(default_factory=dict)
+    # (3, 3): how the levelled frame turns when the camera's forward direction (the ray its y follows) moves, both in
+    # the levelled frame (a turn about z, mostly); None: not computed
+    forward_response: np.ndarray | None = None
+
+    def frame_turn(self, car_turns: dict[str, np.ndarray]) -> np.ndarray:
+        """(3, k): the levelled frame's rotation vector (levelled frame) when the cars used turn by ``car_turns``
+        (car number -> (3, k), their scene rotation vectors in the levelled frame), to first order: their ups move
+        the weighted mean up, and the frame follows (the tilt, and the turn about z it brings). Cars not used, or
+        not named, move nothing."""
+        k = next((np.shape(v)[1] for v in car_turns.values() if np.ndim(v) == 2), 1)
+        out = np.zeros((3, k))
+        for number, T in self.tilt_response.items():
+            d = car_turns.get(number)
+            if d is not None:
+                out += T @ np.asarray(d, float).reshape(3, -1)
+        return out
 
     @property
     def sigma_tilt_deg(self) -> list[float]:
@@ -110,11 +130,11 @@ def _frame(up: np.ndarray, camera_forward: np.ndarray) -> np.ndarray:
     return M
 
 
-def _frame_covariance(u: np.ndarray, camera_forward: np.ndarray, cov_u: np.ndarray) -> np.ndarray:
-    """(3, 3) rad^2: how an error of the estimated up ``u`` (covariance ``cov_u`` (2, 2) in
-    :func:`_tangent_basis`) turns the levelled frame, as a scene rotation vector in that frame: the tilt itself,
-    and the turn about z it brings, since y follows the camera's ray projected on the new level (a numerical
-    derivative; a small rotation's vector is the skew part of R)."""
+def _frame_jacobian(u: np.ndarray, camera_forward: np.ndarray) -> np.ndarray:
+    """(3, 2): how a step of the estimated up ``u`` (in :func:`_tangent_basis`) turns the levelled frame, as a
+    scene rotation vector in that frame: the tilt itself, and the turn about z it brings, since y follows the
+    camera's ray projected on the new level (a numerical derivative; a small rotation's vector is the skew part
+    of R)."""
     B = _tangent_basis(u)
     M = _frame(u, camera_forward)
     J = np.zeros((3, 2))
@@ -123,6 +143,25 @@ def _frame_covariance(u: np.ndarray, camera_forward: np.ndarray, cov_u: np.ndarr
         Mk = _frame(u + h * B[:, k], camera_forward)
         dR = Mk[:3, :3] @ M[:3, :3].T
         J[:, k] = 0.5 * np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]]) / h
+    return J
+
+
+def _forward_jacobian(u: np.ndarray, camera_forward: np.ndarray) -> np.ndarray:
+    """(3, 3): how the levelled frame turns (a scene rotation vector in that frame) when ``camera_forward`` moves,
+    the move expressed in the levelled frame (a numerical derivative, as :func:`_frame_jacobian`)."""
+    M = _frame(u, camera_forward)
+    J = np.zeros((3, 3))
+    h = 1e-6
+    for k in range(3):
+        dR = _frame(u, np.asarray(camera_forward, float) + h * M[:3, :3].T[:, k])[:3, :3] @ M[:3, :3].T
+        J[:, k] = 0.5 * np.array([dR[2, 1] - dR[1, 2], dR[0, 2] - dR[2, 0], dR[1, 0] - dR[0, 1]]) / h
+    return J
+
+
+def _frame_covariance(u: np.ndarray, camera_forward: np.ndarray, cov_u: np.ndarray) -> np.ndarray:
+    """(3, 3) rad^2: the levelled frame's error (:func:`_frame_jacobian`) from an error of the estimated up ``u``
+    of covariance ``cov_u`` (2, 2) in :func:`_tangent_basis`."""
+    J = _frame_jacobian(u, camera_forward)
     return J @ cov_u @ J.T
 
 
@@ -139,7 +178,8 @@ def level_from_carriages(cars: list[UprightCar], camera_up: np.ndarray, camera_f
         why = ("no solved carriage stands on its wheels" if cars else "no carriage was solved")
         return Levelling(_frame(cam_up, camera_forward), cov, [], [c.number for c in cars], "camera",
                          f"{why}: the scene is levelled as if the photo had been held level (sigma "
-                         f"{CAMERA_LEVEL_SIGMA_DEG:g} deg); pitch and roll are only as good as that")
+                         f"{CAMERA_LEVEL_SIGMA_DEG:g} deg); pitch and roll are only as good as that",
+                         forward_response=_forward_jacobian(cam_up, camera_forward))
     u = ups[idx].sum(axis=0)
     u /= np.linalg.norm(u)
     covs = []
@@ -165,6 +205,11 @@ def level_from_carriages(cars: list[UprightCar], camera_up: np.ndarray, camera_f
     Ws = [np.linalg.inv(B.T @ C @ B) for C in covs]
     info = sum(Ws)
     cov_u = np.linalg.inv(info)
+    M = _frame(u, camera_forward)
+    # the mean up's response to each car's turn (d up_i = -[up_i]x d_theta_i, provisional frame), carried to the
+    # frame's turn, both in the levelled frame (d_theta_provisional = R^T d_theta_levelled)
+    Jf = _frame_jacobian(u, camera_forward)
+    response = {cars[i].number: Jf @ cov_u @ W @ B.T @ (-skew(ups[i])) @ M[:3, :3].T for i, W in zip(idx, Ws)}
     ds = [B.T @ (ups[i] - u) for i in idx]
     chi2 = float(sum(di @ W @ di for W, di in zip(Ws, ds)))
     dof = 2 * (len(idx) - 1)
@@ -172,12 +217,12 @@ def level_from_carriages(cars: list[UprightCar], camera_up: np.ndarray, camera_f
     if birge > 1.0:
         cov_u *= birge ** 2
     cov_u += s_common ** 2 * np.eye(2)
-    M = _frame(u, camera_forward)
-    cov = _frame_covariance(u, camera_forward, cov_u)
+    cov = Jf @ cov_u @ Jf.T
     left = [cars[i].number for i in range(len(cars)) if i not in idx]
     note = (f"levelled from {len(idx)} carriage(s) standing on their wheels ({', '.join(cars[i].number for i in idx)})"
             + (f"; left out as not upright: {', '.join(left)}" if left else ""))
     facts = {"chi2": chi2, "dof": dof, "birge_ratio": birge, "sigma_car_deg": sigma_car_deg,
              "sigma_common_deg": sigma_common_deg,
              "camera_tilt_deg": _angle_deg(u, cam_up)}
-    return Levelling(M, 0.5 * (cov + cov.T), [cars[i].number for i in idx], left, "carriages", note, facts)
+    return Levelling(M, 0.5 * (cov + cov.T), [cars[i].number for i in idx], left, "carriages", note, facts,
+                     tilt_response=response, forward_response=_forward_jacobian(u, camera_forward))

@@ -27,6 +27,7 @@ from ..files import correspondences
 from ..files.cameras import parse_pose_uncertainty, read_cameras
 from ..files.panorama import read_panorama
 from .level import Levelling, UprightCar, level_from_carriages
+from .principal_point import guessed_principal_point_term
 from .model import CarriageInput, ChainLink, Observation, SolveOptions, SolveWarning, View
 from .solver import solve_consist
 from .uncertainty import add_camera_uncertainty, add_view_camera_uncertainty
@@ -213,9 +214,14 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
         camera_unc["carriages"] = add_camera_uncertainty(res, camera_unc["centre_enu"], camera_unc["cov"])
     elif levelling is None:
         camera_unc = multiview_camera_uncertainty(res, carriages, links, views, cam_doc, cam_path, opts)
+    # a relative scene with a guessed camera: the principal point's error (docs/solver.md, "Relative scenes")
+    pp_term = guessed_principal_point_term(res, carriages, links, views, opts, levelling,
+                                           cam_doc.get("intrinsics_source"))
     used = {c.number: c.observations for c in carriages}
     doc = solution_document(project, res, views, cam_doc, used, levelling)
     doc["camera_uncertainty"] = _camera_uncertainty_record(camera_unc, cam_doc)
+    if pp_term is not None:
+        doc["camera_uncertainty"]["principal_point"] = pp_term
     for rec in doc["carriages"]:
         sb, sh = fit_sigmas.get(rec["number"], (None, None))
         rec["sigma_body_centre_fit_m"] = None if sb is None else np.asarray(sb, dtype=float).tolist()

@@ -491,17 +491,34 @@ def add_camera_uncertainty(res: Any, centre_enu: np.ndarray, cov_camera: np.ndar
     C_cam = np.asarray(cov_camera, dtype=float)
     if C_cam.shape != (6, 6) or not np.all(np.isfinite(C_cam)):
         raise ValueError(f"camera covariance must be a finite (6, 6) matrix, got shape {C_cam.shape}")
-    q = float(res.ci95_factor) if getattr(res, "ci95_factor", None) else 1.959963984540054
-    changed = []
+    extra = {}
     for cr in res.carriages:
-        if cr.covariance_pose is None or cr.world_from_carriage is None or cr.body_centre_m is None:
+        if cr.world_from_carriage is not None:
+            A = camera_pose_jacobian(np.asarray(cr.world_from_carriage, dtype=float), centre_enu)
+            extra[cr.number] = A @ C_cam @ A.T
+    return list(add_pose_covariance(res, extra))
+
+
+def add_pose_covariance(res: Any, extra: dict[str, np.ndarray]) -> dict[str, dict]:
+    """Add ``extra[number]`` (6, 6: scene rotation vector, origin) to that carriage's ``covariance_pose``, in place,
+    and recompute its sigmas and 95 % intervals with the fit's ``ci95_factor`` (carriages without an interval
+    are left as they are). Returns, per carriage changed, the sigmas of the term alone: ``sigma_hpr_deg`` (3,),
+    ``sigma_body_centre_m`` (3,)."""
+    q = float(res.ci95_factor) if getattr(res, "ci95_factor", None) else 1.959963984540054
+    out = {}
+    for cr in res.carriages:
+        if cr.number not in extra or cr.covariance_pose is None or cr.world_from_carriage is None \
+                or cr.body_centre_m is None:
             continue
         M = np.asarray(cr.world_from_carriage, dtype=float)
-        A = camera_pose_jacobian(M, centre_enu)
-        C = np.asarray(cr.covariance_pose, dtype=float) + A @ C_cam @ A.T
-        _set_pose_covariance(cr, 0.5 * (C + C.T), M[:3, :3], np.asarray(cr.body_centre_m, dtype=float) - M[:3, 3], q)
-        changed.append(cr.number)
-    return changed
+        X = np.asarray(extra[cr.number], dtype=float)
+        C = np.asarray(cr.covariance_pose, dtype=float) + X
+        Jb = _set_pose_covariance(cr, 0.5 * (C + C.T), M[:3, :3],
+                                  np.asarray(cr.body_centre_m, dtype=float) - M[:3, 3], q)
+        Jh = _hpr_jac(M[:3, :3])
+        out[cr.number] = {"sigma_hpr_deg": np.sqrt(np.maximum(np.diag(Jh @ X[:3, :3] @ Jh.T), 0.0)).tolist(),
+                          "sigma_body_centre_m": np.sqrt(np.maximum(np.diag(Jb @ X @ Jb.T), 0.0)).tolist()}
+    return out
 
 
 def view_information(world_from_carriage: np.ndarray, rows: dict[int, tuple[np.ndarray, np.ndarray]],

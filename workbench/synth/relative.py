@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -32,11 +33,31 @@ def centre_ray(intr) -> np.ndarray:
     return intr.rays(np.array([[(intr.width - 1) / 2.0, (intr.height - 1) / 2.0]]))[0]
 
 
-def relative_sim(seed: int, n_cars: int = 3, pixel_sigma_px: float = 0.5) -> SimProblem:
+def relative_sim(seed: int, n_cars: int = 3, pixel_sigma_px: float = 0.5,
+                 principal_point_sigma_px: float | None = None) -> SimProblem:
     """A consist on a level track, one 1600 x 1200 photo from 12 m up, no distortion (a fallback camera's
-    model), ``pixel_sigma_px`` pick noise. :class:`RuntimeError` when a car falls outside the photo."""
-    return simulate_consist(n_cars, seed=seed, slope_deg=0.0, width=WIDTH, height=HEIGHT, focal_px=1300.0,
-                            distortion=(0.0, 0.0), pixel_sigma_px=pixel_sigma_px, camera_height_m=12.0)
+    model), ``pixel_sigma_px`` pick noise. ``principal_point_sigma_px``: the camera's principal point drawn
+    N(0, that) per axis off the photo's centre (a camera the solve does not know, which takes it at the centre:
+    :mod:`workbench.solve.principal_point`) instead of :func:`simulate_consist`'s uniform +-10 px, the picks moved
+    with it (exact: no distortion). :class:`RuntimeError` when a car falls outside the photo."""
+    sim = simulate_consist(n_cars, seed=seed, slope_deg=0.0, width=WIDTH, height=HEIGHT, focal_px=1300.0,
+                           distortion=(0.0, 0.0), pixel_sigma_px=pixel_sigma_px, camera_height_m=12.0)
+    if principal_point_sigma_px is None:
+        return sim
+    view = sim.views[0]
+    intr = view.intrinsics
+    c = np.array([(intr.width - 1) / 2.0, (intr.height - 1) / 2.0])
+    c = c + np.random.default_rng([seed, 1]).normal(0.0, principal_point_sigma_px, 2)
+    shift = c - [intr.cx, intr.cy]
+    for cin in sim.carriages:
+        obs = cin.observations[view.name]
+        uv = np.array([obs[p] for p in obs]) + shift
+        if not np.all(intr.in_image(uv, margin=1.0)):
+            raise RuntimeError(f"relative_sim(seed={seed}): car {cin.number} is not fully in the image")
+        cin.observations[view.name] = {p: tuple(map(float, x)) for p, x in zip(obs, uv)}
+    sim.clean_pixels = [{p: (u + shift[0], v + shift[1]) for p, (u, v) in d.items()} for d in sim.clean_pixels]
+    sim.views[0] = replace(view, intrinsics=replace(intr, cx=float(c[0]), cy=float(c[1])))
+    return sim
 
 
 def tilt_world(sim: SimProblem, rng: np.random.Generator, sigma_deg: float) -> tuple[list[np.ndarray], np.ndarray]:
