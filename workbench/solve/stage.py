@@ -26,7 +26,7 @@ from ..core.stage_api import Progress, StageResult
 from ..files import correspondences
 from ..files.cameras import parse_pose_uncertainty, read_cameras
 from ..files.panorama import read_panorama
-from .level import Levelling, UprightCar, level_from_carriages
+from .level import Levelling, UprightCar, add_levelling_uncertainty, level_from_carriages
 from .principal_point import guessed_principal_point_term
 from .model import CarriageInput, ChainLink, Observation, SolveOptions, SolveWarning, View
 from .solver import solve_consist
@@ -210,7 +210,9 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
     progress(0.9, "writing the solution")
     fit_sigmas = {c.number: (c.sigma_body_centre_m, c.sigma_hpr_deg) for c in res.carriages}
     camera_unc = camera_uncertainty(cam_doc) if levelling is None else _levelling_uncertainty(levelling)
-    if camera_unc is not None:
+    if camera_unc is not None and levelling is not None and levelling.placement is None:
+        camera_unc["carriages"] = add_levelling_uncertainty(res, levelling)  # the fit's share of it kept
+    elif camera_unc is not None:
         camera_unc["carriages"] = add_camera_uncertainty(res, camera_unc["centre_enu"], camera_unc["cov"])
     elif levelling is None:
         camera_unc = multiview_camera_uncertainty(res, carriages, links, views, cam_doc, cam_path, opts)
