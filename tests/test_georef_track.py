@@ -165,6 +165,11 @@ def test_panorama_route_uses_track_picks_from_the_file(small_incident, track_tru
     atomic_write_json(root / "control_points.json", doc)
     with pytest.raises(InputError, match=r"control_points.json: track_picks\[0\].*no-such-line.*spuyten-duyvil-track"):
         run_georef(Project(root), lambda f, m="": None)
+    # no railway layer: the error says which setting to give
+    toml = root / "project.toml"
+    toml.write_text("\n".join(ln for ln in toml.read_text().splitlines() if not ln.startswith("railways")))
+    with pytest.raises(InputError, match=r"control_points.json: has track_picks.*terrain.railways"):
+        run_georef(Project(root), lambda f, m="": None)
 
 
 def test_picker_save_keeps_the_files_track_picks(small_incident, tmp_path):
