@@ -234,3 +234,24 @@ def test_a_changed_library_type_makes_the_solve_stale(tmp_path, monkeypatch):
     assert st.status == "stale" and f"library:{consist[0]}.toml" in st.reason, st.reason
     r.run()
     assert len(calls) == 2
+
+
+def test_track_picks_make_the_railway_layer_and_the_dem_georef_inputs(tmp_path):
+    """With track picks in control_points.json, georef reads the railway layer and the DEM (the rails' heights):
+    both are its inputs; without track picks neither is."""
+    from workbench import pipeline
+
+    p = make_project(tmp_path)
+    (p.root / "rails.geojson").write_text('{"type": "FeatureCollection", "features": []}')
+    (p.root / "dem.tif").write_bytes(b"")
+    text = p.settings_path.read_text()
+    assert "[terrain]" in text
+    p.settings_path.write_text(text.replace("[terrain]", '[terrain]\nrailways = "rails.geojson"\ndem = "dem.tif"', 1))
+    p.reload()
+    georef = next(s for s in pipeline.STAGES if s.name == "georef")
+    cp = p.root / "control_points.json"
+    cp.write_text('{"crs": "EPSG:32618", "points": []}')
+    assert not {"railways", "dem"} & set(georef.inputs(p))
+    cp.write_text('{"crs": "EPSG:32618", "points": [], "track_picks": [{"photo": "a.jpg", "pixels": [[1, 2]]}]}')
+    inputs = georef.inputs(p)
+    assert inputs["railways"] == p.root / "rails.geojson" and inputs["dem"] == p.root / "dem.tif"

@@ -189,6 +189,18 @@ def _sfm_inputs(project: Project) -> dict[str, Path]:
     return {**_photo_files(project), **_setting_file(project, "camera_profile", "camera.profile")}
 
 
+def _has_track_picks(path: Path) -> bool:
+    """Whether a control-points file has picks on the track (then georef reads the railway layer and the DEM
+    its heights may come from); a file that does not parse: no (its reader names the error)."""
+    import json
+
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, ValueError):
+        return False
+    return isinstance(doc, dict) and bool(doc.get("track_picks"))
+
+
 def _georef_inputs(project: Project) -> dict[str, Path]:
     files: dict[str, Path] = {}
     route = project.georef_route()
@@ -196,6 +208,9 @@ def _georef_inputs(project: Project) -> dict[str, Path]:
         files["cameras"] = project.own_cameras_path
     if project.control_points_path.is_file():
         files["control_points"] = project.control_points_path
+        if _has_track_picks(project.control_points_path):
+            files.update(_railway_files(project))
+            files.update(_dem_files(project))
     if route == "panorama":
         p = project.panorama_model_path
         if p.is_file():
