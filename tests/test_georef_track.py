@@ -188,3 +188,25 @@ def test_picker_save_keeps_the_files_track_picks(small_incident, tmp_path):
     saved = json.loads((root / "control_points.json").read_text())
     assert [p["name"] for p in saved["points"]] == [p["name"] for p in points]
     assert saved["track_picks"] == tp
+
+
+def test_control_points_command_writes_track_picks(small_incident, tmp_path):
+    """`workbench control-points PATH --force --track-picks` writes the landmarks and the rails' true pixels; the
+    file then reads back with its track picks."""
+    import subprocess
+    import sys
+
+    src, _ = small_incident
+    shutil.copytree(src.parent.parent, tmp_path, dirs_exist_ok=True, ignore=shutil.ignore_patterns("out", "photos"))
+    root = tmp_path / "projects" / src.name
+    (root / "photos").mkdir(exist_ok=True)
+    (root / "photos" / "panorama").symlink_to(src / "photos" / "panorama")
+    before = json.loads((root / "control_points.json").read_text())
+    assert not before.get("track_picks")
+    r = subprocess.run([sys.executable, "-m", "workbench.cli", "control-points", str(root), "--force", "--track-picks"],
+                       capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stderr
+    doc = json.loads((root / "control_points.json").read_text())
+    assert [p["name"] for p in doc["points"]] == [p["name"] for p in before["points"]]
+    picks = parse_track_picks(doc, "control_points.json")
+    assert len(picks) >= 2 and {p.rail for p in picks} == {"left", "right"}

@@ -330,13 +330,16 @@ def type_fit(path: Path = typer.Argument(..., help="a folder of photos of intact
 
 @app.command(name="control-points")
 def control_points(path: Path = typer.Argument(..., help="synthetic incident folder"),
-                   force: bool = typer.Option(False, "--force", help="replace an existing control_points.json")
+                   force: bool = typer.Option(False, "--force", help="replace an existing control_points.json"),
+                   track_picks: bool = typer.Option(False, "--track-picks",
+                                                    help="also the rails' true pixels in the panorama's photos "
+                                                         "(track picks, docs/gis.md)")
                    ) -> None:
     """Write control_points.json for a synthetic incident: surveyed landmarks and their pixels, from its truth
     (`workbench synth` does this too)."""
     from .synth.control_points import write_control_points
 
-    out.print(f"wrote {write_control_points(path, force=force)}")
+    out.print(f"wrote {write_control_points(path, force=force, track_picks=track_picks)}")
 
 
 def _register_stage_commands() -> None:
