@@ -355,3 +355,32 @@ def test_map_draws_the_line_and_records_a_layer_without_one(solved, tmp_path, mo
             assert run.railways["lines"] == 0 and "stations.geojson" in run.railways["warnings"][0]
     assert maps["with"].shape == maps["without"].shape
     assert np.mean(np.abs(maps["with"] - maps["without"]) > 40) > 0.002  # the dashed line and its ticks
+
+
+def _way(i, refs, **tags):
+    return (f'<way id="{i}">' + "".join(f'<nd ref="{r}"/>' for r in refs)
+            + "".join(f'<tag k="{k}" v="{v}"/>' for k, v in {"railway": "rail", **tags}.items()) + "</way>")
+
+
+def test_openstreetmap_pieces_of_one_track_are_joined(tmp_path):
+    """OpenStreetMap splits a track at bridges and tag changes: ways that continue one another end to end (same
+    name, no other railway way at the node) are one line, in the first way's direction, the others reversed as
+    needed; a switch (three ways at a node), another name, or a piece with its own chainage origin ends a line."""
+    enu = np.array([[0.0, 100.0 * k, 0.0] for k in range(12)])  # nodes 1..12, 100 m apart northwards
+    nodes = _osm_nodes(FRAME.wgs84_from_enu(enu))
+    ways = [_way(10, [1, 2, 3]), _way(11, [5, 4, 3]), _way(12, [5, 6]),  # one track in three pieces, 11 reversed
+            _way(13, [6, 7]), _way(14, [6, 8]),  # a switch at 6: the through line ends, both branches stand alone
+            _way(20, [9, 10], name="Hudson Line"), _way(21, [10, 11], name="Harlem Line"),  # names differ at 10
+            _way(30, [11, 12], name="Harlem Line", chainage_origin="500")]  # its own origin: nothing before it
+    p = tmp_path / "split.osm"
+    p.write_text(f'<osm version="0.6">{nodes}{"".join(ways)}</osm>')
+    layer = read_railways(p, FRAME)
+    by_id = {ln.id: ln for ln in layer.lines}
+    assert sorted(by_id) == ["way/10", "way/13", "way/14", "way/20", "way/21", "way/30"]
+    joined = by_id["way/10"]
+    assert np.allclose(joined.points_enu[:, :2], enu[:6, :2], atol=1e-3)  # nodes 1..6 in order
+    assert abs(joined.length_m - 500.0) < 0.01 and joined.chainage_origin_m == 0.0
+    assert [len(by_id[k].points_enu) for k in ("way/13", "way/14", "way/20", "way/21", "way/30")] == [2, 2, 2, 2, 2]
+    assert by_id["way/30"].chainage_origin_m == 500.0
+    # the joined line's chainage runs on across the pieces: node 5 (in the reversed piece) at 400 m
+    assert abs(joined.foot(enu[4, :2]).chainage_m - 400.0) < 0.01

@@ -8,6 +8,7 @@
   property, else ``#<index>``), ``chainage_origin`` (the chainage in metres at the line's first vertex).
 * **OpenStreetMap XML** (``.osm`` / ``.xml``): ``<way>`` elements tagged ``railway=rail``, their ``<nd ref>``
   nodes' ``lat`` / ``lon``; ``name`` (else ``ref``) tag, id ``way/<id>``; a ``chainage_origin`` tag as above.
+  Ways that continue one another are joined into one line (:func:`_joined_ways`).
   OSM PBF is not read: convert it (``osmium cat in.osm.pbf -o out.osm``).
 
 Every line comes back in the scene frame (:class:`~workbench.core.track.RailwayLine`, ENU metres, converted vertex
@@ -197,7 +198,7 @@ def parse_railways_osm(text: str, where: str) -> tuple[list[tuple[str, str | Non
             raise InputError(f"{where}: node {nid!r} has lat = {n.get('lat')!r}, lon = {n.get('lon')!r}; give "
                              f"WGS84 degrees")
         nodes[nid] = (lon, lat)
-    lines, skipped = [], 0
+    ways, skipped = [], 0
     for way in root.iter("way"):
         wid = way.get("id")
         tags = {t.get("k"): t.get("v") for t in way.iter("tag")}
@@ -212,10 +213,86 @@ def parse_railways_osm(text: str, where: str) -> tuple[list[tuple[str, str | Non
         if missing:
             raise InputError(f"{w}: node {missing[0]} is not in the file ({len(missing)} of the way's {len(refs)} "
                              f"nodes missing); export complete ways (e.g. osmium extract --strategy complete_ways)")
+        ways.append(_Way(str(wid), refs, tags, _chainage_origin(tags, w)))
+    lines = []
+    for chain in _joined_ways(ways):
+        first = chain[0][0]
+        refs = list(first.refs if not chain[0][1] else first.refs[::-1])
+        for way, rev in chain[1:]:
+            refs += (way.refs[::-1] if rev else way.refs)[1:]
         P = np.array([[*nodes[r], np.nan] for r in refs])
-        name = tags.get("name") or tags.get("ref")
-        lines.append((f"way/{wid}", name, P, _chainage_origin(tags, w), tags))
+        tags = dict(first.tags)
+        if len(chain) > 1:
+            tags["joined_ways"] = ";".join(way.id for way, _ in chain)
+        lines.append((f"way/{first.id}", first.tags.get("name") or first.tags.get("ref"), P, first.origin, tags))
     return lines, skipped
+
+
+@dataclass(frozen=True)
+class _Way:
+    id: str
+    refs: list[str]
+    tags: dict
+    origin: float  # the chainage_origin tag at its first node (0: none)
+
+    @property
+    def line_key(self) -> str | None:
+        """What makes two pieces one line: their name, else their ref (None: unnamed)."""
+        return self.tags.get("name") or self.tags.get("ref")
+
+
+def _joined_ways(ways: list[_Way]) -> list[list[tuple[_Way, bool]]]:
+    """OpenStreetMap splits a track into ways at every bridge, level crossing or change of a tag; the pieces that
+    continue one another are joined into one line: two ways meet end to end at a node that no other railway way
+    touches (a switch, where three meet, ends them), with the same name (else ref; or both none), and the piece
+    joined on carries no chainage origin of its own. Each chain starts at a way that has a chainage origin, else
+    at a way whose start is open (kept as drawn), else at an open end (that way reversed); the ways after it are
+    reversed where they run the other way, so a line's direction, and with it its chainage, is its first way's. Returns the chains as (way, reversed)
+    lists, in the order of their first ways in the file."""
+    touches: dict[str, int] = {}
+    for w in ways:
+        for r in set(w.refs):
+            touches[r] = touches.get(r, 0) + 1
+    ends: dict[str, list[tuple[int, int]]] = {}  # node -> [(way index, 0 start / 1 end)]
+    for i, w in enumerate(ways):
+        if w.refs[0] != w.refs[-1]:  # a closed way (a loop) is a line of its own
+            for side, r in ((0, w.refs[0]), (1, w.refs[-1])):
+                ends.setdefault(r, []).append((i, side))
+    link: dict[tuple[int, int], tuple[int, int]] = {}
+    for r, at in ends.items():
+        if len(at) != 2 or touches.get(r, 0) != 2:
+            continue
+        (i, si), (j, sj) = at
+        a, b = ways[i], ways[j]
+        if i == j or a.line_key != b.line_key:
+            continue
+        # a piece with its own chainage origin starts a line: nothing is joined before its first node
+        if (si == 0 and a.tags.get("chainage_origin") is not None) or (sj == 0 and b.tags.get("chainage_origin")
+                                                                       is not None):
+            continue
+        link[(i, si)], link[(j, sj)] = (j, sj), (i, si)
+    used, chains = set(), []
+    n = len(ways)
+    starts = [i for i, w in enumerate(ways) if w.tags.get("chainage_origin") is not None]
+    starts += [i for i in range(n) if (i, 0) not in link]  # an open start: the line begins there, as drawn
+    starts += [i for i in range(n) if (i, 1) not in link]  # an open end only: the line begins there, reversed
+    starts += list(range(n))  # what is left: closed chains, broken at their first way
+    for s in starts:
+        if s in used:
+            continue
+        rev = (s, 0) in link and (s, 1) not in link
+        chain, i = [], s
+        while i not in used:
+            used.add(i)
+            chain.append((ways[i], rev))
+            nxt = link.get((i, 0 if rev else 1))
+            if nxt is None:
+                break
+            i, side = nxt
+            rev = side == 1  # entered at its end: it runs the other way
+        chains.append(chain)
+    order = {id(w): k for k, w in enumerate(ways)}
+    return sorted(chains, key=lambda c: min(order[id(w)] for w, _ in c))
 
 
 # ----------------------------------------------------------------------------------------------------------
