@@ -7,8 +7,6 @@ from __future__ import annotations
 import json
 import math
 import time
-import warnings
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -384,3 +382,33 @@ def test_openstreetmap_pieces_of_one_track_are_joined(tmp_path):
     assert by_id["way/30"].chainage_origin_m == 500.0
     # the joined line's chainage runs on across the pieces: node 5 (in the reversed piece) at 400 m
     assert abs(joined.foot(enu[4, :2]).chainage_m - 400.0) < 0.01
+
+
+@pytest.mark.parametrize("positions, expected, turned", [
+    (("12.3", "12,5"), (12300.0, 12500.0), False),  # km, a decimal comma read as a point
+    (("12.5", "12.3"), (12500.0, 12300.0), True),  # counting down along the line as drawn: turned
+    (("mi:7.6429", "mi:7.7672"), (7.6429 * 1609.344, 7.7672 * 1609.344), False)])  # miles
+def test_chainage_from_kilometre_posts(tmp_path, positions, expected, turned):
+    """Without a chainage_origin, an OSM line's chainage comes from the kilometre posts beside it (railway=milestone,
+    railway:position in km, or mi:<miles>): the posts read their own positions back; a line the posts count down
+    along is turned; a post far from the line is not used; a chainage_origin tag wins over the posts."""
+    enu = np.array([[0.0, 100.0 * k, 0.0] for k in range(5)])  # nodes 1..5, 100 m apart northwards
+    posts_enu = np.array([[5.0, 100.0, 0.0], [-4.0, 300.0, 0.0], [200.0, 200.0, 0.0]])  # beside, beside, far
+    ll = FRAME.wgs84_from_enu(np.vstack([enu, posts_enu]))
+    nodes = [f'<node id="{i + 1}" lat="{p[1]:.9f}" lon="{p[0]:.9f}"/>' for i, p in enumerate(ll[:5])]
+    for k, (p, v) in enumerate(zip(ll[5:], (*positions, "99.0"))):
+        nodes.append(f'<node id="{100 + k}" lat="{p[1]:.9f}" lon="{p[0]:.9f}"><tag k="railway" v="milestone"/>'
+                     f'<tag k="railway:position" v="{v}"/></node>')
+    p = tmp_path / "posts.osm"
+    p.write_text(f'<osm version="0.6">{"".join(nodes)}{_way(1, [1, 2, 3, 4, 5])}</osm>')
+    line = read_railways(p, FRAME).lines[0]
+    assert line.properties["chainage_source"]["posts"] == ["100", "101"]
+    # the posts are 200 m apart along the line and 200 m (or 200 m in miles, to 0.3 m) apart in chainage
+    assert line.properties["chainage_source"]["spread_m"] < 0.3
+    for k in range(2):
+        assert abs(line.foot(posts_enu[k, :2]).chainage_m - expected[k]) < 0.3
+    assert np.allclose(line.points_enu[0, :2], enu[-1 if turned else 0, :2], atol=1e-3)
+    p.write_text(p.read_text().replace('<tag k="railway" v="rail"/>',
+                                       '<tag k="railway" v="rail"/><tag k="chainage_origin" v="1000"/>'))
+    line = read_railways(p, FRAME).lines[0]
+    assert "chainage_source" not in line.properties and line.chainage_origin_m == 1000.0

@@ -8,7 +8,8 @@
   property, else ``#<index>``), ``chainage_origin`` (the chainage in metres at the line's first vertex).
 * **OpenStreetMap XML** (``.osm`` / ``.xml``): ``<way>`` elements tagged ``railway=rail``, their ``<nd ref>``
   nodes' ``lat`` / ``lon``; ``name`` (else ``ref``) tag, id ``way/<id>``; a ``chainage_origin`` tag as above.
-  Ways that continue one another are joined into one line (:func:`_joined_ways`).
+  Ways that continue one another are joined into one line (:func:`_joined_ways`). Without a ``chainage_origin``, a
+  line's chainage comes from the kilometre posts beside it (``railway=milestone`` nodes with ``railway:position``).
   OSM PBF is not read: convert it (``osmium cat in.osm.pbf -o out.osm``).
 
 Every line comes back in the scene frame (:class:`~workbench.core.track.RailwayLine`, ENU metres, converted vertex
@@ -44,7 +45,7 @@ if TYPE_CHECKING:  # pragma: no cover
 log = logging.getLogger(__name__)
 
 __all__ = ["RailwayLine", "RailwayLayer", "NoRailwayLines", "read_railways", "parse_railways_geojson",
-           "parse_railways_osm", "write_railways_geojson", "carriage_track_positions", "RAILWAY_TAGS"]
+           "parse_railways_osm", "parse_milestones_osm", "write_railways_geojson", "carriage_track_positions", "RAILWAY_TAGS"]
 
 #: The ``railway`` values read as railway lines (OpenStreetMap's tag for a main-line track).
 RAILWAY_TAGS = ("rail",)
@@ -316,6 +317,69 @@ def _enu_line(lid: str, name: str | None, coords: np.ndarray, origin: float, pro
     return RailwayLine(lid, name, enu, origin, {k: v for k, v in props.items() if isinstance(k, str)})
 
 
+#: A kilometre post counts for a line when it stands within this distance of it (m): beside the track.
+POST_MAX_OFFSET_M = 25.0
+#: Posts whose chainages disagree with the line's length by more than this (m) are warned about.
+POST_MAX_SPREAD_M = 50.0
+
+
+def parse_milestones_osm(text: str, where: str) -> list[tuple[str, float, float, float]]:
+    """The kilometre posts of an OpenStreetMap XML document: nodes tagged ``railway=milestone`` with a
+    ``railway:position`` (kilometres, ``12.3``; miles with ``mi:``, ``mi:7.25``; a decimal comma read as a point),
+    as ``(node id, lon, lat, position in metres)``; a post whose position does not read is skipped with a
+    warning naming it."""
+    root = ET.fromstring(text)  # parse_railways_osm has checked the document
+    out = []
+    for n in root.iter("node"):
+        tags = {t.get("k"): t.get("v") for t in n.iter("tag")}
+        if tags.get("railway") != "milestone" or tags.get("railway:position") is None:
+            continue
+        v = str(tags["railway:position"]).strip().replace(",", ".")
+        unit = 1000.0
+        if v.lower().startswith("mi:"):
+            v, unit = v[3:].strip(), 1609.344
+        try:
+            pos = float(v) * unit
+        except ValueError:
+            log.warning("%s: node %s: railway:position = %r is not a number of kilometres (or mi:<miles>); "
+                        "post not used", where, n.get("id"), tags["railway:position"])
+            continue
+        if math.isfinite(pos):
+            out.append((str(n.get("id")), float(n.get("lon")), float(n.get("lat")), pos))
+    return out
+
+
+def _chainage_from_posts(line: RailwayLine, posts: list[tuple[str, float, float, float]], frame: SceneFrame,
+                         where: str) -> RailwayLine:
+    """The line's chainage from the kilometre posts beside it (within :data:`POST_MAX_OFFSET_M`), where the
+    layer gives it no ``chainage_origin``: the origin that puts the posts at their positions (the median over the
+    posts), the line reversed first when the posts count down along it (chainage grows along a line). Recorded in
+    its properties as ``chainage_source``; posts that disagree by more than :data:`POST_MAX_SPREAD_M` with one
+    another (a chainage jump, a misplaced post) are warned about."""
+    if not posts or "chainage_origin" in line.properties:
+        return line
+    ll = np.array([[lon, lat, frame.height_m] for _, lon, lat, _ in posts])
+    enu = enu_from_layer_coords(ll, "EPSG:4326", frame, f"{where}: kilometre posts")
+    feet = [line.foot(p[:2]) for p in enu]
+    near = [(pid, pos, f) for (pid, _, _, pos), f in zip(posts, feet)
+            if abs(f.offset_m) <= POST_MAX_OFFSET_M and not f.beyond_end]
+    if not near:
+        return line
+    along = np.array([f.chainage_m - line.chainage_origin_m for _, _, f in near])
+    pos = np.array([p for _, p, _ in near])
+    P = line.points_enu
+    if len(near) >= 2 and np.polyfit(along, pos, 1)[0] < 0:  # the posts count down along the line: turn it
+        total = float(np.sum(np.linalg.norm(np.diff(P[:, :2], axis=0), axis=1)))
+        P, along = P[::-1].copy(), total - along
+    origin = float(np.median(pos - along))
+    spread = float(np.max(np.abs(pos - along - origin)))
+    if spread > POST_MAX_SPREAD_M:
+        log.warning("%s: line %s: its %d kilometre posts disagree with its length by up to %.0f m (a chainage jump "
+                    "or a misplaced post); chainage from their median", where, line.id, len(near), spread)
+    source = {"posts": [pid for pid, _, _ in near], "spread_m": round(spread, 2)}
+    return RailwayLine(line.id, line.name, P, origin, {**line.properties, "chainage_source": source})
+
+
 def _drape(lines: list[RailwayLine], terrain: "TerrainModel") -> tuple[list[RailwayLine], bool]:
     out, any_dem = [], False
     for ln in lines:
@@ -364,6 +428,8 @@ def read_railways(path: str | Path, frame: SceneFrame, *, terrain: "TerrainModel
         warnings.warn(msg, NoRailwayLines, stacklevel=2)
         return None
     lines = [_enu_line(*r, crs, frame, where) for r in raw]
+    if is_osm:
+        lines = [_chainage_from_posts(ln, parse_milestones_osm(text, where), frame, where) for ln in lines]
     heights = "file" if all(np.all(np.isfinite(r[2][:, 2])) for r in raw) else "none"
     if terrain is not None:
         lines, draped = _drape(lines, terrain)

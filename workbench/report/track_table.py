@@ -39,8 +39,14 @@ def track_table(project: Project, solution: Solution) -> dict | None:
         rows.append(row)
     tp = next(iter(positions.values()))
     line = next(ln for ln in layer.lines if ln.id == tp.line_id)
-    origin = (f"chainage {line.chainage_origin_m:g} m at its first vertex (the layer's chainage_origin)"
-              if line.chainage_origin_m else "its first vertex")
+    posts = line.properties.get("chainage_source")
+    if posts:
+        origin = (f"the {len(posts['posts'])} kilometre post(s) beside the line (OpenStreetMap railway:position; "
+                  f"they agree with the line's length to {posts['spread_m']:g} m)")
+    elif line.chainage_origin_m:
+        origin = f"chainage {line.chainage_origin_m:g} m at its first vertex (the layer's chainage_origin)"
+    else:
+        origin = "its first vertex"
     return {"line": line.label, "layer": project.relative(layer.path), "origin": origin, "n_lines": len(layer.lines),
             "rows": rows, "any_beyond_end": any(r["beyond_end"] for r in rows),
             "figures": {n: p.to_dict() for n, p in positions.items()}}
