@@ -476,6 +476,37 @@ def test_stage_cache_gives_what_it_computes(incident):
     assert cache.load(cdir / "photo_absent.npz") is None
 
 
+def test_features_computed_ahead_give_the_same_points(incident, tmp_path):
+    """The photos' features computed ahead of the stage (correspond/prefetch.py, a forked process started when a run
+    begins) are the entries the stage reads: the same correspondences.json as the stage computing them itself; the
+    photos not begun when the stage starts are the stage's, one being computed is waited for. (OpenCV's generator
+    of this thread seeded before each: the panorama carry's FLANN trees draw from it, and in one process a stage
+    run earlier has moved it.)"""
+    import shutil
+
+    from workbench.correspond import prefetch
+
+    project, _, _ = incident
+    docs = []
+    for ahead in (False, True):
+        root = tmp_path / f"inc_{ahead}"
+        shutil.copytree(project.root, root, ignore=shutil.ignore_patterns("out"))
+        copy = Project(root)
+        Runner(copy, [s for s in STAGES if s.name == "inputs"]).run(only=["inputs"])
+        cv2.setRNGSeed(5)
+        if ahead:
+            cs.prefetch_features(copy)
+            status = prefetch._STATE["status"]
+            t0 = time.perf_counter()
+            while status[0] != prefetch.DONE and time.perf_counter() - t0 < 120:
+                time.sleep(0.05)
+            assert copy.photo_paths()[0].name in prefetch.stop()["done"]
+        res = cs.run_correspond(copy, lambda f, m="": None)
+        assert not prefetch._STATE
+        docs.append(Path(res.outputs["correspondences"]).read_bytes())
+    assert docs[0] == docs[1]
+
+
 def test_reference_without_texture_needs_manual_points(incident):
     project, truth, _ = incident
     photos = project.photo_paths()[:1]

@@ -371,7 +371,7 @@ STAGES: list[StageSpec] = [
     StageSpec("correspond", "marked points in the photos: SIFT against each car's livery, plus manual picks",
               "workbench.correspond.stage:run_correspond", inputs=_correspond_inputs,
               settings_sections=("consist", "camera", "location", "correspond", *TERRAIN_MODEL_KEYS),
-              depends_on=("inputs",),
+              depends_on=("inputs",), prefetch="workbench.correspond.stage:prefetch_features",
               applies=lambda project: _n_photos(project) > 0 or not project.photos_optional),
     StageSpec("solve", "every carriage's pose from the marked points (chained least squares, four steps)",
               "workbench.solve.stage:run_solve", inputs=_solve_inputs,

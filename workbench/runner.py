@@ -161,9 +161,10 @@ class Runner:
     # -- running -------------------------------------------------------------------------------------------
     def prefetch(self, names: list[str] | None = None, force: bool = False) -> None:
         """Start the early work (``StageSpec.prefetch``) of the stages among ``names`` (default all) that will run
-        (not done, or ``force``). Nothing depends on it: a stage uses what is ready and still valid."""
+        (not done, or ``force``). Nothing depends on it: a stage uses what is ready and still valid. The later
+        stages' first: one that forks a process (correspond) does so before another's threads start (stitch)."""
         state = self.project.read_state()
-        for spec in self.stages:
+        for spec in reversed(self.stages):
             if not spec.prefetch or (names is not None and spec.name not in names):
                 continue
             try:

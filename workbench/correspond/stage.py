@@ -35,7 +35,7 @@ from ..core.stage_api import Progress, StageResult
 from ..errors import InputError
 from ..files.intrinsics import photo_size, resolve_intrinsics
 from ..project import Project
-from . import cache
+from . import cache, prefetch
 from ..files import correspondences as mf
 from .assign import find_cars, observations_of
 from .match import MatchOptions, PhotoFeatures, photo_features
@@ -159,6 +159,26 @@ def _cached_photo_features(project: Project, path: Path, K: CameraIntrinsics, op
     return pf
 
 
+def prefetch_features(project: Project) -> None:
+    """``StageSpec.prefetch``: the photos' features computed into the cache ahead of the stage, in a forked process,
+    while the stages before it run (``prefetch.py``), under the names the stage will read them by if georef gives
+    the photos the intrinsics known now. Nothing when no photo will be scanned."""
+    if _not_searched(project)[1] is not None:
+        return
+    photos = project.photo_paths()
+    opts = MatchOptions()
+    intrinsics, _ = photo_intrinsics(project, photos)
+    cache_dir = project.stage_dir("correspond") / "cache"
+    files = {p.name: cache_dir / _photo_cache_name(p, intrinsics[p.name], opts) for p in photos}
+
+    def compute(p: Path) -> None:
+        pf = photo_features(p.name, _read_rgb(p), intrinsics[p.name], opts)
+        cache.save(project, files[p.name], {"gray": pf.gray_undistorted, "keypoints": pf.keypoints,
+                                            "descriptors": pf.descriptors, "frames": pf.frames})
+
+    prefetch.start(photos, files, compute)
+
+
 FINDER_OFF_REASON = ("the automatic finder is off (project.toml: [correspond] finder = 'off'); pick its points by "
                      "hand (workbench pick)")
 
@@ -250,6 +270,7 @@ class _PhotoMatcher:
     def features(self, p: Path, note) -> float:
         t0 = time.perf_counter()
         f = self.photo_file[p.name]
+        prefetch.wait_for(p.name, f)  # being computed ahead of the stage: its entry, once written
         if f.is_file():
             note("features", "features from the cache")
         else:
@@ -384,10 +405,12 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
 
     if cache_dir is None:
         references()
+    prefetch.stop()  # the photos not begun ahead of the stage are the stage's
     try:
         results, features, pairs = _match_photos(matcher, photos, intrinsics, opts, progress, carry_on,
                                                  references if cache_dir is not None else None)
     finally:
+        prefetch.finish()
         if cache_dir is None:
             shutil.rmtree(work_dir, ignore_errors=True)
     if "refs" not in built:  # no photo: nothing matched, the references still listed
@@ -469,4 +492,5 @@ def run_correspond(project: Project, progress: Progress, opts: MatchOptions | No
     return StageResult(outputs={"correspondences": path, **outputs}, stats=stats)
 
 
-__all__ = ["run_correspond", "load_manual", "photo_intrinsics", "automatic", "no_reference_reason", "FACES"]
+__all__ = ["run_correspond", "load_manual", "photo_intrinsics", "automatic", "no_reference_reason", "FACES",
+           "prefetch_features"]
