@@ -330,3 +330,27 @@ def test_exif_missing_gives_none(tmp_path):
     p = tmp_path / "plain.jpg"
     Image.fromarray(np.zeros((10, 10, 3), np.uint8)).save(p)
     assert read_focal_px(p) is None
+
+
+def test_track_mesh_lays_two_rails_along_the_line():
+    """The railway layer drawn in the 3-D scene: two rails at the gauge plus a head's width apart, centre to centre,
+    along the line, at its heights (top of rail) or 0.2 m over the ground it was draped on."""
+    from workbench.core.track import RailwayLine
+    from workbench.report.scene import RAIL_ABOVE_GROUND_M, track_mesh
+
+    s = np.linspace(0.0, 1.0, 30)
+    P = np.column_stack([100.0 * np.sin(s), 100.0 * (1.0 - np.cos(s)), 5.0 + s])  # a 100 m radius curve, rising
+    line = RailwayLine("l1", None, P)
+    for top, dz in ((True, 0.0), (False, RAIL_ABOVE_GROUND_M)):
+        m = track_mesh([line], top_of_rail=top)
+        V = np.asarray(m.vertices)
+        assert len(m.faces) == 2 * 2 * (len(P) - 1)  # two rails, two triangles a segment
+        r = np.hypot(V[:, 0], V[:, 1] - 100.0)  # distance from the curve's centre
+        half = (1.435 + 0.07) / 2
+        assert np.all(np.abs(np.abs(r - 100.0) - half) <= 0.0701)  # each rail's band is 0.14 m wide about its line
+        assert np.allclose(np.sort(np.unique(np.round(np.abs(r - 100.0) - half, 6))), [-0.07, 0.07], atol=2e-3)
+        feet = np.array([line.foot(v[:2]).chainage_m for v in V])
+        z_line = np.interp(feet, 100.0 * s, P[:, 2])
+        assert np.abs(V[:, 2] - (z_line + dz)).max() < 0.01
+        assert np.all(m.face_normals[:, 2] > 0.99)  # faces up
+    assert track_mesh([], top_of_rail=True) is None

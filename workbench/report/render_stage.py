@@ -110,6 +110,8 @@ class SceneRenderer:
             self.scene.add(SceneMesh("terrain", sc.terrain))
         if sc.buildings is not None:
             self.scene.add(SceneMesh("buildings", sc.buildings))
+        if sc.track is not None:
+            self.scene.add(SceneMesh("track", sc.track))
         for c in sc.carriages:
             self.scene.add(SceneMesh(f"car_{c.number}", sc.carriage_mesh(c), instance_id=c.index))
         self.centre, self.radius = sc.focus()

@@ -9,13 +9,17 @@ files the stages wrote (``out/solve/solution.json``, ``out/georef/cameras.json``
 from __future__ import annotations
 
 import logging
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Sequence
 
 import numpy as np
 import trimesh
 
 from ..core.camera import CameraIntrinsics
+from ..core.track import RailwayLine
+from ..errors import WorkbenchWarning
 from ..files.scene import SceneCarriage, scene_carriages
 from ..project import Project
 
@@ -61,6 +65,7 @@ class IncidentScene:
     cameras_json: dict
     files: dict[str, Path] = field(default_factory=dict)  # what was read
     textured: bool = True  # the carriages drawn with their liveries
+    track: trimesh.Trimesh | None = None  # the railway layer's lines as two rails (track_mesh)
 
     def carriage_mesh(self, c: SceneCarriage) -> trimesh.Trimesh:
         """Carriage ``c``'s model placed in the scene (with its livery when the scene is textured)."""
@@ -133,6 +138,61 @@ def _buildings_mesh(project: Project) -> trimesh.Trimesh | None:
     return m
 
 
+RAIL_RGB = (62, 60, 64)  # steel
+RAIL_HEAD_M = 0.07  # a rail head's width; drawn at twice that, so that it shows from afar
+RAIL_ABOVE_GROUND_M = 0.2  # top of rail over the ground a DEM gives (rail, sleeper, ballast)
+
+
+def _ribbon(line: RailwayLine, offset_m: float, width_m: float, z_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """(vertices, faces) of a flat band ``width_m`` wide along ``line`` at ``offset_m`` to its left, ``z_m`` above
+    its heights, faces up."""
+    a = line.rail_polyline(offset_m + width_m / 2, step_m=1e9)
+    b = line.rail_polyline(offset_m - width_m / 2, step_m=1e9)
+    n = len(a)
+    V = np.vstack([a, b]) + [0.0, 0.0, z_m]
+    i = np.arange(n - 1)
+    # left edge a_i, right edge b_i = i + n; counter-clockwise seen from above (normal up)
+    F = np.vstack([np.column_stack([i, i + n, i + 1]), np.column_stack([i + 1, i + n, i + 1 + n])])
+    return V, F
+
+
+def track_mesh(lines: Sequence[RailwayLine], top_of_rail: bool, gauge_m: float = 1.435) -> trimesh.Trimesh | None:
+    """The railway lines as their two rails (flat bands at ``gauge_m`` plus a head's width apart, centre to centre):
+    drawn over the terrain and its imagery, they show where the layer puts the track against where the photos and
+    the orthophoto show it. ``top_of_rail``: the lines' heights are the rails' tops (a layer's own heights, as the
+    synthetic generator writes them); else the ground's (draped on the DEM), the rails :data:`RAIL_ABOVE_GROUND_M`
+    above it."""
+    base = 0
+    V_all, F_all, C_all = [], [], []
+    rail_top = 0.0 if top_of_rail else RAIL_ABOVE_GROUND_M
+    half = (gauge_m + RAIL_HEAD_M) / 2
+    for line in lines:
+        for off, w, z, rgb in [(s * half, 2 * RAIL_HEAD_M, rail_top, RAIL_RGB) for s in (1.0, -1.0)]:
+            V, F = _ribbon(line, off, w, z)
+            V_all.append(V)
+            F_all.append(F + base)
+            C_all.append(np.tile([*rgb, 255], (len(F), 1)))
+            base += len(V)
+    if not V_all:
+        return None
+    m = trimesh.Trimesh(np.vstack(V_all), np.vstack(F_all), process=False)
+    m.visual = trimesh.visual.ColorVisuals(m, face_colors=np.vstack(C_all))
+    return m
+
+
+def _track(project: Project) -> trimesh.Trimesh | None:
+    """The incident's railway layer as a track mesh (None without one): its own heights when it has them (top of
+    rail), else draped on the DEM."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", WorkbenchWarning)  # a layer with no line: the render stage reports it
+        layer = project.railways(heights=False)
+        if layer is not None and layer.heights != "file":
+            layer = project.railways(heights=True)
+    if layer is None:
+        return None
+    return track_mesh(layer.lines, top_of_rail=layer.heights == "file")
+
+
 def load_scene(project: Project, *, textured: bool = True, with_terrain: bool = True) -> IncidentScene:
     """Read the reconstructed scene of ``project``. :class:`InputError` naming the 'solve' stage if it has not run."""
     sol = project.solution("scene")
@@ -146,7 +206,8 @@ def load_scene(project: Project, *, textured: bool = True, with_terrain: bool = 
     files = {"solution": sol.path}
     if project.cameras_path():
         files["cameras"] = project.cameras_path()
-    return IncidentScene(terrain, buildings, cars, cams, sol.doc, cam_data, files, textured)
+    track = _track(project) if with_terrain else None
+    return IncidentScene(terrain, buildings, cars, cams, sol.doc, cam_data, files, textured, track)
 
 
 # ----------------------------------------------------------------------------------------------------------
