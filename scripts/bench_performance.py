@@ -73,10 +73,10 @@ def _timed(cmd: list[str], env: dict, cwd: Path | None = None, check: bool = Tru
     return dt
 
 
-def _timed_cpu(cmd: list[str], env: dict) -> tuple[float, float]:
+def _timed_cpu(cmd: list[str], env: dict, check: bool = True) -> tuple[float, float]:
     """(wall s, CPU s: user + sys of the command and the processes it waited for, its workers)."""
     r0 = resource.getrusage(resource.RUSAGE_CHILDREN)
-    t = _timed(cmd, env)
+    t = _timed(cmd, env, check=check)
     r1 = resource.getrusage(resource.RUSAGE_CHILDREN)
     return t, (r1.ru_utime - r0.ru_utime) + (r1.ru_stime - r0.ru_stime)
 
@@ -127,8 +127,9 @@ def _bench_version(v: dict, args, work: Path) -> dict:
     return res
 
 
-def _stitch_once(v: dict, set_name: str, inc: Path) -> float:
-    """`workbench stitch` on a fresh incident holding the set's photos (made by `workbench init`): its wall time."""
+def _stitch_once(v: dict, set_name: str, inc: Path) -> tuple[float, float]:
+    """`workbench stitch` on a fresh incident holding the set's photos (made by `workbench init`): its wall and CPU
+    time."""
     folder, files = STITCH_SETS[set_name]
     r = subprocess.run([*v["cli"], "init", str(inc), "--lat", "0", "--lon", "0"], env=v["env"], capture_output=True,
                        cwd=NEUTRAL_CWD)
@@ -136,7 +137,7 @@ def _stitch_once(v: dict, set_name: str, inc: Path) -> float:
         raise RuntimeError(r.stderr)
     for f in files:
         shutil.copy(DATA / folder / f, inc / "photos" / "panorama" / f)
-    return _timed([*v["cli"], "stitch", str(inc)], v["env"])
+    return _timed_cpu([*v["cli"], "stitch", str(inc)], v["env"])
 
 
 def _stitch_rounds(versions: list[dict], work: Path, repeat: int, results: dict) -> None:
@@ -150,20 +151,33 @@ def _stitch_rounds(versions: list[dict], work: Path, repeat: int, results: dict)
             print(f"  stitch {set_name}: photos not in {DATA / folder}; left out", flush=True)
             continue
         times: dict[str, list[float]] = {}
+        cpu: dict[str, list[float]] = {}
+        loads = [os.getloadavg()[0]]
         for k in range(repeat):
-            times.setdefault("cv2", []).append(
-                _timed([sys.executable, "-c", CV2_STITCH, str(work / f"cv2_{set_name}.jpg"),
-                        *[str(DATA / folder / f) for f in files]], dict(os.environ), check=False))
+            t, c = _timed_cpu([sys.executable, "-c", CV2_STITCH, str(work / f"cv2_{set_name}.jpg"),
+                               *[str(DATA / folder / f) for f in files]], dict(os.environ), check=False)
+            times.setdefault("cv2", []).append(t)
+            cpu.setdefault("cv2", []).append(c)
             for v in versions:
                 inc = work / "stitch" / f"{v['name'].replace(' ', '_')}_{set_name}_{k}"
-                times.setdefault(v["name"], []).append(_stitch_once(v, set_name, inc))
+                t, c = _stitch_once(v, set_name, inc)
+                times.setdefault(v["name"], []).append(t)
+                cpu.setdefault(v["name"], []).append(c)
+            loads.append(os.getloadavg()[0])
         results["cv2"][set_name] = round(statistics.median(times["cv2"]), 2)
+        results.setdefault("cv2_cpu", {})[set_name] = round(statistics.median(cpu["cv2"]), 2)
         for v in versions:
             results[v["name"]]["stitch"][set_name] = {"ours_s": round(statistics.median(times[v["name"]]), 2),
-                                                      "runs_s": [round(t, 2) for t in times[v["name"]]]}
-        print(f"  stitch {set_name} (medians of {repeat}, load {os.getloadavg()[0]:.1f}): cv2 "
-              f"{results['cv2'][set_name]} s, " + ", ".join(f"{v['name']} {results[v['name']]['stitch'][set_name]['ours_s']} s"
-                                                            for v in versions), flush=True)
+                                                      "runs_s": [round(t, 2) for t in times[v["name"]]],
+                                                      "cpu_s": round(statistics.median(cpu[v["name"]]), 2),
+                                                      "ratios": [round(t / c, 2) for t, c in zip(times[v["name"]],
+                                                                                                 times["cv2"])],
+                                                      "load": [round(x, 2) for x in loads]}
+        print(f"  stitch {set_name} (medians of {repeat}, load {min(loads):.1f}-{max(loads):.1f}): cv2 "
+              f"{results['cv2'][set_name]} s (CPU {results['cv2_cpu'][set_name]} s), "
+              + ", ".join(f"{v['name']} {results[v['name']]['stitch'][set_name]['ours_s']} s (CPU "
+                          f"{results[v['name']]['stitch'][set_name]['cpu_s']} s; each round / cv2's: "
+                          f"{results[v['name']]['stitch'][set_name]['ratios']})" for v in versions), flush=True)
 
 
 def _run_sample(v: dict, args, work: Path, res: dict, round_: int = 0) -> Path:

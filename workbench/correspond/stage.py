@@ -162,8 +162,12 @@ def _cached_photo_features(project: Project, path: Path, K: CameraIntrinsics, op
 def prefetch_features(project: Project) -> None:
     """``StageSpec.prefetch``: the photos' features computed into the cache ahead of the stage, in a forked process,
     while the stages before it run (``prefetch.py``), under the names the stage will read them by if georef gives
-    the photos the intrinsics known now. Nothing when no photo will be scanned."""
-    if _not_searched(project)[1] is not None:
+    the photos the intrinsics known now. Only where those are fixed before the run (a calibrated camera on the
+    panorama or single-photo route, or the incident's own cameras): where the stitch or SfM estimate them, georef
+    gives other intrinsics and the work would be lost. Nothing when no photo will be scanned."""
+    source = project.settings.camera.source.value
+    fixed = project.own_cameras_path.is_file() or (source == "calibrated" and project.settings.camera.profile)
+    if not fixed or source == "sfm" or _not_searched(project)[1] is not None:
         return
     photos = project.photo_paths()
     opts = MatchOptions()

@@ -7,11 +7,11 @@ to a tolerance, and calibrations put the point some pixels to tens of pixels off
 ``shared/data/calibration``: 23 px and 4 px off on 640 x 480). The solve holds it there, so its error is a
 systematic error of every marked point of the photo, and the poses respond to it as the least squares does to any
 shift of its pixels: to first order ``d_x = H^-1 J^T W E d_c`` (``E`` the pixels' derivative with respect to the
-principal point: 1 in u for c_x, in v for c_y), with the focal free where it is estimated. Most of that response
-is a turn of the whole scene about the camera (a shifted principal point is nearly a turned camera), which a
-relative scene's levelled frame takes back (its up from the same cars, its y along the centre pixel's ray); what
-is left turns and stretches each car by where it lies in the photo, and is added to its covariance
-(:func:`add_principal_point_uncertainty`).
+principal point: 1 in u for c_x, in v for c_y), with the focal free where it is estimated. A relative scene's
+levelled frame follows the same cars (its up) and the ray through the centre pixel (its y), which the true
+principal point turns with the truth's frame; the shift moves the cars sideways as a turned camera would but
+hardly turns them, so what is left is mostly an error of every car's heading, nearly alike, of about the shift
+over the focal. It is added to each carriage's covariance (:func:`add_principal_point_uncertainty`).
 """
 
 from __future__ import annotations
@@ -147,6 +147,6 @@ def guessed_principal_point_term(res: Any, carriages: Sequence[CarriageInput], l
     rec = add_principal_point_uncertainty(res, carriages, links, views, options, sigma, levelling, L, c)
     rec["note"] = (f"the camera's principal point is taken at the photo's centre ({intrinsics_source} intrinsics): "
                    f"its error ({GUESSED_PRINCIPAL_POINT_SIGMA:.0%} of the larger side, {sigma:.1f} px, 1 sigma per "
-                   f"axis) is added to every carriage's interval (first order; the scene's common turn is taken "
-                   f"back by the levelling)")
+                   f"axis) is added to every carriage's interval (first order: mostly the headings, nearly alike; "
+                   f"the tilt it brings is taken back by the levelling)")
     return rec
