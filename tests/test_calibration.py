@@ -142,3 +142,28 @@ def test_report_states_what_the_intervals_include():
     assert "automatic" in interval_scope(sol, solver, 0.25)["calibration"]
     sol.update(correspondences={"by_source": {"manual": 3}}, sigma_focal_px={})
     assert "known focal" in interval_scope(sol, solver, 0.25)["calibration"]
+
+
+def test_report_states_a_relative_scenes_intervals_and_their_calibration():
+    """A relative scene (no survey): the ± include the levelling and, for a camera that is not known, its
+    principal point; the calibration figures are the relative route's, with the focal estimated or known."""
+    from types import SimpleNamespace
+
+    from workbench.report.report_stage import interval_scope
+
+    solver = SimpleNamespace(pixel_sigma_px=1.5, face_sigma_px=0.15, slack_held_m=0.05)
+    sol = {"sigma_px": 1.1, "sigma_px_estimated": 0.9, "dof": 12, "ci95_factor": 2.1, "frame": {"kind": "relative"},
+           "correspondences": {"by_source": {"manual": 13}}, "links": [{}], "steps": [],
+           "camera_uncertainty": {"included": True, "sigma_centre_m": [0.0, 0.0, 0.0],
+                                  "sigma_rotation_deg": [0.61, 0.63, 0.005],
+                                  "principal_point": {"sigma_px": 8.0, "carriages": {}}},
+           "sigma_focal_px": {"photo.jpg": 115.0}}
+    s = interval_scope(sol, solver, None)
+    assert any("levelling of the relative scene" in x for x in s["included"])
+    assert any("principal point" in x and "8 px" in x for x in s["included"])
+    assert "relative incidents" in s["calibration"] and "focal and the principal point not known" in s["calibration"]
+    sol.update(sigma_focal_px={})
+    del sol["camera_uncertainty"]["principal_point"]
+    s = interval_scope(sol, solver, None)
+    assert not any("principal point" in x for x in s["included"])
+    assert "relative incidents" in s["calibration"] and "a known focal" in s["calibration"]
