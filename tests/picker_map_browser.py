@@ -90,6 +90,19 @@ def drive(url: str, plan: dict, screenshot: str, chromium: str | None = None) ->
         log["points"] = page.evaluate("() => window.mapState.cps.points")
         log["result"] = page.evaluate("() => window.mapState.result")
         page.screenshot(path=screenshot)
+        if plan.get("track"):  # picks on the track: the rail chosen, Track pick, points clicked in the photo, Esc, save
+            page.click("#zoom-fit")
+            page.select_option("#tp-rail", plan["track"]["rail"])
+            page.click("#tp-new")
+            for uv in plan["track"]["pixels"]:
+                page.mouse.click(*_photo_screen(page, uv))
+            log["track_picking"] = page.inner_text("#tp-info")
+            page.keyboard.press("Escape")
+            page.screenshot(path=screenshot.replace(".png", "_track.png"))
+            page.click("#cp-save")
+            page.wait_for_selector("#status:text-matches('^saved')", timeout=30000)
+            log["track_saved"] = page.inner_text("#status")
+            log["track_info"] = page.inner_text("#tp-info")
         if plan.get("roof"):  # a building's corner clicked near it on the map (it snaps), then Roof
             page.click("#cp-new")
             _zoom_click(page, _map_screen, plan["roof"], plan.get("map_zoom_steps", 12), "() => window.mapState.scale")

@@ -368,9 +368,10 @@ def test_map_picks_in_a_browser_place_the_camera(small_incident, tmp_path, capsy
     layers = MapService(Project(root)).layers()
     b0 = layers["buildings"][0]
     corner = np.asarray(b0["ring_crs"][0])
+    track = {"rail": "left", "pixels": [[120.5, 480.25], [300.0, 430.5], [520.75, 390.0]]}
     with PickerServer(root) as srv:
-        log = driver.drive(srv.url, {"photo": photo, "points": picks, "roof": (corner + [0.25, -0.2]).tolist()},
-                           str(tmp_path / "control.png"), _chromium())
+        log = driver.drive(srv.url, {"photo": photo, "points": picks, "roof": (corner + [0.25, -0.2]).tolist(),
+                                     "track": track}, str(tmp_path / "control.png"), _chromium())
     assert log["console_errors"] == [], log["console_errors"]
     assert log["saved"].startswith("saved 6 control points (6 photo picks)")
     # what the page wrote is what was clicked: pixels to 0.3 px, map positions to 0.1 m, heights the DEM's
@@ -403,11 +404,20 @@ def test_map_picks_in_a_browser_place_the_camera(small_incident, tmp_path, capsy
     roof = log["roof_point"]
     assert np.allclose(roof["coords"][:2], corner, atol=1e-3), log["roof_snap"]
     assert abs(roof["coords"][2] - (b0["base_m"] + b0["height_m"])) < 1e-3 and roof["h_own"], log["roof_status"]
+    # picks on the track (after the georef): the rail chosen, the points clicked, saved beside the 6 points
+    assert "picking: the line, left, 3 point(s) in pano_01.jpg" in log["track_picking"]  # the layer's only line
+    assert log["track_saved"].startswith("saved 6 control points (6 photo picks) and 3 track points")
+    saved = json.loads((root / "control_points.json").read_text())
+    assert len(saved["points"]) == 6 and len(saved["track_picks"]) == 1
+    tp = saved["track_picks"][0]
+    assert tp["photo"] == photo and tp["rail"] == "left" and len(tp["pixels"]) == 3
+    assert np.abs(np.subtract(tp["pixels"], track["pixels"])).max() < 0.75  # clicked at zoom-fit: a screen pixel
     # too few points: the georef's message says how many are needed (the page shows it; nothing is written)
     before = (root / "out" / "georef" / "cameras.json").read_bytes()
     with PickerServer(root) as srv:
         c = bench.Client(srv.url)
-        st, r = c.post("/api/control_points", {"crs": written["crs"], "points": written["points"][:2]})
+        st, r = c.post("/api/control_points", {"crs": written["crs"], "points": written["points"][:2],
+                                               "track_picks": []})
         assert st == 200
         st, r = c.post("/api/georef", {})
     assert st == 400 and re.search(r"2 control point\(s\) .* at least 3", r["error"]), r
@@ -486,3 +496,25 @@ def test_fuzz_control_point_endpoints(mini):
                 path.write_bytes(first)
 
         one()
+
+
+def test_control_points_save_checks_track_picks(mini):
+    """A save's track picks are checked like its points' pixels (a photo of the incident, inside it, the file's
+    rules) and refused with the entry named, the file unchanged; track picks alone are a valid save."""
+    from workbench.picker.control import ControlPointsApi
+
+    root = mini
+    api = ControlPointsApi(Project(root), lambda: {"p0.png": (W, H)})
+    doc = {"crs": CRS, "points": [], "track_picks": [{"photo": "p0.png", "rail": "left",
+                                                      "pixels": [[10.0, 20.0], [50.5, 40.0]]}]}
+    cases = ((5, "track_picks[0] must be an object"), ({"photo": "p0.png", "pixels": 3}, "list of pixels"),
+             ({"photo": "elsewhere.jpg", "pixels": [[1, 2]]}, "not a photo of this incident"),
+             ({"photo": "p0.png", "pixels": [[W + 5.0, 2.0]]}, "lies outside p0.png"),
+             ({"photo": "p0.png", "rail": "middle", "pixels": [[1.0, 2.0]]}, "rail"))
+    for bad, needle in cases:
+        with pytest.raises(InputError, match=re.escape(needle)):
+            api.save({**doc, "track_picks": [bad]})
+        assert not (root / "control_points.json").exists()
+    r = api.save(doc)  # track picks alone: a valid file
+    assert r["n"] == 0 and r["n_track_picks"] == 2
+    assert api.document()["track_picks"][0]["pixels"] == [[10.0, 20.0], [50.5, 40.0]]

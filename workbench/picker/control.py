@@ -21,7 +21,7 @@ import numpy as np
 
 from ..core.io import read_json
 from ..errors import InputError, WorkbenchError
-from ..files.control_points import load_control_points, save_control_points
+from ..files.control_points import load_control_points, parse_track_picks, save_control_points
 from ..project import Project
 from .map import MapService
 
@@ -35,7 +35,7 @@ COLLINEAR_RATIO = 0.02  # second over first singular value of the centred points
 MIN_PHOTO_SPAN = 0.05  # the picks' bounding box as a fraction of the photo's area: below it, "crowded"
 CHI2_3_95 = 7.815  # 95 % quantile of chi-squared with 3 degrees of freedom (a 3-D ellipsoid)
 LOCATE_KEYS = {"e", "n", "lat", "lon", "from"}
-SAVE_KEYS = {"crs", "description", "points"}
+SAVE_KEYS = {"crs", "description", "points", "track_picks"}
 
 
 def _number(payload: dict, key: str, where: str) -> float:
@@ -81,6 +81,9 @@ class ControlPointsApi:
         raw = self.project.read_json(self.path)
         out["description"] = raw.get("description", "") if isinstance(raw, dict) else ""
         out["file_crs"] = raw.get("crs") if isinstance(raw, dict) else None
+        out["track_picks"] = [{"photo": t.photo, "line": t.line, "rail": t.rail, "gauge_m": t.gauge_m,
+                               "pixels": [[float(u), float(v)] for u, v in t.pixels]}
+                              for t in parse_track_picks(raw, str(self.path))]
         for cp in cps:
             en = frame.crs_from_enu(cp.enu)
             geo = frame.wgs84_from_enu(cp.enu)
@@ -142,10 +145,13 @@ class ControlPointsApi:
             raise InputError('the save must be a JSON object {"crs": ..., "points": [...]}')
         unknown = sorted(set(payload) - SAVE_KEYS)
         if unknown:
-            raise InputError(f"unknown key {unknown[0]!r} in the save (its keys: crs, description, points)")
+            raise InputError(f"unknown key {unknown[0]!r} in the save (its keys: crs, description, points, "
+                             f"track_picks)")
         points = payload.get("points")
-        if not isinstance(points, list) or not points:
-            raise InputError("points: a save needs a list of at least one point (nothing is written for none)")
+        track = payload.get("track_picks", [])
+        if not isinstance(points, list) or not isinstance(track, list) or not (points or track):
+            raise InputError("points: a save needs a list of at least one point, or track_picks a list of at least "
+                             "one pick on the track (nothing is written for none)")
         sizes = dict(self.image_sizes())
         others = None
         for i, p in enumerate(points):
@@ -164,7 +170,23 @@ class ControlPointsApi:
                         and not (-0.5 <= uv[0] <= w - 0.5 and -0.5 <= uv[1] <= h - 0.5)):
                     raise InputError(f"points[{i}] ({str(p.get('name'))[:40]!r}): pixel {uv} lies outside "
                                      f"{photo} ({w}x{h})")
-        return {k: payload[k] for k in ("crs", "description", "points") if k in payload}
+        for i, t in enumerate(track):  # picks on the track: in a photo of the incident, every pixel inside it
+            if not isinstance(t, dict) or not isinstance(t.get("pixels"), list):
+                raise InputError(f"track_picks[{i}] must be an object with a list of pixels "
+                                 f'{{"photo", "line", "rail", "pixels": [[u, v], ...]}}')
+            photo = t.get("photo")
+            if not isinstance(photo, str) or photo not in sizes:
+                others = self._other_photos() if others is None else others
+                if photo not in others:
+                    raise InputError(f"track_picks[{i}]: photo {str(photo)[:60]!r} is not a photo of this incident "
+                                     f"(under {self.project.root / 'photos'})")
+                sizes[photo] = others[photo]
+            w, h = sizes[photo]
+            for uv in t["pixels"]:
+                if (isinstance(uv, list) and len(uv) == 2 and all(isinstance(x, (int, float)) for x in uv)
+                        and not (-0.5 <= uv[0] <= w - 0.5 and -0.5 <= uv[1] <= h - 0.5)):
+                    raise InputError(f"track_picks[{i}]: pixel {uv} lies outside {photo} ({w}x{h})")
+        return {k: payload[k] for k in ("crs", "description", "points", "track_picks") if k in payload}
 
     def _other_photos(self) -> dict[str, tuple[int, int]]:
         """Every photo of the incident under ``photos/`` (all photo sets, inside the folder) by name, with its
@@ -200,11 +222,14 @@ class ControlPointsApi:
         with self._lock:
             doc = self.check(payload)
             kept = self._kept_track_picks()
-            if kept:  # the page edits the points only: the file's track picks are kept as they are
+            if "track_picks" not in doc and kept:  # a save of the points alone keeps the file's track picks
                 doc["track_picks"] = kept
+            if not doc.get("track_picks"):
+                doc.pop("track_picks", None)
             path, backup = save_control_points(self.path, doc, self.project.frame)
         return {"saved": str(path), "backup": str(backup) if backup else None, "n": len(doc["points"]),
-                "n_picks": sum(len(p.get("pixels", {})) for p in doc["points"])}
+                "n_picks": sum(len(p.get("pixels", {})) for p in doc["points"]),
+                "n_track_picks": sum(len(t.get("pixels") or []) for t in doc.get("track_picks", []))}
 
     # -- georef --------------------------------------------------------------------------------------------
     def run_georef(self) -> dict:

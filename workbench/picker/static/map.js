@@ -7,7 +7,7 @@
 "use strict";
 (() => {  // one scope: picker.js's globals (pushUndo, key, ...) are not overwritten
 const M = { doc: null, img: null, scale: 1, ox: 0, oy: 0, cps: null, sel: null, result: null, dirty: false,
-            mode: "marks", undo: [], loadError: null };
+            mode: "marks", undo: [], loadError: null, tsel: null };
 const mcv = $("map-canvas"), mctx = mcv.getContext("2d");
 const POST = (url, body) => fetch(url, { method: "POST", headers: Object.assign({ "Content-Type": "application/json" }, API_HEADERS),
                                           body: JSON.stringify(body) }).then(async (r) => ({ ok: r.ok, status: r.status, res: await jsonOf(r) }));
@@ -24,6 +24,8 @@ async function loadMap() {
   const ma = await jsonOf(a), cps = await jsonOf(b);
   if (!b.ok) { M.loadError = cps.error; info(cps.error || "cannot read control_points.json", true); M.cps = { crs: "", points: [] }; }
   else M.cps = cps;
+  M.cps.track_picks = M.cps.track_picks || [];
+  fillLines(ma && ma.railways ? ma.railways : []); renderTracks();
   if (!a.ok || !ma.available) {  // no map: typed coordinates still work
     M.loadError = ma.reason || ma.error || `HTTP ${a.status}`; $("cp-info").textContent = "no map: " + M.loadError;
     renderTable(); noMap(); return;
@@ -119,9 +121,10 @@ function residualOf(name, view) {
   if (!rs.length) return null;
   return rs.reduce((a, b) => ((b.error_px || 0) > (a.error_px || 0) ? b : a));
 }
-function pushUndo() { M.undo.push(JSON.stringify(M.cps.points)); M.dirty = true; }
+function pushUndo() { M.undo.push(JSON.stringify({ points: M.cps.points, track_picks: M.cps.track_picks })); M.dirty = true; }
 function select(name) {
   M.sel = name; const p = cp();
+  if (name !== null) { M.tsel = null; renderTracks(); }
   $("cp-name").value = p ? p.name : "";
   if (p && p.coords) {
     if ($("cp-coord-kind").value === "wgs84") { $("cp-x").value = p.lat !== undefined ? p.lat.toFixed(8) : ""; $("cp-y").value = p.lon !== undefined ? p.lon.toFixed(8) : ""; }
@@ -137,7 +140,46 @@ function newPoint() {
   M.cps.points.push({ name: `cp_${k}`, coords: null, sigma_m: 0.5, kind: "", pixels: {} });
   select(`cp_${k}`); info(`cp_${k}: click the landmark in the photo and on the map (or type its coordinates and press Set)`);
 }
+// picks on the track (track_picks in control_points.json, docs/gis.md): points anywhere along one rail (or the track
+// centre) of one line of the railway layer, in one photo; georef fits the camera to them point to line
+function tp() { return M.tsel !== null ? M.cps.track_picks[M.tsel] : null; }
+function fillLines(lines) {
+  const opts = lines.map((r) => `<option value="${esc(r.id)}">${esc(r.name ? `${r.id} (${r.name})` : r.id)}</option>`);
+  $("tp-line").innerHTML = lines.length > 1 ? opts.join("") : `<option value="">${lines.length ? esc(lines[0].id) + " (the only line)" : "(the layer's only line)"}</option>`;
+}
+function renderTracks() {
+  if (!M.cps) return;
+  const view = S.photo ? S.photo.name : "", t = tp();
+  const here = M.cps.track_picks.filter((x) => x.photo === view);
+  $("tp-info").textContent = `track picks: ${M.cps.track_picks.length} (${here.length} in this photo, ` +
+    `${here.reduce((a, x) => a + x.pixels.length, 0)} points)` + (t ? `; picking: ${t.line || "the line"}, ${t.rail}, ${t.pixels.length} point(s) in ${t.photo} (Esc ends)` : "");
+}
+function newTrackPick() {
+  if (!S.photo || !M.cps) return;
+  pushUndo();
+  M.cps.track_picks.push({ photo: S.photo.name, line: $("tp-line").value, rail: $("tp-rail").value, pixels: [] });
+  M.sel = null; renderTable();
+  M.tsel = M.cps.track_picks.length - 1; renderTracks(); draw();
+  info(`track pick in ${S.photo.name}: click points along the ${$("tp-rail").value === "centre" ? "track centre" : $("tp-rail").value + " rail"}` +
+       " anywhere on it (spread them out); Esc ends");
+}
+function endTrackPick() { if (M.tsel === null) return; M.tsel = null; renderTracks(); draw(); info("track pick ended — unsaved"); }
+function removeTrackPick() {  // the one being picked, else the last one in this photo
+  let i = M.tsel;
+  if (i === null && S.photo) for (let k = M.cps.track_picks.length - 1; k >= 0 && i === null; k--) if (M.cps.track_picks[k].photo === S.photo.name) i = k;
+  if (i === null) { info("no track pick in this photo", true); return; }
+  pushUndo(); M.cps.track_picks.splice(i, 1); M.tsel = null; renderTracks(); draw(); info("track pick deleted — unsaved");
+}
+function trackClick(t, uv) {
+  if (t.photo !== S.photo.name) { info(`this track pick is in ${t.photo}: show that photo, or end it (Esc)`, true); return; }
+  const w = S.photo.width, h = S.photo.height;
+  if (uv[0] < -0.5 || uv[1] < -0.5 || uv[0] > w - 0.5 || uv[1] > h - 0.5) { info("outside the photo", true); return; }
+  pushUndo(); t.pixels.push([+uv[0].toFixed(2), +uv[1].toFixed(2)]); renderTracks(); draw();
+  info(`track pick: ${t.pixels.length} point(s) on ${t.line || "the line"} (${t.rail}) — unsaved`);
+}
 function photoClick(uv) {
+  const t = tp();
+  if (t) { trackClick(t, uv); return; }
   const p = cp();
   if (!p) { info("control points: press New point (N) or choose one in the table first", true); return; }
   const w = S.photo.width, h = S.photo.height;
@@ -210,15 +252,18 @@ function unpick() {
 }
 function document_() {
   const pts = M.cps.points.filter((p) => p.coords);
+  const track = M.cps.track_picks.filter((t) => t.pixels.length).map((t) => {
+    const o = { photo: t.photo, rail: t.rail, pixels: t.pixels }; if (t.line) o.line = t.line; if (t.gauge_m) o.gauge_m = t.gauge_m; return o; });
   return { crs: M.doc ? M.doc.crs : M.cps.crs, description: M.cps.description || "picked in the workbench picker",
-           points: pts.map((p) => { const o = { name: p.name, coords: p.coords, sigma_m: p.sigma_m, pixels: p.pixels }; if (p.kind) o.kind = p.kind; return o; }) };
+           points: pts.map((p) => { const o = { name: p.name, coords: p.coords, sigma_m: p.sigma_m, pixels: p.pixels }; if (p.kind) o.kind = p.kind; return o; }),
+           track_picks: track };
 }
 async function saveCps() {
   const unplaced = M.cps.points.filter((p) => !p.coords).map((p) => p.name);
   const { ok, res } = await POST("/api/control_points", document_());
   if (!ok) { info(res.error, true); return false; }
   M.dirty = false;
-  info(`saved ${res.n} control points (${res.n_picks} photo picks) to ${res.saved}` + (unplaced.length ? `; not saved (no coordinates yet): ${unplaced.join(", ")}` : ""));
+  info(`saved ${res.n} control points (${res.n_picks} photo picks) and ${res.n_track_picks || 0} track points to ${res.saved}` + (unplaced.length ? `; not saved (no coordinates yet): ${unplaced.join(", ")}` : ""));
   return true;
 }
 async function georef() {
@@ -271,6 +316,14 @@ function renderTable() {
 function drawPhoto(g, toScreen, view, scale) {  // called by picker.js draw(): the picks in this photo, residuals
   if (!M.cps || M.mode !== "control") return;
   g.font = "12px sans-serif";
+  M.cps.track_picks.forEach((t, i) => {  // picks on the track: its points, joined in the order clicked
+    if (t.photo !== view || !t.pixels.length) return;
+    const sel = i === M.tsel, pts = t.pixels.map(toScreen);
+    g.strokeStyle = sel ? "#ffab40" : "#ff9100"; g.lineWidth = sel ? 3 : 2; g.setLineDash([6, 4]);
+    g.beginPath(); pts.forEach(([x, y], k) => (k ? g.lineTo(x, y) : g.moveTo(x, y))); g.stroke(); g.setLineDash([]);
+    for (const [x, y] of pts) { g.beginPath(); g.arc(x, y, 4, 0, 2 * Math.PI); g.stroke(); }
+    g.fillStyle = "#ffd180"; g.fillText(`${t.line || "track"} ${t.rail}`, pts[0][0] + 8, pts[0][1] + 16);
+  });
   for (const p of M.cps.points) {
     const uv = p.pixels[view];
     if (!uv) continue;
@@ -292,12 +345,17 @@ function setMode(mode) {
 }
 function undoCps() {
   if (!M.undo.length) { info("nothing to undo"); return; }
-  M.cps.points = JSON.parse(M.undo.pop()); select(cp() ? M.sel : null); info("undone — unsaved");
+  const u = JSON.parse(M.undo.pop());
+  M.cps.points = u.points; M.cps.track_picks = u.track_picks;
+  if (M.tsel !== null && M.tsel >= M.cps.track_picks.length) M.tsel = null;
+  select(cp() ? M.sel : null); renderTracks(); info("undone — unsaved");
 }
 function key(e) {
   if ((e.ctrlKey || e.metaKey) && e.key === "s") { e.preventDefault(); saveCps(); return true; }
   if ((e.ctrlKey || e.metaKey) && e.key === "z") { e.preventDefault(); undoCps(); return true; }
   if (e.key === "n" || e.key === "N") { newPoint(); return true; }
+  if (e.key === "t" || e.key === "T") { newTrackPick(); return true; }
+  if (e.key === "Escape" && M.tsel !== null) { endTrackPick(); return true; }
   if (e.key === "Delete") { unpick(); return true; }
   return false;
 }
@@ -320,7 +378,8 @@ $("cp-new").onclick = newPoint; $("cp-delete").onclick = removePoint; $("cp-unpi
 $("cp-save").onclick = saveCps; $("cp-georef").onclick = georef; $("cp-set").onclick = setTyped; $("cp-roof").onclick = roof;
 $("cp-name").onchange = rename;
 $("cp-coord-kind").onchange = () => select(M.sel);
-$("photo-select").addEventListener("change", () => setTimeout(renderTable, 0));
+$("photo-select").addEventListener("change", () => setTimeout(() => { renderTable(); renderTracks(); }, 0));
+$("tp-new").onclick = newTrackPick; $("tp-delete").onclick = removeTrackPick;
 
 window.CP = { active: () => M.mode === "control", photoClick, drawPhoto, key, undo: undoCps, save: saveCps };
 window.mapState = M;  // for tests and debugging
