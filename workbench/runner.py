@@ -173,8 +173,8 @@ class Runner:
                     continue
                 module, _, attr = spec.prefetch.partition(":")
                 getattr(importlib.import_module(module), attr)(self.project)
-            except WorkbenchError as exc:  # the stage reports it when it runs
-                log.debug("stage %s: no prefetch (%s)", spec.name, exc)
+            except Exception as exc:  # noqa: BLE001 - only a head start: the stage does the work, and reports errors
+                log.info("stage %s: no prefetch (%s: %s)", spec.name, type(exc).__name__, exc)
 
     def run(self, *, only: list[str] | None = None, until: str | None = None, force: bool = False,
             progress_factory: Callable[[StageSpec], Progress] | None = None,
