@@ -2,8 +2,7 @@
 
 An Open3D GUI window (Filament; Vulkan or OpenGL, on the CPU through Mesa where there is no GPU):
 
-* the scene in the scene frame (ENU metres): terrain (with the orthophoto where there is one), buildings, the
-  railway layer's rails,
+* the scene in the scene frame (ENU metres): terrain (with the orthophoto where there is one), buildings,
   the carriages in their solved poses with their liveries, the cameras as red frustums;
 * drag to orbit, wheel to zoom, right-drag (or shift-drag) to pan (Open3D's standard controls);
 * the panel on the right: a check box per layer, the list of carriages, and the selected carriage's
@@ -32,7 +31,7 @@ from ..project import Project
 
 log = logging.getLogger(__name__)
 
-LAYERS = ("terrain", "buildings", "track", "carriages", "cameras")
+LAYERS = ("terrain", "buildings", "carriages", "cameras")
 PANEL_WIDTH_EM = 21
 
 
@@ -121,8 +120,6 @@ class IncidentViewer:
             add("terrain", "terrain", self.sc.terrain)
         if self.sc.buildings is not None:
             add("buildings", "buildings", self.sc.buildings)
-        if self.sc.track is not None:
-            add("track", "track", self.sc.track)
         for c in self.sc.carriages:
             add("carriages", f"car_{c.number}", self.sc.carriage_mesh(c))
         self.centre, self.radius = self.sc.focus()
