@@ -452,18 +452,23 @@ def test_stage_writes_panorama_and_exact_model(sample_small, tmp_path):
     assert n_checked >= 10 and n_ncc >= 10
 
 
+def _copy_sample(sample_small, root: Path) -> Path:
+    """An incident at ``root`` with the reduced sample's panorama photos, settings and scaled camera profile."""
+    (root / "photos" / "panorama").mkdir(parents=True)
+    for p in sample_small["paths"]:
+        shutil.copy(p, root / "photos" / "panorama" / p.name)
+    shutil.copy(sample_small["root"] / "project.toml", root / "project.toml")
+    shutil.copy(sample_small["root"] / "camera_profile.json", root / "camera_profile.json")
+    return root
+
+
 def test_cli_runs_the_stitch_stage(sample_small, tmp_path):
     """`workbench run PATH --only inputs --only stitch` on a copy of the sample (reduced photos, scaled profile): the
     photos described while the inputs stage runs."""
     import subprocess
     import sys
 
-    root = tmp_path / "inc"
-    (root / "photos" / "panorama").mkdir(parents=True)
-    for p in sample_small["paths"]:
-        shutil.copy(p, root / "photos" / "panorama" / p.name)
-    shutil.copy(sample_small["root"] / "project.toml", root / "project.toml")
-    shutil.copy(sample_small["root"] / "camera_profile.json", root / "camera_profile.json")
+    root = _copy_sample(sample_small, tmp_path / "inc")
     exe = Path(sys.executable).parent / "workbench"
     r = subprocess.run([str(exe), "-v", "run", str(root), "--only", "inputs", "--only", "stitch"],
                        capture_output=True, text=True, timeout=300)
@@ -511,12 +516,7 @@ def test_prefetched_photos_give_the_same_panorama(sample_small, tmp_path, caplog
     from workbench.project import Project
     from workbench.stitch import stage
 
-    root = tmp_path / "inc"
-    (root / "photos" / "panorama").mkdir(parents=True)
-    for p in sample_small["paths"]:
-        shutil.copy(p, root / "photos" / "panorama" / p.name)
-    shutil.copy(sample_small["root"] / "project.toml", root / "project.toml")
-    shutil.copy(sample_small["root"] / "camera_profile.json", root / "camera_profile.json")
+    root = _copy_sample(sample_small, tmp_path / "inc")
     project = Project(root)
     plain = stage.stitch_project(project)
     caplog.set_level(logging.INFO, logger="workbench.stitch.stage")

@@ -26,7 +26,7 @@ from typing import Callable
 log = logging.getLogger(__name__)
 
 _STATE: dict = {}  # the prefetch of this process's run: "files" (photo name -> cache entry), "status", "stop", "proc"
-TODO, BUSY, DONE = 0, 1, 2
+PENDING, BUSY, DONE = 0, 1, 2
 NICE = 19  # the process's niceness (the run's own processes come first; an idle core is still all its own)
 
 
@@ -38,7 +38,7 @@ def start(photos: list[Path], files: dict[str, Path], compute: Callable[[Path], 
     import cv2
 
     ctx = mp.get_context("fork")
-    status = ctx.Array("b", [DONE if files[p.name].is_file() else TODO for p in photos])  # its lock guards stop
+    status = ctx.Array("b", [DONE if files[p.name].is_file() else PENDING for p in photos])  # its lock guards stop
     stop_flag = ctx.Value("b", 0, lock=False)
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # in the child, as in the stage's workers (set in a forked child it can hang)
@@ -62,7 +62,7 @@ def _work(photos: list[Path], compute: Callable[[Path], None], status, stop_flag
         pass
     for i, p in enumerate(photos):
         with status.get_lock():
-            if stop_flag.value or status[i] != TODO:
+            if stop_flag.value or status[i] != PENDING:
                 continue
             status[i] = BUSY
         try:

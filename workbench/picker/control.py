@@ -153,39 +153,37 @@ class ControlPointsApi:
             raise InputError("points: a save needs a list of at least one point, or track_picks a list of at least "
                              "one pick on the track (nothing is written for none)")
         sizes = dict(self.image_sizes())
-        others = None
+        others: list = []  # the incident's other photos, read once when a pick names one
+
+        def check_pixel(where: str, photo: Any, uv: Any) -> None:
+            """``photo`` is a photo of the incident (of any photo set: the file may name several; docs/gis.md)
+            and ``uv`` (a pair of numbers: the file's reader checks the rest) lies inside it."""
+            if not isinstance(photo, str) or photo not in sizes:
+                if not others:
+                    others.append(self._other_photos())
+                if photo not in others[0]:
+                    raise InputError(f"{where}: photo {str(photo)[:60]!r} is not a photo of this incident (under "
+                                     f"{self.project.root / 'photos'})")
+                sizes[photo] = others[0][photo]
+            w, h = sizes[photo]
+            if (isinstance(uv, list) and len(uv) == 2 and all(isinstance(x, (int, float)) for x in uv)
+                    and not (-0.5 <= uv[0] <= w - 0.5 and -0.5 <= uv[1] <= h - 0.5)):
+                raise InputError(f"{where}: pixel {uv} lies outside {photo} ({w}x{h})")
+
         for i, p in enumerate(points):
             pix = p.get("pixels", {}) if isinstance(p, dict) else {}
             if not isinstance(pix, dict):
                 raise InputError(f"points[{i}].pixels must be an object photo -> [u, v]")
             for photo, uv in pix.items():
-                if photo not in sizes:  # a photo of another photo set (the file may name several; docs/gis.md)
-                    others = self._other_photos() if others is None else others
-                    if photo not in others:
-                        raise InputError(f"points[{i}] ({str(p.get('name'))[:40]!r}): photo {photo[:60]!r} is not "
-                                         f"a photo of this incident (under {self.project.root / 'photos'})")
-                    sizes[photo] = others[photo]
-                w, h = sizes[photo]
-                if (isinstance(uv, list) and len(uv) == 2 and all(isinstance(x, (int, float)) for x in uv)
-                        and not (-0.5 <= uv[0] <= w - 0.5 and -0.5 <= uv[1] <= h - 0.5)):
-                    raise InputError(f"points[{i}] ({str(p.get('name'))[:40]!r}): pixel {uv} lies outside "
-                                     f"{photo} ({w}x{h})")
+                check_pixel(f"points[{i}] ({str(p.get('name'))[:40]!r})", photo, uv)
         for i, t in enumerate(track):  # picks on the track: in a photo of the incident, every pixel inside it
             if not isinstance(t, dict) or not isinstance(t.get("pixels"), list):
                 raise InputError(f"track_picks[{i}] must be an object with a list of pixels "
                                  f'{{"photo", "line", "rail", "pixels": [[u, v], ...]}}')
-            photo = t.get("photo")
-            if not isinstance(photo, str) or photo not in sizes:
-                others = self._other_photos() if others is None else others
-                if photo not in others:
-                    raise InputError(f"track_picks[{i}]: photo {str(photo)[:60]!r} is not a photo of this incident "
-                                     f"(under {self.project.root / 'photos'})")
-                sizes[photo] = others[photo]
-            w, h = sizes[photo]
+            if not t["pixels"]:
+                check_pixel(f"track_picks[{i}]", t.get("photo"), None)
             for uv in t["pixels"]:
-                if (isinstance(uv, list) and len(uv) == 2 and all(isinstance(x, (int, float)) for x in uv)
-                        and not (-0.5 <= uv[0] <= w - 0.5 and -0.5 <= uv[1] <= h - 0.5)):
-                    raise InputError(f"track_picks[{i}]: pixel {uv} lies outside {photo} ({w}x{h})")
+                check_pixel(f"track_picks[{i}]", t.get("photo"), uv)
         return {k: payload[k] for k in ("crs", "description", "points", "track_picks") if k in payload}
 
     def _other_photos(self) -> dict[str, tuple[int, int]]:
