@@ -294,6 +294,7 @@ class CarriageType:
 
 # --------------------------------------------------------------------------------------------------------
 _cache: dict[Path, tuple[tuple, CarriageType]] = {}
+_spec_cache: dict[Path, tuple[int, AnySpec]] = {}
 _cache_lock = threading.Lock()
 
 
@@ -349,8 +350,15 @@ def load_specs(extra_dirs: Iterable[Path | str] = ()) -> dict[str, tuple[AnySpec
     its surface, a mesh type's mesh file) are :func:`load_library`'s."""
     specs: dict[str, tuple[AnySpec, Path]] = {}
     for path in _type_files(extra_dirs):
-        spec = load_spec(path)
-        specs[spec.id] = (spec, path.resolve())
+        path = path.resolve()
+        stamp = path.stat().st_mtime_ns
+        with _cache_lock:
+            hit = _spec_cache.get(path)
+        if hit is None or hit[0] != stamp:  # read and checked once per change of the file
+            hit = (stamp, load_spec(path))
+            with _cache_lock:
+                _spec_cache[path] = hit
+        specs[hit[1].id] = (hit[1], path)
     return specs
 
 
