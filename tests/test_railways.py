@@ -412,3 +412,83 @@ def test_chainage_from_kilometre_posts(tmp_path, positions, expected, turned):
                                        '<tag k="railway" v="rail"/><tag k="chainage_origin" v="1000"/>'))
     line = read_railways(p, FRAME).lines[0]
     assert "chainage_source" not in line.properties and line.chainage_origin_m == 1000.0
+
+
+def _line_through_pivots(project, car: dict, path) -> None:
+    """Write a straight railway line (GeoJSON in the project CRS, 300 m) through a carriage's true bogie pivots."""
+    from workbench.rolling_stock import get_type
+    from workbench.core.track import bogie_pivots
+
+    M = np.asarray(car["world_from_carriage"], dtype=float)
+    X = bogie_pivots(get_type(car["type"])) @ M[:3, :3].T + M[:3, 3]
+    u = (X[0] - X[1]) / np.linalg.norm(X[0, :2] - X[1, :2])
+    enu = X[1] + np.arange(-150.0, 151.0, 5.0)[:, None] * u
+    crs = project.frame.crs_from_enu(enu)
+    doc = {"type": "FeatureCollection", "crs": {"type": "name", "properties": {"name": project.settings.location.crs}},
+           "features": [{"type": "Feature", "properties": {"railway": "rail", "id": "stayed", "name": "kept"},
+                         "geometry": {"type": "LineString", "coordinates": crs.tolist()}}]}
+    path.write_text(json.dumps(doc))
+
+
+def test_a_carriage_on_the_rails_keeps_to_the_line(solved, tmp_path):
+    """A carriage marked ``on_track``: its bogie pivots are drawn to the line through their true places, its
+    lateral interval shrinks and still holds the truth; the railway layer becomes an input of the solve."""
+    import shutil
+
+    from workbench.errors import SettingsError
+    from workbench.pipeline import STAGES, stage
+    from workbench.rolling_stock import get_type
+    from workbench.runner import Runner
+    from workbench.core.track import bogie_pivots
+
+    project, truth, _ = solved
+    root = tmp_path / "inc"
+    shutil.copytree(project.root, root)
+    car = truth["carriages"][1]
+    _line_through_pivots(project, car, root / "kept.geojson")
+    text = (root / "project.toml").read_text()
+    text = text.replace(f'railways = "{project.settings.terrain.railways}"', 'railways = "kept.geojson"')
+    entry = next(ln for ln in text.splitlines() if f'number = "{car["number"]}"' in ln)
+    assert "[solver]" not in text and entry.endswith("},")
+    (root / "project.toml").write_text(text.replace(entry, entry[:-2] + ', on_track = true },') +
+                                       "\n[solver]\ntrack_sigma_m = 0.05\n")
+    p = Project(root)
+    assert stage("solve").inputs(p)["railways"] == root / "kept.geojson"
+    line = p.railways(heights=False).lines[0]
+    before = {c.number: c for c in project.solution().posed}[car["number"]]
+    ran = [s.name for s in Runner(p, list(STAGES)).run(until="solve") if s.status == "done"]
+    assert "solve" in ran, ran
+    sol = p.solution()
+    rec = next(r for r in sol.doc["track_prior"] if r["number"] == car["number"])
+    assert rec["applied"] and rec["line_id"] == "stayed" and rec["sigma_m"] == 0.05
+    after = {c.number: c for c in sol.posed}[car["number"]]
+
+    def lateral(c):  # the pivots' offsets from the line, the body centre's lateral 95 % half width
+        M = c.world_from_carriage
+        X = bogie_pivots(get_type(car["type"])) @ M[:3, :3].T + M[:3, 3]
+        cov = centre_heading_covariance(M, np.asarray(c.record["body_centre_enu"]),
+                                        np.asarray(c.record["covariance_pose"]))
+        b = math.radians(line.foot(X[0, :2]).bearing_deg)
+        n = np.array([-math.cos(b), math.sin(b)])
+        return [line.foot(x[:2]).offset_m for x in X], 1.96 * math.sqrt(n @ cov[:2, :2] @ n)
+
+    off0, ci0 = lateral(before)
+    off1, ci1 = lateral(after)
+    assert max(map(abs, off1)) < 0.6 * max(map(abs, off0)) and max(map(abs, off1)) < 0.1, (off0, off1)
+    assert 0.01 < ci1 < 0.8 * ci0, (ci0, ci1)
+    true_centre = np.asarray(car["body_centre_enu"])
+    err = np.abs(np.asarray(after.record["body_centre_enu"]) - true_centre)
+    assert np.all(err <= np.asarray(after.record["ci95_body_centre_m"])), (err, after.record["ci95_body_centre_m"])
+    assert "track prior for 1 carriage" in next(s["note"] for s in sol.doc["steps"] if s["name"] == "4_all")
+    from workbench.report.track_table import track_table
+
+    table = track_table(p, sol)
+    rails = {r["number"]: r["rails"] for r in table["rows"]}
+    assert rails.pop(car["number"]) == "held †" and table["held_sigma_m"] == 0.05
+    for c in truth["carriages"]:  # the others left the rails by metres
+        if c["number"] in rails:
+            assert abs(c["track"]["offset_m"]) > 3 and rails[c["number"]] == "no", rails
+    # bad input: on the rails without a railway layer, named with the key and the remedy
+    (root / "project.toml").write_text((root / "project.toml").read_text().replace('railways = "kept.geojson"', ""))
+    with pytest.raises(SettingsError, match=r"consist\[1\].on_track = true .*terrain.railways"):
+        Project(root).settings

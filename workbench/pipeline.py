@@ -287,6 +287,8 @@ def _solve_inputs(project: Project) -> dict[str, Path]:
         files["panorama_model"] = pano
     files.update(_dem_files(project))
     files.update(_rolling_stock_files(project))  # the models: marked points, bounds, the surface that settles
+    if any(c.on_track for c in project.settings.consist):  # the line the carriages on the rails keep to
+        files.update(_setting_file(project, "railways", "terrain.railways"))
     return files
 
 

@@ -80,6 +80,7 @@ class Car(_Strict):
     number: Annotated[str, Field(min_length=1, pattern=r"^[A-Za-z0-9._-]+$")]
     type: Annotated[str, Field(min_length=1)]
     coupling_to_next: Annotated[Coupling | None, _LAX] = None  # required for every car but the last; absent on the last
+    on_track: bool = False  # still on the rails: the railway line (terrain.railways) is a prior on its place
 
 
 class CameraSource(str, Enum):
@@ -150,6 +151,10 @@ class Solver(_Strict):
     # away), 1-sigma degrees (docs/solver.md, "Relative scenes")
     level_sigma_car_deg: Annotated[float, Field(ge=0.0, le=20.0)] = 0.5
     level_sigma_common_deg: Annotated[float, Field(ge=0.0, le=20.0)] = 0.5
+    # a carriage still on the rails (consist `on_track = true`): horizontal 1-sigma of each bogie pivot about the
+    # railway line, metres: the line's own accuracy (a public map traced from aerial images: 1-2 m; a surveyed
+    # or generated line: 0.05-0.1 m) with the wheelsets' play (a centimetre) (docs/solver.md, "On the rails")
+    track_sigma_m: Annotated[float, Field(gt=0.0, le=50.0)] = 1.0
 
     @field_validator("hfov_range_deg", mode="before")
     @classmethod
@@ -227,6 +232,10 @@ class ProjectSettings(_Strict):
             if not last and car.coupling_to_next is None:
                 raise ValueError(f"consist[{i}].coupling_to_next is missing for car {car.number}: say 'held' or "
                                  f"'broken'")
+            if car.on_track and not self.terrain.railways:
+                raise ValueError(f"consist[{i}].on_track = true (car {car.number}) needs the railway line: set "
+                                 f"terrain.railways to the railway layer (GeoJSON or OpenStreetMap XML), or remove "
+                                 f"on_track")
         return self
 
 
@@ -338,6 +347,7 @@ prediction_release = 30.0     # predictions that pull a car off its measured poi
 hfov_range_deg = [3.0, 120.0]  # field of view (deg) an unknown focal is searched in: telephoto to wide angle
 level_sigma_car_deg = 0.5     # no survey: each upright car's own tilt, deg (levels the relative scene)
 level_sigma_common_deg = 0.5  # no survey: the track's grade and cant under all the cars, deg
+track_sigma_m = 1.0           # a car marked on_track: its bogies' 1-sigma about the railway line, m (map: 1-2; survey: 0.05)
 """
 
 

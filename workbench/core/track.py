@@ -37,7 +37,7 @@ import numpy as np
 from .geometry import skew
 
 __all__ = ["RailwayLine", "TrackPosition", "Foot", "reference_line", "track_position", "centre_heading_covariance",
-           "wrap_deg"]
+           "wrap_deg", "bogie_pivots", "RailsCheck", "rails_check"]
 
 _MIN_SEGMENT_M = 1e-6
 
@@ -311,3 +311,69 @@ def centre_heading_covariance(world_from_carriage: np.ndarray, body_centre_enu: 
     Jh = np.concatenate([np.degrees(dh), np.zeros(3)])
     J = np.vstack([Jc, Jh])
     return J @ np.asarray(covariance_pose, dtype=float) @ J.T
+
+
+def bogie_pivots(ctype) -> np.ndarray:
+    """(2, 3) the front and rear bogie pivots of a carriage type (``rolling_stock.CarriageType``) in its frame:
+    ``(+-bogie_centres_m / 2, 0, 0)``, metres, top of rail (a type without bogie centres: a third of its length)."""
+    d = getattr(getattr(ctype, "spec", None), "dimensions", None)
+    c = getattr(d, "bogie_centres_m", None)
+    half = 0.5 * float(c) if c else float(ctype.length_m) / 3.0
+    return np.array([[half, 0.0, 0.0], [-half, 0.0, 0.0]])
+
+
+@dataclass(frozen=True)
+class RailsCheck:
+    """Whether a solved carriage may stand on the rails of ``line_id``: its bogie pivots' lateral offsets (m, left
+    positive, front then rear), their 1-sigma from the pose's covariance and the line's own, the chi-square of both
+    offsets being 0 (2 degrees of freedom), ``consistent`` when that chi-square is under its 95 % point (5.99), and
+    ``decided``: off the rails (not consistent), or on them with each offset's 95 % half width under
+    ``resolution_m`` (a consistent but wide interval settles nothing)."""
+
+    line_id: str
+    offsets_m: tuple[float, float]
+    sigma_m: tuple[float, float]
+    chi2: float
+    consistent: bool
+    decided: bool
+
+    def to_dict(self) -> dict:
+        return {"line_id": self.line_id, "offsets_m": [round(x, 4) for x in self.offsets_m],
+                "sigma_m": [round(x, 4) for x in self.sigma_m], "chi2": round(self.chi2, 3),
+                "consistent": self.consistent, "decided": self.decided, "verdict": self.verdict}
+
+    @property
+    def verdict(self) -> str:
+        """``"no"`` (the offsets reject the rails), ``"yes"`` (on them, to ``resolution_m``) or ``"cannot tell"``."""
+        return "no" if not self.consistent else ("yes" if self.decided else "cannot tell")
+
+
+def rails_check(line: RailwayLine, world_from_carriage: np.ndarray, pivots: np.ndarray,
+                covariance_pose: np.ndarray | None, line_sigma_m: float, resolution_m: float = 0.5,
+                common_cov_en: np.ndarray | None = None) -> RailsCheck:
+    """Test a solved carriage (``world_from_carriage`` (4, 4), its bogie ``pivots`` (2, 3) in the carriage frame,
+    ``covariance_pose`` (6, 6) rotation vector then origin, or None) against standing on ``line`` (accurate to
+    ``line_sigma_m`` at each pivot). ``common_cov_en`` (2, 2): a horizontal error shared by the whole carriage
+    (the camera's georeference), m^2."""
+    M = np.asarray(world_from_carriage, dtype=float)
+    R, t = M[:3, :3], M[:3, 3]
+    q = np.asarray(pivots, dtype=float) @ R.T
+    off, J, Nh = np.zeros(2), np.zeros((2, 6)), np.zeros((2, 2))
+    for i in range(2):
+        f = line.foot((q[i] + t)[:2])
+        b = math.radians(f.bearing_deg)
+        n = np.array([-math.cos(b), math.sin(b), 0.0])
+        off[i] = f.offset_m
+        J[i] = np.concatenate([np.cross(q[i], n), n])  # d offset / d (omega, t): R' = exp(omega) R
+        Nh[i] = n[:2]
+    C = np.eye(2) * float(line_sigma_m) ** 2
+    if covariance_pose is not None:
+        C = C + J @ np.asarray(covariance_pose, dtype=float) @ J.T
+    if common_cov_en is not None:
+        C = C + Nh @ np.asarray(common_cov_en, dtype=float) @ Nh.T
+    sd = np.sqrt(np.diag(C))
+    chi2 = float(off @ np.linalg.solve(C, off))
+    consistent = chi2 <= 5.991
+    decided = bool(not consistent or np.all(1.96 * sd <= resolution_m))
+    return RailsCheck(line.id, (float(off[0]), float(off[1])), (float(sd[0]), float(sd[1])), chi2, bool(consistent),
+                      decided)

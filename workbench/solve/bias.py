@@ -143,16 +143,15 @@ def _link_units(cars, R, t, chains, slacks, col, P) -> _Units | None:
 
 
 def _contact_units(contact, R, t, col, P, sigma_cfg: float) -> _Units | None:
-    """The terrain contact rows: one unit per carriage on the terrain."""
-    Jc, ck = contact_rows(contact, R, t, col, P, sigma_cfg)
+    """The soft per-carriage rows (terrain contact, track prior): one unit per row."""
+    Jc, ck, idx = contact_rows(contact, R, t, col, P, sigma_cfg)
     if not ck:
         return None
-    sz = sigma_cfg / contact.scale
     S = np.array([col[k] for k in ck])[:, None] + np.arange(6)
 
     def eval_contact(delta):
-        d, _, _ = contact.clearances(exp_so3(delta[:, :3]) @ R[ck], t[ck] + delta[:, 3:6], ck)
-        return (d / sz)[:, None]
+        r = contact.residuals(exp_so3(delta[:, :3]) @ R[ck], t[ck] + delta[:, 3:6], idx)
+        return (r / sigma_cfg)[:, None]
 
     return _Units(S, Jc, np.ones(len(Jc)), 1, eval_contact)
 

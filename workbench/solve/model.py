@@ -67,6 +67,7 @@ class CarriageInput:
     number: str
     carriage_type: Any  # workbench.rolling_stock.CarriageType
     observations: Mapping[str, Any] = field(default_factory=dict)
+    on_track: bool = False  # still on the rails: the railway line is a prior (see .track_prior)
 
 
 @dataclass(frozen=True)
@@ -104,6 +105,8 @@ class SolveOptions:
     bias_correction: bool = True  # subtract the second-order bias (see .bias)
     bias_max_over_sd: float = 1.0  # a carriage whose bias exceeds this many sd is left uncorrected
     prediction_release: float = 30.0  # step 4b's factor on the predictions' sigmas (1: no check)
+    track_sigma_m: float = 1.0  # horizontal 1-sigma of an on-track carriage's bogie pivot about the railway line
+    track_gate_m: float = 5.0  # a pivot farther than this from the line at step 4's start: no prior (warned)
 
     def __post_init__(self) -> None:
         def bad(name: str, why: str) -> None:
@@ -130,6 +133,10 @@ class SolveOptions:
             bad("tolerance", "must be positive")
         if self.face_sigma_px is not None and not (np.isfinite(self.face_sigma_px) and self.face_sigma_px >= 0):
             bad("face_sigma_px", "must be a non-negative number of pixels, or None (estimated)")
+        for name in ("track_sigma_m", "track_gate_m"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float, np.floating)) and np.isfinite(v) and v > 0):
+                bad(name, "must be a positive number of metres")
         if self.weighting not in WEIGHTINGS:
             bad("weighting", f"must be one of {', '.join(WEIGHTINGS)}")
         if not isinstance(self.bias_correction, (bool, np.bool_)):
@@ -204,6 +211,8 @@ class SolveResult:
     cost_at_minimum: float = float("nan")
     # what the bias correction did (BiasCorrection.summary(), or {"applied": False, "note"}); empty when off
     bias_correction: dict = field(default_factory=dict)
+    # the railway line's prior for the carriages marked on the rails (TrackPriorRecord.to_dict() each)
+    track_prior: list[dict] = field(default_factory=list)
 
     @property
     def converged(self) -> bool:

@@ -86,6 +86,7 @@ class Car:
     scale: np.ndarray | None = None  # (n,) each point's sigma / the solve's pixel sigma (None: all 1)
     derived: np.ndarray | None = None  # (n,) bool: a prediction, not a measurement (see Observation.derived)
     groups: list | None = None  # (n,) the observation's group (see Observation.group) or None
+    on_track: bool = False  # marked still on the rails (CarriageInput.on_track)
 
 
 def record_warning(wlist: list, car: Car | None, kind: str, message: str) -> None:
@@ -167,7 +168,7 @@ def _prepare_one(i: int, c: CarriageInput, views: Sequence[View], vindex: dict[s
     return Car(i, str(c.number), ct, names, np.asarray(vi, dtype=int), np.asarray(P, dtype=float).reshape(-1, 3),
                np.asarray(uv, dtype=float).reshape(-1, 2), sorted(set(names)), np.asarray(ct.coupler_front, float),
                np.asarray(ct.coupler_rear, float), body, np.asarray(sc, dtype=float), np.asarray(der, dtype=bool),
-               grp)
+               grp, bool(c.on_track))
 
 
 def prepare_cars(carriages: Sequence[CarriageInput], views: Sequence[View], options: SolveOptions) -> list[Car]:

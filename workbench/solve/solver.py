@@ -84,7 +84,8 @@ def _warn_focal_at_limit(s: SolveContext, f: np.ndarray) -> None:
 
 
 def _context(carriages: Sequence[CarriageInput], links: Sequence[ChainLink], views: list[View],
-             options: SolveOptions, terrain: Any, refused: dict[int, str] | None = None) -> SolveContext:
+             options: SolveOptions, terrain: Any, refused: dict[int, str] | None = None,
+             railways: Sequence[Any] = ()) -> SolveContext:
     cars = prepare_cars(carriages, views, options)
     wl: list[dict] = []
     plan = plan_consist(cars, links, options, wl, views, refused)
@@ -93,7 +94,7 @@ def _context(carriages: Sequence[CarriageInput], links: Sequence[ChainLink], vie
     used = [v for v in range(len(views)) if len(prob.by_view[v]) > 0]
     free = [v for v in used if not views[v].focal_known] or used  # the views marked unknown, else every one
     focal_views = focal_groups(views, free) if options.estimate_focal else []
-    return SolveContext(cars, views, plan, prob, weights, focal_views, options, terrain, wl)
+    return SolveContext(cars, views, plan, prob, weights, focal_views, options, terrain, wl, railways=railways)
 
 
 def _step4_facts(s: SolveContext) -> dict:
@@ -108,13 +109,15 @@ def _steps_1_to_4(s: SolveContext) -> ChainedFit:
 
 
 def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink], views: Sequence[View],
-                  options: SolveOptions | None = None, terrain: Any = None) -> SolveResult:
+                  options: SolveOptions | None = None, terrain: Any = None,
+                  railways: Sequence[Any] = ()) -> SolveResult:
     """Solve the poses of all carriages (and optionally the focal) from marked-point pixels: the steps of
-    :mod:`.steps`, then the results and (``options.compute_covariance``) their covariance."""
+    :mod:`.steps`, then the results and (``options.compute_covariance``) their covariance. ``railways``: the
+    railway lines (scene frame) that the carriages marked ``on_track`` keep to (:mod:`.track_prior`)."""
     t_start = time.perf_counter()
     options = options or SolveOptions()
     views = list(views)
-    s = _context(carriages, links, views, options, terrain)
+    s = _context(carriages, links, views, options, terrain, railways=railways)
     fit = _steps_1_to_4(s)
     refused: dict[int, str] = {}
     while True:  # one-face carriages whose focal the joint problem fixes too weakly: solved again without them
@@ -125,7 +128,7 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
         rel, nfev, issued = _step4_facts(s)["focal_rel_sd"], s.nfev, {w["message"] for w in s.warnings}
         with warnings.catch_warnings(record=True) as caught:  # the plan's warnings again: issue the new ones only
             warnings.simplefilter("always")
-            s = _context(carriages, links, views, options, terrain, refused)
+            s = _context(carriages, links, views, options, terrain, refused, railways)
         for w in caught:
             if str(w.message) not in issued:
                 warnings.warn(w.message, w.category, stacklevel=2)
@@ -146,7 +149,7 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
                       warnings=s.warnings, steps=s.steps, iterations=s.nfev, time_s=0.0, final_cost=bias.final_cost,
                       focal_px={views[v].name: float(f[v]) for v in range(len(views))}, sigma_focal_px={},
                       links=_link_records(s.plan.chains, fit.links), cost_at_minimum=cost_at_minimum,
-                      bias_correction=bias.summary)
+                      bias_correction=bias.summary, track_prior=[r.to_dict() for r in s.track_records])
     if options.compute_covariance and s.plan.active:
         # with the bias correction: the covariance (and the pixel sigma) of the minimum, centred on the corrected
         # poses

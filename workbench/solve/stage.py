@@ -165,8 +165,8 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
     panorama = _load_panorama(project, cam_doc)
     obs, corr_stats = read_correspondences(project, corr_path, views, panorama)
     types = project.carriage_types()
-    carriages = [CarriageInput(number=c.number, carriage_type=types[c.number], observations=obs.get(c.number, {}))
-                 for c in s.consist]
+    carriages = [CarriageInput(number=c.number, carriage_type=types[c.number], observations=obs.get(c.number, {}),
+                               on_track=bool(c.on_track)) for c in s.consist]
     links = []
     for i, c in enumerate(s.consist[:-1]):
         held = c.coupling_to_next is not None and c.coupling_to_next.value == "held"
@@ -180,7 +180,8 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
                         face_sigma_px=None if s.solver.face_sigma_px == "estimate" else s.solver.face_sigma_px,
                         bias_correction=bool(s.solver.bias_correction),
                         prediction_release=float(s.solver.prediction_release),
-                        hfov_range_deg=tuple(float(x) for x in s.solver.hfov_range_deg))
+                        hfov_range_deg=tuple(float(x) for x in s.solver.hfov_range_deg),
+                        track_sigma_m=float(s.solver.track_sigma_m))
     relative = cam_doc.get("frame") == "relative"
     terrain = None
     if s.terrain.dem and not relative:
@@ -189,8 +190,9 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
     elif s.terrain.dem:
         log.warning("solve: the scene is relative (no control points): the DEM (terrain.dem) is not in its frame "
                     "and is not used to settle the carriages; add control_points.json to georeference it")
+    railways = _railways_for_prior(project, carriages, relative, progress)
     progress(0.3, f"solving {len(carriages)} carriages")
-    res, rejected = _solve_rejecting(carriages, links, views, opts, terrain, s.solver, progress)
+    res, rejected = _solve_rejecting(carriages, links, views, opts, terrain, s.solver, progress, railways)
     exif_check = _exif_focal_check(carriages, links, views, opts, terrain, cam_doc)
     levelling = None
     if relative and any(c.status != "left_out" for c in res.carriages):
@@ -231,6 +233,7 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
     doc["correspondences"] = corr_stats
     doc["rejected_points"] = rejected
     doc["exif_focal_check"] = exif_check
+    doc["track_prior"] = res.track_prior
     for c in exif_check:
         if c.get("warning"):
             doc["warnings"].append({"car": None, "index": None, "kind": "exif_focal", "message": c["warning"]})
@@ -263,8 +266,23 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
     return StageResult(outputs={"solution": path}, stats=stats)
 
 
+def _railways_for_prior(project: Project, carriages: list, relative: bool, progress: Progress) -> tuple:
+    """The railway lines (scene frame) for the carriages marked on the rails; none without such a carriage, and
+    none in a relative scene (the map is not in its frame: warned)."""
+    marked = [c.number for c in carriages if c.on_track]
+    if not marked:
+        return ()
+    if relative:
+        log.warning("solve: car(s) %s are marked on_track, but the scene is relative (no control points): the "
+                    "railway line is not in its frame and is not used; add control_points.json", ", ".join(marked))
+        return ()
+    progress(0.2, "railway lines")
+    layer = project.railways()
+    return tuple(layer.lines) if layer is not None else ()
+
+
 def _solve_rejecting(carriages: list, links: list, views: list, opts: Any, terrain: Any, solver: Any,
-                     progress: Progress) -> tuple[Any, list[dict]]:
+                     progress: Progress, railways: tuple = ()) -> tuple[Any, list[dict]]:
     """Solve; while a marked point lies farther than ``reject_outliers_sigma`` pixel sigmas from the fit, drop the
     worst point of each such carriage and solve again (a wrong automatic match must not bend the consist)."""
     rejected: list[dict] = []
@@ -272,7 +290,7 @@ def _solve_rejecting(carriages: list, links: list, views: list, opts: Any, terra
     for rnd in range(int(solver.max_rejection_rounds) + 1):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", SolveWarning)  # recorded in the result's warnings
-            res = solve_consist(carriages, links, views, opts, terrain)
+            res = solve_consist(carriages, links, views, opts, terrain, railways)
         if thr <= 0 or rnd == int(solver.max_rejection_rounds):
             break
         dropped = False

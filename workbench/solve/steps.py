@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 
@@ -26,6 +26,7 @@ from .plan import FOCAL_PINNED_REL_SD, Plan, best_view, focal_reason, focal_rel_
 from .pnp import place_carried, pnp_start, refine_alone
 from .problem import Car, Poses, Problem, chain_cost, pixel_cost, pose_changes, record_warning
 from .terrain import Contact, rest_on_terrain, surface_samples
+from .track_prior import SoftRows, TrackPriorRecord, track_prior
 from .uncertainty import CovarianceModel, solution_model
 
 CHI2_6_95 = 12.5916  # 95 % point of the chi-square distribution with 6 degrees of freedom
@@ -48,7 +49,9 @@ class SolveContext:
     nfev: int = 0
     failures: list[str] = field(default_factory=list)
     samples: dict[int, np.ndarray] = field(default_factory=dict)  # step 2: each carriage's surface samples
-    contact: Contact | None = None  # step 4's terrain contact term
+    contact: Contact | SoftRows | None = None  # step 4's terrain contact term (and the track prior's rows)
+    railways: Sequence[Any] = ()  # the railway lines (core.track.RailwayLine) for carriages on the rails
+    track_records: list[TrackPriorRecord] = field(default_factory=list)
 
     def chained(self, prob: Problem | None = None, contact: Contact | None = None) -> ChainedProblem:
         return ChainedProblem(self.prob if prob is None else prob, self.cars, self.plan.chains, self.focal_views,
@@ -222,6 +225,14 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
     c0 = pixel_cost(s.prob, fit3.poses)
     if terrain is not None and options.use_terrain_contact:
         s.contact = Contact(terrain, s.samples, options.pixel_sigma_px / options.terrain_sigma_m)
+    track, s.track_records = track_prior(s.cars, s.plan.active, fit3.poses.R, fit3.poses.t, s.railways,
+                                         options.track_sigma_m, options.pixel_sigma_px, options.track_gate_m)
+    for rec in s.track_records:
+        if not rec.applied:
+            record_warning(s.warnings, s.cars[rec.index], "track_prior", f"car {rec.number} is marked on the rails "
+                           f"(on_track) but gets no track prior: {rec.reason}")
+    if track is not None:
+        s.contact = SoftRows(s.contact, track)
     cp = s.chained(contact=s.contact)
     fit = cp.solve(fit3.poses)
     s.nfev += fit.nfev
@@ -238,14 +249,19 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
         fit = retry.fit
     if retry.notes:
         note += "; " + "; ".join(retry.notes)
-    note += (f"; soft terrain contact (sigma_z = {options.terrain_sigma_m} m)" if s.contact is not None else
+    terrain_contact = s.contact.terrain_contact if isinstance(s.contact, SoftRows) else s.contact
+    note += (f"; soft terrain contact (sigma_z = {options.terrain_sigma_m} m)" if terrain_contact is not None else
              ("; no terrain contact term (no terrain)" if terrain is None else "; terrain contact term off"))
+    if track is not None:
+        note += (f"; track prior for {len(track.cars) // 2} carriage(s) on the rails (bogie pivots over the line, "
+                 f"sigma {options.track_sigma_m:g} m)")
     s.steps.append(StepStats("4_all", True, f"everything optimised ({fit.rounds} active-set round(s), "
                              f"{fit.n_active} coupler(s) at the slack)" + note, c0, pixel_cost(s.prob, fit.poses),
                              nfev, fit.message, time.perf_counter() - t4, s.changes(fit3.poses, fit.poses),
                              {"active_set_rounds": fit.rounds, "links_at_slack": fit.n_active,
                               "restarted": retry.restarted, "branch_check_not_tried": retry.not_tried,
-                              "terrain_contact": s.contact is not None}))
+                              "terrain_contact": terrain_contact is not None,
+                              "track_prior_cars": [r.number for r in s.track_records if r.applied]}))
     if not fit.ok:
         s.failures.append(f"step 4: {fit.message}")
     return fit

@@ -87,6 +87,11 @@ class Contact:
         g = np.column_stack([(h[:, 0] - h[:, 1]) / (2 * e), (h[:, 2] - h[:, 3]) / (2 * e)])
         return np.where(np.isfinite(g), g, 0.0)
 
+    def residuals(self, R_r: np.ndarray, t_r: np.ndarray, rows: Sequence[int]) -> np.ndarray:
+        """The residuals of the rows ``rows`` (pixel units, NaN off the terrain) at the poses given per row."""
+        d, _, _ = self.clearances(R_r, t_r, [self.cars[i] for i in rows])
+        return self.scale * d
+
     def rows(self, R_c: np.ndarray, t_c: np.ndarray):
         """Contact residuals and their derivatives for every carriage (poses as :meth:`clearances`): residual
         (n,) (0 off the terrain), ``a`` (n, 3) d residual / d X (0 off the terrain), R s (n, 3), on-terrain mask."""

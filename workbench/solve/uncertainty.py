@@ -76,11 +76,12 @@ def _prior_info(cars, R, t, chains, slacks, col, P):
     return Jp.T @ Jp
 
 
-def contact_rows(contact, R, t, col, P, sigma_cfg) -> tuple[np.ndarray, list[int]]:
-    """Whitened Jacobian rows (one per carriage in contact, ``clearance / sigma_z``) of the terrain contact term,
-    and the carriages they belong to (a carriage off the terrain has none)."""
+def contact_rows(contact, R, t, col, P, sigma_cfg) -> tuple[np.ndarray, list[int], np.ndarray]:
+    """Whitened Jacobian rows of the soft per-carriage rows (the terrain contact, ``clearance / sigma_z``, one per
+    carriage on the terrain; the track prior's, two per carriage on the rails), the carriages they belong to and
+    their indices among ``contact.cars`` (a carriage off the terrain has no contact row)."""
     if contact is None or not contact.cars:
-        return np.zeros((0, P)), []
+        return np.zeros((0, P)), [], np.zeros(0, dtype=int)
     cars_c = contact.cars
     _, a, q, on = contact.rows(R[cars_c], t[cars_c])
     ks = [k for k, o in zip(cars_c, on) if o]
@@ -89,11 +90,11 @@ def contact_rows(contact, R, t, col, P, sigma_cfg) -> tuple[np.ndarray, list[int
         c = col[k]
         rows[i, c:c + 3] = np.cross(q_k, a_k)  # -(a x-matrix(R s))
         rows[i, c + 3:c + 6] = a_k
-    return rows / sigma_cfg, ks
+    return rows / sigma_cfg, ks, np.nonzero(on)[0]
 
 
 def _contact_info(contact, R, t, col, P, sigma_cfg):
-    Jc, _ = contact_rows(contact, R, t, col, P, sigma_cfg)
+    Jc, _, _ = contact_rows(contact, R, t, col, P, sigma_cfg)
     return Jc.T @ Jc
 
 
