@@ -383,7 +383,8 @@ STAGES: list[StageSpec] = [
               applies=lambda project: project.solution_path.is_file()),
     StageSpec("render", "off-screen renders of the reconstructed scene (overview, map, photo overlays, close-ups, "
               "orbit)", "workbench.report.render_stage:run_render", inputs=scene_input_files,
-              settings_sections=("incident", "location", "terrain", "consist"), depends_on=("solve",)),
+              settings_sections=("incident", "location", "terrain", "consist"), depends_on=("solve",),
+              runs_beside=("export",)),  # the export's files are read by neither (the report waits for both)
     StageSpec("report", "incident report (HTML and PDF) from the stages' statistics and renders",
               "workbench.report.report_stage:run_report", inputs=_report_inputs,
               settings_sections=("incident", "location", "consist", "terrain.railways"), depends_on=("render",)),
