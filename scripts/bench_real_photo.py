@@ -55,6 +55,7 @@ ROWS = {
     "045": (ROOT / "scripts" / "bench_real_photo_045.json", [TRAINS + "1024px-Keikyu_1000_series_EMU_(II)_045.JPG"]),
 }
 CHI2_3_95 = 7.814727903251178
+LINES = ROOT / "scripts" / "bench_real_photo_lines.json"  # straight edges and rails per row: the track check
 
 
 def _copy(tmp: Path, unlinked: bool, row: str = "sample") -> Project:
@@ -115,6 +116,72 @@ def _run(project: Project) -> dict:
     return out
 
 
+def _plan_curvature(points_carriage: np.ndarray) -> tuple[float, float]:
+    """Curvature (1/m, positive turning left going forward) of points (n, 3) in a car's frame, fitted as
+    y = a + b x + k x^2 / 2 in its rail plane, and its 1-sigma (one independent point in CORRELATION_PX)."""
+    from workbench.core.vanishing import CORRELATION_PX
+
+    x, y = points_carriage[:, 0], points_carriage[:, 1]
+    A = np.c_[0.5 * x ** 2, x, np.ones_like(x)]
+    coef, *_ = np.linalg.lstsq(A, y, rcond=None)
+    var = np.var(y - A @ coef) * CORRELATION_PX
+    return float(coef[0]), float(np.sqrt(np.linalg.inv(A.T @ A)[0, 0] * var))
+
+
+def _track_check(project: Project, row: str) -> dict | None:
+    """Is the track straight where the photo was taken? Two measurements that use no carriage dimension:
+
+    * each car's axis from its side's straight edges (their vanishing point, ``workbench.core.vanishing``), and
+      the turn about the vertical from each car to the next (straight track: zero, to the fit's sigma);
+    * the adjacent track's rails, their image points put on the rail plane of car 1 (the chained solve's camera
+      and car 1's pose) and fitted with a constant curvature (a turn over one car's 18 m = curvature x 18 m).
+    """
+    spec = json.loads(LINES.read_text()).get(row)
+    if spec is None:
+        return None
+    from PIL import Image
+
+    from workbench.core.vanishing import edge_points, fit_image_edge, relative_yaw_deg, vanishing_point
+
+    sol = project.solution("bench")
+    view = project.cameras()[spec["photo"]]
+    intr = view.intrinsics.with_focal(sol.focal_px[spec["photo"]])
+    cam_from_world = sol.cam_from_world(view.cam_from_world)
+    gray = np.asarray(Image.open(project.root / "photos" / spec["photo"]).convert("RGB"), float)[..., 1]
+    up_cam = cam_from_world[:3, :3] @ np.array([0.0, 0.0, 1.0])
+    vps = {}
+    for car, lines in spec["cars"].items():
+        a, b = (fit_image_edge(gray, *lines[k]) for k in ("body_bottom", "band_bottom"))
+        vps[car] = vanishing_point(a, b)
+    cars = sorted(vps, key=int)
+    turns = {f"{p}-{q}": relative_yaw_deg(intr.K, up_cam, *vps[p], *vps[q]) for p, q in zip(cars, cars[1:])}
+    out = {"vanishing_points_uv": {c: vps[c][0].tolist() for c in cars},
+           "turn_deg": {k: [y, s] for k, (y, s) in turns.items()},
+           "chi2_straight": float(sum((y / s) ** 2 for y, s in turns.values())), "dof": len(turns)}
+    car1 = sol.posed[0]
+    carriage_from_cam = np.linalg.inv(car1.world_from_carriage) @ np.linalg.inv(cam_from_world)
+    sigma_pitch = math.radians(car1.record["sigma_hpr_deg"][1])
+    rails = {}
+    for name, poly in spec["rails"].items():
+        uv = np.vstack([edge_points(gray, p, q) for p, q in zip(poly, poly[1:])])
+        rails[name] = {"n_points": len(uv)}
+        for key, pitch in (("", 0.0), ("_pitch_minus_sigma", -sigma_pitch), ("_pitch_plus_sigma", sigma_pitch)):
+            tilt = Rotation.from_rotvec([0.0, pitch, 0.0]).as_matrix()  # the rail plane turned about car 1's y
+            rays = tilt @ carriage_from_cam[:3, :3] @ intr.rays(uv).T
+            o = tilt @ carriage_from_cam[:3, 3]
+            pts = o + ((0.0 - o[2]) / rays[2])[:, None] * rays.T  # on the rail plane, z = 0 in car 1's frame
+            k, sk = _plan_curvature(pts)
+            # the turn of a car 18 m behind from the one ahead (the sign of turn_deg above): -18 m x curvature
+            rails[name][f"next_car_turn_deg{key}"] = -math.degrees(18.0 * k)
+            if not key:
+                rails[name].update({"curvature_per_km": 1e3 * k, "sigma_per_km": 1e3 * sk,
+                                    "x_range_m": [float(pts[:, 0].min()), float(pts[:, 0].max())],
+                                    "y_mean_m": float(pts[:, 1].mean())})
+    out["rails"] = rails
+    out["car1_sigma_pitch_deg"] = math.degrees(sigma_pitch)
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=ROOT / "bench_out" / "real_photo.json")
@@ -128,7 +195,10 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         for row in rows:
             for unlinked in (False, True):
-                res[f"{row} {'unlinked' if unlinked else 'chained'}"] = _run(_copy(Path(tmp), unlinked, row))
+                project = _copy(Path(tmp), unlinked, row)
+                res[f"{row} {'unlinked' if unlinked else 'chained'}"] = r = _run(project)
+                if not unlinked:
+                    r["track"] = _track_check(project, row)
     for k, r in res.items():
         print(f"{k}: {r['n_picks']} picks, RMS {r['rms_px']:.2f} px, focal {r['focal_px']:.0f} px "
               f"(sigma {r['sigma_focal_px'] or float('nan'):.0f}, hfov {r['hfov_deg']:.2f} deg), cars {r['status']}, "
@@ -145,6 +215,19 @@ def main() -> None:
                   + " / ".join(f"{x:.2f}" for x in p["relative_roll_pitch_yaw_deg"]) + " deg (95 % "
                   + " / ".join(f"{x:.2f}" for x in p["relative_ci95_deg"])
                   + f"; zero inside: {p['relative_zero_inside_95']})")
+        t = r.get("track")
+        if t:
+            print("    track check (no carriage dimension used): each car's turn from the one ahead, from its side's "
+                  "vanishing point: " + ", ".join(f"cars {k} {y:+.2f} +- {s:.2f} deg" for k, (y, s) in
+                                                   t["turn_deg"].items())
+                  + f"; straight track: chi-square {t['chi2_straight']:.1f} ({t['dof']} dof)")
+            for n, rl in t["rails"].items():
+                print(f"    {n}: plan curvature {rl['curvature_per_km']:+.3f} +- {rl['sigma_per_km']:.3f} per km on car "
+                      f"1's rail plane (x {rl['x_range_m'][0]:.0f} to {rl['x_range_m'][1]:.0f} m, y "
+                      f"{rl['y_mean_m']:.2f} m, {rl['n_points']} points): a car 18 m behind turned "
+                      f"{rl['next_car_turn_deg']:+.2f} deg; with that plane pitched -/+ car 1's pitch sigma "
+                      f"({t['car1_sigma_pitch_deg']:.2f} deg): {rl['next_car_turn_deg_pitch_minus_sigma']:+.2f} / "
+                      f"{rl['next_car_turn_deg_pitch_plus_sigma']:+.2f} deg (a grazing view: plan and profile mix)")
     a.out.parent.mkdir(parents=True, exist_ok=True)
     a.out.write_text(json.dumps(res, indent=1))
     print(f"saved {a.out}")
