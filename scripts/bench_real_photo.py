@@ -45,6 +45,7 @@ from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -325,7 +326,10 @@ def main() -> None:
             print("    track check (no carriage dimension used): each car's turn from the one ahead, from its side's "
                   "vanishing point: " + ", ".join(f"cars {k} {y:+.2f} +- {s:.2f} deg" for k, (y, s) in
                                                    t["turn_deg"].items())
-                  + f"; straight track: chi-square {t['chi2_straight']:.1f} ({t['dof']} dof)")
+                  + f"; straight track: chi-square {t['chi2_straight']:.1f} ({t['dof']} dof, 95 %: "
+                  f"{chi2.ppf(0.95, t['dof']):.1f})"
+                  + (": NOT straight, so zero relative angles are not this photo's truth"
+                     if t["chi2_straight"] > chi2.ppf(0.95, t["dof"]) else ""))
             for n, rl in t["rails"].items():
                 print(f"    {n}: plan curvature {rl['curvature_per_km']:+.3f} +- {rl['sigma_per_km']:.3f} per km "
                       f"on car 1's rail plane (x {rl['x_range_m'][0]:.0f} to {rl['x_range_m'][1]:.0f} m, y "
