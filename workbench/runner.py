@@ -364,9 +364,10 @@ class Runner:
                     exc = end[1] if isinstance(end[1], BaseException) else RuntimeError(end[2])
                     self._record_failure(spec, state, exc, started, end[4], on_event, tb=end[3])
                 else:
-                    exc = StageError(f"stage {spec.name!r}: its process ended without a result (exit code "
-                                     f"{proc.exitcode}{'; killed by signal ' + str(-proc.exitcode) if (proc.exitcode or 0) < 0 else ''}); "
-                                     f"run `workbench run {self.project.root} --only {spec.name}` again")
+                    code = proc.exitcode if proc.exitcode is not None else "?"
+                    signal = f"; killed by signal {-code}" if isinstance(code, int) and code < 0 else ""
+                    exc = StageError(f"stage {spec.name!r}: its process ended without a result (exit code {code}"
+                                     f"{signal}); run `workbench run {self.project.root} --only {spec.name}` again")
                     self._record_failure(spec, state, exc, started, duration, on_event, tb="")
                 side.error = exc if isinstance(exc, WorkbenchError) else self._failed_error(spec, exc)
             except BaseException as exc:  # noqa: BLE001 - the record could not be written: the join raises it

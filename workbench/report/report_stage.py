@@ -23,7 +23,7 @@ import os
 import platform
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
@@ -441,6 +441,57 @@ def provenance(project: Project, state: dict) -> dict:
 # ----------------------------------------------------------------------------------------------------------
 # The stage
 # ----------------------------------------------------------------------------------------------------------
+def _beside(jobs: list[tuple]) -> Callable[[], list]:
+    """Start ``jobs`` ([(function, args)]) one after another in a forked process; returns a function that waits for
+    them and returns their results in order (or raises the first one's error). Without ``fork``: run here."""
+    if not hasattr(os, "fork"):
+        results = [fn(*args) for fn, args in jobs]
+        return lambda: results
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("fork")
+    ours, theirs = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_run_jobs, args=(jobs, theirs), name="report figures", daemon=True)
+    proc.start()
+    theirs.close()
+
+    def wait() -> list:
+        try:
+            msg = ours.recv()
+        except EOFError:
+            msg = None
+        finally:
+            proc.join()
+            ours.close()
+        if msg is None:
+            raise StageError(f"report: the process drawing the figures ended without them (exit code "
+                             f"{proc.exitcode}); run the report again (`workbench run PATH --only report --force`)")
+        if msg[0] == "error":
+            raise msg[1]
+        return msg[1]
+    return wait
+
+
+def _run_jobs(jobs: list[tuple], conn) -> None:
+    try:
+        conn.send(("done", [fn(*args) for fn, args in jobs]))
+    except Exception as exc:  # noqa: BLE001 - raised by the stage
+        try:
+            conn.send(("error", exc))
+        except Exception:  # noqa: BLE001 - an exception that does not pickle: its message
+            conn.send(("error", StageError(f"report: {type(exc).__name__}: {exc}")))
+    finally:
+        conn.close()
+
+
+def _load_pdf_engine() -> None:
+    """Import WeasyPrint now (while the figures are drawn beside); a failure is reported by :func:`write_pdf`."""
+    try:
+        import weasyprint  # noqa: F401
+    except (ImportError, OSError):
+        pass
+
+
 def _stats(project: Project) -> dict[str, dict]:
     out = {}
     for p in sorted(project.out_dir.glob("*/stats.json")):
@@ -480,8 +531,10 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
     cams = cameras.doc if cameras is not None else {}
     cars = solution.get("carriages", [])
 
-    progress(0.1, "observations")
-    obs_figs = []
+    progress(0.1, "figures")
+    # the figures of the solution (points, residuals) are drawn in a process beside this one, which meanwhile copies
+    # the renders and loads the PDF engine; the same figures, drawn by the same code
+    jobs: list[tuple] = []
     views = {v.get("name"): v for v in cams.get("views", [])}
     pano = cams.get("panorama") or {}
     observed = []
@@ -499,39 +552,51 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
             log.warning("report: no image for view %s; its points are not drawn", v)
             continue
         p = figs / f"observations_{Path(v).stem}.jpg"
-        info = observations_figure(p, img, v, cars)
-        obs_figs.append({**info, "src": _rel(out, p)})
-    panorama_img, panorama_fig = None, None
+        jobs.append((observations_figure, (p, img, v, cars)))
     pj = project.stage_dir("stitch") / "panorama.jpg"
     pm = project.stage_dir("stitch") / "panorama.json"
-    if pj.is_file():
-        progress(0.25, "panorama")
-        info = panorama_figure(figs / "observations_panorama.jpg", pj, pm, cars) if pm.is_file() else None
+    with_pano = pj.is_file() and pm.is_file()
+    if with_pano:
+        jobs.append((panorama_figure, (figs / "observations_panorama.jpg", pj, pm, cars)))
+    sigma = solution.get("sigma_px")
+    jobs.append((residual_figure, (figs / "residuals.png", cars, sigma)))
+    drawn = _beside(jobs)
+
+    try:
+        by_kind: dict[str, list] = {}
+        progress(0.4, "renders")
+        for r in renders.get("renders", []):
+            r = dict(r)
+            src = project.path(r["sheet"] if r["kind"] == "orbit" and r.get("sheet") else r["path"])
+            if not src.is_file():
+                raise InputError(f"{src}: listed in {project.stage_dir('render') / 'renders.json'} but missing; run "
+                                 f"the 'render' stage again (`workbench run {project.root} --only render --force`)")
+            if r["kind"] == "map":  # line art: keep it lossless
+                r["src"] = _rel(out, src)
+            else:
+                r["src"] = _rel(out, _jpeg_copy(src, figs / f"{src.stem}.jpg"))
+            by_kind.setdefault(r["kind"], []).append(r)
+        rows = carriage_rows(project, solution)
+        for r in by_kind.get("closeup", []):
+            r["row"] = next((x for x in rows if x["number"] == r.get("carriage")), None)
+        _load_pdf_engine()
+    except BaseException:
+        try:  # the figures' process ends before the error is raised: no file of it left half-written
+            drawn()
+        except Exception:  # noqa: BLE001 - the first error is the one raised
+            pass
+        raise
+    progress(0.45, "figures")
+    results = drawn()
+    res_info = results.pop()
+    panorama_img, panorama_fig = None, None
+    if with_pano:
+        info = results.pop()
         if info is not None:
             panorama_fig = {**info, "src": _rel(out, figs / "observations_panorama.jpg")}
-        else:
-            panorama_img = _rel(out, _jpeg_copy(pj, figs / "panorama.jpg"))
-
-    progress(0.3, "residuals")
-    sigma = solution.get("sigma_px")
-    res_info = residual_figure(figs / "residuals.png", cars, sigma)
-
-    by_kind: dict[str, list] = {}
-    progress(0.4, "renders")
-    for r in renders.get("renders", []):
-        r = dict(r)
-        src = project.path(r["sheet"] if r["kind"] == "orbit" and r.get("sheet") else r["path"])
-        if not src.is_file():
-            raise InputError(f"{src}: listed in {project.stage_dir('render') / 'renders.json'} but missing; run the "
-                             f"'render' stage again (`workbench run {project.root} --only render --force`)")
-        if r["kind"] == "map":  # line art: keep it lossless
-            r["src"] = _rel(out, src)
-        else:
-            r["src"] = _rel(out, _jpeg_copy(src, figs / f"{src.stem}.jpg"))
-        by_kind.setdefault(r["kind"], []).append(r)
-    rows = carriage_rows(project, solution)
-    for r in by_kind.get("closeup", []):
-        r["row"] = next((x for x in rows if x["number"] == r.get("carriage")), None)
+    if pj.is_file() and panorama_fig is None:
+        panorama_img = _rel(out, _jpeg_copy(pj, figs / "panorama.jpg"))
+    obs_figs = [{**info, "src": _rel(out, p)} for info, (_fn, (p, *_rest)) in zip(results, jobs)]
 
     loc = s.location
     ns = "N" if loc.lat >= 0 else "S"
