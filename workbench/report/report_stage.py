@@ -23,7 +23,7 @@ import os
 import platform
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -31,6 +31,7 @@ from ..core.io import atomic_write, read_json
 from ..core.stage_api import Progress, StageResult
 from ..errors import InputError, StageError
 from ..project import Project
+from .beside import load_pdf_engine, run_beside
 from .scene import car_color
 from .track_table import track_table
 
@@ -441,57 +442,6 @@ def provenance(project: Project, state: dict) -> dict:
 # ----------------------------------------------------------------------------------------------------------
 # The stage
 # ----------------------------------------------------------------------------------------------------------
-def _beside(jobs: list[tuple]) -> Callable[[], list]:
-    """Start ``jobs`` ([(function, args)]) one after another in a forked process; returns a function that waits for
-    them and returns their results in order (or raises the first one's error). Without ``fork``: run here."""
-    if not hasattr(os, "fork"):
-        results = [fn(*args) for fn, args in jobs]
-        return lambda: results
-    import multiprocessing
-
-    ctx = multiprocessing.get_context("fork")
-    ours, theirs = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_run_jobs, args=(jobs, theirs), name="report figures", daemon=True)
-    proc.start()
-    theirs.close()
-
-    def wait() -> list:
-        try:
-            msg = ours.recv()
-        except EOFError:
-            msg = None
-        finally:
-            proc.join()
-            ours.close()
-        if msg is None:
-            raise StageError(f"report: the process drawing the figures ended without them (exit code "
-                             f"{proc.exitcode}); run the report again (`workbench run PATH --only report --force`)")
-        if msg[0] == "error":
-            raise msg[1]
-        return msg[1]
-    return wait
-
-
-def _run_jobs(jobs: list[tuple], conn) -> None:
-    try:
-        conn.send(("done", [fn(*args) for fn, args in jobs]))
-    except Exception as exc:  # noqa: BLE001 - raised by the stage
-        try:
-            conn.send(("error", exc))
-        except Exception:  # noqa: BLE001 - an exception that does not pickle: its message
-            conn.send(("error", StageError(f"report: {type(exc).__name__}: {exc}")))
-    finally:
-        conn.close()
-
-
-def _load_pdf_engine() -> None:
-    """Import WeasyPrint now (while the figures are drawn beside); a failure is reported by :func:`write_pdf`."""
-    try:
-        import weasyprint  # noqa: F401
-    except (ImportError, OSError):
-        pass
-
-
 def _stats(project: Project) -> dict[str, dict]:
     out = {}
     for p in sorted(project.out_dir.glob("*/stats.json")):
@@ -515,6 +465,36 @@ def _rel(from_dir: Path, path: Path) -> str:
     return Path(os.path.relpath(path, from_dir)).as_posix()
 
 
+def _figure_jobs(project: Project, cams: dict, cars: list[dict], figs: Path, sigma: float | None):
+    """([(figure function, args)] for each observed view's photo, the panorama (when stitched) and the residuals,
+    the panorama's path, whether its figure is among them)."""
+    jobs: list[tuple] = []
+    views = {v.get("name"): v for v in cams.get("views", [])}
+    pano = cams.get("panorama") or {}
+    observed = []
+    for c in cars:
+        for v in (c.get("observations") or {}):
+            if v not in observed:
+                observed.append(v)
+    for v in observed:
+        img = None
+        if v in views and views[v].get("image"):
+            img = project.path(views[v]["image"])
+        elif v == "panorama" and pano.get("image"):
+            img = project.path(pano["image"])
+        if img is None or not img.is_file():
+            log.warning("report: no image for view %s; its points are not drawn", v)
+            continue
+        jobs.append((observations_figure, (figs / f"observations_{Path(v).stem}.jpg", img, v, cars)))
+    pj = project.stage_dir("stitch") / "panorama.jpg"
+    pm = project.stage_dir("stitch") / "panorama.json"
+    with_pano = pj.is_file() and pm.is_file()
+    if with_pano:
+        jobs.append((panorama_figure, (figs / "observations_panorama.jpg", pj, pm, cars)))
+    jobs.append((residual_figure, (figs / "residuals.png", cars, sigma)))
+    return jobs, pj, with_pano
+
+
 def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
     """(template context, report.json figures) from the incident's files."""
     s = project.settings
@@ -534,33 +514,9 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
     progress(0.1, "figures")
     # the figures of the solution (points, residuals) are drawn in a process beside this one, which meanwhile copies
     # the renders and loads the PDF engine; the same figures, drawn by the same code
-    jobs: list[tuple] = []
-    views = {v.get("name"): v for v in cams.get("views", [])}
-    pano = cams.get("panorama") or {}
-    observed = []
-    for c in cars:
-        for v in (c.get("observations") or {}):
-            if v not in observed:
-                observed.append(v)
-    for v in observed:
-        img = None
-        if v in views and views[v].get("image"):
-            img = project.path(views[v]["image"])
-        elif v == "panorama" and pano.get("image"):
-            img = project.path(pano["image"])
-        if img is None or not img.is_file():
-            log.warning("report: no image for view %s; its points are not drawn", v)
-            continue
-        p = figs / f"observations_{Path(v).stem}.jpg"
-        jobs.append((observations_figure, (p, img, v, cars)))
-    pj = project.stage_dir("stitch") / "panorama.jpg"
-    pm = project.stage_dir("stitch") / "panorama.json"
-    with_pano = pj.is_file() and pm.is_file()
-    if with_pano:
-        jobs.append((panorama_figure, (figs / "observations_panorama.jpg", pj, pm, cars)))
     sigma = solution.get("sigma_px")
-    jobs.append((residual_figure, (figs / "residuals.png", cars, sigma)))
-    drawn = _beside(jobs)
+    jobs, pj, with_pano = _figure_jobs(project, cams, cars, figs, sigma)
+    drawn = run_beside(jobs)
 
     try:
         by_kind: dict[str, list] = {}
@@ -579,7 +535,7 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
         rows = carriage_rows(project, solution)
         for r in by_kind.get("closeup", []):
             r["row"] = next((x for x in rows if x["number"] == r.get("carriage")), None)
-        _load_pdf_engine()
+        load_pdf_engine()
     except BaseException:
         try:  # the figures' process ends before the error is raised: no file of it left half-written
             drawn()
