@@ -274,11 +274,55 @@ def _track_check(project: Project, row: str) -> dict | None:
     return out
 
 
+SCREEN = ROOT / "scripts" / "bench_real_photo_screen.json"  # photos screened for a straight-track row
+PHOTOS = ROOT.parent / "shared" / "data" / "trains" / "photos_wikimedia_japan_emu"
+
+
+def screen(path: Path = SCREEN) -> dict:
+    """Every photo in the screening file (SCREEN): ``workbench.core.vanishing.screen_straight_track`` and whether the library's types could
+    give it 6 picks a car (the file's ``eligible``)."""
+    from PIL import Image
+
+    from workbench.core.vanishing import screen_straight_track
+
+    spec = json.loads(path.read_text())
+    res = {}
+    for name, entry in spec["photos"].items():
+        src = PHOTOS / entry["folder"] / name
+        if not src.is_file():
+            sys.exit(f"error: {src} not found: the screening needs ../shared/data beside the repository")
+        rgb = np.asarray(Image.open(src).convert("RGB"), float)
+        res[name] = {"eligible": entry["eligible"], **screen_straight_track(rgb, entry["cars"])}
+    return res
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=ROOT / "bench_out" / "real_photo.json")
     ap.add_argument("--rows", default="sample,045", help="comma-separated: " + ", ".join(ROWS))
+    ap.add_argument("--screen", action="store_true",
+                    help="only screen the photos of scripts/bench_real_photo_screen.json for straight track")
     a = ap.parse_args()
+    if a.screen:
+        res = screen()
+        for name, r in res.items():
+            print(f"{name}:")
+            for car, c in r["cars"].items():
+                print(f"    car {car}: vanishing point " + ", ".join(f"{x:.1f}" for x in c["vanishing_point_uv"])
+                      + " px (sigma " + ", ".join(f"{x:.1f}" for x in c["sigma_uv"]) + "); edges "
+                      + ", ".join(f"{n} {e['n_points']} points RMS {e['rms_px']:.2f} px" for n, e in c["edges"].items()))
+            for pair, p in r["pairs"].items():
+                verdict = "NOT straight" if p["chi2"] > chi2.ppf(0.95, 2) else "consistent with straight"
+                print(f"    cars {pair}: vanishing points apart by " + ", ".join(f"{x:+.1f}" for x in p["vp_difference_uv"])
+                      + f" px, chi-square {p['chi2']:.1f} (2 dof, 95 %: {chi2.ppf(0.95, 2):.2f}): {verdict}; turn at "
+                      "an assumed hfov 10 / 20 / 30 deg (level camera): "
+                      + " / ".join(f"{y:+.2f} +- {s:.2f}" for y, s in p["turn_deg_at_hfov"].values()) + " deg")
+            print(f"    types: {r['eligible']}")
+        out = a.out.with_name(a.out.stem + "_screen.json")
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_text(json.dumps(res, indent=1))
+        print(f"saved {out}")
+        return
     rows = [r for r in a.rows.split(",") if r]
     if not rows or set(rows) - set(ROWS):
         sys.exit(f"error: --rows {a.rows!r}: give some of {', '.join(ROWS)}")

@@ -24,6 +24,7 @@ CENTROID_HALF_PX = 2
 # within 0.2 deg of the pixel rows, where the centroid's pull to the pixel grid (+-0.008 px) does not average
 # out along the edge. Edges at a few degrees to the rows or columns average it out.
 CORRELATION_PX = 4.0
+CHANNEL = {"red": 0, "green": 1, "blue": 2}  # an edge's channel in an RGB photo
 
 
 @dataclass(frozen=True)
@@ -87,13 +88,27 @@ def fit_image_edge(gray: np.ndarray, p0_uv, p1_uv, half_width_px: float = 2.5) -
     """Fit a straight line to the edge drawn approximately as the segment ``p0_uv``-``p1_uv`` (px) in ``gray``
     ((h, w) float): its points (:func:`edge_points`), then a total-least-squares line, points beyond 3 RMS (at
     least 0.3 px) dropped twice. Raises ValueError when fewer than 8 points remain (no edge there)."""
-    p0, p1 = np.asarray(p0_uv, float), np.asarray(p1_uv, float)
-    if gray.ndim != 2 or p0.shape != (2,) or p1.shape != (2,) or np.allclose(p0, p1):
-        raise ValueError(f"{gray.shape=}, {p0_uv=}, {p1_uv=}: expected a (h, w) image and two distinct (u, v)")
-    pts = edge_points(gray, p0, p1, half_width_px)
+    return fit_image_line(gray, [(p0_uv, p1_uv)], half_width_px)
+
+
+def fit_image_line(gray: np.ndarray, segments, half_width_px: float = 2.5) -> EdgeLine:
+    """One straight line through the edges drawn as several segments ``[(p0_uv, p1_uv), ...]`` (px) in ``gray``
+    ((h, w) float): pieces of one straight edge in space interrupted in the photo (the bottoms of a row of windows
+    at one height on a car's side, an edge crossed by a pole). Each segment's points as :func:`edge_points`
+    finds them (each its own polarity), pooled, then fitted as :func:`fit_image_edge` fits one segment's."""
+    if gray.ndim != 2 or not len(segments):
+        raise ValueError(f"{gray.shape=}, {len(segments)} segments: expected a (h, w) image and some segments")
+    parts = []
+    for p0_uv, p1_uv in segments:
+        p0, p1 = np.asarray(p0_uv, float), np.asarray(p1_uv, float)
+        if p0.shape != (2,) or p1.shape != (2,) or np.allclose(p0, p1):
+            raise ValueError(f"{gray.shape=}, {p0_uv=}, {p1_uv=}: expected a (h, w) image and two distinct (u, v)")
+        parts.append(edge_points(gray, p0, p1, half_width_px))
+    pts = np.vstack(parts)
+    where = f"{segments[0][0]} - {segments[-1][1]}" if len(segments) > 1 else f"{segments[0][0]} - {segments[0][1]}"
     for _ in range(3):
         if len(pts) < 8:
-            raise ValueError(f"no straight edge along {p0_uv} - {p1_uv}: {len(pts)} edge points")
+            raise ValueError(f"no straight edge along {where}: {len(pts)} edge points")
         m = pts.mean(0)
         direction = np.linalg.svd(pts - m)[2][0]
         r = (pts - m) @ np.array([-direction[1], direction[0]])
@@ -153,3 +168,41 @@ def relative_yaw_deg(K: np.ndarray, up_cam: np.ndarray, vp_a, cov_a, vp_b, cov_b
             g[i] = ((yaw(vp + e, vb) - yaw(vp - e, vb)) if first else (yaw(va, vp + e) - yaw(va, vp - e)))
         var += float(g @ cov @ g)
     return y, math.sqrt(var)
+
+
+def screen_straight_track(rgb: np.ndarray, cars: dict) -> dict:
+    """Straight track or not, from one photo alone (no camera, no carriage dimension): each car's vanishing point
+    from two straight edges along its side (``cars``: car -> edge name -> {channel, half_width_px, segments}, as in
+    scripts/bench_real_photo_screen.json), and for each car and the next the chi-square of their difference
+    (2 dof): on straight track the cars' sides run to one vanishing point. ``rgb``: (h, w, 3) float. The turn in
+    degrees needs the focal: given for assumed horizontal fields of view of 10, 20 and 30 deg with the camera
+    level, for scale only. Raises ValueError naming the car and edge for an unknown channel or a car without
+    exactly two edges."""
+    h, w = rgb.shape[:2]
+    out, vps = {"cars": {}, "pairs": {}}, {}
+    for car, edges in cars.items():
+        lines = {}
+        for name, e in edges.items():
+            if e.get("channel") not in CHANNEL:
+                raise ValueError(f"car {car} edge {name}: channel = {e.get('channel')!r}: give one of {list(CHANNEL)}")
+            lines[name] = fit_image_line(rgb[..., CHANNEL[e["channel"]]], e["segments"], e.get("half_width_px", 2.5))
+        if len(lines) != 2:
+            raise ValueError(f"car {car}: {len(lines)} edges: give two straight edges along its side")
+        vp, cov = vanishing_point(*lines.values())
+        vps[car] = (vp, cov)
+        out["cars"][car] = {"vanishing_point_uv": vp.tolist(), "sigma_uv": np.sqrt(np.diag(cov)).tolist(),
+                            "edges": {n: {"n_points": L.n_points, "rms_px": L.rms_px,
+                                          "sigma_angle_deg": math.degrees(L.sigma_angle_rad)}
+                                      for n, L in lines.items()}}
+    cs = list(cars)
+    for p, q in zip(cs, cs[1:]):
+        d = vps[p][0] - vps[q][0]
+        turn = {}
+        for hfov in (10.0, 20.0, 30.0):
+            f = 0.5 * w / math.tan(math.radians(hfov) / 2)
+            K = np.array([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]])
+            turn[f"{hfov:.0f}"] = relative_yaw_deg(K, [0.0, -1.0, 0.0], *vps[p], *vps[q])
+        out["pairs"][f"{p}-{q}"] = {"vp_difference_uv": d.tolist(),
+                                    "chi2": float(d @ np.linalg.solve(vps[p][1] + vps[q][1], d)),
+                                    "turn_deg_at_hfov": turn}
+    return out
