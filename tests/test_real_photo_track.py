@@ -7,6 +7,7 @@ sample's README, "The track").
 from __future__ import annotations
 
 import importlib.util
+import json
 import math
 import shutil
 from pathlib import Path
@@ -116,6 +117,9 @@ def test_screening_two_cars_vanishing_points_and_a_broken_edge(turn_deg):
     hfov = math.degrees(2 * math.atan(0.5 * W / F_PX))  # 15.2 deg: the screening's turn at 10 and 20 bracket it
     (y10, s10), (y20, s20) = pair["turn_deg_at_hfov"]["10"], pair["turn_deg_at_hfov"]["20"]
     print(f"\nturn {turn_deg}: chi2 {pair['chi2']:.2f}, turn at 10/20 deg {y10:+.3f}/{y20:+.3f} (true hfov {hfov:.1f})")
+    halves = [c["halves_chi2"] for c in res["cars"].values()]
+    print(f"front against rear half, chi2 per car: {halves}")
+    assert all(h is not None and 0.0 <= h < 5.99 for h in halves)  # one rigid body: one vanishing point
     if turn_deg == 0.0:
         assert 0.0 <= pair["chi2"] < 5.99
         assert abs(y10) < 3 * s10 and abs(y20) < 3 * s20
@@ -194,3 +198,30 @@ def test_the_types_dimensional_doubt_widens_the_relative_yaw(tmp_path):
     assert -0.25 < eave["yaw_change_deg"] < -0.05
     assert base["relative_ci95_deg"][2] * 1.3 < dd["relative_ci95_deg"][2] < 1.0
     assert 7.8 < dd["relative_chi2"] < dd["relative_chi2_picks_only"]
+
+
+SCREEN = REPO / "scripts" / "bench_real_photo_screen.json"
+TRAINS = REPO.parent / "shared" / "data" / "trains" / "photos_wikimedia_japan_emu"
+
+
+@pytest.mark.skipif(not (TRAINS / "keikyu-1000").is_dir(), reason="../shared/data (the real photos) absent")
+def test_the_screened_keikyu_lot_photos_are_on_curves():
+    """scripts/bench_real_photo.py --screen on the two Keikyu photos of the modelled lots' era (1409F lot 2,
+    1001F lot 1), each car's edges as scripts/bench_real_photo_screen.json draws them: car 2's vanishing point is
+    far from car 1's (measured 168 and 231 px along the horizon; chi-square 195 and 145, 16 and 34 once scaled by
+    how badly each car's own halves agree, x12 and x4), a turn of 2.9 and 4.1 deg at an assumed 20 deg field of
+    view: curves, which the photos' rails show too."""
+    from PIL import Image
+
+    spec = json.loads(SCREEN.read_text())["photos"]
+    for name, lo, hi in (("1024px-Keikyu-Type1000-1409F-Lot2.jpg", 120, 220),
+                         ("1024px-Keikyu-Type1000-1001F-Lot1.jpg", 180, 280)):
+        rgb = np.asarray(Image.open(TRAINS / "keikyu-1000" / name).convert("RGB"), float)
+        r = screen_straight_track(rgb, spec[name]["cars"])
+        d_u, d_v = r["pairs"]["1-2"]["vp_difference_uv"]
+        halves = [c["halves_chi2"] for c in r["cars"].values()]
+        scale = max(1.0, float(np.mean(halves)) / 2.0)
+        turn, sigma = r["pairs"]["1-2"]["turn_deg_at_hfov"]["20"]
+        assert lo < -d_u < hi and abs(d_v) < 15.0  # along the horizon: a turn in plan
+        assert r["pairs"]["1-2"]["chi2"] / scale > 10.0
+        assert -5.0 < turn < -2.0 and 0.1 < sigma < 0.8

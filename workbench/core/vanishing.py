@@ -170,27 +170,64 @@ def relative_yaw_deg(K: np.ndarray, up_cam: np.ndarray, vp_a, cov_a, vp_b, cov_b
     return y, math.sqrt(var)
 
 
+def _part_of_segments(segments, lo: float, hi: float) -> list:
+    """The stretch from fraction ``lo`` to ``hi`` of a run of segments along one edge (fractions of the run from
+    the first segment's start to the last one's end, measured along that direction), as segments; pieces shorter
+    than 6 px are left out."""
+    segs = [(np.asarray(a, float), np.asarray(b, float)) for a, b in segments]
+    start, end = segs[0][0], segs[-1][1]
+    axis = (end - start) / np.linalg.norm(end - start)
+    t0 = lambda p: float((p - start) @ axis)  # noqa: E731
+    total = t0(end)
+    out = []
+    for a, b in segs:
+        ta, tb = t0(a), t0(b)
+        lo_t, hi_t = max(min(ta, tb), lo * total), min(max(ta, tb), hi * total)
+        if hi_t - lo_t > 6.0:
+            at = lambda s: a + (s - ta) / (tb - ta) * (b - a)  # noqa: E731
+            out.append((at(lo_t), at(hi_t)))
+    return out
+
+
+def _car_vanishing_point(rgb: np.ndarray, car: str, edges: dict) -> tuple[np.ndarray, np.ndarray, dict]:
+    lines = {}
+    for name, e in edges.items():
+        if e.get("channel") not in CHANNEL:
+            raise ValueError(f"car {car} edge {name}: channel = {e.get('channel')!r}: give one of {list(CHANNEL)}")
+        lines[name] = fit_image_line(rgb[..., CHANNEL[e["channel"]]], e["segments"], e.get("half_width_px", 2.5))
+    if len(lines) != 2:
+        raise ValueError(f"car {car}: {len(lines)} edges: give two straight edges along its side")
+    vp, cov = vanishing_point(*lines.values())
+    return vp, cov, lines
+
+
 def screen_straight_track(rgb: np.ndarray, cars: dict) -> dict:
     """Straight track or not, from one photo alone (no camera, no carriage dimension): each car's vanishing point
     from two straight edges along its side (``cars``: car -> edge name -> {channel, half_width_px, segments}, as in
     scripts/bench_real_photo_screen.json), and for each car and the next the chi-square of their difference
     (2 dof): on straight track the cars' sides run to one vanishing point. ``rgb``: (h, w, 3) float. The turn in
     degrees needs the focal: given for assumed horizontal fields of view of 10, 20 and 30 deg with the camera
-    level, for scale only. Raises ValueError naming the car and edge for an unknown channel or a car without
-    exactly two edges."""
+    level, for scale only.
+
+    Each car's own check, ``halves_chi2``: the same chi-square between the vanishing points of the front and the
+    rear half of its edges (one rigid body: one vanishing point). On a real photo it is how far the edges' noise
+    model (CORRELATION_PX) falls short of the paint's and the panels' waviness: the car-to-car chi-squares are
+    to be read against it (None where a half has too few edge points). Raises ValueError naming the car and edge
+    for an unknown channel or a car without exactly two edges."""
     h, w = rgb.shape[:2]
     out, vps = {"cars": {}, "pairs": {}}, {}
     for car, edges in cars.items():
-        lines = {}
-        for name, e in edges.items():
-            if e.get("channel") not in CHANNEL:
-                raise ValueError(f"car {car} edge {name}: channel = {e.get('channel')!r}: give one of {list(CHANNEL)}")
-            lines[name] = fit_image_line(rgb[..., CHANNEL[e["channel"]]], e["segments"], e.get("half_width_px", 2.5))
-        if len(lines) != 2:
-            raise ValueError(f"car {car}: {len(lines)} edges: give two straight edges along its side")
-        vp, cov = vanishing_point(*lines.values())
+        vp, cov, lines = _car_vanishing_point(rgb, car, edges)
         vps[car] = (vp, cov)
+        try:
+            halves = [_car_vanishing_point(rgb, car, {n: {**e, "segments": _part_of_segments(e["segments"], lo, hi)}
+                                                      for n, e in edges.items()}) for lo, hi in ((0, 0.5), (0.5, 1))]
+            dh = halves[0][0] - halves[1][0]
+            halves_chi2 = float(dh @ np.linalg.solve(halves[0][1] + halves[1][1], dh))
+        except (ValueError, np.linalg.LinAlgError):
+            halves_chi2 = None
         out["cars"][car] = {"vanishing_point_uv": vp.tolist(), "sigma_uv": np.sqrt(np.diag(cov)).tolist(),
+                            "halves_chi2": halves_chi2,
                             "edges": {n: {"n_points": L.n_points, "rms_px": L.rms_px,
                                           "sigma_angle_deg": math.degrees(L.sigma_angle_rad)}
                                       for n, L in lines.items()}}
