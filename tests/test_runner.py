@@ -348,3 +348,23 @@ def test_runs_beside_is_checked(tmp_path):
         Runner(p, [*s[:2], StageSpec("main", "", s[2].run, runs_beside=("last",)), s[3]])
     with pytest.raises(ValueError, match="jobs"):
         Runner(p, s, jobs=0)
+
+
+def test_a_stage_that_runs_beside_the_ones_before_it_starts_first(tmp_path):
+    """A stage declared to run beside every stage before it (the terrain beside the inputs) is forked before they run
+    and keeps running beside the stages after it that declare it; the first stage that does not waits for it."""
+    import os
+
+    p = make_project(tmp_path)
+    fail: dict = {}
+    base = beside_stages(fail)  # first, side, main, last: side and main meet only when run at once
+    stages_ = [base[0], StageSpec("side", "", base[1].run, runs_beside=("first",)),
+               StageSpec("main", "", base[2].run, depends_on=("first",), runs_beside=("side",)),
+               StageSpec("last", "", base[3].run, depends_on=("side", "main"))]
+    events = []
+    r = Runner(p, stages_, jobs=2)
+    r.run(on_event=lambda kind, spec, rec: events.append((kind, spec.name)))
+    assert [s.status for s in r.status()] == ["done"] * 4
+    assert events[0] == ("start", "side") and events.index(("done", "side")) < events.index(("start", "last"))
+    assert p.read_json(p.stage_dir("side") / "s.json")["pid"] != os.getpid()
+    assert list(p.read_state()) == ["first", "side", "main", "last"]  # the record in the stages' order

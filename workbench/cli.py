@@ -171,10 +171,15 @@ def _execute(path: Path, **kw) -> None:
                 console.print(f"{spec.name}: done in {rec['duration_s']:.1f} s")
 
         steps = kw.pop("steps", None) or [kw]
-        # the early work of the stages that will run (the panorama's features while inputs and terrain run)
-        runner.prefetch(_stages_of(runner, steps), force=any(st.get("force") for st in steps))
-        for step in steps:
-            statuses = runner.run(progress_factory=factory, on_event=event, **step)
+        # the early work of the stages that will run (the panorama's features while inputs and terrain run),
+        # started by the first step once it has forked the stages that start at once (the terrain)
+        ahead = _stages_of(runner, steps)
+        if any(st.get("force") for st in steps) and not steps[0].get("force"):
+            runner.prefetch(ahead, force=True)  # (a stage command: its stage forced after the steps before it)
+            ahead = False
+        for k, step in enumerate(steps):
+            statuses = runner.run(progress_factory=factory, on_event=event, prefetch=ahead if k == 0 else False,
+                                  **step)
     _print_outputs(project, statuses)
 
 

@@ -198,11 +198,14 @@ class Runner:
 
     def run(self, *, only: list[str] | None = None, until: str | None = None, force: bool = False,
             progress_factory: Callable[[StageSpec], Progress] | None = None,
-            on_event: Callable[[str, StageSpec, dict], None] | None = None) -> list[StageStatus]:
+            on_event: Callable[[str, StageSpec, dict], None] | None = None,
+            prefetch: list[str] | None | bool = False) -> list[StageStatus]:
         """Run the stages in order (or only those named, or those up to ``until``), skipping done ones unless
-        ``force``.
+        ``force``. ``prefetch``: the stages whose early work (:meth:`prefetch`) to start once the stages that start
+        at once in their own process have been forked (None: every stage; False: none).
 
-        Stops at the first failure (raises the stage's :class:`WorkbenchError` after recording it).
+        Stops at the first failure (raises the stage's :class:`WorkbenchError` after recording it, once the stages
+        running beside it have ended).
         """
         if only:
             unknown = [n for n in only if n not in self.by_name]
@@ -215,12 +218,17 @@ class Runner:
             last = [s.name for s in self.stages].index(until)
             selected = [s for s in selected if [x.name for x in self.stages].index(s.name) <= last]
         with self.project.lock():  # one run at a time on an incident: a second one is refused, not interleaved
-            self._run_selected(selected, force, progress_factory, on_event)
+            self._run_selected(selected, force, progress_factory, on_event, prefetch)
         return self.status()
 
-    def _run_selected(self, selected: list[StageSpec], force: bool, progress_factory, on_event) -> None:
+    def _run_selected(self, selected: list[StageSpec], force: bool, progress_factory, on_event,
+                      prefetch: list[str] | None | bool = False) -> None:
         beside: dict[str, _SideStage] = {}  # the stages running in other processes, by name
         try:
+            # first the forks (a stage at once in its process), then the prefetches' threads and processes
+            self._start_early(selected, beside, force, progress_factory, on_event)
+            if prefetch is not False:
+                self.prefetch(prefetch, force=force)
             self._run_in_order(selected, beside, force, progress_factory, on_event)
         except BaseException:
             # a stage failed here, or an interrupt: the stages running beside end (an interrupt reaches them too,
@@ -235,9 +243,13 @@ class Runner:
 
     def _run_in_order(self, selected: list[StageSpec], beside: dict, force: bool, progress_factory,
                       on_event) -> None:
+        order = [s.name for s in self.stages]
         for k, spec in enumerate(selected):
-            nxt = selected[k + 1] if k + 1 < len(selected) else None
-            for name in [n for n in beside if n not in spec.runs_beside]:  # what this stage may read
+            if spec.name in beside:  # started early, running
+                continue
+            nxt = next((s for s in selected[k + 1:] if s.name not in beside), None)
+            for name in [n for n in beside if order.index(n) < order.index(spec.name)
+                         and n not in spec.runs_beside]:  # the earlier stages this one may read
                 self._join(beside.pop(name))
             state = self.project.read_state()
             st = self._status_of(spec, state)
@@ -323,6 +335,29 @@ class Runner:
         on_event and on_event("done", spec, rec)
 
     # -- a stage beside another ---------------------------------------------------------------------------
+    def _start_early(self, selected: list[StageSpec], beside: dict, force: bool, progress_factory,
+                     on_event) -> None:
+        """Fork, before anything else runs, each stage that may run beside every selected stage before it (its
+        ``runs_beside``), whose dependencies are done and which the stage after it does not wait for (e.g. the
+        terrain, beside the inputs, stitch, georef and correspond stages)."""
+        if self.jobs < 2 or not hasattr(os, "fork"):
+            return
+        state = self.project.read_state()
+        for k, spec in enumerate(selected):
+            if k == 0 or len(beside) + 1 >= self.jobs:
+                continue
+            nxt = selected[k + 1] if k + 1 < len(selected) else None
+            if (spec.prefetch or nxt is None or spec.name not in nxt.runs_beside
+                    or not {s.name for s in selected[:k]} <= set(spec.runs_beside)):
+                continue
+            if any(self._status_of(self.by_name[d], state).status not in ("done", "skipped")
+                   for d in spec.depends_on):
+                continue
+            st = self._status_of(spec, state)
+            if st.status == "skipped" or (st.status == "done" and not force):
+                continue
+            beside[spec.name] = self._start_beside(spec, state, progress_factory, on_event)
+
     def _start_beside(self, spec: StageSpec, state: dict, progress_factory, on_event) -> "_SideStage":
         """Start ``spec`` in a forked process; a thread here forwards its progress and records its end (the
         record, stats.json and the events as :meth:`_run_one`); :meth:`_join` waits for it and raises its error."""
