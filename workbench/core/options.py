@@ -72,17 +72,20 @@ def field_checks(cls: type) -> tuple[tuple[str, str, Any], ...]:
     return tuple(found)
 
 
+def _is_number(v: Any, integer: bool) -> bool:
+    """Whether ``v`` is a number (a whole one where ``integer``), booleans not; Python's own types checked first."""
+    if type(v) is int or (type(v) is float and not integer):
+        return True
+    return not isinstance(v, bool) and isinstance(v, int if integer else numbers.Real)
+
+
 def check_options(options: Any, what: str) -> None:
     """Check every field of the dataclass ``options`` that declares its values (:class:`Range`, ``Literal``);
     :class:`SettingsError` ``"{what}: {key} = {value!r}: must be ..."`` for the first that does not hold."""
     for name, kind, rule in field_checks(type(options)):
         v = getattr(options, name)
         if kind == "choice":
-            ok, need = v in rule, f"one of {list(rule)}"
-        else:
-            integer = kind == "int"
-            number = isinstance(v, numbers.Real) and not isinstance(v, bool)
-            ok = number and (isinstance(v, int) or not integer) and rule.holds(v)
-            need = rule.describe(integer)
-        if not ok:
-            raise SettingsError(f"{what}: {name} = {v!r}: must be {need}")
+            if v not in rule:
+                raise SettingsError(f"{what}: {name} = {v!r}: must be one of {list(rule)}")
+        elif not (_is_number(v, kind == "int") and rule.holds(v)):
+            raise SettingsError(f"{what}: {name} = {v!r}: must be {rule.describe(kind == 'int')}")

@@ -78,6 +78,8 @@ class GeorefOptions:
     warn_rms_px: Annotated[float, Range(gt=0.0)] = 3.0
     warn_point_px: Annotated[float, Range(gt=0.0)] = 6.0
     warn_point_m: Annotated[float, Range(gt=0.0)] = 0.5
+    # multiview route: a control point is triangulated in an SfM model only where its photos' rays meet at this
+    # angle or more
     min_triangulation_angle_deg: Annotated[float, Range(ge=0.0, lt=90.0)] = 2.0
     # a separate SfM model (photos SfM could not join to the main model) is placed only when its own control
     # points fix it: this many triangulated in it and fitting (all their picks inliers), spread this far from
