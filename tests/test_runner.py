@@ -368,3 +368,25 @@ def test_a_stage_that_runs_beside_the_ones_before_it_starts_first(tmp_path):
     assert events[0] == ("start", "side") and events.index(("done", "side")) < events.index(("start", "last"))
     assert p.read_json(p.stage_dir("side") / "s.json")["pid"] != os.getpid()
     assert list(p.read_state()) == ["first", "side", "main", "last"]  # the record in the stages' order
+
+
+def test_no_stage_is_forked_beside_one_that_does_not_apply(tmp_path):
+    """The stage that may run beside the first does not apply (a stitch command on an incident without a DEM): the
+    first runs here, not in a process of its own."""
+    import os
+
+    p = make_project(tmp_path)
+
+    def first(project, progress):
+        return StageResult(outputs={"a": project.write_json(project.stage_dir("first") / "a.json",
+                                                            {"pid": os.getpid()})})
+
+    def nothing(project, progress):
+        raise AssertionError("does not apply")
+
+    r = Runner(p, [StageSpec("first", "", first), StageSpec("early", "", nothing, runs_beside=("first",),
+                                                           applies=lambda project: False),
+                   StageSpec("after", "", first, runs_beside=("early",))], jobs=2)
+    r.run(until="early")
+    assert p.read_json(p.stage_dir("first") / "a.json")["pid"] == os.getpid()
+    assert [s.status for s in r.status()] == ["done", "skipped", "not run"]

@@ -247,7 +247,10 @@ class Runner:
         for k, spec in enumerate(selected):
             if spec.name in beside:  # started early, running
                 continue
-            nxt = next((s for s in selected[k + 1:] if s.name not in beside), None)
+            if not set(spec.depends_on) & set(beside) and not spec.applies(self.project):
+                on_event and on_event("not-applicable", spec, {})
+                continue
+            nxt = next((s for s in selected[k + 1:] if s.name not in beside and s.applies(self.project)), None)
             for name in [n for n in beside if order.index(n) < order.index(spec.name)
                          and n not in spec.runs_beside]:  # the earlier stages this one may read
                 self._join(beside.pop(name))
@@ -267,7 +270,7 @@ class Runner:
                                      f"{': ' + dst.reason if dst.reason else ''}; run `workbench run "
                                      f"{self.project.root}` (or with --only {d})")
             if (nxt is not None and spec.name in nxt.runs_beside and len(beside) + 1 < self.jobs
-                    and hasattr(os, "fork")):
+                    and hasattr(os, "fork") and self._will_run(nxt, state, force)):
                 beside[spec.name] = self._start_beside(spec, state, progress_factory, on_event)
             else:
                 self._run_one(spec, state, progress_factory, on_event)
@@ -346,17 +349,21 @@ class Runner:
         for k, spec in enumerate(selected):
             if k == 0 or len(beside) + 1 >= self.jobs:
                 continue
-            nxt = selected[k + 1] if k + 1 < len(selected) else None
-            if (spec.prefetch or nxt is None or spec.name not in nxt.runs_beside
-                    or not {s.name for s in selected[:k]} <= set(spec.runs_beside)):
+            if spec.prefetch or not {s.name for s in selected[:k]} <= set(spec.runs_beside):
                 continue
-            if any(self._status_of(self.by_name[d], state).status not in ("done", "skipped")
-                   for d in spec.depends_on):
-                continue
-            st = self._status_of(spec, state)
-            if st.status == "skipped" or (st.status == "done" and not force):
-                continue
-            beside[spec.name] = self._start_beside(spec, state, progress_factory, on_event)
+            # the stage after it that will run (those that do not apply are passed by) must not wait for it
+            nxt = next((s for s in selected[k + 1:] if self._will_run(s, state, force, deps=False)), None)
+            if nxt is not None and spec.name in nxt.runs_beside and self._will_run(spec, state, force):
+                beside[spec.name] = self._start_beside(spec, state, progress_factory, on_event)
+
+    def _will_run(self, spec: StageSpec, state: dict, force: bool, deps: bool = True) -> bool:
+        """Whether ``spec`` would run now: it applies, is not done (or ``force``), and (``deps``) its dependencies
+        are done."""
+        st = self._status_of(spec, state)
+        if st.status == "skipped" or (st.status == "done" and not force):
+            return False
+        return not deps or all(self._status_of(self.by_name[d], state).status in ("done", "skipped")
+                               for d in spec.depends_on)
 
     def _start_beside(self, spec: StageSpec, state: dict, progress_factory, on_event) -> "_SideStage":
         """Start ``spec`` in a forked process; a thread here forwards its progress and records its end (the
