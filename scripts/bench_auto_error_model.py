@@ -25,6 +25,13 @@ and correspond outputs as they are); only the solve stage runs (about 1 s an inc
     1: each view's misfit independent (the shipped model shares a face's across its views);
 ``contact``
     0: the solve without the terrain contact (``SolveOptions.use_terrain_contact``);
+``alignments``
+    0: the points' face alignments (``alignment`` in correspondences.json, written by the correspond stage since
+    issue 21) left out of the covariance (``uncertainty.covariance_model(use_alignments=False)``): the pooled pixel
+    sigma and the fixed face misfit, the model before them;
+``views_shared``
+    1 (the default): a face's alignment error counted as shared by the photos it is aligned in
+    (``alignment_covariance.views_per_face``), 0: each photo's independent;
 ``count_predictions``
     1: the covariance counts the predicted points (projected from correspond's face poses, carried between
     photos) as measured, which the shipped model does not (they are functions of the measured ones).
@@ -96,6 +103,10 @@ def patch(variant: dict) -> None:
                 k["prior_dof"] = variant["prior_dof"]
         if "face_sigma" in variant:
             k["face_sigma"] = variant["face_sigma"]
+        if "alignments" in variant:
+            k["use_alignments"] = bool(variant["alignments"])
+        if "views_shared" in variant:
+            k["views_shared"] = bool(variant["views_shared"])
         if variant.get("count_predictions"):
             prob = a[0]
             saved = getattr(prob, "measured", None)
@@ -184,6 +195,8 @@ def main() -> None:
     ap.add_argument("--scales", type=float, nargs="*", default=[0.85, 0.75, 0.7, 0.65],
                     help="the first variant's intervals scaled by each factor (a diagnosis: is the misfit one of "
                          "scale, the same on every axis, or of shape?)")
+    ap.add_argument("--ci", action="store_true", help="also print scripts/bench_calibration.py's table (coverage, "
+                    "RMS z, width / spread, robust z, each with its cluster-bootstrap 95 %% interval) per variant")
     a = ap.parse_args()
     results = []
     for text in a.variants:
@@ -200,6 +213,11 @@ def main() -> None:
                   + " | RMS z " + " ".join(f"{x:5.2f}" for x in row["rms_z"])
                   + " | robust z " + " ".join(f"{x:5.2f}" for x in row["robust_z"])
                   + f" | beyond 6 sigma: {', '.join(row['beyond_6_sigma']) or '-'}")
+        if a.ci:  # the calibration benchmark's table: every figure with its cluster-bootstrap 95 % interval
+            for name, rr in (("all", recs), ("without the excluded", kept)):
+                st = bc.axis_stats(rr)
+                bc.print_table(f"auto {json.dumps(variant)}, {name}", st)
+                rows["ci_" + name.replace(" ", "_")] = st
         results.append({"variant": variant, "rows": rows, "records": recs, "fit_records": fit})
     kept = [r for r in results[0]["records"] if r["problem"] not in a.exclude]
     for k in a.scales:

@@ -236,7 +236,8 @@ def _compare_outputs(a: Path, b: Path) -> dict:
         if pa.shape != pb.shape or not np.array_equal(pa, pb):
             changed[name] = "size" if pa.shape != pb.shape else int(np.count_nonzero(np.any(pa != pb, axis=-1)))
     same_bytes = {rel: (a / "out" / rel).read_bytes() == (b / "out" / rel).read_bytes()
-                  for rel in ("correspond/correspondences.json", "render/orbit.gif")
+                  for rel in ("correspond/correspondences.json", "render/orbit.gif", "report/report.json",
+                              "export/scene.glb", "export/carriages.geojson", "export/scene.city.json")
                   if (a / "out" / rel).is_file() and (b / "out" / rel).is_file()}
     return {"solution_numbers": len(na), "solution_numbers_differing": differ[:50],
             "pictures": len(pictures), "pictures_differing": changed, "identical_files": same_bytes}
@@ -274,9 +275,10 @@ def _table(results: dict) -> list[str]:
         def wall_cpu(r: dict) -> str:
             return f"{r['wall_s']:.1f}, {r['cpu_s']:.1f}"
 
-        rows.append(f"| `workbench run` (sample), the stages' sum | {each(b, stages)} s | {each(h, stages)} s | "
-                    f"< {TARGETS['run']:.0f} s |")
-        rows.append(f"| &nbsp; wall, CPU | {each(b, wall_cpu)} s | {each(h, wall_cpu)} s | |")
+        # the command's wall time is the figure a user waits for (stages that run at once overlap in their sum)
+        rows.append(f"| `workbench run` (sample), wall, CPU | {each(b, wall_cpu)} s | {each(h, wall_cpu)} s | "
+                    f"< {TARGETS['run']:.0f} s (wall) |")
+        rows.append(f"| &nbsp; the stages' sum | {each(b, stages)} s | {each(h, stages)} s | |")
         for st in h["run"]["stages_s"]:
             rows.append(f"| &nbsp; {st} | {each(b, lambda r: str(r['stages_s'].get(st)))} s | "
                         f"{each(h, lambda r: str(r['stages_s'].get(st)))} s | |")

@@ -206,3 +206,26 @@ def test_rotation_between_is_the_smallest_rotation():
         assert abs(np.linalg.norm(w) - angle) < 1e-6
         if 1e-6 < angle < np.pi - 1e-6:  # the axis: the common normal
             assert abs(w @ ua) < 1e-9 and abs(w @ ub) < 1e-9
+
+
+def test_orthonormal_is_the_nearest_rotation():
+    """``orthonormal(M)`` is a rotation (R R^T = I to 1e-14, det +1), nearer to M (Frobenius) than any rotation
+    about it, for M a rotation with noise and any scale (a homography's ``K_j^-1 H K_i``) and for M with a
+    reflection (det < 0); a rotation comes back as it is to 1e-14."""
+    from workbench.core.geometry import exp_so3, orthonormal
+
+    rng = np.random.default_rng(13)
+    for k in range(60):
+        R = exp_so3(rng.normal(size=3))
+        M = rng.uniform(0.2, 5.0) * (R + rng.normal(scale=0.05, size=(3, 3)))
+        if k % 3 == 0:
+            M = M @ np.diag([1.0, 1.0, -1.0])
+        Q = orthonormal(M)
+        assert np.abs(Q @ Q.T - np.eye(3)).max() < 1e-14 and abs(np.linalg.det(Q) - 1.0) < 1e-14
+        s = np.trace(Q.T @ M) / 3.0  # the scale that best fits M to Q
+        d0 = np.linalg.norm(s * Q - M)
+        for _ in range(20):
+            assert d0 <= np.linalg.norm(s * exp_so3(rng.normal(scale=0.02, size=3)) @ Q - M) + 1e-12
+        if k % 3:
+            assert np.linalg.norm(Q - R) < 0.2  # near the rotation the noise was added to
+        assert np.abs(orthonormal(R) - R).max() < 1e-14

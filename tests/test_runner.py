@@ -255,3 +255,138 @@ def test_track_picks_make_the_railway_layer_and_the_dem_georef_inputs(tmp_path):
     cp.write_text('{"crs": "EPSG:32618", "points": [], "track_picks": [{"photo": "a.jpg", "pixels": [[1, 2]]}]}')
     inputs = georef.inputs(p)
     assert inputs["railways"] == p.root / "rails.geojson" and inputs["dem"] == p.root / "dem.tif"
+
+
+def beside_stages(fail: dict):
+    """first; side (after first); main (after first, declared to run beside side); last (after both). side and main
+    each wait for the other's marker file: they pass only when they run at the same time."""
+    import os
+    import time
+
+    def wait_for(path: Path, what: str) -> None:
+        t_end = time.monotonic() + fail.get("wait_s", 10.0)
+        while not path.is_file():
+            if time.monotonic() > t_end:
+                raise StageError(f"{what}: {path} did not appear (the stages did not run at the same time)")
+            time.sleep(0.01)
+
+    def first(project, progress):
+        return StageResult(outputs={"a": project.write_json(project.stage_dir("first") / "a.json", {"x": 1})})
+
+    def side(project, progress):
+        d = project.stage_dir("side")
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "started").write_text(str(os.getpid()))
+        if fail.get("side") == "crash":
+            os._exit(3)
+        progress(0.5, "half way")
+        if fail.get("side"):
+            raise InputError("side.txt: bad side")
+        wait_for(project.stage_dir("main") / "started", "side")
+        return StageResult(outputs={"s": project.write_json(d / "s.json", {"pid": os.getpid()})}, stats={"n": 2})
+
+    def main(project, progress):
+        d = project.stage_dir("main")
+        d.mkdir(parents=True, exist_ok=True)
+        (d / "started").write_text(str(os.getpid()))
+        if not fail.get("side"):
+            wait_for(project.stage_dir("side") / "started", "main")
+        return StageResult(outputs={"m": project.write_json(d / "m.json", {"pid": os.getpid()})})
+
+    def last(project, progress):
+        return StageResult(outputs={"l": project.write_json(project.stage_dir("last") / "l.json", {
+            "side": project.read_json(project.stage_dir("side") / "s.json")})})
+
+    return [StageSpec("first", "", first), StageSpec("side", "", side, depends_on=("first",)),
+            StageSpec("main", "", main, depends_on=("first",), runs_beside=("side",)),
+            StageSpec("last", "", last, depends_on=("side", "main"))]
+
+
+def test_a_stage_runs_in_a_process_beside_the_next_one(tmp_path):
+    import os
+
+    p = make_project(tmp_path)
+    fail: dict = {}
+    events, progress = [], []
+    r = Runner(p, beside_stages(fail), jobs=2)
+    r.run(progress_factory=lambda spec: lambda f, m="": progress.append((spec.name, f, m)),
+          on_event=lambda kind, spec, rec: events.append((kind, spec.name)))
+    assert [s.status for s in r.status()] == ["done"] * 4
+    side_pid = p.read_json(p.stage_dir("side") / "s.json")["pid"]
+    assert side_pid != os.getpid() and p.read_json(p.stage_dir("main") / "m.json")["pid"] == os.getpid()
+    assert ("side", 0.5, "half way") in progress  # forwarded from its process
+    assert events.index(("done", "side")) < events.index(("start", "last"))  # last waited for side
+    assert p.read_json(p.stage_dir("side") / "stats.json")["n"] == 2
+    r.run()
+    assert [s.status for s in r.status()] == ["done"] * 4 and len(events) == 8  # nothing ran again
+    # side fails: main still runs and is recorded; the run raises side's error; last does not run
+    (p.root / "data.txt").write_text("changed")
+    fail["side"] = True
+    with pytest.raises(InputError, match="side.txt: bad side"):
+        r.run(force=True)
+    st = {s.name: s for s in r.status()}
+    assert st["side"].status == "failed" and "bad side" in st["side"].reason
+    assert st["main"].status == "done" and st["last"].status == "stale"
+    # its process dies: a clear error, recorded
+    fail["side"] = "crash"
+    with pytest.raises(StageError, match=r"stage 'side': its process ended without a result \(exit code 3"):
+        r.run(only=["side", "main"], force=True)
+    assert r.status()[1].status == "failed"
+    # jobs=1: one after another, in this process (side would wait for main's marker: it fails, and says so)
+    fail.clear()
+    fail["wait_s"] = 1.0
+    for name in ("side", "main"):
+        (p.stage_dir(name) / "started").unlink()
+    with pytest.raises(StageError, match="did not run at the same time"):
+        Runner(p, beside_stages(fail), jobs=1).run(force=True)
+
+
+def test_runs_beside_is_checked(tmp_path):
+    p = make_project(tmp_path)
+    s = beside_stages({})
+    with pytest.raises(ValueError, match="runs beside 'last'"):
+        Runner(p, [*s[:2], StageSpec("main", "", s[2].run, runs_beside=("last",)), s[3]])
+    with pytest.raises(ValueError, match="jobs"):
+        Runner(p, s, jobs=0)
+
+
+def test_a_stage_that_runs_beside_the_ones_before_it_starts_first(tmp_path):
+    """A stage declared to run beside every stage before it (the terrain beside the inputs) is forked before they run
+    and keeps running beside the stages after it that declare it; the first stage that does not waits for it."""
+    import os
+
+    p = make_project(tmp_path)
+    fail: dict = {}
+    base = beside_stages(fail)  # first, side, main, last: side and main meet only when run at once
+    stages_ = [base[0], StageSpec("side", "", base[1].run, runs_beside=("first",)),
+               StageSpec("main", "", base[2].run, depends_on=("first",), runs_beside=("side",)),
+               StageSpec("last", "", base[3].run, depends_on=("side", "main"))]
+    events = []
+    r = Runner(p, stages_, jobs=2)
+    r.run(on_event=lambda kind, spec, rec: events.append((kind, spec.name)))
+    assert [s.status for s in r.status()] == ["done"] * 4
+    assert events[0] == ("start", "side") and events.index(("done", "side")) < events.index(("start", "last"))
+    assert p.read_json(p.stage_dir("side") / "s.json")["pid"] != os.getpid()
+    assert list(p.read_state()) == ["first", "side", "main", "last"]  # the record in the stages' order
+
+
+def test_no_stage_is_forked_beside_one_that_does_not_apply(tmp_path):
+    """The stage that may run beside the first does not apply (a stitch command on an incident without a DEM): the
+    first runs here, not in a process of its own."""
+    import os
+
+    p = make_project(tmp_path)
+
+    def first(project, progress):
+        return StageResult(outputs={"a": project.write_json(project.stage_dir("first") / "a.json",
+                                                            {"pid": os.getpid()})})
+
+    def nothing(project, progress):
+        raise AssertionError("does not apply")
+
+    r = Runner(p, [StageSpec("first", "", first), StageSpec("early", "", nothing, runs_beside=("first",),
+                                                           applies=lambda project: False),
+                   StageSpec("after", "", first, runs_beside=("early",))], jobs=2)
+    r.run(until="early")
+    assert p.read_json(p.stage_dir("first") / "a.json")["pid"] == os.getpid()
+    assert [s.status for s in r.status()] == ["done", "skipped", "not run"]

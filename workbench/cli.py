@@ -116,14 +116,23 @@ def synth(path: Path = typer.Argument(..., help="incident folder to generate (cr
         out.print(f"{path}: {res['carriages']} carriages, {res['photos']} photos; truth in {res['truth']}")
 
 
-def _runner(path: Path):
+def _runner(path: Path, jobs: int | None = None):
     from .pipeline import STAGES
     from .project import Project
     from .runner import Runner
 
     project = Project(path)
     project.settings  # validate first: a typo fails before anything runs
-    return project, Runner(project, STAGES)
+    return project, Runner(project, STAGES, jobs=default_jobs() if jobs is None else jobs)
+
+
+def default_jobs() -> int:
+    """Stages run at once where they may (the export beside the render): 2 where the process may use two CPUs."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):
+        cpus = os.cpu_count() or 1
+    return 2 if cpus >= 2 else 1
 
 
 LOG_PROGRESS_EVERY_S = 2.0  # without a terminal, a stage's progress is a line at most this often
@@ -134,7 +143,7 @@ def _execute(path: Path, **kw) -> None:
     its step changes, at most every LOG_PROGRESS_EVERY_S), and its end; then list the outputs."""
     import time
 
-    project, runner = _runner(path)
+    project, runner = _runner(path, kw.pop("jobs", None))
     with _progress() as prog:
         tasks = {}
 
@@ -162,10 +171,15 @@ def _execute(path: Path, **kw) -> None:
                 console.print(f"{spec.name}: done in {rec['duration_s']:.1f} s")
 
         steps = kw.pop("steps", None) or [kw]
-        # the early work of the stages that will run (the panorama's features while inputs and terrain run)
-        runner.prefetch(_stages_of(runner, steps), force=any(st.get("force") for st in steps))
-        for step in steps:
-            statuses = runner.run(progress_factory=factory, on_event=event, **step)
+        # the early work of the stages that will run (the panorama's features while inputs and terrain run),
+        # started by the first step once it has forked the stages that start at once (the terrain)
+        ahead = _stages_of(runner, steps)
+        if any(st.get("force") for st in steps) and not steps[0].get("force"):
+            runner.prefetch(ahead, force=True)  # (a stage command: its stage forced after the steps before it)
+            ahead = False
+        for k, step in enumerate(steps):
+            statuses = runner.run(progress_factory=factory, on_event=event, prefetch=ahead if k == 0 else False,
+                                  **step)
     _print_outputs(project, statuses)
 
 
@@ -186,9 +200,13 @@ def _stages_of(runner, steps: list[dict]) -> list[str] | None:
 @app.command()
 def run(path: Path = typer.Argument(..., help="incident folder"),
         only: Optional[list[str]] = typer.Option(None, "--only", help="run only this stage (repeatable)"),
-        force: bool = typer.Option(False, "--force", help="run stages even if their inputs did not change")) -> None:
+        force: bool = typer.Option(False, "--force", help="run stages even if their inputs did not change"),
+        jobs: Optional[int] = typer.Option(None, "--jobs", "-j", min=1,
+                                           help="stages run at once where one does not read another's files (the "
+                                                "export beside the render); default 2 on two or more CPUs, 1 "
+                                                "runs them one after another")) -> None:
     """Run every stage in order, skipping those whose inputs did not change."""
-    _execute(path, only=only, force=force)
+    _execute(path, only=only, force=force, jobs=jobs)
 
 
 def _stage_command(name: str, description: str) -> None:

@@ -54,6 +54,13 @@ class Project:
         self.root = Path(root).resolve()
         if not self.root.is_dir():
             raise InputError(f"{root}: no such incident folder; create one with `workbench init {root}`")
+        # the folder's fixed places (the layout above); a stage's output folder is stage_dir(stage)
+        self.name = self.root.name
+        self.settings_path = self.root / SETTINGS_FILE
+        self.out_dir = self.root / "out"
+        self.state_path = self.out_dir / "state.json"
+        self.truth_dir = self.root / "truth"
+        self.rolling_stock_dir = self.root / "rolling_stock"
 
     # -- creation -------------------------------------------------------------------------------------
     @classmethod
@@ -79,30 +86,6 @@ class Project:
         return project
 
     # -- paths ----------------------------------------------------------------------------------------
-    @property
-    def name(self) -> str:
-        return self.root.name
-
-    @property
-    def settings_path(self) -> Path:
-        return self.root / SETTINGS_FILE
-
-    @property
-    def out_dir(self) -> Path:
-        return self.root / "out"
-
-    @property
-    def state_path(self) -> Path:
-        return self.out_dir / "state.json"
-
-    @property
-    def truth_dir(self) -> Path:
-        return self.root / "truth"
-
-    @property
-    def rolling_stock_dir(self) -> Path:
-        return self.root / "rolling_stock"
-
     def stage_dir(self, stage: str) -> Path:
         return self.out_dir / stage
 

@@ -7,6 +7,11 @@ the hashes of its dependencies' outputs, its outputs with their hashes, the run 
 it failed. A stage is *done* when that record matches the current inputs, *stale* when it does not,
 *failed* when its last run raised, and *not run* otherwise. Running skips done stages unless forced.
 
+With ``jobs`` > 1 a stage runs in a forked process beside the stage after it when that one declares it may
+(``StageSpec.runs_beside``: it reads none of the earlier stage's outputs), e.g. the export beside the render. The
+runner's process alone writes ``out/state.json``; each stage's record is written as soon as it ends, and a stage
+that needs one still running waits for it.
+
 The stages are declared in ``workbench/pipeline.py``.
 """
 
@@ -17,6 +22,8 @@ import hashlib
 import importlib
 import json
 import logging
+import os
+import threading
 import time
 import traceback
 from dataclasses import dataclass
@@ -52,7 +59,9 @@ class StageSpec:
     # "module:function" ``(project) -> None`` that starts, on threads, work the stage will take when it runs (its
     # photos' features while the stages before it run); what it leaves unused is dropped
     prefetch: str | None = None
-
+    # earlier stages that may still be running while this one runs, in another process (this stage reads none of
+    # their outputs, nor they this one's); such a stage must declare no prefetch (it is forked)
+    runs_beside: tuple[str, ...] = ()
 
     def function(self) -> Callable[[Project, Progress], StageResult]:
         """The stage's code, imported on first use when ``run`` names it."""
@@ -83,18 +92,29 @@ def _outputs_digest(record: dict) -> str:
 
 
 class Runner:
-    def __init__(self, project: Project, stages: list[StageSpec]) -> None:
+    def __init__(self, project: Project, stages: list[StageSpec], *, jobs: int = 1) -> None:
+        """``jobs``: how many stages may run at once (1: one after another; more: see ``StageSpec.runs_beside``)."""
         names = [s.name for s in stages]
         if len(set(names)) != len(names):
             raise ValueError(f"duplicate stage names in {names}")
+        if not isinstance(jobs, int) or jobs < 1:
+            raise ValueError(f"jobs = {jobs!r}; expected an integer >= 1")
         self.project = project
         self.stages = stages
+        self.jobs = jobs
         self._hashes: dict[tuple, str] = {}
+        self._state_lock = threading.Lock()  # the record is read, changed and written by one thread at a time
         self.by_name = {s.name: s for s in stages}
         for s in stages:
             for d in s.depends_on:
                 if d not in self.by_name or names.index(d) >= names.index(s.name):
                     raise ValueError(f"stage {s.name!r} depends on {d!r}, which does not run before it")
+            for d in s.runs_beside:
+                if d not in self.by_name or names.index(d) >= names.index(s.name) or d in s.depends_on:
+                    raise ValueError(f"stage {s.name!r} runs beside {d!r}, which is not a stage before it that it "
+                                     f"does not depend on")
+                if self.by_name[d].prefetch:
+                    raise ValueError(f"stage {d!r} has a prefetch: it cannot run in another process beside {s.name!r}")
 
     # -- fingerprints -------------------------------------------------------------------------------------
     def _hash(self, path: Path) -> str:
@@ -178,11 +198,14 @@ class Runner:
 
     def run(self, *, only: list[str] | None = None, until: str | None = None, force: bool = False,
             progress_factory: Callable[[StageSpec], Progress] | None = None,
-            on_event: Callable[[str, StageSpec, dict], None] | None = None) -> list[StageStatus]:
+            on_event: Callable[[str, StageSpec, dict], None] | None = None,
+            prefetch: list[str] | None | bool = False) -> list[StageStatus]:
         """Run the stages in order (or only those named, or those up to ``until``), skipping done ones unless
-        ``force``.
+        ``force``. ``prefetch``: the stages whose early work (:meth:`prefetch`) to start once the stages that start
+        at once in their own process have been forked (None: every stage; False: none).
 
-        Stops at the first failure (raises the stage's :class:`WorkbenchError` after recording it).
+        Stops at the first failure (raises the stage's :class:`WorkbenchError` after recording it, once the stages
+        running beside it have ended).
         """
         if only:
             unknown = [n for n in only if n not in self.by_name]
@@ -195,11 +218,42 @@ class Runner:
             last = [s.name for s in self.stages].index(until)
             selected = [s for s in selected if [x.name for x in self.stages].index(s.name) <= last]
         with self.project.lock():  # one run at a time on an incident: a second one is refused, not interleaved
-            self._run_selected(selected, force, progress_factory, on_event)
+            self._run_selected(selected, force, progress_factory, on_event, prefetch)
         return self.status()
 
-    def _run_selected(self, selected: list[StageSpec], force: bool, progress_factory, on_event) -> None:
-        for spec in selected:
+    def _run_selected(self, selected: list[StageSpec], force: bool, progress_factory, on_event,
+                      prefetch: list[str] | None | bool = False) -> None:
+        beside: dict[str, _SideStage] = {}  # the stages running in other processes, by name
+        try:
+            # first the forks (a stage at once in its process), then the prefetches' threads and processes
+            self._start_early(selected, beside, force, progress_factory, on_event)
+            if prefetch is not False:
+                self.prefetch(prefetch, force=force)
+            self._run_in_order(selected, beside, force, progress_factory, on_event)
+        except BaseException:
+            # a stage failed here, or an interrupt: the stages running beside end (an interrupt reaches them too,
+            # as part of the same process group) and their records are kept; this error is the one raised
+            for side in beside.values():
+                side.thread.join()
+            raise
+        for side in beside.values():  # the last ones, in order: the first error is raised, after every record
+            side.thread.join()
+        for side in beside.values():
+            self._join(side)
+
+    def _run_in_order(self, selected: list[StageSpec], beside: dict, force: bool, progress_factory,
+                      on_event) -> None:
+        order = [s.name for s in self.stages]
+        for k, spec in enumerate(selected):
+            if spec.name in beside:  # started early, running
+                continue
+            if not set(spec.depends_on) & set(beside) and not spec.applies(self.project):
+                on_event and on_event("not-applicable", spec, {})
+                continue
+            nxt = next((s for s in selected[k + 1:] if s.name not in beside and s.applies(self.project)), None)
+            for name in [n for n in beside if order.index(n) < order.index(spec.name)
+                         and n not in spec.runs_beside]:  # the earlier stages this one may read
+                self._join(beside.pop(name))
             state = self.project.read_state()
             st = self._status_of(spec, state)
             if st.status == "skipped":
@@ -215,7 +269,11 @@ class Runner:
                     raise StageError(f"stage {spec.name!r} needs stage {d!r}, which is {dst.status}"
                                      f"{': ' + dst.reason if dst.reason else ''}; run `workbench run "
                                      f"{self.project.root}` (or with --only {d})")
-            self._run_one(spec, state, progress_factory, on_event)
+            if (nxt is not None and spec.name in nxt.runs_beside and len(beside) + 1 < self.jobs
+                    and hasattr(os, "fork") and self._will_run(nxt, state, force)):
+                beside[spec.name] = self._start_beside(spec, state, progress_factory, on_event)
+            else:
+                self._run_one(spec, state, progress_factory, on_event)
 
     def _run_one(self, spec: StageSpec, state: dict, progress_factory, on_event) -> None:
         fp = self._fingerprint(spec, state)
@@ -227,24 +285,40 @@ class Runner:
         try:
             result = spec.function()(self.project, progress)
         except Exception as exc:
-            duration = time.perf_counter() - t0
-            msg = str(exc) if isinstance(exc, WorkbenchError) else f"{type(exc).__name__}: {exc}"
-            rec = {"status": "failed", "error": msg, "started_utc": started.isoformat(timespec="seconds"),
-                   "duration_s": round(duration, 3)}
-            if not isinstance(exc, WorkbenchError):
-                rec["traceback"] = traceback.format_exc()
-            # keep the previous successful outputs recorded, so nothing is lost
-            prev = state.get(spec.name, {})
-            if prev.get("status") == "done":
-                rec["previous"] = {k: prev[k] for k in ("outputs", "started_utc", "duration_s") if k in prev}
-            state = self.project.read_state()
-            state[spec.name] = rec
-            self.project.write_state(state)
-            on_event and on_event("failed", spec, rec)
+            self._record_failure(spec, state, exc, started, time.perf_counter() - t0, on_event)
             if isinstance(exc, WorkbenchError):
                 raise
-            raise StageError(f"stage {spec.name!r} failed: {msg} (details in {self.project.state_path})") from exc
-        duration = time.perf_counter() - t0
+            raise self._failed_error(spec, exc) from exc
+        self._record_done(spec, fp, result, started, time.perf_counter() - t0, on_event)
+
+    def _write_record(self, name: str, rec: dict) -> None:
+        """Record a stage's end in ``out/state.json``, the stages in their order (whichever ended first)."""
+        with self._state_lock:
+            state = self.project.read_state()
+            state[name] = rec
+            order = {s.name: i for i, s in enumerate(self.stages)}
+            self.project.write_state(dict(sorted(state.items(), key=lambda kv: order.get(kv[0], len(order)))))
+
+    def _failed_error(self, spec: StageSpec, exc: BaseException) -> StageError:
+        return StageError(f"stage {spec.name!r} failed: {type(exc).__name__}: {exc} (details in "
+                          f"{self.project.state_path})")
+
+    def _record_failure(self, spec: StageSpec, state: dict, exc: BaseException, started, duration: float,
+                        on_event, tb: str | None = None) -> None:
+        msg = str(exc) if isinstance(exc, WorkbenchError) else f"{type(exc).__name__}: {exc}"
+        rec = {"status": "failed", "error": msg, "started_utc": started.isoformat(timespec="seconds"),
+               "duration_s": round(duration, 3)}
+        if not isinstance(exc, WorkbenchError):
+            rec["traceback"] = tb or traceback.format_exc()
+        # keep the previous successful outputs recorded, so nothing is lost
+        prev = state.get(spec.name, {})
+        if prev.get("status") == "done":
+            rec["previous"] = {k: prev[k] for k in ("outputs", "started_utc", "duration_s") if k in prev}
+        self._write_record(spec.name, rec)
+        on_event and on_event("failed", spec, rec)
+
+    def _record_done(self, spec: StageSpec, fp: dict, result: StageResult, started, duration: float,
+                     on_event) -> None:
         stats = dict(result.stats)
         stats.setdefault("stage", spec.name)
         stats["duration_s"] = round(duration, 3)
@@ -259,8 +333,131 @@ class Runner:
             "started_utc": started.isoformat(timespec="seconds"),
             "duration_s": round(duration, 3),
         }
-        state = self.project.read_state()
-        state[spec.name] = rec
-        self.project.write_state(state)
+        self._write_record(spec.name, rec)
         log.info("stage %s: done in %.2f s", spec.name, duration)
         on_event and on_event("done", spec, rec)
+
+    # -- a stage beside another ---------------------------------------------------------------------------
+    def _start_early(self, selected: list[StageSpec], beside: dict, force: bool, progress_factory,
+                     on_event) -> None:
+        """Fork, before anything else runs, each stage that may run beside every selected stage before it (its
+        ``runs_beside``), whose dependencies are done and which the stage after it does not wait for (e.g. the
+        terrain, beside the inputs, stitch, georef and correspond stages)."""
+        if self.jobs < 2 or not hasattr(os, "fork"):
+            return
+        state = self.project.read_state()
+        for k, spec in enumerate(selected):
+            if k == 0 or len(beside) + 1 >= self.jobs:
+                continue
+            if spec.prefetch or not {s.name for s in selected[:k]} <= set(spec.runs_beside):
+                continue
+            # the stage after it that will run (those that do not apply are passed by) must not wait for it
+            nxt = next((s for s in selected[k + 1:] if self._will_run(s, state, force, deps=False)), None)
+            if nxt is not None and spec.name in nxt.runs_beside and self._will_run(spec, state, force):
+                beside[spec.name] = self._start_beside(spec, state, progress_factory, on_event)
+
+    def _will_run(self, spec: StageSpec, state: dict, force: bool, deps: bool = True) -> bool:
+        """Whether ``spec`` would run now: it applies, is not done (or ``force``), and (``deps``) its dependencies
+        are done."""
+        st = self._status_of(spec, state)
+        if st.status == "skipped" or (st.status == "done" and not force):
+            return False
+        return not deps or all(self._status_of(self.by_name[d], state).status in ("done", "skipped")
+                               for d in spec.depends_on)
+
+    def _start_beside(self, spec: StageSpec, state: dict, progress_factory, on_event) -> "_SideStage":
+        """Start ``spec`` in a forked process; a thread here forwards its progress and records its end (the
+        record, stats.json and the events as :meth:`_run_one`); :meth:`_join` waits for it and raises its error."""
+        import multiprocessing
+
+        fp = self._fingerprint(spec, state)
+        progress = progress_factory(spec) if progress_factory else _no_progress
+        on_event and on_event("start", spec, {})
+        started = _dt.datetime.now(_dt.timezone.utc)
+        log.info("stage %s: running (in process beside the next stage)", spec.name)
+        ours, theirs = multiprocessing.get_context("fork").Pipe(duplex=False)
+        proc = multiprocessing.get_context("fork").Process(target=_stage_process, args=(spec, self.project, theirs),
+                                                           name=f"stage {spec.name}", daemon=False)
+        t0 = time.perf_counter()
+        proc.start()
+        theirs.close()
+        side = _SideStage(spec, proc)
+
+        def watch() -> None:
+            end = None
+            try:
+                while True:
+                    msg = ours.recv()
+                    if msg[0] == "progress":
+                        progress(*msg[1:])
+                    else:
+                        end = msg
+                        break
+            except (EOFError, OSError):
+                pass
+            proc.join()
+            duration = time.perf_counter() - t0
+            try:
+                if end is not None and end[0] == "done":
+                    self._record_done(spec, fp, StageResult(outputs=end[1], stats=end[2]), started, end[3],
+                                      on_event)
+                    return
+                if end is not None:  # ("failed", exception or None, message, traceback, duration)
+                    exc = end[1] if isinstance(end[1], BaseException) else RuntimeError(end[2])
+                    self._record_failure(spec, state, exc, started, end[4], on_event, tb=end[3])
+                else:
+                    code = proc.exitcode if proc.exitcode is not None else "?"
+                    signal = f"; killed by signal {-code}" if isinstance(code, int) and code < 0 else ""
+                    exc = StageError(f"stage {spec.name!r}: its process ended without a result (exit code {code}"
+                                     f"{signal}); run `workbench run {self.project.root} --only {spec.name}` again")
+                    self._record_failure(spec, state, exc, started, duration, on_event, tb="")
+                side.error = exc if isinstance(exc, WorkbenchError) else self._failed_error(spec, exc)
+            except BaseException as exc:  # noqa: BLE001 - the record could not be written: the join raises it
+                side.error = exc
+            finally:
+                ours.close()
+
+        side.thread = threading.Thread(target=watch, name=f"stage {spec.name} watcher", daemon=True)
+        side.thread.start()
+        return side
+
+    def _join(self, side: "_SideStage") -> None:
+        """Wait for a stage running beside; raise its error (its record is written by then)."""
+        side.thread.join()
+        if side.error is not None:
+            raise side.error
+
+
+@dataclass
+class _SideStage:
+    spec: StageSpec
+    process: object
+    thread: threading.Thread | None = None
+    error: BaseException | None = None
+
+
+def _stage_process(spec: StageSpec, project: Project, conn) -> None:
+    """In the forked process: run the stage, send its progress (at most every 0.2 s, and its last) and its end:
+    ``("done", outputs, stats, duration)`` or ``("failed", exception or None, message, traceback, duration)``."""
+    last = [0.0]
+
+    def progress(fraction: float, message: str = "") -> None:
+        now = time.monotonic()
+        if now - last[0] >= 0.2 or fraction >= 1.0:
+            last[0] = now
+            conn.send(("progress", float(fraction), str(message)))
+
+    t0 = time.perf_counter()
+    try:
+        result = spec.function()(project, progress)
+        conn.send(("done", {k: Path(v) for k, v in result.outputs.items()}, dict(result.stats),
+                   time.perf_counter() - t0))
+    except Exception as exc:  # noqa: BLE001 - sent to the runner, which records and raises it
+        tb = traceback.format_exc()
+        msg = str(exc) if isinstance(exc, WorkbenchError) else f"{type(exc).__name__}: {exc}"
+        try:
+            conn.send(("failed", exc, msg, tb, time.perf_counter() - t0))
+        except Exception:  # noqa: BLE001 - an exception that does not pickle: its message
+            conn.send(("failed", None, msg, tb, time.perf_counter() - t0))
+    finally:
+        conn.close()

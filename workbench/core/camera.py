@@ -9,8 +9,11 @@ exactly as OpenCV's ``projectPoints`` (coefficient order k1, k2, p1, p2, k3).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from typing import Annotated
 
 import numpy as np
+
+from .options import Range, check_options
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -139,6 +142,21 @@ class CameraIntrinsics:
     @classmethod
     def from_dict(cls, d: dict) -> "CameraIntrinsics":
         return cls(**d)
+
+
+@dataclass(frozen=True, kw_only=True)
+class LensPrior:
+    """Weak priors on a lens an adjustment estimates, 1-sigma each: the focal relative to its prior value, the
+    principal point's offset from its prior as a fraction of the focal, radial ``k1`` and ``k2`` (about 0). They
+    keep the parameters the data say little about where they were; where the data decide, they do."""
+
+    focal_rel: Annotated[float, Range(gt=0.0)]
+    principal_point_rel: Annotated[float, Range(gt=0.0)]
+    k1: Annotated[float, Range(gt=0.0)]
+    k2: Annotated[float, Range(gt=0.0)]
+
+    def __post_init__(self) -> None:
+        check_options(self, "lens prior")
 
 
 def project_world(intrinsics: CameraIntrinsics, cam_from_world: np.ndarray,

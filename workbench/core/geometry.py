@@ -132,9 +132,12 @@ def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 def orthonormal(R: np.ndarray) -> np.ndarray:
     """The rotation nearest to ``R`` (3, 3) (SVD, determinant +1): removes the drift of composed small rotations
-    and the rounding of an estimate stored in single precision."""
+    and the rounding of an estimate stored in single precision, and gives the rotation a noisy matrix known up to
+    scale stands for (``K_j^-1 H K_i`` of a homography between two photos of a rotating camera)."""
     U, _, Vt = np.linalg.svd(R)
-    return U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    if np.linalg.det(U @ Vt) < 0.0:  # a reflection: the nearest rotation turns the least singular direction
+        U[:, 2] = -U[:, 2]
+    return U @ Vt
 
 
 def quaternion_xyzw_from_matrix(R: np.ndarray) -> np.ndarray:

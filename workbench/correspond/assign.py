@@ -19,6 +19,7 @@ import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ..rolling_stock import CarriageType
+from .alignment import alignment_covariance
 from .complete import guided_face, joint_pose
 from .match import FaceDetection, MatchOptions, PhotoFeatures, quad_overlap, detect_faces, refine_detection, support
 from .references import FACES, FaceReference, face_reference
@@ -51,6 +52,9 @@ class PointObservation:
     sigma_px: float
     face: str
     how: str  # "homography" (on the face plane), "pose" (off the plane, from the face's pose) or "carried"
+    # a homography point's loading (2, 8): its share of the face alignment's error (alignment.py), px on disk
+    loading: np.ndarray | None = None
+    n_matches: int = 0  # the matches the face's homography rests on (with a loading)
 
 
 POSE_LATTICE = (13, 5)  # a face aligned by ECC gives its pose through this lattice (along, across) of its matched part
@@ -350,12 +354,16 @@ def observations_of(found: list[CarInPhoto], photo: PhotoFeatures, types: dict[s
         lo, hi = float(u_in.min()) - EXTRAPOLATE * w_ref, float(u_in.max()) + EXTRAPOLATE * w_ref
         names = [n for n in det.ref.points if lo <= det.ref.points[n][0] <= hi]
         if names:
-            uv = photo.distort_px(det.transfer(np.array([det.ref.points[n] for n in names])))
-            for n, p in zip(names, uv):
+            ref_px = np.array([det.ref.points[n] for n in names])
+            uv = photo.distort_px(det.transfer(ref_px))
+            cov = alignment_covariance(det, ref_px, photo.distort_px)
+            for i, (n, p) in enumerate(zip(names, uv)):
                 if (c.number, n) in best or not np.all(np.isfinite(p)) or not K.in_image(p[None], margin_px)[0]:
                     continue
                 best[(c.number, n)] = PointObservation(c.number, n, photo.name, (float(p[0]), float(p[1])),
-                                                       round(conf, 3), round(sigma, 2), det.ref.face, "homography")
+                                                       round(conf, 3), round(sigma, 2), det.ref.face, "homography",
+                                                       None if cov is None else cov.loading_px[i],
+                                                       0 if cov is None else cov.n_matches)
         if not pose_points or c.cam_from_carriage is None or (hi - lo) < (0.5 + 2 * EXTRAPOLATE) * w_ref:
             continue  # a pose from a short stretch of one face is too weak to place the car's other points
         M = c.cam_from_carriage

@@ -433,9 +433,11 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
         per_view, carried_stats = carry(per_view, features, pairs=pairs)
     for name, pts in per_view.items():
         for o in pts:
+            al = None if o.loading is None else mf.Alignment(
+                loading_px=[[round(float(x), 5) for x in row] for row in o.loading], n_matches=o.n_matches)
             obs.append(mf.Observation(carriage=o.carriage, point=o.point, view=o.view, uv=o.uv, source="sift",
                                       confidence=o.confidence, sigma_px=o.sigma_px, method=o.how,
-                                      face=o.face))
+                                      face=o.face, alignment=al))
     needs = [{"carriage": n, "reason": "reference has no texture (too few features on every face); pick its "
                                        "points by hand"} for n in untextured]
     seen = {o.carriage for o in obs}

@@ -16,13 +16,14 @@ from __future__ import annotations
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Annotated, Any
 
 import numpy as np
 import trimesh
 
 from ..core.frames import SceneFrame
-from ..errors import InputError, SettingsError
+from ..core.options import Range, check_options
+from ..errors import InputError
 from ..files.scene import SceneCarriage, scene_carriages
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -44,26 +45,15 @@ class ExportOptions:
     carriages' livery atlases; ``jpeg_quality`` for the re-encoded textures; ``tiles``: also write Cesium 3D Tiles.
     """
 
-    terrain_max_faces: int = 150_000
-    full_resolution_margin_m: float = 20.0
-    texture_max_px: int = 2048
-    livery_max_px: int = 1024
-    jpeg_quality: int = 85
+    terrain_max_faces: Annotated[int, Range(ge=1000, also=(0,))] = 150_000
+    full_resolution_margin_m: Annotated[float, Range(ge=0.0, le=1000.0)] = 20.0
+    texture_max_px: Annotated[int, Range(ge=64, le=16384)] = 2048
+    livery_max_px: Annotated[int, Range(ge=64, le=16384)] = 1024
+    jpeg_quality: Annotated[int, Range(ge=10, le=100)] = 85
     tiles: bool = True
 
     def __post_init__(self) -> None:
-        if not (self.terrain_max_faces == 0 or self.terrain_max_faces >= 1000):
-            raise SettingsError(f"export option terrain_max_faces = {self.terrain_max_faces}: give 0 (no "
-                                f"simplification) or at least 1000")
-        if not (0.0 <= self.full_resolution_margin_m <= 1000.0):
-            raise SettingsError(f"export option full_resolution_margin_m = {self.full_resolution_margin_m}: give "
-                                f"0 to 1000 metres")
-        for name in ("texture_max_px", "livery_max_px"):
-            v = getattr(self, name)
-            if not (64 <= v <= 16384):
-                raise SettingsError(f"export option {name} = {v}: give 64 to 16384 pixels")
-        if not (10 <= self.jpeg_quality <= 100):
-            raise SettingsError(f"export option jpeg_quality = {self.jpeg_quality}: give 10 to 100")
+        check_options(self, "export options")
 
 
 @dataclass(kw_only=True)

@@ -27,7 +27,7 @@ import reprlib
 from pathlib import Path
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, StrictFloat, ValidationError, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Field, StrictFloat, StrictInt, ValidationError, field_validator, model_validator
 
 from ..core.io import read_json
 from ..core.layout import CORRESPONDENCES_FILE
@@ -87,6 +87,31 @@ class Construction(BaseModel):
                 "segments": [[[round(float(x), 3) for x in pt] for pt in seg] for seg in self.segments]}
 
 
+class Alignment(BaseModel):
+    """A homography point's share of its face alignment's error (docs/correspondences.md, "What a face's
+    alignment measures"): the point's displacement is ``loading_px @ xi`` (px of the photo on disk) with one
+    ``xi ~ N(0, I_8)`` shared by the points of the same carriage, face and view."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    loading_px: tuple[tuple[StrictFloat, StrictFloat, StrictFloat, StrictFloat, StrictFloat, StrictFloat,
+                            StrictFloat, StrictFloat],
+                      tuple[StrictFloat, StrictFloat, StrictFloat, StrictFloat, StrictFloat, StrictFloat,
+                            StrictFloat, StrictFloat]]
+    n_matches: StrictInt = Field(ge=8)  # the matches the face's homography was fitted to
+
+    @field_validator("loading_px")
+    @classmethod
+    def _finite(cls, v):
+        if not all(math.isfinite(x) for row in v for x in row):
+            raise ValueError("loading_px is not finite")
+        return v
+
+    def to_json(self) -> dict:
+        return {"loading_px": [[round(float(x), 5) for x in row] for row in self.loading_px],
+                "n_matches": int(self.n_matches)}
+
+
 class Observation(BaseModel):
     # numbers must be JSON numbers (a string "1.5" or a boolean is refused) and finite (NaN, Infinity and 1e400,
     # which reads as infinity, are refused)
@@ -108,6 +133,8 @@ class Observation(BaseModel):
     face: str | None = None
     # how a manual point was made, when not by a click on it (module docstring): the stages read uv only
     construction: Construction | None = None
+    # a "homography" point's share of its face alignment's error, when the face had matches of its own
+    alignment: Alignment | None = None
 
     @field_validator("uv")
     @classmethod
@@ -115,6 +142,12 @@ class Observation(BaseModel):
         if not all(math.isfinite(x) for x in v):
             raise ValueError(f"uv = {list(v)} is not finite")
         return v
+
+    @model_validator(mode="after")
+    def _aligned(self):
+        if self.alignment is not None and self.method != "homography":
+            raise ValueError(f"an alignment is recorded for method 'homography' points only (method = {self.method!r})")
+        return self
 
     @model_validator(mode="after")
     def _constructed(self):
@@ -144,6 +177,8 @@ class Observation(BaseModel):
             d["face"] = self.face
         if self.construction is not None:
             d["construction"] = self.construction.to_json()
+        if self.alignment is not None:
+            d["alignment"] = self.alignment.to_json()
         return d
 
 

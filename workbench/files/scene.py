@@ -12,6 +12,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import cached_property
+from operator import attrgetter
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -42,26 +43,12 @@ class SceneCarriage:
     record: dict = field(repr=False)
     _meshes: dict = field(default_factory=dict, repr=False)
 
-    # -- the type ---------------------------------------------------------------------------------------
-    @property
-    def type_id(self) -> str:
-        return self.carriage_type.id
-
-    @property
-    def type_name(self) -> str:
-        return self.carriage_type.name
-
-    @property
-    def length_m(self) -> float:
-        return float(self.carriage_type.length_m)
-
-    @property
-    def width_m(self) -> float:
-        return float(self.carriage_type.width_m)
-
-    @property
-    def height_m(self) -> float:
-        return float(self.carriage_type.height_m)
+    # -- the type: its id and name, its size (metres) ----------------------------------------------------
+    type_id = property(attrgetter("carriage_type.id"))
+    type_name = property(attrgetter("carriage_type.name"))
+    length_m = property(attrgetter("carriage_type.length_m"))
+    width_m = property(attrgetter("carriage_type.width_m"))
+    height_m = property(attrgetter("carriage_type.height_m"))
 
     @property
     def matrix(self) -> np.ndarray:

@@ -23,23 +23,27 @@ import tempfile
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Callable
+from typing import Annotated, Callable, Literal, get_args
 
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
+from ..core.options import Range, check_options
 from ..core.settings import options_from_dict
-from ..errors import InputError, SettingsError, StageError
+from ..errors import InputError, StageError
 
 log = logging.getLogger(__name__)
 
-CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
-MATCHERS = ("auto", "exhaustive", "sequential")
+CameraModel = Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"]
+Matcher = Literal["auto", "exhaustive", "sequential"]
+CAMERA_MODELS = get_args(CameraModel)
+MATCHERS = get_args(Matcher)
 
 
 @dataclass(frozen=True, kw_only=True)
 class SfmOptions:
-    """Options of :func:`run_sfm`. Unknown keys (``from_dict``) and bad values raise :class:`SettingsError`.
+    """Options of :func:`run_sfm`. Unknown keys (``from_dict``) and bad values (each field declares what it
+    takes: :mod:`workbench.core.options`) raise :class:`~workbench.errors.SettingsError`.
 
     ``camera_model``: COLMAP camera model, one of :data:`CAMERA_MODELS` (``RADIAL`` = f, cx, cy, k1, k2).
     ``single_camera``: all photos share one camera (same camera, same zoom).
@@ -72,54 +76,34 @@ class SfmOptions:
     ``max_points``: at most this many 3-D points are written (a fixed-seed subsample).
     """
 
-    camera_model: str = "RADIAL"
+    camera_model: CameraModel = "RADIAL"
     single_camera: bool = True
-    matcher: str = "auto"
-    exhaustive_max_images: int = 60
-    sequential_overlap: int = 10
-    max_image_size_px: int = 2000
-    max_num_features: int = 16384
-    sift_peak_threshold: float = 0.002
+    matcher: Matcher = "auto"
+    exhaustive_max_images: Annotated[int, Range(ge=2)] = 60
+    sequential_overlap: Annotated[int, Range(ge=1)] = 10
+    max_image_size_px: Annotated[int, Range(ge=100)] = 2000
+    max_num_features: Annotated[int, Range(ge=100)] = 16384
+    sift_peak_threshold: Annotated[float, Range(gt=0.0, lt=0.1)] = 0.002
     sift_affine_shape: bool = True
     sift_domain_size_pooling: bool = True
     refine_focal: bool = True
     refine_principal_point: bool = False
     refine_distortion: bool = True
-    init_max_forward_motion: float = 0.95
-    init_min_tri_angle_deg: float = 16.0
-    init_min_num_inliers: int = 100
-    verify_min_num_inliers: int = 40
-    abs_pose_min_num_inliers: int = 40
-    abs_pose_min_inlier_ratio: float = 0.4
-    min_model_size: int = 3
+    init_max_forward_motion: Annotated[float, Range(gt=0.0, le=1.0)] = 0.95
+    init_min_tri_angle_deg: Annotated[float, Range(gt=0.0, lt=90.0)] = 16.0
+    init_min_num_inliers: Annotated[int, Range(ge=8)] = 100
+    verify_min_num_inliers: Annotated[int, Range(ge=8)] = 40
+    abs_pose_min_num_inliers: Annotated[int, Range(ge=4)] = 40
+    abs_pose_min_inlier_ratio: Annotated[float, Range(gt=0.0, lt=1.0)] = 0.4
+    min_model_size: Annotated[int, Range(ge=2)] = 3
     forward_motion_retry: bool = True
-    num_threads: int = 2
+    num_threads: Annotated[int, Range(ge=1)] = 2
     deterministic: bool = True
-    seed: int = 0
-    max_points: int = 20000
+    seed: Annotated[int, Range(ge=0)] = 0
+    max_points: Annotated[int, Range(ge=0)] = 20000
 
     def __post_init__(self) -> None:
-        def bad(key: str, why: str):
-            raise SettingsError(f"sfm options: {key} = {getattr(self, key)!r}: {why}")
-
-        if self.camera_model not in CAMERA_MODELS:
-            bad("camera_model", f"must be one of {list(CAMERA_MODELS)}")
-        if self.matcher not in MATCHERS:
-            bad("matcher", f"must be one of {list(MATCHERS)}")
-        for key, lo in (("exhaustive_max_images", 2), ("verify_min_num_inliers", 8), ("sequential_overlap", 1), ("max_image_size_px", 100),
-                        ("max_num_features", 100), ("init_min_num_inliers", 8), ("abs_pose_min_num_inliers", 4),
-                        ("min_model_size", 2), ("num_threads", 1), ("max_points", 0), ("seed", 0)):
-            v = getattr(self, key)
-            if not isinstance(v, int) or isinstance(v, bool) or v < lo:
-                bad(key, f"must be an integer >= {lo}")
-        if not (0.0 < self.sift_peak_threshold < 0.1):
-            bad("sift_peak_threshold", "must be in (0, 0.1)")
-        if not (0.0 < self.init_max_forward_motion <= 1.0):
-            bad("init_max_forward_motion", "must be in (0, 1]")
-        if not (0.0 < self.abs_pose_min_inlier_ratio < 1.0):
-            bad("abs_pose_min_inlier_ratio", "must be in (0, 1)")
-        if not (0.0 < self.init_min_tri_angle_deg < 90.0):
-            bad("init_min_tri_angle_deg", "must be in (0, 90) degrees")
+        check_options(self, "sfm options")
 
     @classmethod
     def from_dict(cls, d: dict) -> "SfmOptions":

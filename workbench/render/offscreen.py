@@ -56,6 +56,24 @@ class SceneMesh:
     instance_id: int = -1
 
 
+class _Traced:
+    """A render's array that may be traced late (``depth``, ``instance``): reading or setting it first runs the
+    render's pending trace (which sets both), then reads or sets ``_<name>``."""
+
+    def __set_name__(self, owner: type, name: str) -> None:
+        self.slot = "_" + name
+
+    def __get__(self, render: RenderResult | None, owner: type | None = None):
+        if render is None:
+            return self
+        render._trace()
+        return getattr(render, self.slot)
+
+    def __set__(self, render: RenderResult, value: np.ndarray) -> None:
+        render._trace()
+        setattr(render, self.slot, value)
+
+
 class RenderResult:
     """A render: ``color`` (h, w, 3) uint8 RGB; ``depth`` (h, w) float32 metres along camera z, inf where nothing;
     ``instance`` (h, w) int32 instance id, -1 for background / non-instance objects.
@@ -63,6 +81,9 @@ class RenderResult:
     Depth and instance may be given as ``traced``, a function returning both: they are then cast when one of
     them is first read (most renders are pictures whose depth and ids nobody reads; the scene's triangles are
     bound when the render is made, so a later change of the scene does not change them)."""
+
+    depth = _Traced()
+    instance = _Traced()
 
     def __init__(self, color: np.ndarray, depth: np.ndarray | None = None, instance: np.ndarray | None = None, *,
                  traced=None) -> None:
@@ -77,26 +98,6 @@ class RenderResult:
             if self._traced is not None:
                 self._depth, self._instance = self._traced()
                 self._traced = None
-
-    @property
-    def depth(self) -> np.ndarray:
-        self._trace()
-        return self._depth
-
-    @depth.setter
-    def depth(self, value: np.ndarray) -> None:
-        self._trace()
-        self._depth = value
-
-    @property
-    def instance(self) -> np.ndarray:
-        self._trace()
-        return self._instance
-
-    @instance.setter
-    def instance(self, value: np.ndarray) -> None:
-        self._trace()
-        self._instance = value
 
 
 @dataclass

@@ -31,6 +31,7 @@ from ..core.io import atomic_write, read_json
 from ..core.stage_api import Progress, StageResult
 from ..errors import InputError, StageError
 from ..project import Project
+from .beside import load_pdf_engine, run_beside
 from .scene import car_color
 from .track_table import track_table
 
@@ -464,24 +465,10 @@ def _rel(from_dir: Path, path: Path) -> str:
     return Path(os.path.relpath(path, from_dir)).as_posix()
 
 
-def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
-    """(template context, report.json figures) from the incident's files."""
-    s = project.settings
-    out = project.stage_dir("report")
-    figs = out / "figures"
-    sol = project.solution("report")
-    solution = sol.doc
-    renders = read_json(project.stage_dir("render") / "renders.json",
-                        missing=f"not found; the report needs the 'render' stage's output. Run `workbench run "
-                                f"{project.root}` (or `--only render`)")
-    state = project.read_state()
-    stats = _stats(project)
-    cameras = project.cameras()
-    cams = cameras.doc if cameras is not None else {}
-    cars = solution.get("carriages", [])
-
-    progress(0.1, "observations")
-    obs_figs = []
+def _figure_jobs(project: Project, cams: dict, cars: list[dict], figs: Path, sigma: float | None):
+    """([(figure function, args)] for each observed view's photo, the panorama (when stitched) and the residuals,
+    the panorama's path, whether its figure is among them)."""
+    jobs: list[tuple] = []
     views = {v.get("name"): v for v in cams.get("views", [])}
     pano = cams.get("panorama") or {}
     observed = []
@@ -498,40 +485,74 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
         if img is None or not img.is_file():
             log.warning("report: no image for view %s; its points are not drawn", v)
             continue
-        p = figs / f"observations_{Path(v).stem}.jpg"
-        info = observations_figure(p, img, v, cars)
-        obs_figs.append({**info, "src": _rel(out, p)})
-    panorama_img, panorama_fig = None, None
+        jobs.append((observations_figure, (figs / f"observations_{Path(v).stem}.jpg", img, v, cars)))
     pj = project.stage_dir("stitch") / "panorama.jpg"
     pm = project.stage_dir("stitch") / "panorama.json"
-    if pj.is_file():
-        progress(0.25, "panorama")
-        info = panorama_figure(figs / "observations_panorama.jpg", pj, pm, cars) if pm.is_file() else None
+    with_pano = pj.is_file() and pm.is_file()
+    if with_pano:
+        jobs.append((panorama_figure, (figs / "observations_panorama.jpg", pj, pm, cars)))
+    jobs.append((residual_figure, (figs / "residuals.png", cars, sigma)))
+    return jobs, pj, with_pano
+
+
+def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
+    """(template context, report.json figures) from the incident's files."""
+    s = project.settings
+    out = project.stage_dir("report")
+    figs = out / "figures"
+    sol = project.solution("report")
+    solution = sol.doc
+    renders = read_json(project.stage_dir("render") / "renders.json",
+                        missing=f"not found; the report needs the 'render' stage's output. Run `workbench run "
+                                f"{project.root}` (or `--only render`)")
+    state = project.read_state()
+    stats = _stats(project)
+    cameras = project.cameras()
+    cams = cameras.doc if cameras is not None else {}
+    cars = solution.get("carriages", [])
+
+    progress(0.1, "figures")
+    # the figures of the solution (points, residuals) are drawn in a process beside this one, which meanwhile copies
+    # the renders and loads the PDF engine; the same figures, drawn by the same code
+    sigma = solution.get("sigma_px")
+    jobs, pj, with_pano = _figure_jobs(project, cams, cars, figs, sigma)
+    drawn = run_beside(jobs)
+
+    try:
+        by_kind: dict[str, list] = {}
+        progress(0.4, "renders")
+        for r in renders.get("renders", []):
+            r = dict(r)
+            src = project.path(r["sheet"] if r["kind"] == "orbit" and r.get("sheet") else r["path"])
+            if not src.is_file():
+                raise InputError(f"{src}: listed in {project.stage_dir('render') / 'renders.json'} but missing; run "
+                                 f"the 'render' stage again (`workbench run {project.root} --only render --force`)")
+            if r["kind"] == "map":  # line art: keep it lossless
+                r["src"] = _rel(out, src)
+            else:
+                r["src"] = _rel(out, _jpeg_copy(src, figs / f"{src.stem}.jpg"))
+            by_kind.setdefault(r["kind"], []).append(r)
+        rows = carriage_rows(project, solution)
+        for r in by_kind.get("closeup", []):
+            r["row"] = next((x for x in rows if x["number"] == r.get("carriage")), None)
+        load_pdf_engine()
+    except BaseException:
+        try:  # the figures' process ends before the error is raised: no file of it left half-written
+            drawn()
+        except Exception:  # noqa: BLE001 - the first error is the one raised
+            pass
+        raise
+    progress(0.45, "figures")
+    results = drawn()
+    res_info = results.pop()
+    panorama_img, panorama_fig = None, None
+    if with_pano:
+        info = results.pop()
         if info is not None:
             panorama_fig = {**info, "src": _rel(out, figs / "observations_panorama.jpg")}
-        else:
-            panorama_img = _rel(out, _jpeg_copy(pj, figs / "panorama.jpg"))
-
-    progress(0.3, "residuals")
-    sigma = solution.get("sigma_px")
-    res_info = residual_figure(figs / "residuals.png", cars, sigma)
-
-    by_kind: dict[str, list] = {}
-    progress(0.4, "renders")
-    for r in renders.get("renders", []):
-        r = dict(r)
-        src = project.path(r["sheet"] if r["kind"] == "orbit" and r.get("sheet") else r["path"])
-        if not src.is_file():
-            raise InputError(f"{src}: listed in {project.stage_dir('render') / 'renders.json'} but missing; run the "
-                             f"'render' stage again (`workbench run {project.root} --only render --force`)")
-        if r["kind"] == "map":  # line art: keep it lossless
-            r["src"] = _rel(out, src)
-        else:
-            r["src"] = _rel(out, _jpeg_copy(src, figs / f"{src.stem}.jpg"))
-        by_kind.setdefault(r["kind"], []).append(r)
-    rows = carriage_rows(project, solution)
-    for r in by_kind.get("closeup", []):
-        r["row"] = next((x for x in rows if x["number"] == r.get("carriage")), None)
+    if pj.is_file() and panorama_fig is None:
+        panorama_img = _rel(out, _jpeg_copy(pj, figs / "panorama.jpg"))
+    obs_figs = [{**info, "src": _rel(out, p)} for info, (_fn, (p, *_rest)) in zip(results, jobs)]
 
     loc = s.location
     ns = "N" if loc.lat >= 0 else "S"

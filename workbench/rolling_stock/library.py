@@ -53,10 +53,25 @@ class CarriageType:
     def __init__(self, spec: AnySpec, source_path: Path) -> None:
         self.spec = spec
         self.source_path = Path(source_path)
+        # the type's identity, as its file states it
+        self.id: str = spec.id
+        self.name: str = spec.name
+        self.operator: str = spec.operator
+        self.kind: str = spec.kind
+        self.default_car_number: str = spec.default_car_number
         self._lock = threading.Lock()
         self._parts: list[Part] | None = None
         self._mesh_cache: dict[tuple[str, bool], trimesh.Trimesh] = {}
         self._loaded = mesh_type.load_mesh(spec, self.source_path) if self.is_mesh_type else None
+        # its size (metres): over the coupler faces; over the body ends, the body's width and the model's top above
+        # the top of rail (a mesh type: the mesh's extents)
+        self.length_m = float(spec.dimensions.length_over_couplers_m)
+        if self._loaded is not None:
+            lo, hi = self._loaded.bounds
+            self.body_length_m, self.width_m, self.height_m = float(hi[0] - lo[0]), float(hi[1] - lo[1]), float(hi[2])
+        else:
+            d = spec.dimensions
+            self.body_length_m, self.width_m, self.height_m = map(float, (d.body_length_m, d.width_m, d.height_m))
         pts: dict[str, np.ndarray] = {}
         faces: dict[str, tuple[str, ...]] = {}
         for mp in spec.marked_points:
@@ -94,26 +109,6 @@ class CarriageType:
 
     # -- identity and dimensions ------------------------------------------------------------------------
     @property
-    def id(self) -> str:
-        return self.spec.id
-
-    @property
-    def name(self) -> str:
-        return self.spec.name
-
-    @property
-    def operator(self) -> str:
-        return self.spec.operator
-
-    @property
-    def kind(self) -> str:
-        return self.spec.kind
-
-    @property
-    def default_car_number(self) -> str:
-        return self.spec.default_car_number
-
-    @property
     def is_mesh_type(self) -> bool:
         """Whether the model is a mesh file (``[mesh]``) rather than built from the dimensions."""
         return isinstance(self.spec, MeshCarriageSpec)
@@ -127,33 +122,6 @@ class CarriageType:
 
     def _mesh_bounds(self) -> np.ndarray:
         return self._loaded.bounds.copy()
-
-    @property
-    def length_m(self) -> float:
-        """Length over the coupler faces."""
-        return float(self.spec.dimensions.length_over_couplers_m)
-
-    @property
-    def body_length_m(self) -> float:
-        """Over the body ends (a mesh type: the mesh's extent in x)."""
-        if self._loaded is not None:
-            lo, hi = self._mesh_bounds()
-            return float(hi[0] - lo[0])
-        return float(self.spec.dimensions.body_length_m)
-
-    @property
-    def width_m(self) -> float:
-        if self._loaded is not None:
-            lo, hi = self._mesh_bounds()
-            return float(hi[1] - lo[1])
-        return float(self.spec.dimensions.width_m)
-
-    @property
-    def height_m(self) -> float:
-        """Top of the model above the top of rail."""
-        if self._loaded is not None:
-            return float(self._mesh_bounds()[1][2])
-        return float(self.spec.dimensions.height_m)
 
     @property
     def coupler_front(self) -> np.ndarray:

@@ -86,6 +86,7 @@ class Car:
     scale: np.ndarray | None = None  # (n,) each point's sigma / the solve's pixel sigma (None: all 1)
     derived: np.ndarray | None = None  # (n,) bool: a prediction, not a measurement (see Observation.derived)
     groups: list | None = None  # (n,) the observation's group (see Observation.group) or None
+    loadings: np.ndarray | None = None  # (n, 2, 8) each point's share of its face alignment's error, NaN: none
     on_track: bool = False  # marked still on the rails (CarriageInput.on_track)
 
 
@@ -97,25 +98,35 @@ def record_warning(wlist: list, car: Car | None, kind: str, message: str) -> Non
     warnings.warn(message, SolveWarning, stacklevel=3)
 
 
+@dataclass(frozen=True)
+class AlignedObservation(Observation):
+    """An automatic point placed by its face's homography, with its share of that alignment's error: the point's
+    displacement is ``loading @ xi`` (px), ``loading`` (2, 8), with one ``xi ~ N(0, I_8)`` shared by the points of
+    the same carriage, face (``group``) and view (``workbench.correspond.alignment``; docs/correspondences.md)."""
+
+    loading: tuple | None = None
+
+
 def _iter_observations(obs: Any):
-    """(point name, (u, v), sigma_px or None, derived, group or None) of the visible observations of one view."""
+    """(point name, (u, v), sigma_px or None, derived, group or None, loading or None) of the visible observations
+    of one view."""
     if isinstance(obs, Mapping):
         for name, uv in obs.items():
             if uv is None:
                 continue
             if isinstance(uv, Observation):
                 if uv.visible:
-                    yield str(name), (uv.u, uv.v), uv.sigma_px, uv.derived, uv.group
+                    yield str(name), (uv.u, uv.v), uv.sigma_px, uv.derived, uv.group, getattr(uv, "loading", None)
                 continue
-            yield str(name), uv, None, False, None
+            yield str(name), uv, None, False, None, None
     else:
         for o in obs:
             if isinstance(o, Observation):
                 if o.visible:
-                    yield o.point, (o.u, o.v), o.sigma_px, o.derived, o.group
+                    yield o.point, (o.u, o.v), o.sigma_px, o.derived, o.group, getattr(o, "loading", None)
             else:
                 name, uv = o
-                yield str(name), uv, None, False, None
+                yield str(name), uv, None, False, None, None
 
 
 def _check_views(views: Sequence[View]) -> dict[str, int]:
@@ -134,14 +145,14 @@ def _check_views(views: Sequence[View]) -> dict[str, int]:
 def _prepare_one(i: int, c: CarriageInput, views: Sequence[View], vindex: dict[str, int],
                  options: SolveOptions) -> Car:
     ct = c.carriage_type
-    names, vi, P, uv, sc, der, grp = [], [], [], [], [], [], []
+    names, vi, P, uv, sc, der, grp, lds = [], [], [], [], [], [], [], []
     for vname, obs in (c.observations or {}).items():
         if vname not in vindex:
             raise InputError(f"car {c.number}: observations for view {vname!r}, which is not among the views "
                              f"{list(vindex)}")
         intr = views[vindex[vname]].intrinsics
         seen: set[str] = set()
-        for name, pix, sig, derived, group in _iter_observations(obs):
+        for name, pix, sig, derived, group, loading in _iter_observations(obs):
             where = f"car {c.number}, view {vname!r}"
             if name not in ct.marked_points:
                 raise InputError(f"{where}: point {name!r} is not a marked point of type "
@@ -164,11 +175,15 @@ def _prepare_one(i: int, c: CarriageInput, views: Sequence[View], vindex: dict[s
             sc.append(1.0 if sig is None else float(sig) / options.pixel_sigma_px)
             der.append(bool(derived))
             grp.append(None if group is None else str(group))
+            ld = np.full((2, 8), np.nan) if loading is None or derived else np.asarray(loading, dtype=float)
+            if ld.shape != (2, 8):
+                raise InputError(f"{where}, point {name!r}: its alignment loading has shape {ld.shape}, not (2, 8)")
+            lds.append(ld)
     body = np.array([0.0, 0.0, 0.5 * float(ct.height_m)])
     return Car(i, str(c.number), ct, names, np.asarray(vi, dtype=int), np.asarray(P, dtype=float).reshape(-1, 3),
                np.asarray(uv, dtype=float).reshape(-1, 2), sorted(set(names)), np.asarray(ct.coupler_front, float),
                np.asarray(ct.coupler_rear, float), body, np.asarray(sc, dtype=float), np.asarray(der, dtype=bool),
-               grp, bool(c.on_track))
+               grp, np.asarray(lds, dtype=float).reshape(-1, 2, 8), bool(c.on_track))
 
 
 def prepare_cars(carriages: Sequence[CarriageInput], views: Sequence[View], options: SolveOptions) -> list[Car]:
@@ -240,7 +255,8 @@ class Problem:
     def __init__(self, cars: list[Car], active: list[int], views: Sequence[View], weights: dict[int, float]):
         self.cars, self.views = cars, views
         self.active = active
-        rows_car, rows_view, P, uv, w, wv, meas, grp = [], [], [], [], [], [], [], []
+        rows_car, rows_view, P, uv, w, wv, meas, grp, lds, blk = [], [], [], [], [], [], [], [], [], []
+        bcodes: dict[tuple, int] = {}
         codes: dict[tuple, int] = {}
         for k in active:
             c = cars[k]
@@ -257,6 +273,13 @@ class Problem:
             meas.append(~der)
             gs = c.groups if c.groups is not None and len(c.groups) == len(c.P) else [None] * len(c.P)
             grp.append(np.array([-1 if g is None else codes.setdefault((k, g), len(codes)) for g in gs], dtype=int))
+            ld = c.loadings if c.loadings is not None and len(c.loadings) == len(c.P) \
+                else np.full((len(c.P), 2, 8), np.nan)
+            has = np.all(np.isfinite(ld), axis=(1, 2)) & np.array([g is not None for g in gs], bool)
+            lds.append(np.where(has[:, None, None], ld, 0.0))
+            # one face alignment: the carriage's points of one face in one view
+            blk.append(np.array([bcodes.setdefault((k, g, int(v)), len(bcodes)) if h else -1
+                                 for g, v, h in zip(gs, c.views, has)], dtype=int))
         self.car = np.concatenate(rows_car) if rows_car else np.zeros(0, int)
         self.view = np.concatenate(rows_view) if rows_view else np.zeros(0, int)
         self.P = np.vstack(P) if P else np.zeros((0, 3))
@@ -265,6 +288,10 @@ class Problem:
         self.w_noise = np.concatenate(wv) if wv else np.zeros(0)  # sd of a weighted row / pixel sigma
         self.measured = np.concatenate(meas) if meas else np.zeros(0, bool)  # rows that carry information
         self.group = np.concatenate(grp) if grp else np.zeros(0, int)  # shared-misfit group per row, -1: none
+        # each point's face alignment (carriage, face, view) and its loading (px per unit of the alignment's
+        # shared standard normal), -1 and zeros where the finder gave none (uncertainty.alignment_term)
+        self.block = np.concatenate(blk) if blk else np.zeros(0, int)
+        self.loading = np.concatenate(lds) if lds else np.zeros((0, 2, 8))
         self.by_view = [np.nonzero(self.view == v)[0] for v in range(len(views))]
         self.by_car = {k: np.nonzero(self.car == k)[0] for k in active}
 

@@ -29,6 +29,7 @@ from ..files.panorama import read_panorama
 from .level import Levelling, UprightCar, add_levelling_uncertainty, level_from_carriages
 from .principal_point import guessed_principal_point_term
 from .model import CarriageInput, ChainLink, Observation, SolveOptions, SolveWarning, View
+from .problem import AlignedObservation
 from .solver import solve_consist
 from .uncertainty import add_camera_uncertainty, add_view_camera_uncertainty
 
@@ -71,7 +72,7 @@ def read_correspondences(project: Project, path: Path, views: list, panorama: An
     src: dict[tuple, str] = {}
     n_pano = 0
     sources: dict[str, int] = {}
-    n_derived = 0
+    n_derived = n_aligned = 0
     for i, o in enumerate(doc["observations"]):
         where = f"{path}: observations[{i}]"
         if not isinstance(o, dict):
@@ -128,14 +129,20 @@ def read_correspondences(project: Project, path: Path, views: list, panorama: An
         # a point's own sigma can only down-weight it: the solve's pixel sigma is the floor (a finder's sub-pixel
         # claims on one face are correlated through its homography, not independent evidence)
         sig_used = None if sig is None else max(sig, float(project.settings.solver.pixel_sigma_px))
-        out.setdefault(car, {}).setdefault(view, {})[point] = Observation(point, float(a[0]), float(a[1]), True,
-                                                                          sig_used, method in ("pose", "carried"),
-                                                                          _group(o, method, where))
+        group = _group(o, method, where)
+        al = o.get("alignment")  # the face alignment's share of the point's error (checked by the format)
+        if isinstance(al, dict) and group is not None:
+            ob = AlignedObservation(point, float(a[0]), float(a[1]), True, sig_used, False, group,
+                                    tuple(tuple(float(x) for x in row) for row in al["loading_px"]))
+            n_aligned += 1
+        else:
+            ob = Observation(point, float(a[0]), float(a[1]), True, sig_used, method in ("pose", "carried"), group)
+        out.setdefault(car, {}).setdefault(view, {})[point] = ob
         s = str(o.get("source", "manual"))
         sources[s] = sources.get(s, 0) + 1
         n_derived += method in ("pose", "carried")
     stats = {"file": project.relative(path), "n_observations": len(src), "by_source": sources,
-             "n_predicted": n_derived,
+             "n_predicted": n_derived, "n_with_alignment": n_aligned,
              "from_panorama_pixels": n_pano, "needs_manual": doc.get("needs_manual", [])}
     return out, stats
 

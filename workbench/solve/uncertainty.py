@@ -21,6 +21,7 @@ from .model import SolveOptions
 from .problem import (Chains, Poses, Problem, carriage_weights, focal_groups, held_chains, prepare_cars,
                       record_warning)
 from .projection import project_with_jacobians
+from .alignment_covariance import alignment_term, views_per_face
 from .variance_components import (FALLBACK_FACE_SIGMA_PX, VarianceComponents, estimate_variance_components,
                                   face_modes)
 
@@ -160,13 +161,23 @@ def undetermined_parameters(H: np.ndarray) -> np.ndarray | None:
 
 def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_cfg: float,
                      loss: str = "linear", loss_scale: float = 1.0, prior_dof: float = 5.0,
-                     sigma_fixed: float | None = None, face_sigma: float | None = 0.0) -> CovarianceModel:
+                     sigma_fixed: float | None = None, face_sigma: float | None = 0.0,
+                     use_alignments: bool = True, views_shared: bool = True) -> CovarianceModel:
     """Covariance in free-pose parameters at ``R, t, f`` (see the module doc). ``sigma_fixed``: use that pixel
-    sigma (CRB); ``face_sigma``: pixels of the misfit shared by each group of points."""
+    sigma (CRB); ``face_sigma``: pixels of the misfit shared by each group of points; ``use_alignments``: the
+    points with a face alignment's loading (``Problem.loading``) take their error from it (:func:`alignment_term`)
+    in place of the pixel sigma and the fixed misfit (docs/correspondences.md, "What a face's alignment
+    measures"); ``views_shared``: a face's error is shared by the photos it is aligned in (:func:`views_per_face`),
+    not independent from photo to photo."""
     J, r, col, P = pixel_rows(prob, R, t, f, focal_views)
     groups = getattr(prob, "group", None)
     if groups is None or len(groups) != len(prob.P):
         groups = np.full(len(prob.P), -1)
+    block = getattr(prob, "block", None)
+    loading = getattr(prob, "loading", None)
+    if not use_alignments or block is None or len(block) != len(prob.P) or sigma_fixed is not None \
+            or face_sigma is None:
+        block, loading = np.full(len(prob.P), -1), np.zeros((len(prob.P), 2, 8))
     uv_obs, w_row, views = prob.uv, prob.w, prob.view
     # predictions (points projected from a face's pose, points carried from another photo) guide the fit but
     # are functions of the measured points: counting them would claim information twice
@@ -175,6 +186,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         keep = np.repeat(meas, 2)
         J, r = J[keep], r[keep]
         groups, uv_obs, w_row, views = groups[meas], uv_obs[meas], w_row[meas], views[meas]
+        block, loading = block[meas], loading[meas]
         w2 = np.repeat(prob.w_noise[meas] ** 2, 2)
         M = int(meas.sum())
     else:
@@ -183,7 +195,10 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     r2pt = (r.reshape(-1, 2) ** 2).sum(1)
     rho = np.repeat(_robust_weights(r2pt, loss, loss_scale), 2)
     Hp_unit = (J * rho[:, None]).T @ J
-    Gp_unit = (J * (rho**2 * w2)[:, None]).T @ J
+    if views_shared and (block >= 0).any():
+        loading = loading * np.sqrt(views_per_face(block, groups, views))[:, None, None]
+    aligned = np.repeat(block >= 0, 2)  # rows whose error their face alignment gives (not the fixed misfit)
+    Gp_unit = (J * (rho**2 * w2 * ~aligned)[:, None]).T @ J
     Hprior = _prior_info(prob.cars, R, t, chains, slacks, col, P) + _contact_info(contact, R, t, col, P, sigma_cfg)
 
     def assemble(sig):
@@ -203,32 +218,46 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     elif vc is not None:
         sigma, sigma_hat, dof = vc.sigma_px, vc.sigma_px, vc.dof
         q = float(stdtrit(dof, 0.975))
+    elif aligned.all() and len(aligned):
+        # every measured point's error is its alignment's, known from its matches (2 N - 8 residual degrees of
+        # freedom each, N >= 8): the pixel sigma only weights the pixels against the priors in the information
+        sigma, sigma_hat, dof, q = _pooled_sigma(r, w2, M, Hp_unit, Hprior, sigma_cfg, prior_dof, assemble) \
+            + (1.959963984540054,)
     else:
-        sig = sigma_cfg
-        for _ in range(2):
-            H, Hi = assemble(sig)
-            p_eff = float(np.trace(Hi @ (Hp_unit / sig**2)))
-            dof = max(2.0 * M - p_eff, 0.0)
-            if dof > 1e-6:
-                sigma_hat = math.sqrt(float(np.sum(r**2)) / (float(np.sum(w2)) * dof / (2.0 * M)))
-            else:
-                sigma_hat = float("nan")
-            nu0 = prior_dof
-            s2 = (dof * (sigma_hat**2 if dof > 1e-6 else 0.0) + nu0 * sigma_cfg**2) / (dof + nu0) if dof + nu0 > 0 \
-                else sigma_cfg**2
-            sig = max(math.sqrt(s2), 0.1 * sigma_cfg)
-        sigma = sig
+        sigma, sigma_hat, dof = _pooled_sigma(r, w2, M, Hp_unit, Hprior, sigma_cfg, prior_dof, assemble)
         q = float(stdtrit(dof + prior_dof, 0.975)) if dof + prior_dof > 0 else 1.959963984540054
     H, Hi = assemble(sigma)
     G = Gp_unit / sigma**2 + Hprior
+    misfit_groups = np.where(block >= 0, -1, groups)  # an aligned point's face error is its alignment's
     if vc is not None and vc.face_sigmas_px:  # each face its own misfit
         G = G + _shared_misfit(J * rho[:, None], groups, views, uv_obs, w_row,
                                np.square(vc.face_sigmas_px)) / sigma**4
     elif face_sigma > 0:
-        G = G + face_sigma**2 / sigma**4 * _shared_misfit(J * rho[:, None], groups, views, uv_obs, w_row)
+        G = G + face_sigma**2 / sigma**4 * _shared_misfit(J * rho[:, None], misfit_groups, views, uv_obs, w_row)
+    if (block >= 0).any():
+        G = G + alignment_term(J * rho[:, None], block, loading, w_row) / sigma**4
     cov = Hi @ G @ Hi
     cov = 0.5 * (cov + cov.T)
     return CovarianceModel(cov, col, sigma, sigma_hat, dof, q, P, Hi, undetermined_parameters(H), face_sigma, vc)
+
+
+def _pooled_sigma(r, w2, M, Hp_unit, Hprior, sigma_cfg, prior_dof, assemble) -> tuple[float, float, float]:
+    """(pixel sigma pooled with the configured one at ``prior_dof``, the residuals' own, their degrees of
+    freedom)."""
+    sig = sigma_cfg
+    for _ in range(2):
+        H, Hi = assemble(sig)
+        p_eff = float(np.trace(Hi @ (Hp_unit / sig**2)))
+        dof = max(2.0 * M - p_eff, 0.0)
+        if dof > 1e-6:
+            sigma_hat = math.sqrt(float(np.sum(r**2)) / (float(np.sum(w2)) * dof / (2.0 * M)))
+        else:
+            sigma_hat = float("nan")
+        nu0 = prior_dof
+        s2 = (dof * (sigma_hat**2 if dof > 1e-6 else 0.0) + nu0 * sigma_cfg**2) / (dof + nu0) if dof + nu0 > 0 \
+            else sigma_cfg**2
+        sig = max(math.sqrt(s2), 0.1 * sigma_cfg)
+    return sig, sigma_hat, dof
 
 
 def _shared_misfit(J: np.ndarray, groups: np.ndarray, views: np.ndarray, uv: np.ndarray,

@@ -11,11 +11,13 @@ differentiation of the undistortion, so each solver step costs one evaluation.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Annotated
 
 import numpy as np
 
-from ..core.camera import CameraIntrinsics
+from ..core.camera import CameraIntrinsics, LensPrior
 from ..core.geometry import exp_and_left_jacobian_so3
+from ..core.options import Range, check_options
 
 __all__ = ["BundleOptions", "Observations", "RotationBundleProblem", "min_work_scale", "undistort_radial"]
 
@@ -26,8 +28,8 @@ class BundleOptions:
 
     ``fixed_intrinsics``: rotations only, each photo's ``init`` intrinsics used as they are (full distortion).
     Else one focal per camera group (fx = fy) and, with ``estimate_k1``, radial k1, k2 and the principal point,
-    with weak priors (k: 0 +- ``k1_prior_sigma`` / ``k2_prior_sigma``; principal point: ``init``'s +-
-    ``pp_prior_sigma`` x focal; focal: ``focal_prior`` +- ``focal_prior_sigma`` of it, where given).
+    with the weak priors ``lens_prior`` (k1, k2: 0; principal point: ``init``'s; focal: ``focal_prior``, where
+    given).
     ``robust_pass``: soft L1 (scale ``loss_scale_work_px``) on at most ``robust_per_pair`` matches per pair, to
     tolerance ``robust_tol``; matches within ``reject_work_px`` after it are the inliers. ``final_pass``: least
     squares on the inliers, or with ``final_loss_median`` > 0 soft L1 at that many times their median residual
@@ -35,18 +37,18 @@ class BundleOptions:
 
     fixed_intrinsics: bool
     estimate_k1: bool
-    focal_prior_sigma: float = 0.05
-    k1_prior_sigma: float = 0.25
-    pp_prior_sigma: float = 0.05
-    k2_prior_sigma: float = 0.25
-    loss_scale_work_px: float = 1.0
-    reject_work_px: float = 4.0
-    max_nfev: int = 60
-    robust_per_pair: int = 100
+    lens_prior: LensPrior = LensPrior(focal_rel=0.05, principal_point_rel=0.05, k1=0.25, k2=0.25)
+    loss_scale_work_px: Annotated[float, Range(gt=0.0)] = 1.0
+    reject_work_px: Annotated[float, Range(gt=0.0)] = 4.0
+    max_nfev: Annotated[int, Range(ge=1)] = 60
+    robust_per_pair: Annotated[int, Range(ge=1)] = 100
     robust_pass: bool = True
     final_pass: bool = True
-    robust_tol: float = 1e-6
-    final_loss_median: float = 0.0
+    robust_tol: Annotated[float, Range(gt=0.0)] = 1e-6
+    final_loss_median: Annotated[float, Range(ge=0.0)] = 0.0
+
+    def __post_init__(self) -> None:
+        check_options(self, "bundle adjustment options")
 
 
 @dataclass
@@ -356,11 +358,12 @@ class RotationBundleProblem:
             for g in self.gids:
                 if g in self.focal_prior:
                     f_g = self.f0[g] * np.exp(gp[gpos[g], 0])
-                    sig = o.focal_prior_sigma * self.focal_prior[g]
+                    sig = o.lens_prior.focal_rel * self.focal_prior[g]
                     extra.append((f_g - self.focal_prior[g]) / sig)
                     Jx.append((n_rot + n_gp * gpos[g], f_g / sig))
         if n_gp == 5:
-            for q, sig in ((1, o.k1_prior_sigma), (2, o.k2_prior_sigma), (3, o.pp_prior_sigma), (4, o.pp_prior_sigma)):
+            lp = o.lens_prior
+            for q, sig in ((1, lp.k1), (2, lp.k2), (3, lp.principal_point_rel), (4, lp.principal_point_rel)):
                 for g in self.gids:
                     extra.append(gp[gpos[g], q] / sig)
                     Jx.append((n_rot + n_gp * gpos[g] + q, 1.0 / sig))

@@ -19,6 +19,8 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from ..core.geometry import orthonormal
+
 log = logging.getLogger(__name__)
 
 
@@ -279,14 +281,6 @@ def _focals_from_homography(H: np.ndarray) -> tuple[float | None, float | None]:
     return ok[0], ok[1]
 
 
-def nearest_rotation(M: np.ndarray) -> np.ndarray:
-    U, _, Vt = np.linalg.svd(M)
-    R = U @ Vt
-    if np.linalg.det(R) < 0:
-        R = U @ np.diag([1, 1, -1]) @ Vt
-    return R
-
-
 def rotations_from_homographies(kept: list[int], pairs: list[PairMatch], Ks: dict[int, np.ndarray]
                                 ) -> dict[int, np.ndarray]:
     """``cam_from_pano`` per kept photo along a maximum spanning tree of inlier counts (root: identity)."""
@@ -301,7 +295,7 @@ def rotations_from_homographies(kept: list[int], pairs: list[PairMatch], Ks: dic
                 # x_j ~ H x_i with x = K R_cam_from_pano d  =>  R_j R_i^T ~ K_j^-1 H K_i
                 M = np.linalg.inv(Ks[p.j]) @ p.H @ Ks[p.i]
                 M /= np.cbrt(np.linalg.det(M))
-                Rji = nearest_rotation(M)
+                Rji = orthonormal(M)
                 if p.i in R:
                     R[p.j] = Rji @ R[p.i]
                 else:

@@ -23,6 +23,7 @@ import numpy as np
 from PIL import JpegImagePlugin, PngImagePlugin, TiffImagePlugin  # noqa: F401
 
 from ..core.camera import CameraIntrinsics
+from ..core.geometry import orthonormal, rot_x, rot_y
 from ..core.panorama import PanoramaModel, PanoramaSource
 from ..errors import InputError
 from . import register as reg
@@ -60,10 +61,10 @@ def _choose_frame_and_projection(cam_from_pano: dict[int, np.ndarray], intr: dic
     yaw_mid = 0.5 * (yaw.min() + yaw.max())
     elev_mid = 0.5 * (elev.min() + elev.max())
     ext = {"yaw_deg": [float(yaw.min()), float(yaw.max())], "elevation_deg": [float(elev.min()), float(elev.max())]}
-    Ry = cv2.Rodrigues(np.array([0.0, np.radians(yaw_mid), 0.0]))[0]  # pano_wc_from_panoY
+    Ry = rot_y(np.radians(yaw_mid))  # pano_wc_from_panoY
     proj = opts.projection
     # planar candidate: axis through the centre of the extents
-    Rx = cv2.Rodrigues(np.array([np.radians(elev_mid), 0.0, 0.0]))[0]
+    Rx = rot_x(np.radians(elev_mid))
     R_planar = (Ry @ Rx).T  # pano_from_pano_wc
     dp = d @ R_planar.T
     max_off = float(np.degrees(np.max(np.arccos(np.clip(dp[:, 2], -1, 1)))))
@@ -211,7 +212,7 @@ def _panorama_model(ba: BAResult, kept: list[int], names: list[str], image_refs:
     proj, R_axis, extents = _choose_frame_and_projection(Rs, ba.intrinsics, opts)
     Rs = {k: R @ R_axis.T for k, R in Rs.items()}
     sources = tuple(PanoramaSource(name=names[k], image=image_refs[k], intrinsics=ba.intrinsics[k],
-                                   cam_from_pano=reg.nearest_rotation(Rs[k])) for k in kept)
+                                   cam_from_pano=orthonormal(Rs[k])) for k in kept)
     scale = float(np.median([ba.intrinsics[k].fx for k in kept]))
     model = _fit_extent(PanoramaModel(projection=proj, scale=scale, offset=(0.0, 0.0), width=1, height=1,
                                       sources=sources))
