@@ -30,18 +30,19 @@ class TrackPriorRecord:
     """What the prior did for one carriage marked on the rails: ``applied`` or why not (``reason``); the line; the
     pivots' offsets from it (m, left positive) at the start of the joint solve."""
 
-    index: int
+    index: int  # in the consist
     number: str
     applied: bool
-    reason: str
-    line_id: str | None = None
-    line_name: str | None = None
-    sigma_m: float | None = None
-    start_offsets_m: tuple[float, float] | None = None
+    reason: str  # why (not), in words for the warning and the report
+    line: RailwayLine | None = None  # the nearest line, where there is one
+    sigma_m: float | None = None  # the prior's 1-sigma per pivot, where applied
+    start_offsets_m: tuple[float, float] | None = None  # front and rear pivot, at the start of step 4
 
     def to_dict(self) -> dict:
-        return {"number": self.number, "applied": self.applied, "reason": self.reason, "line_id": self.line_id,
-                "line_name": self.line_name, "sigma_m": self.sigma_m,
+        line = self.line
+        return {"number": self.number, "applied": self.applied, "reason": self.reason,
+                "line_id": None if line is None else line.id, "line_name": None if line is None else line.name,
+                "sigma_m": self.sigma_m,
                 "start_offsets_m": None if self.start_offsets_m is None else [round(x, 4) for x in self.start_offsets_m]}
 
 
@@ -138,10 +139,10 @@ def track_prior(cars: Sequence[Any], active: Sequence[int], R: np.ndarray, t: np
             recs.append(TrackPriorRecord(
                 k, c.number, False, f"its bogies lie {off[0]:+.1f} and {off[1]:+.1f} m from the nearest railway "
                 f"line ({line.label}), beyond {gate_m:g} m: the on_track mark, the railway layer or the camera is "
-                f"wrong, or the carriage left the rails; solved without the track", line.id, line.name, None, off))
+                f"wrong, or the carriage left the rails; solved without the track", line, None, off))
             continue
         use_lines[k], pivots[k] = line, S
-        recs.append(TrackPriorRecord(k, c.number, True, "both bogie pivots over the track centre", line.id, line.name,
+        recs.append(TrackPriorRecord(k, c.number, True, "both bogie pivots over the track centre", line,
                                      float(sigma_m), off))
     if not use_lines:
         return None, recs

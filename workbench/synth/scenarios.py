@@ -1,4 +1,5 @@
-"""Synthetic incident scenarios, modelled on two real derailments (consist, layout, terrain type).
+"""Synthetic incident scenarios, modelled on two real derailments (consist, layout, terrain type); the records are
+data, in ``scenarios.toml`` beside this module.
 
 The photos and the exact layout are synthetic; car numbers are illustrative, not the historical ones.
 
@@ -13,7 +14,9 @@ The photos and the exact layout are synthetic; car numbers are illustrative, not
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import tomllib
+from dataclasses import dataclass, fields
+from pathlib import Path
 
 import numpy as np
 
@@ -39,30 +42,22 @@ class Scenario:
     region: str  # folder under terrain/ for the sample's layers
 
 
-SCENARIOS: dict[str, Scenario] = {
-    "spuyten-duyvil": Scenario(
-        id="spuyten-duyvil",
-        title="Spuyten Duyvil derailment, Bronx NY (synthetic reconstruction)",
-        date="2013-12-01",
-        lat=40.87800, lon=-73.92150, crs="EPSG:32618",
-        terrain="embankment_river",
-        consist=(("6100", "shoreliner"), ("6223", "shoreliner"), ("6227", "shoreliner"), ("6231", "shoreliner"),
-                 ("6234", "shoreliner"), ("6240", "shoreliner"), ("4126", "p32ac-dm")),
-        p_broken=0.35, p_on_side=0.35, p_tilted=0.25, jackknife_deg=(8.0, 40.0),
-        front_s_m=260.0, lateral_m=(4.0, 9.0), region="bronx",
-    ),
-    "frankford-junction": Scenario(
-        id="frankford-junction",
-        title="Frankford Junction derailment, Philadelphia PA (synthetic reconstruction)",
-        date="2015-05-12",
-        lat=39.99950, lon=-75.09700, crs="EPSG:32618",
-        terrain="cutting_curve",
-        consist=(("601", "acs-64"), ("82615", "amfleet-i"), ("82639", "amfleet-i"), ("82730", "amfleet-i"),
-                 ("82757", "amfleet-i"), ("82991", "amfleet-i"), ("82602", "amfleet-i")),
-        p_broken=0.4, p_on_side=0.35, p_tilted=0.2, jackknife_deg=(10.0, 55.0),
-        front_s_m=250.0, lateral_m=(6.0, 14.0), region="philadelphia",
-    ),
-}
+def _load_scenarios(path: Path) -> dict[str, Scenario]:
+    """The scenarios of ``scenarios.toml`` (one table per scenario id; every field of :class:`Scenario` but ``id``,
+    no other key)."""
+    doc = tomllib.loads(path.read_text(encoding="utf-8"))
+    names = [f.name for f in fields(Scenario) if f.name != "id"]
+    out = {}
+    for sid, t in doc.items():
+        missing, extra = sorted(set(names) - set(t)), sorted(set(t) - set(names))
+        if missing or extra:
+            raise ValueError(f"{path}: [{sid}]: missing keys {missing}, unknown keys {extra}")
+        out[sid] = Scenario(id=sid, **{k: tuple(map(tuple, t[k])) if k == "consist" else
+                                       tuple(t[k]) if isinstance(t[k], list) else t[k] for k in names})
+    return out
+
+
+SCENARIOS: dict[str, Scenario] = _load_scenarios(Path(__file__).with_name("scenarios.toml"))
 
 
 def plan_consist(scn: Scenario, types: dict, rng: np.random.Generator, n_cars: int | None = None):
