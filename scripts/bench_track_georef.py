@@ -148,6 +148,18 @@ def _summary(recs: list[dict]) -> dict:
     return s
 
 
+def _printed(x):
+    """The summary as printed: floats to 4 significant digits (the JSON keeps them whole; a last-bit change of the
+    arithmetic must not change what a reader compares)."""
+    if isinstance(x, float):
+        return float(f"{x:.4g}")
+    if isinstance(x, dict):
+        return {k: _printed(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_printed(v) for v in x]
+    return x
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--incident", action="append", help="synthetic incident folder (repeatable)")
@@ -176,7 +188,7 @@ def main(argv: list[str] | None = None) -> int:
                     for s in range(a.first_seed, a.first_seed + a.seeds)]
             summ = _summary(recs)
             per_case[case] = {"summary": summ, "runs": recs}
-            print(f"  {case}: {json.dumps(summ)}", flush=True)
+            print(f"  {case}: {json.dumps(_printed(summ))}", flush=True)
         result["incidents"][Path(inc).name] = per_case
     out = Path(a.out)
     out.parent.mkdir(parents=True, exist_ok=True)
