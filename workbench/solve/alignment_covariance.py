@@ -31,7 +31,7 @@ def alignment_term(J: np.ndarray, block: np.ndarray, loading: np.ndarray, w: np.
 def views_per_face(block: np.ndarray, groups: np.ndarray, views: np.ndarray) -> np.ndarray:
     """(M,) for each aligned point the number of photos its carriage's face is aligned in (0 for a point without
     an alignment). A face's alignment error is mostly the same in every photo (the same reference against the same
-    livery: measured against the truth, the same point's errors in two photos have a mean cosine of 0.61-0.85),
+    livery: measured against the truth, the same point's errors in two photos have a mean cosine of 0.63-0.85),
     while each photo's alignment is computed from that photo's matches alone; photos from one place see the face
     alike, so an error shared by ``n`` of them is not averaged down, and each photo's block counts ``n`` times its
     stated variance (the average of ``n`` fully correlated photos keeps one photo's variance)."""
