@@ -18,7 +18,6 @@ from __future__ import annotations
 import logging
 import threading
 from concurrent.futures import ThreadPoolExecutor
-from concurrent.futures import TimeoutError as FutureTimeout
 from pathlib import Path
 
 import cv2
@@ -37,7 +36,7 @@ log = logging.getLogger(__name__)
 JPEG_QUALITY = 92
 
 
-_PREFETCH: dict = {}  # the work started ahead of the stage (prefetch): its stamps, options and futures
+_PREFETCH: dict = {}  # the photos described ahead of the stage (prefetch): their stamps, options and futures
 _PREFETCH_LOCK = threading.Lock()
 
 
@@ -45,39 +44,22 @@ def _stamps(photos: list[Path]) -> tuple:
     return tuple((str(p.resolve()), p.stat().st_size, p.stat().st_mtime_ns) for p in photos)
 
 
-def _camera_stamp(project: Project) -> tuple:
-    """What the stitch reads besides the photos and options: ``camera.source`` and the camera profile file."""
-    cam = project.settings.camera
-    prof = project.path(cam.profile) if cam.profile else None
-    st = prof.stat() if prof is not None and prof.is_file() else None
-    return (cam.source.value, str(prof), st.st_size if st else None, st.st_mtime_ns if st else None)
-
-
 def prefetch(project: Project, options: StitchOptions = StitchOptions()) -> None:
-    """Start the stitch while the command does what comes before the stage (starting, the inputs and terrain
-    stages): the photos described (read, SIFT, FLANN index: ``photo_matching.describe_photo``) on two threads, and
-    on a third the panorama stitched from them, exactly as the stage does it (:func:`stitch_project`); OpenCV
-    releases the interpreter, so the second core works. The stage takes the panorama when its photos (paths,
-    sizes, modification times), its options and the camera (``camera.source``, the profile file) are unchanged
-    since; else the descriptions alone, when the photos and options are; else nothing."""
+    """Start describing the panorama photos (read, SIFT, FLANN index: ``photo_matching.describe_photo``) on two
+    threads while the command does what comes before the stage (starting, the inputs and terrain stages): OpenCV
+    releases the interpreter, so the second core works. The stage takes the results when its photos are
+    unchanged since (paths, sizes, modification times) and its options the same; else they are dropped."""
     photos = project.photo_paths()
     stamps = _stamps(photos)  # before reading: a photo changed meanwhile is described again by the stage
-    camera = _camera_stamp(project)
     pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="stitch prefetch")
     futures = {k: pool.submit(describe_photo, p, p.name, k, options) for k, p in enumerate(photos)}
     pool.shutdown(wait=False)
-    progress = {"latest": (0.0, "")}
-    ahead = ThreadPoolExecutor(max_workers=1, thread_name_prefix="stitch ahead")
-    result = ahead.submit(_stitch, project, photos, options, dict(futures),
-                          lambda f, m="": progress.__setitem__("latest", (f, m)))
-    ahead.shutdown(wait=False)
     with _PREFETCH_LOCK:
-        _PREFETCH.update(stamps=stamps, options=options, futures=futures, camera=camera, result=result,
-                         progress=progress)
+        _PREFETCH.update(stamps=stamps, options=options, futures=futures)
 
 
 def _take_prefetch(photos: list[Path], options: StitchOptions) -> dict | None:
-    """What was started ahead for ``photos``, if it is of these photos as they are now, with these options."""
+    """The prefetched descriptions of ``photos`` (index -> future), if they are of these photos as they are now."""
     with _PREFETCH_LOCK:
         pre = dict(_PREFETCH)
         _PREFETCH.clear()
@@ -86,33 +68,16 @@ def _take_prefetch(photos: list[Path], options: StitchOptions) -> dict | None:
     if pre["options"] != options or pre["stamps"] != _stamps(photos):
         log.info("stitch: the photos changed since they were described ahead of the stage; described again")
         return None
-    return pre
+    log.info("stitch: %d photos described ahead of the stage", len(pre["futures"]))
+    return pre["futures"]
 
 
 def stitch_project(project: Project, progress: Progress = lambda f, m="": None,
                    options: StitchOptions = StitchOptions()) -> StitchResult:
     """Stitch the project's photo set along its intrinsics route (no files written)."""
-    photos = project.photo_paths()
-    pre = _take_prefetch(photos, options)
-    if pre is not None and pre["camera"] == _camera_stamp(project):
-        log.info("stitch: the panorama stitched ahead of the stage")
-        result = pre["result"]
-        while True:  # its progress, while it is not done
-            try:
-                return result.result(timeout=0.25)
-            except FutureTimeout:
-                progress(*pre["progress"]["latest"])
-    described = None
-    if pre is not None:
-        pre["result"].cancel()  # (if it has not started; else it ends on its own and is dropped)
-        log.info("stitch: %d photos described ahead of the stage", len(pre["futures"]))
-        described = pre["futures"]
-    return _stitch(project, photos, options, described, progress)
-
-
-def _stitch(project: Project, photos: list[Path], options: StitchOptions, described: dict | None,
-            progress: Progress) -> StitchResult:
     cam = project.settings.camera
+    photos = project.photo_paths()
+    described = _take_prefetch(photos, options)
     names = [p.name for p in photos]
     calibrated = None
     priors = None
