@@ -109,12 +109,19 @@ class Runner:
             for d in s.depends_on:
                 if d not in self.by_name or names.index(d) >= names.index(s.name):
                     raise ValueError(f"stage {s.name!r} depends on {d!r}, which does not run before it")
+        # what each stage may run beside in this list: its declared stages that come before it here and that it does
+        # not depend on (a list that leaves one out or puts it later, such as a test's own stage order, runs the
+        # two one after another)
+        self._beside: dict[str, tuple[str, ...]] = {}
+        for s in stages:
+            ok = []
             for d in s.runs_beside:
                 if d not in self.by_name or names.index(d) >= names.index(s.name) or d in s.depends_on:
-                    raise ValueError(f"stage {s.name!r} runs beside {d!r}, which is not a stage before it that it "
-                                     f"does not depend on")
+                    continue
                 if self.by_name[d].prefetch:
                     raise ValueError(f"stage {d!r} has a prefetch: it cannot run in another process beside {s.name!r}")
+                ok.append(d)
+            self._beside[s.name] = tuple(ok)
 
     # -- fingerprints -------------------------------------------------------------------------------------
     def _hash(self, path: Path) -> str:
@@ -252,7 +259,7 @@ class Runner:
                 continue
             nxt = next((s for s in selected[k + 1:] if s.name not in beside and s.applies(self.project)), None)
             for name in [n for n in beside if order.index(n) < order.index(spec.name)
-                         and n not in spec.runs_beside]:  # the earlier stages this one may read
+                         and n not in self._beside[spec.name]]:  # the earlier stages this one may read
                 self._join(beside.pop(name))
             state = self.project.read_state()
             st = self._status_of(spec, state)
@@ -269,7 +276,7 @@ class Runner:
                     raise StageError(f"stage {spec.name!r} needs stage {d!r}, which is {dst.status}"
                                      f"{': ' + dst.reason if dst.reason else ''}; run `workbench run "
                                      f"{self.project.root}` (or with --only {d})")
-            if (nxt is not None and spec.name in nxt.runs_beside and len(beside) + 1 < self.jobs
+            if (nxt is not None and spec.name in self._beside[nxt.name] and len(beside) + 1 < self.jobs
                     and hasattr(os, "fork") and self._will_run(nxt, state, force)):
                 beside[spec.name] = self._start_beside(spec, state, progress_factory, on_event)
             else:
@@ -349,11 +356,11 @@ class Runner:
         for k, spec in enumerate(selected):
             if k == 0 or len(beside) + 1 >= self.jobs:
                 continue
-            if spec.prefetch or not {s.name for s in selected[:k]} <= set(spec.runs_beside):
+            if spec.prefetch or not {s.name for s in selected[:k]} <= set(self._beside[spec.name]):
                 continue
             # the stage after it that will run (those that do not apply are passed by) must not wait for it
             nxt = next((s for s in selected[k + 1:] if self._will_run(s, state, force, deps=False)), None)
-            if nxt is not None and spec.name in nxt.runs_beside and self._will_run(spec, state, force):
+            if nxt is not None and spec.name in self._beside[nxt.name] and self._will_run(spec, state, force):
                 beside[spec.name] = self._start_beside(spec, state, progress_factory, on_event)
 
     def _will_run(self, spec: StageSpec, state: dict, force: bool, deps: bool = True) -> bool:
