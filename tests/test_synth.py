@@ -3,7 +3,6 @@
 import json
 import subprocess
 import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -11,7 +10,7 @@ import trimesh
 from PIL import Image
 
 from workbench.core.camera import CameraIntrinsics, project_world
-from workbench.core.frames import Rigid, SceneFrame, rotation_from_hpr
+from workbench.core.frames import Rigid
 from workbench.project import Project
 from workbench.rolling_stock import get_type
 from workbench.synth.generate import SynthOptions, generate_incident, visibility_tolerance_m

@@ -33,6 +33,7 @@ from ..errors import InputError, StageError
 from ..project import Project
 from .beside import load_pdf_engine, run_beside
 from .scene import car_color
+from .calibration_notes import calibration_note
 from .track_table import track_table
 
 log = logging.getLogger(__name__)
@@ -303,43 +304,6 @@ def interval_scope(solution: dict, solver: Any, dem_accuracy_m: float | None) ->
     return {"included": inc, "excluded": exc, "text": text, "calibration": calibration_note(solution)}
 
 
-# How often the 95 % intervals held the truth in simulation, per route (docs/calibration.md, where the commands
-# and the full tables are; measured 2026-11-26 with scripts/bench_calibration.py): a reader's check on the ±.
-CALIBRATION = {
-    "hand_known": "On simulated consists with hand-picked points and a known focal the 95 % intervals held the "
-                  "truth in 94.0-95.6 % of cases per axis (2607 carriages): calibrated.",
-    "hand_focal": "On simulated consists with hand-picked points and the focal estimated, without a terrain model, "
-                  "they held the truth in 94.3-95.2 % of cases per axis (2607 carriages); with the terrain contact "
-                  "the positions' intervals are not calibrated (too wide or too narrow by up to 1.6 times, with "
-                  "the terrain model's true accuracy).",
-    "auto": "On generated incidents with automatic points (800x600 photos) they held the truth in 96.1-98.5 % of "
-            "cases per axis (206 carriages) and were 1.2-1.35 times wider than the typical error (RMS of error / "
-            "sigma 0.75-0.85); in one further incident two carriages on a wrong branch lay far outside theirs.",
-    "relative": "On simulated relative incidents (no survey; hand-picked points, a known focal, the track tilted "
-                "0.5° against gravity) they held the truth in 94.5-98.0 % of cases per axis (600 carriages): "
-                "calibrated.",
-    "relative_focal": "On simulated relative incidents (no survey; hand-picked points, the focal and the principal "
-                      "point not known, the track tilted 0.5° against gravity) they held the truth in 96.3-98.2 % of "
-                      "cases per axis (600 carriages): calibrated.",
-    "multiview": "On generated multi-view incidents with hand-picked points (SfM poses exact relative to one "
-                 "another) they held the truth in 93.5-96.2 % of cases per axis (418 carriages): calibrated; "
-                 "an SfM model's own pose errors are not included.",
-}
-
-
-def calibration_note(solution: dict) -> str:
-    """The calibration figures (:data:`CALIBRATION`) of the route this solution took: automatic points (any point
-    from the finder), multi-view, a relative scene, else hand picks; with the focal estimated or known."""
-    by_source = (solution.get("correspondences") or {}).get("by_source") or {}
-    if by_source.get("sift"):
-        return CALIBRATION["auto"]
-    if solution.get("route") == "multiview":
-        return CALIBRATION["multiview"]
-    if (solution.get("frame") or {}).get("kind") == "relative":
-        return CALIBRATION["relative_focal" if solution.get("sigma_focal_px") else "relative"]
-    return CALIBRATION["hand_focal" if solution.get("sigma_focal_px") else "hand_known"]
-
-
 def _f(x, nd: int) -> str:
     if x is None:
         return "–"
@@ -568,7 +532,7 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
         "status": solution.get("status", "?"), "message": solution.get("message", ""),
         "route": solution.get("route") or cams.get("route", "?"),
         "intrinsics_source": solution.get("intrinsics_source") or cams.get("intrinsics_source", "?"),
-        "n_views": len(solution.get("views", [])) or len(views), "n_obs": res_info["n_residuals"],
+        "n_views": len(solution.get("views", [])) or len(cams.get("views", [])), "n_obs": res_info["n_residuals"],
         "rms_px": _f(res_info["rms_px"], 2), "sigma_px": _f(sigma, 2),
         "rms_measured": _f((solution.get("residual_rms_px") or {}).get("measured"), 2),
         "rms_predicted": _f((solution.get("residual_rms_px") or {}).get("predicted"), 2),
