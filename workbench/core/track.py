@@ -175,6 +175,13 @@ class RailwayLine:
                 beyond.append(np.array([True]))
         return np.vstack(feet), np.concatenate(along), np.vstack(dirs), np.concatenate(beyond)
 
+    def offset_and_normal(self, xy: np.ndarray) -> tuple[float, np.ndarray]:
+        """The point ``xy`` (2,)'s signed offset from the line (m, left positive) and the line's left unit normal at
+        its foot (2,): the offset's derivative with respect to the point."""
+        f = self.foot(xy)
+        b = math.radians(f.bearing_deg)
+        return f.offset_m, np.array([-math.cos(b), math.sin(b)])  # left of the direction (sin b, cos b)
+
     def foot(self, xy: np.ndarray) -> "Foot":
         """Where the point ``xy`` (2,) meets the line (see :class:`Foot`): the nearest of the places where the track
         direction (the vertex tangents blended along each segment) is perpendicular to the line to the point, so
@@ -360,12 +367,9 @@ def rails_check(line: RailwayLine, world_from_carriage: np.ndarray, pivots: np.n
     q = np.asarray(pivots, dtype=float) @ R.T
     off, J, Nh = np.zeros(2), np.zeros((2, 6)), np.zeros((2, 2))
     for i in range(2):
-        f = line.foot((q[i] + t)[:2])
-        b = math.radians(f.bearing_deg)
-        n = np.array([-math.cos(b), math.sin(b), 0.0])
-        off[i] = f.offset_m
+        off[i], Nh[i] = line.offset_and_normal((q[i] + t)[:2])
+        n = np.append(Nh[i], 0.0)
         J[i] = np.concatenate([np.cross(q[i], n), n])  # d offset / d (omega, t): R' = exp(omega) R
-        Nh[i] = n[:2]
     C = np.eye(2) * float(line_sigma_m) ** 2
     if covariance_pose is not None:
         C = C + J @ np.asarray(covariance_pose, dtype=float) @ J.T

@@ -14,7 +14,6 @@ line is not modelled; docs/solver.md, "On the rails").
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -68,10 +67,7 @@ class TrackPrior:
         d = np.zeros(len(idx))
         nrm = np.zeros((len(idx), 2))
         for i, r in enumerate(idx):
-            f = self._lines[r].foot(X[i, :2])
-            b = math.radians(f.bearing_deg)
-            nrm[i] = (-math.cos(b), math.sin(b))  # left of the direction (sin b, cos b) in (east, north)
-            d[i] = f.offset_m
+            d[i], nrm[i] = self._lines[r].offset_and_normal(X[i, :2])
         return d, nrm, q
 
     def rows(self, R_r: np.ndarray, t_r: np.ndarray):
