@@ -284,7 +284,7 @@ def _railways_for_prior(project: Project, carriages: list, relative: bool, progr
                     "railway line is not in its frame and is not used; add control_points.json", ", ".join(marked))
         return ()
     progress(0.2, "railway lines")
-    layer = project.railways()
+    layer = project.railways(heights=False)  # the prior is horizontal: no draping on the DEM
     return tuple(layer.lines) if layer is not None else ()
 
 
