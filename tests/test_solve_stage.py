@@ -143,12 +143,12 @@ def test_missing_cameras_says_what_to_do(incident, tmp_path):
 
 def test_not_converged_keeps_the_previous_solution(incident, tmp_path, monkeypatch):
     root = _copy_with_corr(incident, tmp_path, lambda o: None)
-    Runner(Project(root), STAGES).run()
+    Runner(Project(root), STAGES).run(until="solve")
     good = (root / "out" / "solve" / "solution.json").read_bytes()
     text = (root / "project.toml").read_text().replace("[camera]", "[solver]\nmax_iterations = 1\n\n[camera]", 1)
     (root / "project.toml").write_text(text)
     with pytest.raises(WorkbenchError) as exc:
-        Runner(Project(root), STAGES).run()
+        Runner(Project(root), STAGES).run(until="solve")
     assert "did not converge" in str(exc.value)
     assert (root / "out" / "solve" / "solution.json").read_bytes() == good
     assert (root / "out" / "solve" / "attempt.json").is_file()
@@ -160,7 +160,7 @@ def test_a_wrong_point_is_rejected(incident, tmp_path):
 
     root = _copy_with_corr(incident, tmp_path, edit)
     first = json.loads((root / "correspondences.json").read_text())["observations"][0]
-    Runner(Project(root), STAGES).run()
+    Runner(Project(root), STAGES).run(until="solve")
     sol = json.loads((root / "out" / "solve" / "solution.json").read_text())
     rej = [(r["carriage"], r["view"], r["point"]) for r in sol["rejected_points"]]
     assert (first["carriage"], first["view"], first["point"]) in rej
@@ -221,7 +221,7 @@ def test_solution_records_the_bias_correction(incident, tmp_path):
     text = (root / "project.toml").read_text()
     assert "[solver]" not in text
     (root / "project.toml").write_text(text.replace("[camera]", "[solver]\nbias_correction = false\n\n[camera]", 1))
-    Runner(Project(root), STAGES).run()
+    Runner(Project(root), STAGES).run(until="solve")
     off = json.loads((root / "out" / "solve" / "solution.json").read_text())
     assert off["bias_correction"] == {} and "5_bias_correction" not in [s["name"] for s in off["steps"]]
     assert off["final_cost"] == pytest.approx(off["cost_at_minimum"], rel=1e-12)
@@ -267,7 +267,7 @@ def test_georegistration_uncertainty_widens_the_intervals(incident, tmp_path):
     cams["georegistration"] = {"method": "control_points",
                                "covariance_world_rotation_centre": np.diag([s_rot**2] * 3 + [s_c**2] * 3).tolist()}
     (root / "cameras.json").write_text(json.dumps(cams))
-    Runner(Project(root), STAGES).run()
+    Runner(Project(root), STAGES).run(until="solve")
     sol = json.loads((root / "out" / "solve" / "solution.json").read_text())
     cu = sol["camera_uncertainty"]
     assert cu["included"] is True and cu["sigma_centre_m"] == pytest.approx([s_c] * 3)
