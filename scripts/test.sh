@@ -5,4 +5,7 @@ cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 # the floors of docs/architecture.md: imports point down (contracts in pyproject.toml)
 .venv/bin/lint-imports --no-cache
-exec .venv/bin/python -m pytest -q "$@"
+# one pytest worker per CPU (pytest-xdist), each test file on one worker (its module fixtures built once); the suite
+# is mostly single-threaded Python, so its files run side by side on the cores. `scripts/test.sh -n 0 ...` runs it
+# serially (later options win).
+exec .venv/bin/python -m pytest -q -n auto --dist loadfile "$@"
