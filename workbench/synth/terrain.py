@@ -119,6 +119,13 @@ class CurveLayout:
         dot = dt(self.ref[0]) * rx + dt(self.ref[1]) * ry
         return dt(self.radius) - r, np.arctan2(cross, dot)
 
+    def offset(self, x: np.ndarray, y: np.ndarray) -> np.ndarray:
+        """The offset of :meth:`offset_along` alone (the same arithmetic, without the angle: a texture's every
+        pixel needs the offset, few the angle)."""
+        x = np.asarray(x)
+        dt = x.dtype.type if x.dtype in (np.float32, np.float64) else np.float64
+        return dt(self.radius) - np.hypot(x - dt(self.centre[0]), np.asarray(y) - dt(self.centre[1]))
+
     def point(self, phi: np.ndarray, offset: np.ndarray | float = 0.0) -> np.ndarray:
         phi = np.asarray(phi, dtype=float)
         u = np.cos(phi)[..., None] * self.ref + np.sin(phi)[..., None] * self.forward0
@@ -412,7 +419,7 @@ class _Canvas:
         self.npx = npx
         self.x, self.y = x, y  # flat ENU coordinates of pixel centres
         self.lay = lay
-        self.off, _ = lay.offset_along(x, y)
+        self.off = lay.offset(x, y)
         self.noise = noise
         self.img = np.empty((x.size, 3), dtype=np.float32)
 
