@@ -112,9 +112,12 @@ def log_so3(R: np.ndarray) -> np.ndarray:
 
 
 def rotation_angle_deg(Ra: np.ndarray, Rb: np.ndarray) -> float:
-    """The angle (deg) of the rotation between ``Ra`` and ``Rb`` (3, 3): ``arccos((tr(Ra Rb^T) - 1) / 2)``."""
-    c = (np.trace(np.asarray(Ra)[:3, :3] @ np.asarray(Rb)[:3, :3].T) - 1.0) / 2.0
-    return float(np.rad2deg(np.arccos(np.clip(c, -1.0, 1.0))))
+    """The angle (deg) of the rotation ``R = Ra Rb^T`` between ``Ra`` and ``Rb`` (3, 3), from its cosine
+    ``(tr R - 1) / 2`` and its sine ``|vee(R - R^T)| / 2`` by ``atan2``: exact to rounding at every angle (the
+    ``arccos`` of the cosine alone resolves nothing under about 1e-6 deg, as ``arccos(1 - eps)``)."""
+    R = np.asarray(Ra)[:3, :3] @ np.asarray(Rb)[:3, :3].T
+    s = 0.5 * np.linalg.norm([R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    return float(np.rad2deg(np.arctan2(s, 0.5 * (np.trace(R) - 1.0))))
 
 
 def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
