@@ -286,6 +286,33 @@ def test_solver_warnings_read_as_sentences():
     assert _warning_text("focal at the edge of the plausible range") == "focal at the edge of the plausible range"
 
 
+def test_a_carriage_its_points_do_not_fit_is_marked_doubtful(incident):
+    """A carriage the solver flags as not fitting its measured points (a warning of kind ``misfit``) is marked
+    doubtful in the carriages table, named in the first page's findings and flagged in the exports' properties;
+    the others are not."""
+    from workbench.export.geojson import carriage_properties
+    from workbench.files.scene import scene_carriages
+    from workbench.files.solution import parse_solution
+
+    sol = json.loads((incident.stage_dir("solve") / "solution.json").read_text())
+    placed = [c["number"] for c in sol["carriages"] if c.get("world_from_carriage")]
+    assert len(placed) >= 2
+    msg = f"car {placed[0]}: the solution does not fit its points (RMS 4.9 px against a pixel sigma of 2.17 px)"
+    sol["warnings"] = list(sol.get("warnings") or []) + [{"car": placed[0], "index": 0, "kind": "misfit",
+                                                          "message": msg}]
+    rows = {r["number"]: r for r in report_stage.carriage_rows(incident, sol)}
+    assert rows[placed[0]]["doubt"] == msg.removeprefix(f"car {placed[0]}: ") and not any(rows[n]["doubt"] for n in placed[1:])
+    found = [f for f in report_stage.findings(incident, sol) if f.startswith("Doubtful")]
+    assert len(found) == 1 and f"car {placed[0]}:" in found[0]
+    cars, _ = scene_carriages(parse_solution(sol, "solution.json"), incident.carriage_types())
+    props = {c.number: carriage_properties(c, incident.frame) for c in cars}
+    assert props[placed[0]]["doubtful"] is True and props[placed[0]]["doubt"] == msg
+    assert all(props[n]["doubtful"] is False and props[n]["doubt"] is None for n in placed[1:])
+    del sol["warnings"][-1]
+    assert not any(r["doubt"] for r in report_stage.carriage_rows(incident, sol))
+    assert not any(f.startswith("Doubtful") for f in report_stage.findings(incident, sol))
+
+
 def test_the_report_names_the_georegistrations_priors():
     """The priors the georegistration used (cameras.json georegistration.priors: EXIF GPS, compass) and those it
     left out are one line under the facts; none, no line."""

@@ -60,6 +60,7 @@ def carriage_properties(car: SceneCarriage, frame: Any) -> dict[str, Any]:
         "ci95_roll_deg": None if chpr is None else round(chpr[2], 4),
         "height_m": round(float(centre[2]), 4),
         "length_m": car.length_m, "width_m": car.width_m, "body_height_m": car.height_m,
+        "doubtful": bool(car.doubt), "doubt": car.doubt or None,
     }
 
 

@@ -139,6 +139,7 @@ def carriage_extras(car: SceneCarriage) -> dict:
         "body_centre_enu": [float(x) for x in car.body_centre_enu],
         "world_from_carriage": car.world_from_carriage.matrix.tolist(),
         "mesh_axes": "carriage frame in glTF axes: +X forward, +Y up, +Z right (carriage -y)",
+        "doubtful": bool(car.doubt), "doubt": car.doubt or None,
     }
 
 

@@ -42,6 +42,7 @@ class SceneCarriage:
     world_from_carriage: Rigid
     record: dict = field(repr=False)
     _meshes: dict = field(default_factory=dict, repr=False)
+    doubt: str = ""  # the solver's message when its solution does not fit its points (Solution.doubts), else ""
 
     # -- the type: its id and name, its size (metres) ----------------------------------------------------
     type_id = property(attrgetter("carriage_type.id"))
@@ -148,7 +149,9 @@ class SceneCarriage:
 def scene_carriages(solution: Solution, carriage_types: dict[str, Any]) -> tuple[list[SceneCarriage], list[dict]]:
     """The posed carriages of a read solution with their types (``{car number: CarriageType}``), in the file's
     order, and the left-out ones ``[{number, reason}]``."""
+    doubts = solution.doubts()
     cars = [SceneCarriage(c.index, c.number, c.status, carriage_types[c.number],
-                          Rigid.from_matrix(c.world_from_carriage, "world", "carriage"), c.record)
+                          Rigid.from_matrix(c.world_from_carriage, "world", "carriage"), c.record,
+                          doubt=doubts.get(c.number, ""))
             for c in solution.posed]
     return cars, [{"number": c.number, "reason": c.reason} for c in solution.left_out]

@@ -18,7 +18,7 @@ from ..core.frames import SceneFrame, is_rotation
 from ..core.io import read_json
 from ..errors import InputError
 
-__all__ = ["SolvedCarriage", "Solution", "parse_solution", "read_solution", "record_floats"]
+__all__ = ["SolvedCarriage", "Solution", "doubts_of", "parse_solution", "read_solution", "record_floats"]
 
 STATUSES = ("solved", "carried", "left_out")
 
@@ -88,6 +88,24 @@ class Solution:
     @property
     def left_out(self) -> list[SolvedCarriage]:
         return [c for c in self.carriages if not c.posed]
+
+    def doubts(self) -> dict[str, str]:
+        """``{car number: the solver's message}`` for each carriage whose solution does not fit its measured points
+        (warnings of kind ``misfit``: a wrong branch or mismatched points; its pose and its interval are doubtful).
+        Every reader that shows a pose shows this beside it."""
+        return doubts_of(self.doc)
+
+
+def doubts_of(doc: dict) -> dict[str, str]:
+    """:meth:`Solution.doubts` of a ``solution.json`` document (dict)."""
+    out: dict[str, str] = {}
+    for w in doc.get("warnings") or []:
+        if isinstance(w, dict) and w.get("kind") in DOUBT_KINDS and w.get("car") is not None:
+            out.setdefault(str(w["car"]), str(w.get("message") or w["kind"]))
+    return out
+
+
+DOUBT_KINDS = ("misfit",)  # warning kinds that make a posed carriage's pose and interval doubtful
 
 
 def _rigid(value: Any, where: str) -> np.ndarray:

@@ -30,6 +30,7 @@ import numpy as np
 from ..core.io import atomic_write, read_json
 from ..core.stage_api import Progress, StageResult
 from ..errors import InputError, StageError
+from ..files.solution import doubts_of
 from ..project import Project
 from .beside import load_pdf_engine, run_beside
 from .scene import car_color
@@ -321,6 +322,7 @@ def carriage_rows(project: Project, solution: dict) -> list[dict]:
     frame = project.frame
     by_number = {str(c.get("number")): c for c in solution.get("carriages", [])}
     types = project.carriage_types()
+    doubts = doubts_of(solution)
     rows = []
     for i, car in enumerate(project.settings.consist):
         c = by_number.get(car.number, {})
@@ -328,7 +330,9 @@ def carriage_rows(project: Project, solution: dict) -> list[dict]:
         row = {"index": i, "number": car.number, "type": ct.id, "type_name": ct.name,
                "status": c.get("status", "not in solution"),
                "color": "#%02x%02x%02x" % car_color(int(c.get("index", i))),
-               "n_points": c.get("n_points", 0), "rms_px": _f(c.get("rms_px"), 2)}
+               "n_points": c.get("n_points", 0), "rms_px": _f(c.get("rms_px"), 2),
+               "doubt": doubts.get(car.number, "").removeprefix(f"car {car.number}: ")
+               if c.get("world_from_carriage") else ""}
         enu = c.get("body_centre_enu")
         crs = c.get("body_centre_crs")
         wgs = c.get("body_centre_wgs84")
@@ -376,6 +380,13 @@ def findings(project: Project, solution: dict) -> list[str]:
         out.append("Couplings broken behind " + ", ".join(
             f"car {c['number']}" + (f" (gap {_f(c.get('coupler_gap_to_next_m'), 1)} m)"
                                     if c.get("coupler_gap_to_next_m") is not None else "") for c in broken) + ".")
+    doubts = doubts_of(solution)
+    doubtful = [c["number"] for c in cars if str(c["number"]) in doubts]
+    if doubtful:
+        out.append(f"Doubtful: car {', '.join(map(str, doubtful))}: the solution does not fit "
+                   f"{'its' if len(doubtful) == 1 else 'their'} marked points (a wrong pose branch or mismatched "
+                   f"points), so the pose and its interval may be far off; check the points before acting on it "
+                   f"(marked ‡ in section 2).")
     carried = [c["number"] for c in cars if c.get("status") == "carried"]
     if carried:
         out.append(f"Placed from their neighbours (too few marked points of their own): car {', '.join(carried)}.")
