@@ -308,6 +308,14 @@ def test_a_carriage_its_points_do_not_fit_is_marked_doubtful(incident):
     props = {c.number: carriage_properties(c, incident.frame) for c in cars}
     assert props[placed[0]]["doubtful"] is True and props[placed[0]]["doubt"] == msg
     assert all(props[n]["doubtful"] is False and props[n]["doubt"] is None for n in placed[1:])
+    # a car carried through a held coupling from the doubtful one is doubtful too (not one with its own points)
+    from workbench.files.solution import doubts_of
+
+    idx = {c["number"]: c["index"] for c in sol["carriages"]}
+    chained = dict(sol, links=[{"front": idx[placed[0]], "rear": idx[placed[1]]}],
+                   carriages=[dict(c, status="carried") if c["number"] == placed[1] else c for c in sol["carriages"]])
+    assert set(doubts_of(chained)) == {placed[0], placed[1]} and f"car {placed[0]}" in doubts_of(chained)[placed[1]]
+    assert set(doubts_of(dict(chained, carriages=sol["carriages"]))) == {placed[0]}
     del sol["warnings"][-1]
     assert not any(r["doubt"] for r in report_stage.carriage_rows(incident, sol))
     assert not any(f.startswith("Doubtful") for f in report_stage.findings(incident, sol))

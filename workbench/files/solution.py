@@ -97,11 +97,26 @@ class Solution:
 
 
 def doubts_of(doc: dict) -> dict[str, str]:
-    """:meth:`Solution.doubts` of a ``solution.json`` document (dict)."""
+    """:meth:`Solution.doubts` of a ``solution.json`` document (dict): the carriages of the solver's ``misfit``
+    warnings, and each carriage ``carried`` (placed from its neighbours, too few points of its own) through a
+    held coupling from a doubtful one, along the chain."""
     out: dict[str, str] = {}
     for w in doc.get("warnings") or []:
         if isinstance(w, dict) and w.get("kind") in DOUBT_KINDS and w.get("car") is not None:
             out.setdefault(str(w["car"]), str(w.get("message") or w["kind"]))
+    cars = [c for c in doc.get("carriages") or [] if isinstance(c, dict)]
+    number = {c.get("index"): str(c.get("number")) for c in cars}
+    carried = {str(c.get("number")) for c in cars if c.get("status") == "carried"}
+    pairs = [(number.get(L.get("front")), number.get(L.get("rear"))) for L in doc.get("links") or []
+             if isinstance(L, dict)]
+    grew = True
+    while grew:  # along the chain: a carried car carried from a car carried from a doubtful one
+        grew = False
+        for a, b in pairs + [(b, a) for a, b in pairs]:
+            if a in out and b in carried and b not in out:
+                out[b] = (f"car {b}: placed from car {a} through their coupling (too few points of its own), and "
+                          f"car {a}'s pose is doubtful; so is its own")
+                grew = True
     return out
 
 
