@@ -561,6 +561,13 @@ def test_multiview_photo_left_out_by_sfm_is_resected(sample, tmp_path):
     v = next(v for v in doc["views"] if v["name"] == lone)
     assert 0.001 < np.linalg.norm(np.asarray(v["center_enu"]) - truth_by[lone]["center_enu"]) < 0.3
     assert 0.0005 < _rot_err_deg(v["cam_from_world"], truth_by[lone]["cam_from_world"]) < 0.2
+    # its pose error is stated (the resection's covariance), so the solve carries it: the truth inside the stated
+    # 99.9 % ellipsoid of the centre, which is neither absurdly sharp nor vague
+    pu = g["pose_uncertainty"]["views"][lone]
+    assert pu["source"] == "resection" and pu["model"] is None
+    Cc = np.asarray(pu["covariance_rotation_centre"])[3:, 3:]
+    e = np.asarray(v["center_enu"]) - truth_by[lone]["center_enu"]
+    assert e @ np.linalg.solve(Cc, e) < 16.27 and 0.002 < np.sqrt(np.linalg.eigvalsh(Cc).max()) < 1.0
     doc = json.loads(run_georef(Project(dst), _no_progress, GeorefOptions(resect_unplaced=False))
                      .outputs["cameras"].read_text())
     assert lone not in [v["name"] for v in doc["views"]]

@@ -606,7 +606,9 @@ def refine_resection_focal(intr: CameraIntrinsics, res: CentralResult, cps: Sequ
     its inlier control-point picks, starting from a fixed-focal resection ``res`` of that photo alone.
 
     Returns ``{"intrinsics", "cam_from_world" (4, 4), "focal_px", "sigma_focal_px", "sigma_centre_max_m",
-    "rms_px", "n_observations"}`` or None (fewer than 6 inlier picks: the focal is not determined)."""
+    "covariance_world_rotation_centre" (6, 6: the pose's, the focal's doubt included; as
+    :func:`_covariance_stats`), "rms_px", "n_observations"}`` or None (fewer than 6 inlier picks: the focal is not
+    determined)."""
     obs = [(cps[k], np.asarray(cp_uv, float)) for k in range(len(cps)) for ph, cp_uv in cps[k].pixels.items()
            if ph == name]
     inl = {(r["point"], r["view"]) for r in res.residuals if r.get("inlier")}
@@ -654,4 +656,5 @@ def refine_resection_focal(intr: CameraIntrinsics, res: CentralResult, cps: Sequ
     return {"intrinsics": it, "cam_from_world": M, "focal_px": float(it.fx),
             "sigma_focal_px": float(it.fx * math.sqrt(max(cov[6, 6], 0.0))),
             "sigma_centre_max_m": float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (Cc + Cc.T)).max(), 0.0))),
+            "covariance_world_rotation_centre": _covariance_stats(R, cov[:6, :6])["covariance_world_rotation_centre"],
             "rms_px": float(np.sqrt(np.mean(e ** 2))), "n_observations": len(obs)}

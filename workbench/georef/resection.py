@@ -85,7 +85,8 @@ def _failed_check(res: CentralResult, report: dict, focal_checked: bool, camera_
 
 def _resect_photo(name: str, intr: CameraIntrinsics, from_refined: bool, camera_checked: bool, has_sfm: bool,
                   cps: list[ControlPoint], g: np.ndarray | None, opts: GeorefOptions, where: str):
-    """One photo placed on its own: ((intrinsics, cam_from_world, report, its residual warnings), None), or
+    """One photo placed on its own: ((intrinsics, cam_from_world, report, its residual warnings, its pose's
+    covariance (6, 6; scene rotation vector, centre: ``covariance_world_rotation_centre``) or None), None), or
     (None, why it was not placed)."""
     try:
         with warnings.catch_warnings(record=True) as caught:
@@ -97,19 +98,20 @@ def _resect_photo(name: str, intr: CameraIntrinsics, from_refined: bool, camera_
         return None, str(exc)
     report = _report(name, res, from_refined, has_sfm)
     cam_from_world = res.cam_from_world(np.eye(3))
+    cov = res.stats.get("covariance_world_rotation_centre")
     ff = refine_resection_focal(intr, res, cps, name, opts)
     if ff is not None:
         report["focal_check"] = {"sfm_focal_px": intr.fx, "refined_focal_px": ff["focal_px"],
                                  "sigma_focal_px": ff["sigma_focal_px"], "rms_px": ff["rms_px"]}
         if abs(ff["focal_px"] - intr.fx) > opts.resect_focal_disagree_sigma * ff["sigma_focal_px"]:
-            intr, cam_from_world = ff["intrinsics"], ff["cam_from_world"]
+            intr, cam_from_world, cov = ff["intrinsics"], ff["cam_from_world"], ff["covariance_world_rotation_centre"]
             report.update({"intrinsics_from": report["intrinsics_from"] + ", focal refined in the resection "
                            "(SfM's disagrees with this photo's control points)", "rms_px": ff["rms_px"],
                            "sigma_centre_max_m": ff["sigma_centre_max_m"]})
     reason = _failed_check(res, report, ff is not None or from_refined, camera_checked, opts)
     if reason is not None:
         return None, f"placing it on its own failed the checks: {reason}"
-    return (intr, cam_from_world, report, caught), None
+    return (intr, cam_from_world, report, caught, cov), None
 
 
 def resect_unplaced(photos: IncidentPhotos, models, placed: dict, cps: list[ControlPoint], gps: dict,
@@ -118,7 +120,8 @@ def resect_unplaced(photos: IncidentPhotos, models, placed: dict, cps: list[Cont
     """Photos of the SfM set in no placed model, each placed on its own (module docstring); ``refined``: the
     shared cameras as the joint adjustment refined them (SfM camera key -> intrinsics).
 
-    Returns (photo -> {"entry": cameras.json view, "report": figures}, photo -> why it was not placed)."""
+    Returns (photo -> {"entry": cameras.json view, "report": figures, "covariance": its pose's (6, 6) or None},
+    photo -> why it was not placed)."""
     sfm_intr: dict[str, CameraIntrinsics] = {}
     for _, vs in models:
         for v in vs:
@@ -152,8 +155,9 @@ def resect_unplaced(photos: IncidentPhotos, models, placed: dict, cps: list[Cont
         if done is None:
             why[name] = failed
             continue
-        intr, cam_from_world, report, caught = done
+        intr, cam_from_world, report, caught, cov = done
         for wmsg in caught:
             warnings.warn(wmsg.message, wmsg.category, stacklevel=2)
-        out[name] = {"entry": view_entry(name, photos.image_of(name), intr, cam_from_world, True), "report": report}
+        out[name] = {"entry": view_entry(name, photos.image_of(name), intr, cam_from_world, True), "report": report,
+                     "covariance": cov}
     return out, why

@@ -181,8 +181,9 @@ POSE_PARAMETRISATION = ("a model's similarity error: [log scale, rotation vector
 def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncertainty: dict) -> dict:
     """``georegistration.pose_uncertainty`` (docs/formats.md): each placed model's similarity covariance (7, 7)
     and each view's Jacobian (6, 7) from it, so that views of one model keep their shared (correlated) error; a
-    view whose pose the shared-camera adjustment replaced carries that adjustment's covariance on its own, a view
-    placed on its own (resection) none (not modelled). The SfM poses' own error is not included."""
+    view whose pose the shared-camera adjustment replaced carries that adjustment's covariance on its own, and so
+    does a view placed on its own (resection: its control points' fit, the refined focal's doubt included when
+    the focal was refined). The SfM poses' own error is not included."""
     models: dict[str, dict] = {}
     views: dict[str, dict] = {}
     for ve in out_views:
@@ -208,11 +209,13 @@ def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncer
                 views[name] = {"source": "camera_adjustment", "model": None, "jacobian": None,
                                "covariance_rotation_centre": C.tolist()}
                 continue
+        C = resected[name].get("covariance") if name in resected else None
         views[name] = {"source": "resection" if name in resected else "other", "model": None, "jacobian": None,
-                       "covariance_rotation_centre": None}
+                       "covariance_rotation_centre": None if C is None else np.asarray(C, float).tolist()}
     return {"parametrisation": POSE_PARAMETRISATION,
             "not_included": "the SfM poses' own error relative to one another (SfM states none); a photo placed "
-                            "on its own (resection): its pose error is not modelled",
+                            "on its own (resection): the correlation of its error with the models' through the "
+                            "control points they share, and its SfM camera's error when the focal was not refined",
             "models": models, "views": views}
 
 

@@ -506,13 +506,13 @@ def _multiview_record(camera_unc: dict) -> dict:
     partly = sorted(n for n, r in per_car.items() if r["not_modelled"])
     note = ("multi-view cameras: each SfM model's similarity covariance (7 x 7: log scale, rotation, translation, "
             "from the control points) carried to its photos' poses, the photos of one model sharing that error; "
-            "a photo whose pose the shared-camera adjustment replaced carries that adjustment's covariance on its "
-            "own. Each carriage follows the photos it is measured in, weighted by their information on its pose "
+            "a photo whose pose the shared-camera adjustment replaced, or placed on its own (resection), carries that "
+            "fit's covariance on its own. Each carriage follows the photos it is measured in, weighted by their information on its pose "
             "and the couplings (first order: a common motion of the cameras moves it rigidly, the scale by its "
             "cameras' weighted shifts); sigma_*_fit_* give the fit's alone. Not included: the SfM poses' error "
             "relative to one another, the terrain contact's hold against a camera error")
     if camera_unc["not_modelled"]:
-        note += "; the pose error of " + ", ".join(camera_unc["not_modelled"]) + " (placed on its own: not modelled)"
+        note += "; the pose error of " + ", ".join(camera_unc["not_modelled"]) + " (no pose covariance stated)"
     if partly:
         note += "; so the camera term of " + ", ".join(partly) + " is partial"
     return {"included": True, "note": note, "route": "multiview",
