@@ -302,6 +302,10 @@ def test_a_carriage_its_points_do_not_fit_is_marked_doubtful(incident):
                                                           "message": msg}]
     rows = {r["number"]: r for r in report_stage.carriage_rows(incident, sol)}
     assert rows[placed[0]]["doubt"] == msg.removeprefix(f"car {placed[0]}: ") and not any(rows[n]["doubt"] for n in placed[1:])
+    from workbench.viewer.app import carriage_text  # the viewer's card of a picked carriage says so too
+
+    assert "DOUBTFUL: the solution does not fit" in carriage_text(rows[placed[0]], "EPSG:32618")
+    assert "DOUBTFUL" not in carriage_text(rows[placed[1]], "EPSG:32618")
     found = [f for f in report_stage.findings(incident, sol) if f.startswith("Doubtful")]
     assert len(found) == 1 and f"car {placed[0]}:" in found[0]
     cars, _ = scene_carriages(parse_solution(sol, "solution.json"), incident.carriage_types())

@@ -54,9 +54,10 @@ RELATIVE = "relative frame (not georeferenced)"
 def carriage_text(row: dict, crs: str) -> str:
     """The numbers of one carriage (a row of :func:`workbench.report.report_stage.carriage_rows`), as text."""
     lines = [f"Car {row['number']}  ({row['type']})",
-             f"status {row['status']}, {row['n_points']} points, RMS {row['rms_px']} px",
-             "",
-             f"Body centre, {crs} (95% half width):"]
+             f"status {row['status']}, {row['n_points']} points, RMS {row['rms_px']} px"]
+    if row.get("doubt"):  # the report's '‡ doubtful': these numbers and their ± may be far off
+        lines += [f"DOUBTFUL: {row['doubt']}"]
+    lines += ["", f"Body centre, {crs} (95% half width):"]
     if crs == RELATIVE:  # no place on the Earth: metres from the camera
         lines += [f"  x  {row['e']} m  ± {row['ci_e']}  (right of the camera)",
                   f"  y  {row['n']} m  ± {row['ci_n']}  (ahead of the camera)",
@@ -161,7 +162,8 @@ class IncidentViewer:
         panel.add_child(gui.Label("Carriages (Ctrl+click one in the view)"))
         self.list = gui.ListView()
         self.numbers = [c.number for c in self.sc.carriages]
-        self.list.set_items([f"{n}  {self.rows[n]['status'] if n in self.rows else ''}" for n in self.numbers])
+        self.list.set_items([f"{n}  {self.rows[n]['status'] if n in self.rows else ''}"
+                             + ("  (doubtful)" if self.rows.get(n, {}).get("doubt") else "") for n in self.numbers])
         self.list.set_max_visible_items(8)
         self.list.set_on_selection_changed(lambda text, dbl: self.select(text.split()[0]))
         panel.add_child(self.list)
