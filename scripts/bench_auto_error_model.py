@@ -32,6 +32,14 @@ and correspond outputs as they are); only the solve stage runs (about 1 s an inc
 ``views_shared``
     1 (the default): a face's alignment error counted as shared by the photos it is aligned in
     (``alignment_covariance.views_per_face``), 0: each photo's independent;
+``photo_share``
+    rho in [0, 1]: a face's error shared by the ``n`` photos it is aligned in with correlation rho, each photo's
+    block counting ``1 + (n - 1) rho`` times its stated variance (the variance of the mean of ``n`` equicorrelated
+    errors, the design effect; rho = 1 is the shipped ``views_per_face``, rho = 0 ``views_shared`` 0);
+``release_all``
+    1: step 4b's fit with every car's predictions released (their sigmas x ``solver.prediction_release``) kept for
+    every car, so that the estimator is the one the covariance describes (measured points only; the shipped solve
+    keeps the predictions at full weight on the cars where they agree with the measured points);
 ``count_predictions``
     1: the covariance counts the predicted points (projected from correspond's face poses, carried between
     photos) as measured, which the shipped model does not (they are functions of the measured ones).
@@ -61,11 +69,13 @@ sys.path.insert(0, str(ROOT / "scripts"))
 import bench_calibration as bc  # noqa: E402
 import workbench.solve.stage as solve_stage  # noqa: E402
 from workbench.project import Project  # noqa: E402
+from workbench.solve import solver as solve_solver  # noqa: E402
 from workbench.solve import uncertainty  # noqa: E402
 
 AXES = ("east", "north", "up", "heading", "pitch", "roll")
 SHIPPED = {"covariance_model": uncertainty.covariance_model, "shared_misfit": uncertainty._shared_misfit,
-           "options": solve_stage.SolveOptions}
+           "options": solve_stage.SolveOptions, "views_per_face": uncertainty.views_per_face,
+           "step_predictions": solve_solver.step_predictions}
 
 
 def misfit_modes(d: np.ndarray, s: np.ndarray) -> np.ndarray:
@@ -92,6 +102,8 @@ def patch(variant: dict) -> None:
     uncertainty.covariance_model = SHIPPED["covariance_model"]
     uncertainty._shared_misfit = SHIPPED["shared_misfit"]
     solve_stage.SolveOptions = SHIPPED["options"]
+    uncertainty.views_per_face = SHIPPED["views_per_face"]
+    solve_solver.step_predictions = SHIPPED["step_predictions"]
     shipped_model = SHIPPED["covariance_model"]
 
     def covariance_model(*a, **k):
@@ -118,6 +130,14 @@ def patch(variant: dict) -> None:
         return shipped_model(*a, **k)
 
     uncertainty.covariance_model = covariance_model
+    if "photo_share" in variant:  # each photo's block counts 1 + (n - 1) rho times its variance (rho = 1: n)
+        rho = float(variant["photo_share"])
+
+        def views_per_face(*a, **k):
+            n = SHIPPED["views_per_face"](*a, **k)
+            return np.where(n > 0, 1.0 + (n - 1.0) * rho, 0.0)
+
+        uncertainty.views_per_face = views_per_face
     if "modes" in variant or variant.get("per_view"):
         weights = np.zeros(8)
         given = variant.get("modes", [1, 1, 1, 1, 1, 1])
@@ -143,6 +163,17 @@ def patch(variant: dict) -> None:
             return out
 
         uncertainty._shared_misfit = shared_misfit
+    if variant.get("release_all"):  # step 4b's fit with every car's predictions released, kept for all
+
+        def step_predictions(s, fit):
+            released = s.prob.with_predictions_scaled(s.options.prediction_release)
+            if not (~released.measured).any() or s.options.prediction_release <= 1.0:
+                return SHIPPED["step_predictions"](s, fit)
+            rel = s.chained(released, s.contact).solve(fit.poses)
+            s.nfev += rel.nfev
+            return rel, released
+
+        solve_solver.step_predictions = step_predictions
     if "contact" in variant:
         shipped_options = SHIPPED["options"]
 
