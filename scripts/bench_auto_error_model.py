@@ -217,6 +217,30 @@ def table_row(recs: list[dict]) -> dict:
             "beyond_6_sigma": sorted({r["problem"] for r, zz in zip(recs, z) if np.max(np.abs(zz)) > 6})}
 
 
+def carriage_kinds(work: Path) -> dict[tuple[str, str], dict]:
+    """Per (problem, car number) of the kept incidents: its number of ECC-guided homography points (no loading)
+    and the most photos one of its faces is aligned in (from correspondences.json)."""
+    out: dict[tuple[str, str], dict] = {}
+    for root in sorted(work.glob("inc_*")):
+        path = root / "out/correspond/correspondences.json"
+        if not path.is_file():
+            continue
+        faces: dict[tuple[str, str], set] = {}
+        for o in json.loads(path.read_text())["observations"]:
+            if o.get("method") != "homography":
+                continue
+            k = (f"seed{root.name.split('_')[1]}", o["carriage"])
+            c = out.setdefault(k, {"ecc": 0, "photos": 0})
+            c["ecc"] += "alignment" not in o
+            faces.setdefault((k[1], o.get("face")), set()).add(o["view"])
+            c["photos"] = max(c["photos"], len(faces[(k[1], o.get("face"))]))
+    return out
+
+
+SPLITS = {"no ECC-guided point": lambda c: c["ecc"] == 0, "some ECC-guided points": lambda c: c["ecc"] > 0,
+          "a face in <= 2 photos": lambda c: c["photos"] <= 2, "a face in 3+ photos": lambda c: c["photos"] >= 3}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("variants", nargs="+", help="JSON objects (module doc); '{}': as shipped")
@@ -228,7 +252,10 @@ def main() -> None:
                          "scale, the same on every axis, or of shape?)")
     ap.add_argument("--ci", action="store_true", help="also print scripts/bench_calibration.py's table (coverage, "
                     "RMS z, width / spread, robust z, each with its cluster-bootstrap 95 %% interval) per variant")
+    ap.add_argument("--split", action="store_true", help="also print the rows (without the excluded) split by the "
+                    "carriages' kind: with or without ECC-guided points, a face aligned in at most 2 or in 3+ photos")
     a = ap.parse_args()
+    kinds = carriage_kinds(a.work) if a.split else {}
     results = []
     for text in a.variants:
         variant = json.loads(text)
@@ -244,6 +271,14 @@ def main() -> None:
                   + " | RMS z " + " ".join(f"{x:5.2f}" for x in row["rms_z"])
                   + " | robust z " + " ".join(f"{x:5.2f}" for x in row["robust_z"])
                   + f" | beyond 6 sigma: {', '.join(row['beyond_6_sigma']) or '-'}")
+        for label, sel in (SPLITS.items() if a.split else ()):
+            for kind, rr in (("", kept), ("fit ", rows_fit := [r for r in fit if r["problem"] not in a.exclude])):
+                sub = [r for r in rr if (r["problem"], r["number"]) in kinds and sel(kinds[(r["problem"], r["number"])])]
+                if sub:
+                    row = table_row(sub)
+                    print(f"    {kind}{label:24s} n={row['n']:3d} RMS z " + " ".join(f"{x:5.2f}" for x in row["rms_z"])
+                          + " | robust z " + " ".join(f"{x:5.2f}" for x in row["robust_z"]))
+            del rows_fit
         if a.ci:  # the calibration benchmark's table: every figure with its cluster-bootstrap 95 % interval
             for name, rr in (("all", recs), ("without the excluded", kept)):
                 st = bc.axis_stats(rr)
