@@ -273,7 +273,8 @@ def main() -> None:
                   + f" | beyond 6 sigma: {', '.join(row['beyond_6_sigma']) or '-'}")
         for label, sel in (SPLITS.items() if a.split else ()):
             for kind, rr in (("", kept), ("fit ", rows_fit := [r for r in fit if r["problem"] not in a.exclude])):
-                sub = [r for r in rr if (r["problem"], r["number"]) in kinds and sel(kinds[(r["problem"], r["number"])])]
+                sub = [r for r in rr if (r["problem"], r["number"]) in kinds
+                       and sel(kinds[(r["problem"], r["number"])])]
                 if sub:
                     row = table_row(sub)
                     print(f"    {kind}{label:24s} n={row['n']:3d} RMS z " + " ".join(f"{x:5.2f}" for x in row["rms_z"])
