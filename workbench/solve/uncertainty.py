@@ -2,8 +2,8 @@
 
 Parameters: per carriage a scene-frame rotation vector and the origin (6), plus each estimated focal (px).
 Held couplings enter as the soft prior ``T ~ N(0, (slack / sqrt 5)^2 I)`` (not the solver's hard bound), the
-weighting through the sandwich ``H^-1 G H^-1``, predictions not at all, a face's shared misfit in ``G``; the
-pixel sigma is pooled with the configured one. Derivations: ``docs/solver.md``, "Covariance".
+weighting through the sandwich ``H^-1 G H^-1``, pose predictions with their face alignment's error (the others not
+at all), a face's shared misfit in ``G``; the pixel sigma is pooled with the configured one. ``docs/solver.md``.
 """
 
 from __future__ import annotations
