@@ -32,6 +32,9 @@ and correspond outputs as they are); only the solve stage runs (about 1 s an inc
 ``views_shared``
     1 (the default): a face's alignment error counted as shared by the photos it is aligned in
     (``alignment_covariance.views_per_face``), 0: each photo's independent;
+``count_pose``
+    0: the pose predictions left out of the covariance (``uncertainty.covariance_model(count_pose=False)``, the model
+    before ``workbench.solve.pose_covariance``); 1 (the default): counted with their face alignment's error;
 ``photo_share``
     rho in [0, 1]: a face's error shared by the ``n`` photos it is aligned in with correlation rho, each photo's
     block counting ``1 + (n - 1) rho`` times its stated variance (the variance of the mean of ``n`` equicorrelated
@@ -119,6 +122,8 @@ def patch(variant: dict) -> None:
             k["use_alignments"] = bool(variant["alignments"])
         if "views_shared" in variant:
             k["views_shared"] = bool(variant["views_shared"])
+        if "count_pose" in variant:
+            k["count_pose"] = bool(variant["count_pose"])
         if variant.get("count_predictions"):
             prob = a[0]
             saved = getattr(prob, "measured", None)

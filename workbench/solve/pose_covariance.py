@@ -52,9 +52,10 @@ def pose_rows(prob, J: np.ndarray, rho: np.ndarray, col: dict[int, int], views_s
     loss's weights per row; ``col`` each carriage's first column; ``views_shared``: scale each face alignment's
     loading by the photos it is aligned in (:func:`.alignment_covariance.views_per_face`), as the measured points'.
     None when no prediction qualifies."""
-    meas, block, loading = prob.measured, prob.block, prob.loading
+    meas, block, loading = getattr(prob, "measured", None), getattr(prob, "block", None), getattr(prob, "loading", None)
     M = len(prob.P)
-    if len(meas) != M or len(block) != M or meas.all() or not (block >= 0).any():
+    if meas is None or block is None or loading is None or len(meas) != M or len(block) != M or meas.all() \
+            or not (block >= 0).any():
         return None
     nface = views_per_face(np.where(meas, block, -1), prob.group, prob.view) if views_shared else \
         np.where(block >= 0, 1.0, 0.0)
