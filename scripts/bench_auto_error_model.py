@@ -32,6 +32,17 @@ and correspond outputs as they are); only the solve stage runs (about 1 s an inc
 ``views_shared``
     1 (the default): a face's alignment error counted as shared by the photos it is aligned in
     (``alignment_covariance.views_per_face``), 0: each photo's independent;
+``count_pose``
+    0: the pose predictions left out of the covariance (``uncertainty.covariance_model(count_pose=False)``, the model
+    before ``workbench.solve.pose_covariance``); 1 (the default): counted with their face alignment's error;
+``photo_share``
+    rho in [0, 1]: a face's error shared by the ``n`` photos it is aligned in with correlation rho, each photo's
+    block counting ``1 + (n - 1) rho`` times its stated variance (the variance of the mean of ``n`` equicorrelated
+    errors, the design effect; rho = 1 is the shipped ``views_per_face``, rho = 0 ``views_shared`` 0);
+``release_all``
+    1: step 4b's fit with every car's predictions released (their sigmas x ``solver.prediction_release``) kept for
+    every car, so that the estimator is the one the covariance describes (measured points only; the shipped solve
+    keeps the predictions at full weight on the cars where they agree with the measured points);
 ``count_predictions``
     1: the covariance counts the predicted points (projected from correspond's face poses, carried between
     photos) as measured, which the shipped model does not (they are functions of the measured ones).
@@ -61,11 +72,13 @@ sys.path.insert(0, str(ROOT / "scripts"))
 import bench_calibration as bc  # noqa: E402
 import workbench.solve.stage as solve_stage  # noqa: E402
 from workbench.project import Project  # noqa: E402
+from workbench.solve import solver as solve_solver  # noqa: E402
 from workbench.solve import uncertainty  # noqa: E402
 
 AXES = ("east", "north", "up", "heading", "pitch", "roll")
 SHIPPED = {"covariance_model": uncertainty.covariance_model, "shared_misfit": uncertainty._shared_misfit,
-           "options": solve_stage.SolveOptions}
+           "options": solve_stage.SolveOptions, "views_per_face": uncertainty.views_per_face,
+           "step_predictions": solve_solver.step_predictions}
 
 
 def misfit_modes(d: np.ndarray, s: np.ndarray) -> np.ndarray:
@@ -92,6 +105,8 @@ def patch(variant: dict) -> None:
     uncertainty.covariance_model = SHIPPED["covariance_model"]
     uncertainty._shared_misfit = SHIPPED["shared_misfit"]
     solve_stage.SolveOptions = SHIPPED["options"]
+    uncertainty.views_per_face = SHIPPED["views_per_face"]
+    solve_solver.step_predictions = SHIPPED["step_predictions"]
     shipped_model = SHIPPED["covariance_model"]
 
     def covariance_model(*a, **k):
@@ -107,6 +122,8 @@ def patch(variant: dict) -> None:
             k["use_alignments"] = bool(variant["alignments"])
         if "views_shared" in variant:
             k["views_shared"] = bool(variant["views_shared"])
+        if "count_pose" in variant:
+            k["count_pose"] = bool(variant["count_pose"])
         if variant.get("count_predictions"):
             prob = a[0]
             saved = getattr(prob, "measured", None)
@@ -118,6 +135,14 @@ def patch(variant: dict) -> None:
         return shipped_model(*a, **k)
 
     uncertainty.covariance_model = covariance_model
+    if "photo_share" in variant:  # each photo's block counts 1 + (n - 1) rho times its variance (rho = 1: n)
+        rho = float(variant["photo_share"])
+
+        def views_per_face(*a, **k):
+            n = SHIPPED["views_per_face"](*a, **k)
+            return np.where(n > 0, 1.0 + (n - 1.0) * rho, 0.0)
+
+        uncertainty.views_per_face = views_per_face
     if "modes" in variant or variant.get("per_view"):
         weights = np.zeros(8)
         given = variant.get("modes", [1, 1, 1, 1, 1, 1])
@@ -143,6 +168,17 @@ def patch(variant: dict) -> None:
             return out
 
         uncertainty._shared_misfit = shared_misfit
+    if variant.get("release_all"):  # step 4b's fit with every car's predictions released, kept for all
+
+        def step_predictions(s, fit):
+            released = s.prob.with_predictions_scaled(s.options.prediction_release)
+            if not (~released.measured).any() or s.options.prediction_release <= 1.0:
+                return SHIPPED["step_predictions"](s, fit)
+            rel = s.chained(released, s.contact).solve(fit.poses)
+            s.nfev += rel.nfev
+            return rel, released
+
+        solve_solver.step_predictions = step_predictions
     if "contact" in variant:
         shipped_options = SHIPPED["options"]
 
@@ -186,6 +222,30 @@ def table_row(recs: list[dict]) -> dict:
             "beyond_6_sigma": sorted({r["problem"] for r, zz in zip(recs, z) if np.max(np.abs(zz)) > 6})}
 
 
+def carriage_kinds(work: Path) -> dict[tuple[str, str], dict]:
+    """Per (problem, car number) of the kept incidents: its number of ECC-guided homography points (no loading)
+    and the most photos one of its faces is aligned in (from correspondences.json)."""
+    out: dict[tuple[str, str], dict] = {}
+    for root in sorted(work.glob("inc_*")):
+        path = root / "out/correspond/correspondences.json"
+        if not path.is_file():
+            continue
+        faces: dict[tuple[str, str], set] = {}
+        for o in json.loads(path.read_text())["observations"]:
+            if o.get("method") != "homography":
+                continue
+            k = (f"seed{root.name.split('_')[1]}", o["carriage"])
+            c = out.setdefault(k, {"ecc": 0, "photos": 0})
+            c["ecc"] += "alignment" not in o
+            faces.setdefault((k[1], o.get("face")), set()).add(o["view"])
+            c["photos"] = max(c["photos"], len(faces[(k[1], o.get("face"))]))
+    return out
+
+
+SPLITS = {"no ECC-guided point": lambda c: c["ecc"] == 0, "some ECC-guided points": lambda c: c["ecc"] > 0,
+          "a face in <= 2 photos": lambda c: c["photos"] <= 2, "a face in 3+ photos": lambda c: c["photos"] >= 3}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("variants", nargs="+", help="JSON objects (module doc); '{}': as shipped")
@@ -197,7 +257,10 @@ def main() -> None:
                          "scale, the same on every axis, or of shape?)")
     ap.add_argument("--ci", action="store_true", help="also print scripts/bench_calibration.py's table (coverage, "
                     "RMS z, width / spread, robust z, each with its cluster-bootstrap 95 %% interval) per variant")
+    ap.add_argument("--split", action="store_true", help="also print the rows (without the excluded) split by the "
+                    "carriages' kind: with or without ECC-guided points, a face aligned in at most 2 or in 3+ photos")
     a = ap.parse_args()
+    kinds = carriage_kinds(a.work) if a.split else {}
     results = []
     for text in a.variants:
         variant = json.loads(text)
@@ -213,6 +276,15 @@ def main() -> None:
                   + " | RMS z " + " ".join(f"{x:5.2f}" for x in row["rms_z"])
                   + " | robust z " + " ".join(f"{x:5.2f}" for x in row["robust_z"])
                   + f" | beyond 6 sigma: {', '.join(row['beyond_6_sigma']) or '-'}")
+        for label, sel in (SPLITS.items() if a.split else ()):
+            for kind, rr in (("", kept), ("fit ", rows_fit := [r for r in fit if r["problem"] not in a.exclude])):
+                sub = [r for r in rr if (r["problem"], r["number"]) in kinds
+                       and sel(kinds[(r["problem"], r["number"])])]
+                if sub:
+                    row = table_row(sub)
+                    print(f"    {kind}{label:24s} n={row['n']:3d} RMS z " + " ".join(f"{x:5.2f}" for x in row["rms_z"])
+                          + " | robust z " + " ".join(f"{x:5.2f}" for x in row["robust_z"]))
+            del rows_fit
         if a.ci:  # the calibration benchmark's table: every figure with its cluster-bootstrap 95 % interval
             for name, rr in (("all", recs), ("without the excluded", kept)):
                 st = bc.axis_stats(rr)

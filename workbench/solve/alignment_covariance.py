@@ -11,19 +11,23 @@ from __future__ import annotations
 import numpy as np
 
 
-def alignment_term(J: np.ndarray, block: np.ndarray, loading: np.ndarray, w: np.ndarray) -> np.ndarray:
+def alignment_term(J: np.ndarray, block: np.ndarray, loading: np.ndarray, w: np.ndarray,
+                   extra: dict[int, np.ndarray] | None = None) -> np.ndarray:
     """``sum_b A_b A_b^T`` (P, P) with ``A_b = sum_{i in b} J_i^T w_i L_i`` (P, 8): the gradient covariance (per
     pixel^2 of the weighted rows' scale) of the face alignments' errors. ``J``: weighted rows (2M, P); ``block``
     (M,) each point's alignment (carriage, face, view), -1 for none; ``loading`` (M, 2, 8) px; ``w`` (M,) row
     weights. A point placed by a face's homography moves with that homography's 8 parameters, so the points of
     one alignment are correlated (their covariance ``L L^T`` has rank 8 at most) and two alignments are
-    independent (``workbench.correspond.alignment``)."""
+    independent (``workbench.correspond.alignment``). ``extra``: block -> (P, 8) more rows' share of that block's
+    ``A_b`` (the pose predictions', :mod:`.pose_covariance`)."""
     P = J.shape[1]
     out = np.zeros((P, P))
     Jr = J.reshape(-1, 2, P)
     for b in np.unique(block[block >= 0]):
         idx = np.nonzero(block == b)[0]
         A = np.einsum("nip,nik->pk", Jr[idx], loading[idx] * w[idx, None, None])
+        if extra is not None and int(b) in extra:
+            A = A + extra[int(b)]
         out += A @ A.T
     return out
 

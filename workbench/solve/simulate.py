@@ -28,6 +28,7 @@ from ..core.camera import CameraIntrinsics, look_at, project_world
 from ..core.geometry import rot_z, rotation_between
 from ..rolling_stock import get_type
 from .model import CarriageInput, ChainLink, View
+from .terrain import surface_samples, wheel_points
 
 TYPE_CYCLE = ("shoreliner", "p32ac-dm", "amfleet-i", "acs-64")
 
@@ -46,6 +47,37 @@ class PlaneTerrain:
     def normal(self) -> np.ndarray:
         n = np.array([-self.a, -self.b, 1.0])
         return n / np.linalg.norm(n)
+
+
+class DemWithError:
+    """A DEM of the simulated ground with the error a terrain contact states: the plane ``ground`` (its
+    ``height_at``) plus one height error per carriage (``errors_m`` (n,), m), exact within ``radii_m`` (n,) of that
+    carriage's centre (``centres_xy`` (n, 2), scene m: its wheels' reach), and between the carriages the errors
+    blended by inverse squared distance to those discs (continuous: no step for a lowest point or a slope to
+    fall on). Independent per carriage, as the contact term takes a DEM's error (``terrain_sigma_m`` per
+    carriage); the ``height_at`` interface of the terrain model."""
+
+    def __init__(self, ground: PlaneTerrain, centres_xy: np.ndarray, errors_m: np.ndarray,
+                 radii_m: np.ndarray) -> None:
+        self.ground = ground
+        self.centres_xy = np.asarray(centres_xy, dtype=float).reshape(-1, 2)
+        self.errors_m = np.asarray(errors_m, dtype=float).reshape(-1)
+        self.radii_m = np.asarray(radii_m, dtype=float).reshape(-1)
+        n = len(self.centres_xy)
+        if len(self.errors_m) != n or len(self.radii_m) != n:
+            raise ValueError(f"{self.centres_xy.shape=}, {self.errors_m.shape=}, {self.radii_m.shape=}: one error "
+                             f"and one radius per carriage")
+
+    def height_at(self, xy: np.ndarray) -> np.ndarray:
+        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+        dist = np.sqrt(((xy[:, None, :] - self.centres_xy[None]) ** 2).sum(-1))  # (m, n)
+        gap = np.maximum(dist - self.radii_m[None], 0.0)
+        inside = gap <= 0.0
+        w = 1.0 / np.maximum(gap, 1e-9) ** 2
+        err = (w @ self.errors_m) / w.sum(axis=1)
+        own = np.where(inside, dist, np.inf).argmin(axis=1)  # inside a disc: that carriage's error (the nearest)
+        err = np.where(inside.any(axis=1), self.errors_m[own], err)
+        return self.ground.height_at(xy) + err
 
 
 @dataclass
@@ -213,3 +245,19 @@ def redraw(sim: SimProblem, seed: int, pixel_sigma_px: float | None = None, offs
         carriages.append(CarriageInput(number=car.number, carriage_type=ct, observations=obs))
         clean.append(cl)
     return replace(sim, carriages=carriages, truth=truth, offsets=new_off, pixel_sigma_px=sigma, clean_pixels=clean)
+
+
+def dem_with_error(sim: SimProblem, sigma_m: float, seed: int) -> DemWithError:
+    """The DEM a solve of ``sim`` is given when its terrain is known to ``sigma_m`` per carriage: the simulated
+    plane plus N(0, ``sigma_m``) per carriage (:class:`DemWithError`, drawn from ``seed``), exact out to its
+    wheels (their farthest reach from the carriage's origin plus 0.5 m); the carriages stay on the plane, to
+    within the couplers' play."""
+    if not (np.isfinite(sigma_m) and sigma_m >= 0):
+        raise ValueError(f"dem_with_error: sigma_m = {sigma_m!r}; expected a non-negative height error in metres")
+    centres = np.array([M[:2, 3] for M in sim.truth])  # each carriage's origin, midway between its couplers
+    radii = []
+    for c in sim.carriages:
+        W = wheel_points(surface_samples(c.carriage_type, 400))
+        radii.append(float(np.linalg.norm(W[:, :2], axis=1).max()) + 0.5)
+    errors = np.random.default_rng(seed).normal(0.0, sigma_m, len(sim.truth))
+    return DemWithError(sim.terrain, centres, errors, np.array(radii))

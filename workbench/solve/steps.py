@@ -25,9 +25,9 @@ from .model import SolveOptions, StepStats, View
 from .plan import FOCAL_PINNED_REL_SD, Plan, best_view, focal_reason, focal_rel_sd
 from .pnp import place_carried, pnp_start, refine_alone
 from .problem import Car, Poses, Problem, chain_cost, pixel_cost, pose_changes, record_warning
-from .terrain import Contact, rest_on_terrain, surface_samples
+from .terrain import Contact, on_wheels, rest_on_terrain, surface_samples, wheel_points
 from .track_prior import SoftRows, TrackPriorRecord, track_prior
-from .uncertainty import CovarianceModel, solution_model
+from .uncertainty import CovarianceModel, pixel_rows, solution_model
 
 CHI2_6_95 = 12.5916  # 95 % point of the chi-square distribution with 6 degrees of freedom
 
@@ -217,14 +217,43 @@ def _profile_check(s: SolveContext, cp: ChainedProblem, fit: ChainedFit,
     return (fit2 if c2 < c_old else fit), note
 
 
+def _rotation_covariances(s: SolveContext, poses: Poses) -> dict[int, np.ndarray]:
+    """Each active carriage's rotation covariance (3, 3), rad^2, from its own pixels alone at ``poses`` (the focal
+    held; its translation marginalised): what step 3's held rotation may be off by, for :func:`.terrain.on_wheels`.
+    Not finite where its pixels do not fix its pose."""
+    J, _, col, _ = pixel_rows(s.prob, poses.R, poses.t, poses.f, [])
+    w_noise = np.repeat(s.prob.w_noise, 2)
+    sig = float(s.options.pixel_sigma_px)
+    out = {}
+    for k in s.plan.active:
+        idx = [i for i in s.prob.by_car[k] if s.prob.measured[i]]  # predicted points carry no information
+        rows = np.concatenate([2 * np.asarray(idx, dtype=int), 2 * np.asarray(idx, dtype=int) + 1])
+        Jk = J[rows, col[k]:col[k] + 6] / (w_noise[rows, None] * sig)  # whitened: a weighted row's sd is w_noise sig
+        H = Jk.T @ Jk
+        if len(rows) < 6 or np.linalg.cond(H) > 1e12:
+            out[k] = np.full((3, 3), np.nan)
+            continue
+        out[k] = np.linalg.inv(H)[:3, :3]
+    return out
+
+
 def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalProfile | None) -> ChainedFit:
     """Step 4: everything optimised (with the terrain contact term), the profile's basin check, then the branch
     check (:func:`.branches.retry_branches`, restarting from step 3's start ``start3``)."""
     t4 = time.perf_counter()
     options, terrain = s.options, s.terrain
     c0 = pixel_cost(s.prob, fit3.poses)
+    wheels: dict[int, np.ndarray] = {}
     if terrain is not None and options.use_terrain_contact:
-        s.contact = Contact(terrain, s.samples, options.pixel_sigma_px / options.terrain_sigma_m)
+        # a carriage on the rails (marked on_track), or seen at step 3's poses to stand on all its wheels, gets its
+        # wheels' contact row (unbiased by a noisy rotation); any other (derailed onto one end or side, on its
+        # side or roof, or its attitude too uncertain to tell) the lowest sample's
+        cov_rot = _rotation_covariances(s, fit3.poses)
+        nan3 = np.full((3, 3), np.nan)
+        wheels = {k: wheel_points(S) for k, S in s.samples.items()
+                  if s.cars[k].on_track or on_wheels(S, fit3.poses.R[k], fit3.poses.t[k], terrain,
+                                                     cov_rot.get(k, nan3), options.terrain_sigma_m)}
+        s.contact = Contact(terrain, s.samples, options.pixel_sigma_px / options.terrain_sigma_m, wheels=wheels)
     track, s.track_records = track_prior(s.cars, s.plan.active, fit3.poses.R, fit3.poses.t, s.railways,
                                          options.track_sigma_m, options.pixel_sigma_px, options.track_gate_m)
     for rec in s.track_records:
@@ -250,7 +279,9 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
     if retry.notes:
         note += "; " + "; ".join(retry.notes)
     terrain_contact = s.contact.terrain_contact if isinstance(s.contact, SoftRows) else s.contact
-    note += (f"; soft terrain contact (sigma_z = {options.terrain_sigma_m} m)" if terrain_contact is not None else
+    note += (f"; soft terrain contact (sigma_z = {options.terrain_sigma_m} m; {len(wheels)} car(s) on all their "
+             f"wheels: their wheels' mean clearance, {len(s.samples) - len(wheels)}: their lowest point's)"
+             if terrain_contact is not None else
              ("; no terrain contact term (no terrain)" if terrain is None else "; terrain contact term off"))
     if track is not None:
         note += (f"; track prior for {len(track.cars) // 2} carriage(s) on the rails (bogie pivots over the line, "
@@ -261,6 +292,7 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
                              {"active_set_rounds": fit.rounds, "links_at_slack": fit.n_active,
                               "restarted": retry.restarted, "branch_check_not_tried": retry.not_tried,
                               "terrain_contact": terrain_contact is not None,
+                              "contact_on_wheels": [s.cars[k].number for k in sorted(wheels)],
                               "track_prior_cars": [r.number for r in s.track_records if r.applied]}))
     if not fit.ok:
         s.failures.append(f"step 4: {fit.message}")

@@ -1,4 +1,14 @@
-"""The terrain in the solve: resting a carriage on it (step 2) and the soft contact term (step 4)."""
+"""The terrain in the solve: resting a carriage on it (step 2) and the soft contact term (step 4).
+
+The contact row of a carriage on the rails or seen to stand on all its wheels (:func:`on_wheels`) is the mean
+clearance of its wheel treads' lowest points (the samples on the type's bottom plane, :func:`wheel_points`), each
+over the terrain beneath it: linear in the pose on a plane, so a noisy rotation does not move it on average. The
+lowest of all samples (the only row before issue 21's fix, and still the row of any other carriage: derailed onto
+one end or one side, on its side or roof, or its attitude too uncertain to tell) dips under a noisy rotation
+whichever way the rotation errs (by about the wheelbase times the pitch error), so the fit lifted every carriage
+on average; with the focal estimated the lift slid the carriages up their rays towards the camera (up too high,
+the focal too short; docs/calibration.md, "Hand picks, unknown focal").
+"""
 
 from __future__ import annotations
 
@@ -7,6 +17,8 @@ from typing import Any, Sequence
 import numpy as np
 
 _SAMPLE_CACHE: dict[tuple[str, int], np.ndarray] = {}
+WHEEL_PLANE_TOL_M = 0.01  # a sample within 1 cm of the type's lowest (carriage z) lies on its wheels' rail plane
+WHEEL_SPREAD_SD = 4.0  # on_wheels' test: a wheel off the others' height by more sd than this is not on the ground
 
 
 def surface_samples(ct: Any, n: int) -> np.ndarray:
@@ -17,6 +29,62 @@ def surface_samples(ct: Any, n: int) -> np.ndarray:
         s = np.asarray(ct.sample_surface(n), dtype=float)
         _SAMPLE_CACHE[key] = s
     return s
+
+
+def wheel_points(samples: np.ndarray) -> np.ndarray:
+    """The samples (m, 3) on the type's bottom plane (carriage z within :data:`WHEEL_PLANE_TOL_M` of the lowest
+    sample): the wheel treads where they meet the rail, for the library's types (z = 0 is top of rail,
+    ``docs/conventions.md``); a mesh type's lowest hull vertices. Carriage frame, metres."""
+    S = np.asarray(samples, dtype=float).reshape(-1, 3)
+    if not len(S):
+        return S
+    return S[S[:, 2] <= S[:, 2].min() + WHEEL_PLANE_TOL_M]
+
+
+def terrain_slopes(terrain: Any, xy: np.ndarray, step: float = 0.05) -> np.ndarray:
+    """Terrain slopes (n, 2) (dh/dx, dh/dy; 0 where undefined) at ``xy`` (n, 2), central differences ``step`` m."""
+    e = step
+    xy = np.asarray(xy, dtype=float).reshape(-1, 2)
+    q = np.repeat(xy, 4, axis=0) + np.tile([[e, 0.0], [-e, 0.0], [0.0, e], [0.0, -e]], (len(xy), 1))
+    h = np.asarray(terrain.height_at(q), dtype=float).reshape(-1, 4)
+    g = np.column_stack([(h[:, 0] - h[:, 1]) / (2 * e), (h[:, 2] - h[:, 3]) / (2 * e)])
+    return np.where(np.isfinite(g), g, 0.0)
+
+
+def on_wheels(samples: np.ndarray, R: np.ndarray, t: np.ndarray, terrain: Any, cov_rot: np.ndarray,
+              sigma_z: float) -> bool:
+    """Whether a carriage (pose ``R`` (3, 3), ``t`` (3,); its surface ``samples`` (m, 3), carriage frame) is seen
+    to stand on all its wheels: every one of its :func:`wheel_points` as high over the terrain as the others, to
+    within :data:`WHEEL_SPREAD_SD` standard deviations of what its rotation's uncertainty explains (``cov_rot``
+    (3, 3), rad^2, of the scene-frame rotation vector: a wheel point's clearance less the wheels' mean moves with
+    the rotation by its lever arm) plus :data:`WHEEL_PLANE_TOL_M`; that tolerance no more than twice the terrain's
+    stated accuracy ``sigma_z`` (m: else the rotation cannot tell a carriage on all its wheels from one on one end,
+    whose wheels' mean clearance is half its wheels' spread off the ground); and its lowest sample over the plane
+    of the terrain under its wheels a wheel point. A derailed carriage resting on one end or one side of its
+    wheels, on its side or on its roof is not: its row is the lowest sample's. False off the terrain or where
+    ``cov_rot`` is not finite."""
+    S = np.asarray(samples, dtype=float).reshape(-1, 3)
+    W = wheel_points(S)
+    C = np.asarray(cov_rot, dtype=float).reshape(3, 3)
+    if len(W) < 3 or not np.all(np.isfinite(C)):
+        return False
+    Xw = W @ R.T + t
+    hw = np.asarray(terrain.height_at(Xw[:, :2]), dtype=float)
+    if not np.all(np.isfinite(hw)):
+        return False
+    d = Xw[:, 2] - hw
+    a = np.column_stack([-terrain_slopes(terrain, Xw[:, :2]), np.ones(len(W))])
+    g = np.cross(Xw - t, a)  # d clearance / d rotation per wheel point
+    g = g - g.mean(axis=0)  # ... of the clearance less the wheels' mean
+    sd = np.sqrt(np.maximum(np.einsum("ni,ij,nj->n", g, C, g), 0.0))
+    tol = WHEEL_SPREAD_SD * sd + WHEEL_PLANE_TOL_M
+    if np.any(tol > 2.0 * sigma_z) or np.any(np.abs(d - d.mean()) > tol):
+        return False
+    A = np.column_stack([np.ones(len(Xw)), Xw[:, :2] - Xw[:, :2].mean(0)])
+    coef, *_ = np.linalg.lstsq(A, hw, rcond=None)  # the ground's plane under the wheels (least squares)
+    X = S @ R.T + t
+    dp = X[:, 2] - (coef[0] + (X[:, :2] - Xw[:, :2].mean(0)) @ coef[1:])
+    return bool(S[int(np.argmin(dp)), 2] <= S[:, 2].min() + WHEEL_PLANE_TOL_M)
 
 
 def rest_on_terrain(world_from_carriage: np.ndarray, carriage_type: Any, terrain: Any,
@@ -35,15 +103,28 @@ def rest_on_terrain(world_from_carriage: np.ndarray, carriage_type: Any, terrain
 
 
 class Contact:
-    """Soft terrain contact per carriage: residual ``scale * min_s (z_s - h(xy_s))`` (scale = px_sigma / sigma_z).
+    """Soft terrain contact per carriage, ``scale`` = px_sigma / sigma_z. A carriage in ``wheels`` (carriage index ->
+    its :func:`wheel_points`) has the residual ``scale * mean_w (z_w - h(xy_w))`` over its wheel points; any other
+    the residual ``scale * min_s (z_s - h(xy_s))`` over its surface samples.
 
     ``samples``: carriage index -> its surface samples (m, 3), carriage frame, metres; ``self.cars`` keeps their
-    order, which is the order of the batched :meth:`clearances` and of the contact rows."""
+    order, which is the order of the batched :meth:`clearances` and of the contact rows. :meth:`clearance` is the
+    lowest sample's height over the terrain (the reported clearance) whichever the row."""
 
-    def __init__(self, terrain: Any, samples: dict[int, np.ndarray], scale: float, step: float = 0.05):
+    def __init__(self, terrain: Any, samples: dict[int, np.ndarray], scale: float, step: float = 0.05,
+                 wheels: dict[int, np.ndarray] | None = None):
         self.terrain, self.samples, self.scale, self.step = terrain, samples, scale, step
         self.cars = list(samples)
         self._row = {k: i for i, k in enumerate(self.cars)}
+        self.wheels = {k: np.asarray(w, dtype=float).reshape(-1, 3) for k, w in (wheels or {}).items()
+                       if k in self._row and len(w)}
+        mw = max((len(W) for W in self.wheels.values()), default=0)
+        self._W = np.zeros((len(self.cars), mw, 3))  # padded; _wvalid marks the real wheel points
+        self._wvalid = np.zeros((len(self.cars), mw), dtype=bool)
+        self._on_wheels = np.zeros(len(self.cars), dtype=bool)
+        for k, W in self.wheels.items():
+            i = self._row[k]
+            self._W[i, :len(W)], self._wvalid[i, :len(W)], self._on_wheels[i] = W, True, True
         m = max((len(S) for S in samples.values()), default=0)
         self._S = np.zeros((len(self.cars), m, 3))  # padded to the longest set; _valid marks the real samples
         self._valid = np.zeros((len(self.cars), m), dtype=bool)
@@ -80,24 +161,47 @@ class Contact:
 
     def gradients(self, xy: np.ndarray) -> np.ndarray:
         """Terrain slopes (n, 2) (dh/dx, dh/dy; 0 where undefined) at ``xy`` (n, 2), central differences."""
-        e = self.step
-        xy = np.asarray(xy, dtype=float).reshape(-1, 2)
-        q = np.repeat(xy, 4, axis=0) + np.tile([[e, 0.0], [-e, 0.0], [0.0, e], [0.0, -e]], (len(xy), 1))
-        h = np.asarray(self.terrain.height_at(q), dtype=float).reshape(-1, 4)
-        g = np.column_stack([(h[:, 0] - h[:, 1]) / (2 * e), (h[:, 2] - h[:, 3]) / (2 * e)])
-        return np.where(np.isfinite(g), g, 0.0)
+        return terrain_slopes(self.terrain, xy, self.step)
+
+    def _wheel_rows(self, R_c: np.ndarray, t_c: np.ndarray, rows: np.ndarray, grad: bool):
+        """The wheel rows ``rows`` (indices into ``self.cars``; poses per row): mean clearance of the wheel points
+        (n,) (m; NaN where any is off the terrain), with ``grad`` the mean terrain slope under them (n, 2), and
+        R times their centroid (n, 3)."""
+        W, valid = self._W[rows], self._wvalid[rows]
+        X = W @ np.swapaxes(R_c, 1, 2) + t_c[:, None, :]
+        h = np.full(valid.shape, np.nan)
+        h[valid] = np.asarray(self.terrain.height_at(X[valid][:, :2]), dtype=float)
+        cnt = valid.sum(axis=1)
+        d = np.where(valid, X[:, :, 2] - h, 0.0).sum(axis=1) / cnt  # NaN where a wheel point is off the terrain
+        q = np.einsum("nij,nj->ni", R_c, (W * valid[..., None]).sum(axis=1) / cnt[:, None])
+        if not grad:
+            return d, None, q
+        g = np.zeros((len(rows), 2))
+        g_all = self.gradients(X[valid][:, :2])
+        owner = np.nonzero(valid)[0]
+        np.add.at(g, owner, g_all)
+        return d, g / cnt[:, None], q
 
     def residuals(self, R_r: np.ndarray, t_r: np.ndarray, rows: Sequence[int]) -> np.ndarray:
         """The residuals of the rows ``rows`` (pixel units, NaN off the terrain) at the poses given per row."""
+        rows = np.asarray(rows, dtype=int)
         d, _, _ = self.clearances(R_r, t_r, [self.cars[i] for i in rows])
+        w = self._on_wheels[rows]
+        if w.any():
+            d[w] = self._wheel_rows(R_r[w], t_r[w], rows[w], False)[0]
         return self.scale * d
 
     def rows(self, R_c: np.ndarray, t_c: np.ndarray):
         """Contact residuals and their derivatives for every carriage (poses as :meth:`clearances`): residual
-        (n,) (0 off the terrain), ``a`` (n, 3) d residual / d X (0 off the terrain), R s (n, 3), on-terrain mask."""
+        (n,) (0 off the terrain), ``a`` (n, 3) d residual / d X (0 off the terrain), R s (n, 3) (the lowest
+        sample's, or the wheel points' centroid's: exact on a plane, the slope under the wheels averaged on a
+        curved terrain), on-terrain mask."""
         d, X, q = self.clearances(R_c, t_c)
-        on = np.isfinite(d)
         gh = self.gradients(X[:, :2])
+        w = self._on_wheels
+        if w.any():
+            d[w], gh[w], q[w] = self._wheel_rows(R_c[w], t_c[w], np.nonzero(w)[0], True)
+        on = np.isfinite(d)
         a = np.column_stack([-gh, np.ones(len(d))]) * self.scale
         a[~on] = 0.0
         return np.where(on, self.scale * np.nan_to_num(d), 0.0), a, q, on

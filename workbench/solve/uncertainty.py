@@ -2,8 +2,8 @@
 
 Parameters: per carriage a scene-frame rotation vector and the origin (6), plus each estimated focal (px).
 Held couplings enter as the soft prior ``T ~ N(0, (slack / sqrt 5)^2 I)`` (not the solver's hard bound), the
-weighting through the sandwich ``H^-1 G H^-1``, predictions not at all, a face's shared misfit in ``G``; the
-pixel sigma is pooled with the configured one. Derivations: ``docs/solver.md``, "Covariance".
+weighting through the sandwich ``H^-1 G H^-1``, pose predictions with their face alignment's error (the others not
+at all), a face's shared misfit in ``G``; the pixel sigma is pooled with the configured one. ``docs/solver.md``.
 """
 
 from __future__ import annotations
@@ -22,6 +22,7 @@ from .problem import (Chains, Poses, Problem, carriage_weights, focal_groups, he
                       record_warning)
 from .projection import project_with_jacobians
 from .alignment_covariance import alignment_term, views_per_face
+from .pose_covariance import pose_rows
 from .variance_components import (FALLBACK_FACE_SIGMA_PX, VarianceComponents, estimate_variance_components,
                                   face_modes)
 
@@ -162,13 +163,14 @@ def undetermined_parameters(H: np.ndarray) -> np.ndarray | None:
 def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_cfg: float,
                      loss: str = "linear", loss_scale: float = 1.0, prior_dof: float = 5.0,
                      sigma_fixed: float | None = None, face_sigma: float | None = 0.0,
-                     use_alignments: bool = True, views_shared: bool = True) -> CovarianceModel:
+                     use_alignments: bool = True, views_shared: bool = True, count_pose: bool = True
+                     ) -> CovarianceModel:
     """Covariance in free-pose parameters at ``R, t, f`` (see the module doc). ``sigma_fixed``: use that pixel
     sigma (CRB); ``face_sigma``: pixels of the misfit shared by each group of points; ``use_alignments``: the
     points with a face alignment's loading (``Problem.loading``) take their error from it (:func:`alignment_term`)
     in place of the pixel sigma and the fixed misfit (docs/correspondences.md, "What a face's alignment
     measures"); ``views_shared``: a face's error is shared by the photos it is aligned in (:func:`views_per_face`),
-    not independent from photo to photo."""
+    not independent from photo to photo; ``count_pose``: the pose predictions too (:mod:`.pose_covariance`)."""
     J, r, col, P = pixel_rows(prob, R, t, f, focal_views)
     groups = getattr(prob, "group", None)
     if groups is None or len(groups) != len(prob.P):
@@ -178,6 +180,8 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     if not use_alignments or block is None or len(block) != len(prob.P) or sigma_fixed is not None \
             or face_sigma is None:
         block, loading = np.full(len(prob.P), -1), np.zeros((len(prob.P), 2, 8))
+    pose = pose_rows(prob, J, np.repeat(_robust_weights((r.reshape(-1, 2) ** 2).sum(1), loss, loss_scale), 2), col,
+                     views_shared) if count_pose and (block >= 0).any() else None
     uv_obs, w_row, views = prob.uv, prob.w, prob.view
     # predictions (points projected from a face's pose, points carried from another photo) guide the fit but
     # are functions of the measured points: counting them would claim information twice
@@ -226,6 +230,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     else:
         sigma, sigma_hat, dof = _pooled_sigma(r, w2, M, Hp_unit, Hprior, sigma_cfg, prior_dof, assemble)
         q = float(stdtrit(dof + prior_dof, 0.975)) if dof + prior_dof > 0 else 1.959963984540054
+    Hp_unit = Hp_unit + (pose.info if pose is not None else 0.0)  # the fit's weights on the counted predictions
     H, Hi = assemble(sigma)
     G = Gp_unit / sigma**2 + Hprior
     misfit_groups = np.where(block >= 0, -1, groups)  # an aligned point's face error is its alignment's
@@ -235,7 +240,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     elif face_sigma > 0:
         G = G + face_sigma**2 / sigma**4 * _shared_misfit(J * rho[:, None], misfit_groups, views, uv_obs, w_row)
     if (block >= 0).any():
-        G = G + alignment_term(J * rho[:, None], block, loading, w_row) / sigma**4
+        G = G + alignment_term(J * rho[:, None], block, loading, w_row, pose and pose.contrib) / sigma**4
     cov = Hi @ G @ Hi
     cov = 0.5 * (cov + cov.T)
     return CovarianceModel(cov, col, sigma, sigma_hat, dof, q, P, Hi, undetermined_parameters(H), face_sigma, vc)

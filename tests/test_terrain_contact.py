@@ -1,0 +1,120 @@
+"""The terrain contact's row (solve/terrain.py): a carriage on its wheels is held by its wheels' mean clearance,
+unbiased by a noisy rotation; the lowest sample's row (a carriage on its body) dips under one (issue 21)."""
+
+import numpy as np
+import pytest
+
+from workbench.core.geometry import exp_so3, rot_z, rotation_between
+from workbench.rolling_stock import get_type
+from workbench.solve.simulate import PlaneTerrain, dem_with_error, simulate_consist
+from workbench.solve.terrain import Contact, on_wheels, surface_samples, wheel_points
+
+
+def _upright(terrain, yaw=0.4, xy=(3.0, -2.0)):
+    R = rotation_between([0.0, 0.0, 1.0], terrain.normal) @ rot_z(yaw)
+    t = np.array([*xy, float(terrain.height_at(np.array([xy]))[0])])
+    return R, t
+
+
+def test_wheel_row_unbiased_where_the_lowest_sample_dips():
+    """Rotations drawn about a carriage resting on its wheels on a sloped plane (0.1 deg per axis, fixed seed):
+    the wheel row's mean stays at the truth's 0 to well under its spread, the lowest sample's mean dips by the
+    wheelbase times the tilt (about 1 cm for a 26 m coach)."""
+    ct = get_type("shoreliner")
+    S = surface_samples(ct, 400)
+    W = wheel_points(S)
+    assert 8 <= len(W) < len(S) and np.allclose(W[:, 2], W[:, 2].min())
+    assert abs(W[:, 0].mean()) < 0.05 and abs(W[:, 1].mean()) < 0.05  # the wheels' centroid under the origin
+    terrain = PlaneTerrain(0.02, -0.01)
+    R0, t0 = _upright(terrain)
+    assert on_wheels(S, R0, t0, terrain, np.eye(3) * np.deg2rad(0.1) ** 2, 0.1)
+    wheel = Contact(terrain, {0: S}, 1.0, wheels={0: W})
+    lowest = Contact(terrain, {0: S}, 1.0)
+    rng = np.random.default_rng(7)
+    dR = exp_so3(rng.normal(0.0, np.deg2rad(0.1), (400, 3)))
+    R = dR @ R0
+    t = np.repeat(t0[None], len(R), axis=0)
+    rw = wheel.residuals(R, t, np.zeros(len(R), dtype=int))
+    rl = lowest.residuals(R, t, np.zeros(len(R), dtype=int))
+    assert abs(rw.mean()) < 3 * rw.std() / np.sqrt(len(rw)) + 2e-4
+    assert -0.020 < rl.mean() < -0.005
+    assert np.all(rl <= rw + 1e-12)
+    # the reported clearance stays the lowest sample's whichever the row
+    assert wheel.clearance(R[:1], t[:1], 0)[0] == pytest.approx(rl[0])
+
+
+def test_wheel_row_derivatives_match_finite_differences():
+    """rows(): d residual / d X and the lever arm R s give the residual's change under a small translation and
+    rotation (on a plane, where they are exact)."""
+    ct = get_type("acs-64")
+    S = surface_samples(ct, 400)
+    terrain = PlaneTerrain(0.03, 0.01, 1.0)
+    R, t = _upright(terrain, yaw=1.1)
+    t = t + [0.0, 0.0, 0.07]
+    c = Contact(terrain, {5: S}, 2.0, wheels={5: wheel_points(S)})
+    r, a, q, on = c.rows(R[None], t[None])
+    assert on[0] and r[0] == pytest.approx(2.0 * 0.07, rel=1e-6)  # 7 cm over the plane (vertically), x scale
+    eps = 1e-6
+    for i in range(3):
+        dt = np.zeros(3)
+        dt[i] = eps
+        num = (c.residuals(R[None], (t + dt)[None], [0])[0] - r[0]) / eps
+        assert num == pytest.approx(a[0, i], abs=1e-5)
+        w = np.zeros(3)
+        w[i] = eps
+        num_r = (c.residuals((exp_so3(w) @ R)[None], t[None], [0])[0] - r[0]) / eps
+        assert num_r == pytest.approx(np.cross(q[0], a[0])[i], abs=1e-4)
+
+
+def test_carriage_on_its_side_keeps_the_lowest_point():
+    """A carriage lying on its side is not on its wheels: its row is the lowest sample's."""
+    ct = get_type("amfleet-i")
+    S = surface_samples(ct, 400)
+    terrain = PlaneTerrain()
+    R = exp_so3(np.array([np.pi / 2, 0.0, 0.0]))
+    t = np.array([0.0, 0.0, 2.0])
+    assert not on_wheels(S, R, t, terrain, np.eye(3) * np.deg2rad(0.1) ** 2, 0.1)
+    X = S @ R.T + t
+    assert Contact(terrain, {0: S}, 1.0).residuals(R[None], t[None], [0])[0] == pytest.approx(X[:, 2].min())
+
+
+def test_dem_with_error_adds_one_error_per_carriage():
+    """The simulated DEM: the plane plus one error a carriage under each carriage's wheels; zero sigma: the plane."""
+    sim = simulate_consist(4, seed=11, pixel_sigma_px=0.7)
+    dem = dem_with_error(sim, 0.1, 3)
+    e = dem.errors_m
+    assert e.shape == (4,) and 0.0 < np.abs(e).max() < 0.5
+    for k, M in enumerate(sim.truth):
+        X = wheel_points(surface_samples(sim.carriages[k].carriage_type, 400)) @ M[:3, :3].T + M[:3, 3]
+        assert np.allclose(dem.height_at(X[:, :2]) - sim.terrain.height_at(X[:, :2]), e[k])
+    assert np.allclose(dem_with_error(sim, 0.0, 3).errors_m, 0.0)
+    with pytest.raises(ValueError, match="sigma_m"):
+        dem_with_error(sim, -0.1, 3)
+
+
+def test_on_wheels_refuses_a_carriage_on_one_end_or_of_unknown_attitude():
+    """A carriage whose wheels' clearances differ beyond what its rotation's uncertainty explains (one bogie in a
+    ditch: pitched 2 deg against the plane) is not on all its wheels; nor one whose rotation is too uncertain to
+    tell it to within twice the terrain's stated accuracy; a level one with a well-known rotation is."""
+    ct = get_type("shoreliner")
+    S = surface_samples(ct, 400)
+    terrain = PlaneTerrain(0.01, 0.02)
+    R0, t0 = _upright(terrain, yaw=-0.7)
+    C = np.eye(3) * np.deg2rad(0.05) ** 2
+    assert on_wheels(S, R0, t0, terrain, C, 0.10)
+    pitched = R0 @ exp_so3(np.array([0.0, np.deg2rad(2.0), 0.0]))  # about the carriage's own y: one end up
+    assert not on_wheels(S, pitched, t0, terrain, C, 0.10)
+    assert not on_wheels(S, R0, t0, terrain, np.eye(3) * np.deg2rad(3.0) ** 2, 0.10)  # attitude unknown
+    assert not on_wheels(S, R0, t0, terrain, C, 0.005)  # a 5 mm DEM: 0.05 deg cannot confirm it
+    assert not on_wheels(S, R0, t0, terrain, np.full((3, 3), np.nan), 0.10)
+
+
+def test_dem_with_error_is_continuous_between_carriages():
+    """Between two carriages the simulated DEM's error goes from one carriage's to the other's without a step."""
+    sim = simulate_consist(4, seed=11, pixel_sigma_px=0.7)
+    dem = dem_with_error(sim, 0.2, 5)
+    a, b = sim.truth[1][:2, 3], sim.truth[2][:2, 3]
+    xy = a + np.linspace(0.0, 1.0, 2001)[:, None] * (b - a)
+    e = dem.height_at(xy) - sim.terrain.height_at(xy)
+    assert e[0] == pytest.approx(dem.errors_m[1]) and e[-1] == pytest.approx(dem.errors_m[2])
+    assert np.abs(np.diff(e)).max() < 0.01  # 1.2 cm steps of the line: no jump

@@ -1,0 +1,103 @@
+"""The pose predictions counted in the covariance, with the error of the face alignment they come from (issue 21).
+
+The correspond stage places a car's points off its found face (couplers, an unseen face's corners) by projecting
+them with the car's pose in that photo (``method = "pose"``; ``correspond.assign.observations_of``), a planar PnP
+on the face's inlier matches. The solve fits them as predictions (at 2 px; step 4b keeps them on every car where
+they agree with the measured points), and until now its covariance left them out, as if the estimator were the
+measured points' alone: against the truth the predictions place the cars far better than the measured points alone
+(docs/calibration.md, "which piece is too wide"), so the intervals described another, worse estimator.
+
+A prediction is not independent evidence: to first order the PnP pose from the matches is a function of the face's
+homography (the pose is a 6-parameter sub-model of the homography's 8, fitted to the same matches, so
+``d pose = (D^T A^T A D)^-1 D^T A^T A d h``), and the face's marked points ``y`` (2 n) placed by that homography
+determine it (n >= 4). So the pose is the generalised least squares fit to those points with their own covariance
+``C = L L^T`` (``L`` their loadings, ``workbench.correspond.alignment``),
+
+    d pose = T d y,    T = (G^T C^+ G)^-1 G^T C^+,    G = d y / d pose,
+
+and a prediction ``x_p`` of the same car in that photo moves by ``J_p T d y``: its loading on each face alignment
+``beta`` of the car in that photo is ``J_p T_beta L_beta`` (2, 8), the same ``xi`` as the face's points. With these
+rows in the sandwich ``H^-1 G H^-1`` (their weights in ``H`` as the fit has them, their correlated error in ``G``) the
+covariance is that of the estimator the solve runs. Predictions of a car with fewer than 4 aligned points in that
+photo, and points carried from another photo, stay out (as before).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .alignment_covariance import views_per_face
+
+MIN_POINTS = 4  # the face's points that fix its homography (and the pose)
+
+
+@dataclass
+class PoseRows:
+    """The counted predictions: ``info`` (P, P) their information ``sum J_p^T rho_p J_p`` (weighted rows, per
+    pixel^2 of the solve's sigma, as ``Hp_unit``), ``contrib`` block -> (P, 8) their share of that face alignment's
+    gradient ``sum_p J_p^T rho_p w_p L_p`` (to add to the block's in :func:`.alignment_covariance.alignment_term`),
+    and ``n`` how many predictions were counted."""
+
+    info: np.ndarray
+    contrib: dict[int, np.ndarray]
+    n: int
+
+
+def pose_rows(prob, J: np.ndarray, rho: np.ndarray, col: dict[int, int], views_shared: bool = True
+              ) -> PoseRows | None:
+    """The predictions of ``prob`` (:class:`.problem.Problem`; rows ``~measured``) counted as the module doc says.
+    ``J`` (2M, P): the weighted pixel rows of every row (:func:`.uncertainty.pixel_rows`); ``rho`` (2M,) the robust
+    loss's weights per row; ``col`` each carriage's first column; ``views_shared``: scale each face alignment's
+    loading by the photos it is aligned in (:func:`.alignment_covariance.views_per_face`), as the measured points'.
+    None when no prediction qualifies."""
+    meas, block, loading = getattr(prob, "measured", None), getattr(prob, "block", None), getattr(prob, "loading", None)
+    M = len(prob.P)
+    if meas is None or block is None or loading is None or len(meas) != M or len(block) != M or meas.all() \
+            or not (block >= 0).any():
+        return None
+    nface = views_per_face(np.where(meas, block, -1), prob.group, prob.view) if views_shared else \
+        np.where(block >= 0, 1.0, 0.0)
+    scale = np.sqrt(np.maximum(nface, 0.0))
+    w = prob.w
+    P = J.shape[1]
+    Jr = J.reshape(M, 2, P)
+    rr = rho.reshape(M, 2)
+    info = np.zeros((P, P))
+    contrib: dict[int, np.ndarray] = {}
+    n = 0
+    for k in prob.active:
+        c = col[k]
+        rows_k = prob.by_car[k]
+        for v in np.unique(prob.view[rows_k]):
+            rows = rows_k[prob.view[rows_k] == v]
+            S = rows[meas[rows] & (block[rows] >= 0)]
+            preds = rows[~meas[rows]]
+            if len(S) < MIN_POINTS or len(preds) == 0 or np.any(w[S] <= 0):
+                continue
+            G = (Jr[S, :, c:c + 6] / w[S, None, None]).reshape(-1, 6)  # d y / d pose, unweighted
+            Ls = loading[S] * scale[S, None, None]
+            Lf = Ls.reshape(-1, 8)
+            bl = block[S]
+            C = np.zeros((2 * len(S), 2 * len(S)))
+            for b in np.unique(bl):  # the face alignments are independent of one another
+                i2 = np.repeat(bl == b, 2)
+                C[np.ix_(i2, i2)] = Lf[i2] @ Lf[i2].T
+            Ci = np.linalg.pinv(C, rcond=1e-10, hermitian=True)
+            N = G.T @ Ci @ G
+            if np.linalg.cond(N) > 1e12:
+                continue
+            T = np.linalg.solve(N, G.T @ Ci)  # (6, 2 n)
+            for p in preds:
+                if w[p] <= 0:
+                    continue
+                Jw = Jr[p] * rr[p][:, None]  # weighted row, as in the sandwich
+                Ju = Jr[p, :, c:c + 6] / w[p]  # d x_p / d pose, unweighted
+                info += Jw.T @ Jr[p]
+                for b in np.unique(bl):
+                    i2 = np.repeat(bl == b, 2)
+                    Lp = Ju @ T[:, i2] @ Lf[i2]  # (2, 8) on block b's xi
+                    contrib[int(b)] = contrib.get(int(b), np.zeros((P, 8))) + Jw.T @ (w[p] * Lp)
+                n += 1
+    return PoseRows(info, contrib, n) if n else None
