@@ -245,14 +245,14 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
     c0 = pixel_cost(s.prob, fit3.poses)
     wheels: dict[int, np.ndarray] = {}
     if terrain is not None and options.use_terrain_contact:
-        # a carriage on the rails (marked on_track), or seen at step 3's poses to stand on all its wheels, gets its
-        # wheels' contact row (unbiased by a noisy rotation); any other (derailed onto one end or side, on its
-        # side or roof, or its attitude too uncertain to tell) the lowest sample's
+        # a carriage seen at step 3's poses to stand on all its wheels gets its wheels' contact row (unbiased by a
+        # noisy rotation); any other (derailed onto one end or side, on its side or roof, or its attitude too
+        # uncertain to tell) the lowest sample's
         cov_rot = _rotation_covariances(s, fit3.poses)
         nan3 = np.full((3, 3), np.nan)
         wheels = {k: wheel_points(S) for k, S in s.samples.items()
-                  if s.cars[k].on_track or on_wheels(S, fit3.poses.R[k], fit3.poses.t[k], terrain,
-                                                     cov_rot.get(k, nan3), options.terrain_sigma_m)}
+                  if on_wheels(S, fit3.poses.R[k], fit3.poses.t[k], terrain, cov_rot.get(k, nan3),
+                               options.terrain_sigma_m)}
         s.contact = Contact(terrain, s.samples, options.pixel_sigma_px / options.terrain_sigma_m, wheels=wheels)
     track, s.track_records = track_prior(s.cars, s.plan.active, fit3.poses.R, fit3.poses.t, s.railways,
                                          options.track_sigma_m, options.pixel_sigma_px, options.track_gate_m)

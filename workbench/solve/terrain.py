@@ -1,13 +1,13 @@
 """The terrain in the solve: resting a carriage on it (step 2) and the soft contact term (step 4).
 
-The contact row of a carriage on the rails or seen to stand on all its wheels (:func:`on_wheels`) is the mean
-clearance of its wheel treads' lowest points (the samples on the type's bottom plane, :func:`wheel_points`), each
-over the terrain beneath it: linear in the pose on a plane, so a noisy rotation does not move it on average. The
-lowest of all samples (the only row before issue 21's fix, and still the row of any other carriage: derailed onto
-one end or one side, on its side or roof, or its attitude too uncertain to tell) dips under a noisy rotation
-whichever way the rotation errs (by about the wheelbase times the pitch error), so the fit lifted every carriage
-on average; with the focal estimated the lift slid the carriages up their rays towards the camera (up too high,
-the focal too short; docs/calibration.md, "Hand picks, unknown focal").
+The contact row of a carriage seen to stand on all its wheels (:func:`on_wheels`) is the mean clearance of its
+wheel treads' lowest points (the samples on the type's bottom plane, :func:`wheel_points`), each over the terrain
+beneath it: linear in the pose on a plane, so a noisy rotation does not move it on average. The lowest of all
+samples (the only row before issue 21's fix, and still the row of any other carriage: derailed onto one end or one
+side, on its side or roof, or its attitude too uncertain to tell) dips under a noisy rotation whichever way the
+rotation errs (by about the wheelbase times the pitch error), so the fit lifted every carriage on average; with the
+focal estimated the lift slid the carriages up their rays towards the camera (up too high, the focal too short;
+docs/calibration.md, "Hand picks, unknown focal").
 """
 
 from __future__ import annotations
