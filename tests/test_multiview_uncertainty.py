@@ -374,3 +374,100 @@ def test_an_undetermined_similarity_is_said_not_included(multiview_incident, tmp
         run_solve(Project(other), lambda *a: None)
     cu = json.loads((other / "out" / "solve" / "solution.json").read_text())["camera_uncertainty"]
     assert cu["included"] is False and "pose_uncertainty states no pose covariance" in cu["note"]
+
+
+def _moved_view(v: View, dw: np.ndarray, dc: np.ndarray) -> View:
+    """``v`` with its scene pose moved: ``world_from_cam`` turned by ``Exp(dw)`` on the left, its centre by ``dc``."""
+    M = np.asarray(v.cam_from_world, float)
+    c = -M[:3, :3].T @ M[:3, 3]
+    R = (exp_so3(dw) @ M[:3, :3].T).T
+    out = np.eye(4)
+    out[:3, :3], out[:3, 3] = R, -R @ (c + dc)
+    return View(name=v.name, intrinsics=v.intrinsics, cam_from_world=out)
+
+
+def test_sfm_pose_factor_against_the_solve_response(two_views):
+    """The SfM poses' own error as a factor shared by the model's views (``[J_v, F_v]`` on ``[e_sim, z]``,
+    ``z ~ N(0, I_r)``: what files.cameras.parse_pose_uncertainty builds from ``sfm_factor``) against the solve run
+    again with both views moved by each of the factor's columns and the similarity by each of its parameters
+    (finite differences, the same pixels): the added sigmas agree to 3 %, and the factor widens them."""
+    sim, cars, sim_res, cfm = two_views
+    rng = np.random.default_rng(8)
+    r = 4
+    sd = np.r_[[np.radians(0.05)] * 3, [0.03] * 3]
+    F = {n: rng.normal(size=(6, r)) * sd[:, None] / np.sqrt(r) for n in cfm}
+    Cext = np.block([[sim_res.covariance, np.zeros((7, r))], [np.zeros((r, 7)), np.eye(r)]])
+    views = _views(sim, sim_res, cfm)
+    res0 = _solve(sim, cars, views)
+    fit = [np.asarray(c.covariance_pose, float).copy() for c in res0.carriages]
+    jac = {v.name: ("main", np.hstack([sim_res.view_jacobian(cfm[v.name]), F[v.name]])) for v in views}
+    add_view_camera_uncertainty(res0, cars, sim.links, views, SIGMA_PX, {"main": Cext}, jac, {})
+    added = [np.asarray(c.covariance_pose) - f for c, f in zip(res0.carriages, fit)]
+    sim_only, _, _ = _camera_terms(sim, cars, sim_res, cfm)
+    eps = np.array([1e-4] + [np.radians(0.005)] * 3 + [0.005] * 3 + [0.1] * r)
+    B = np.zeros((len(cars), 6, 7 + r))
+    for j in range(7 + r):
+        if j < 7:
+            e = np.zeros(7)
+            e[j] = eps[j]
+            vj = _views(sim, _perturbed(sim_res, e), cfm)
+        else:
+            vj = [_moved_view(v, eps[j] * F[v.name][:3, j - 7], eps[j] * F[v.name][3:, j - 7]) for v in views]
+        B[:, :, j] = _pose_delta(_solve(sim, cars, vj), res0) / eps[j]
+    for k, (Ck, Bk) in enumerate(zip(added, B)):
+        ratio = np.sqrt(np.diag(Ck) / np.diag(Bk @ Cext @ Bk.T))
+        assert np.all((0.97 < ratio) & (ratio < 1.03)), (k, ratio)
+        assert np.all(np.diag(Ck) > 1.05 * np.diag(sim_only[k])), (k, np.diag(Ck) / np.diag(sim_only[k]))
+
+
+def test_georef_carries_the_sfm_pose_covariance(multiview_incident, tmp_path):
+    """A reconstruction whose images state a pose_factor (6 x r in the model frame): the georef writes each view's
+    ``sfm_factor`` (the factor turned into the scene by the similarity: R on the rotation, s R on the centre) and
+    the model's ``sfm_rank``, the view's covariance with it added; parse_pose_uncertainty extends the model to
+    7 + r; the solve's intervals widen and the poses stay (1e-9)."""
+    from workbench.files.cameras import parse_pose_uncertainty
+    from workbench.georef.stage import run_georef
+    from workbench.project import Project
+    from workbench.solve.stage import run_solve
+
+    root, _ = multiview_incident
+    shutil.copytree(root.parent.parent, tmp_path, dirs_exist_ok=True)
+    other = tmp_path / "projects" / root.name
+    rec = json.loads((other / "out" / "sfm" / "reconstruction.json").read_text())
+    rng = np.random.default_rng(21)
+    r = 5
+    sd = np.r_[[np.radians(0.05)] * 3, [0.03 / 0.37] * 3]  # model units: the fixture's similarity has scale 0.37
+    Fm = {im["name"]: rng.normal(size=(6, r)) * sd[:, None] / np.sqrt(r) for im in rec["images"]}
+    for im in rec["images"]:
+        im["pose_factor"] = Fm[im["name"]].tolist()
+    (other / "out" / "sfm" / "reconstruction.json").write_text(json.dumps(rec))
+    sol0 = json.loads((other / "out" / "solve" / "solution.json").read_text())
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        run_georef(Project(other), lambda *a: None)
+        run_solve(Project(other), lambda *a: None)
+    cams = json.loads((other / "out" / "georef" / "cameras.json").read_text())
+    pu = cams["georegistration"]["pose_uncertainty"]
+    A = np.asarray(pu["models"]["main"].get("world_from_model") or cams["georegistration"]["world_from_model"])[:3, :3]
+    s = float(np.cbrt(np.linalg.det(A)))
+    assert pu["models"]["main"]["sfm_rank"] == r and abs(s - 0.37) < 0.01
+    T = np.zeros((6, 6))
+    T[:3, :3], T[3:, 3:] = A / s, A
+    C7 = np.asarray(pu["models"]["main"]["covariance"])
+    for n, v in pu["views"].items():
+        F, J = np.asarray(v["sfm_factor"]), np.asarray(v["jacobian"])
+        assert np.allclose(F, T @ Fm[n], rtol=1e-9, atol=1e-15)
+        assert np.allclose(np.asarray(v["covariance_rotation_centre"]), J @ C7 @ J.T + F @ F.T, rtol=1e-9, atol=1e-18)
+    parsed = parse_pose_uncertainty(cams, "cameras.json")
+    assert parsed.model_covariance["main"].shape == (7 + r, 7 + r)
+    assert all(J.shape == (6, 7 + r) for _, J in parsed.jacobian.values())
+    sol = json.loads((other / "out" / "solve" / "solution.json").read_text())
+    n_wider = 0
+    for a, b in zip(sol0["carriages"], sol["carriages"]):
+        if b.get("sigma_body_centre_m") is None:
+            continue
+        assert np.allclose(a["world_from_carriage"], b["world_from_carriage"], rtol=0, atol=1e-9)
+        assert np.allclose(a["sigma_body_centre_fit_m"], b["sigma_body_centre_fit_m"], rtol=1e-9)
+        assert np.all(np.asarray(b["sigma_body_centre_m"]) >= np.asarray(a["sigma_body_centre_m"]) - 1e-12)
+        n_wider += bool(np.any(np.asarray(b["sigma_body_centre_m"]) > 1.01 * np.asarray(a["sigma_body_centre_m"])))
+    assert n_wider >= 2, n_wider

@@ -258,3 +258,131 @@ def test_separate_models_are_kept(tmp_path, mv_set):
     assert doc["models"][0]["points"]["n"] == sub.n_points_total
     assert doc["models"][0]["stats"]["n_registered"] == len(names)
     json.dumps(doc)  # serialisable
+
+
+def _ba_problem(seed: int):
+    """A small bundle adjustment: 5 cameras on a 100 deg arc 30 m from 50 points in a 16 m box, one camera
+    (f = 800 px, k1 = -0.05) of 1000x800."""
+    from workbench.core.camera import look_at
+
+    rng = np.random.default_rng(seed)
+    intr = CameraIntrinsics(width=1000, height=800, fx=800.0, fy=800.0, cx=499.5, cy=399.5, k1=-0.05)
+    X = rng.uniform(-8, 8, (50, 3)) * [1, 1, 0.4]
+    M = []
+    for a in np.radians(np.linspace(-50, 50, 5)):
+        c = np.array([30 * np.sin(a), -30 * np.cos(a), 6.0 + rng.normal(0, 1)])
+        M.append(look_at(c, rng.normal(0, 1, 3)))
+    M = np.array(M)
+    img, pt = np.meshgrid(np.arange(5), np.arange(len(X)), indexing="ij")
+    img, pt = img.ravel(), pt.ravel()
+    q = np.einsum("nij,nj->ni", M[img, :3, :3], X[pt]) + M[img, :3, 3]
+    uv = intr.project(q)
+    ok = intr.in_image(uv, 2.0)
+    return intr, M, X, img[ok], pt[ok], uv[ok]
+
+
+def _ba_solve(intr, M, X, img, pt, uv):
+    """Bundle adjustment of poses, points and the focal (gauge free, started at the truth): (cam_from_model (N, 4, 4),
+    points, intrinsics)."""
+    from scipy.optimize import least_squares
+    from scipy.sparse import lil_matrix
+
+    from workbench.core.geometry import exp_so3
+
+    n, P = len(M), len(X)
+    c0 = np.einsum("nji,nj->ni", M[:, :3, :3], -M[:, :3, 3])
+
+    def unpack(x):
+        R = M[:, :3, :3] @ exp_so3(-x[:3 * n].reshape(n, 3))  # rotation on the left of model_from_cam
+        return R, c0 + x[3 * n:6 * n].reshape(n, 3), X + x[6 * n:6 * n + 3 * P].reshape(P, 3), \
+            CameraIntrinsics.from_dict({**intr.to_dict(), "fx": intr.fx + x[-1], "fy": intr.fy + x[-1]})
+
+    def fun(x):
+        R, c, Xs, K = unpack(x)
+        return (K.project(np.einsum("nij,nj->ni", R[img], Xs[pt] - c[img])) - uv).ravel()
+
+    A = lil_matrix((2 * len(img), 6 * n + 3 * P + 1), dtype=int)
+    for k, (i, p) in enumerate(zip(img, pt)):
+        for j in range(3):
+            A[2 * k:2 * k + 2, 3 * i + j] = A[2 * k:2 * k + 2, 3 * n + 3 * i + j] = 1
+            A[2 * k:2 * k + 2, 6 * n + 3 * p + j] = 1
+        A[2 * k:2 * k + 2, -1] = 1
+    sol = least_squares(fun, np.zeros(6 * n + 3 * P + 1), jac_sparsity=A, method="trf", x_scale="jac",
+                        xtol=1e-10, ftol=1e-10, gtol=1e-10)
+    R, c, Xs, K = unpack(sol.x)
+    Ms = np.tile(np.eye(4), (n, 1, 1))
+    Ms[:, :3, :3], Ms[:, :3, 3] = R, -np.einsum("nij,nj->ni", R, c)
+    return Ms, Xs, K
+
+
+N_BA_DRAWS = 16
+
+
+def test_pose_covariance_against_a_monte_carlo_of_bundle_adjustment():
+    """The SfM pose covariance (workbench.intrinsics.sfm_covariance, gauge: the centres' similarity taken out)
+    against 16 bundle adjustments of the same scene with fresh pixel noise (0.5 px; poses, points and the focal
+    free), each brought onto the truth by its centres' similarity: RMS of error / stated sigma 0.75-1.3 over the
+    rotations and over the centres (16 x 15 components each), the pixel sigma recovered within 15 %, and the
+    gauge holding (the stated centre errors carry no similarity: G^T W C = 0)."""
+    from scipy.spatial.transform import Rotation
+
+    from workbench.intrinsics.sfm_covariance import _gauge, pose_covariance
+
+    intr, M, X, img, pt, uv0 = _ba_problem(4)
+    rng = np.random.default_rng(5)
+    names = [f"v{i}" for i in range(len(M))]
+    c_true = np.einsum("nji,nj->ni", M[:, :3, :3], -M[:, :3, 3])
+    Z, pc = [], None
+    for d in range(N_BA_DRAWS):
+        uv = uv0 + rng.normal(0.0, 0.5, uv0.shape)
+        Ms, Xs, K = _ba_solve(intr, M, X, img, pt, uv)
+        if pc is None:
+            pc = pose_covariance(names, Ms, np.zeros(len(M), int), [K], img, pt, uv, Xs, ["f"])
+            c_first = np.einsum("nji,nj->ni", Ms[:, :3, :3], -Ms[:, :3, 3])
+            assert 0.85 * 0.5 < pc.stats["sigma_px"] < 1.15 * 0.5, pc.stats
+        c_est = np.einsum("nji,nj->ni", Ms[:, :3, :3], -Ms[:, :3, 3])
+        s, R, t, _ = similarity_align(c_est, c_true)  # the centres' similarity: the gauge the covariance states
+        for i, n in enumerate(names):
+            Rwc = R @ Ms[i, :3, :3].T  # model_from_cam brought onto the truth
+            w = R.T @ Rotation.from_matrix(Rwc @ M[i, :3, :3]).as_rotvec()  # back in the model frame
+            e = np.r_[w, (R.T @ (s * R @ c_est[i] + t - c_true[i])) / s]
+            Z.append(e / np.sqrt(np.diag(pc.marginal(n))))
+    Z = np.array(Z)
+    rz_rot, rz_c = np.sqrt(np.mean(Z[:, :3] ** 2)), np.sqrt(np.mean(Z[:, 3:] ** 2))
+    print(f"RMS z rotation {rz_rot:.3f}, centre {rz_c:.3f}, sigma_px {pc.stats['sigma_px']:.3f}")
+    assert 0.75 < rz_rot < 1.3 and 0.75 < rz_c < 1.3, (rz_rot, rz_c)
+    L = np.vstack([pc.factor[n] for n in names])
+    G, W = _gauge(c_first, L.shape[0])
+    assert np.abs(G.T @ (W[:, None] * (L @ L.T))).max() < 1e-9 * np.abs(L @ L.T).max()
+
+
+def test_sfm_states_each_models_pose_covariance(sfm_result, mv_set):
+    """The rendered set's SfM poses: each view's pose_factor (6 x r, r = 6 N - 7: the full rank but the gauge)
+    written to reconstruction.json and read back; its centres' errors after the centres' similarity against the
+    stated sigmas: RMS z 0.6-1.6 (1.06 measured). The rotations are off by 0.33-0.49 deg, 2.6 stated sigmas in
+    RMS: the set's principal point is 3 px and 2 px off the image centre, where SfM keeps it fixed
+    (refine_principal_point off), a common rotation the covariance does not know (a model error, not noise)."""
+    from workbench.files.reconstruction import parse_reconstruction
+
+    _, truth = mv_set
+    pc = sfm_result.stats["pose_covariance"]
+    assert pc["rank"] == 6 * 8 - 7 and pc["trace_share_kept"] > 0.999 and pc["intrinsics_refined"] == ["f", "k1", "k2"]
+    assert 0.2 < pc["sigma_px"] < 1.0 and 0.01 < pc["max_sigma_rotation_deg"] < 1.0
+    tp, s, R, t, _ = _aligned(sfm_result, truth)
+    z = []
+    for v in sfm_result.views:
+        assert v.pose_factor.shape == (6, pc["rank"])
+        e = v.center_model - R.T @ (np.asarray(tp[v.name]["center"]) - t) / s
+        z.append(e / np.sqrt(np.diag(v.pose_factor @ v.pose_factor.T)[3:]))
+    rz = float(np.sqrt(np.mean(np.square(z))))
+    assert 0.6 < rz < 1.6, rz
+    rec = parse_reconstruction(json.loads(json.dumps(sfm_result.to_json())), "reconstruction.json")
+    F = {v.name: v.pose_factor for v in sfm_result.views}
+    assert all(np.allclose(v.pose_factor, F[v.name], rtol=0, atol=0) for v in rec.main)
+    doc = sfm_result.to_json()
+    doc["images"][1]["pose_factor"] = doc["images"][1]["pose_factor"][:5]
+    with pytest.raises(StageError, match=r"images\[1\]\.pose_factor"):
+        parse_reconstruction(doc, "reconstruction.json")
+    del doc["images"][1]["pose_factor"]
+    with pytest.raises(StageError, match="same rank"):
+        parse_reconstruction(doc, "reconstruction.json")

@@ -118,3 +118,22 @@ def test_dem_with_error_is_continuous_between_carriages():
     e = dem.height_at(xy) - sim.terrain.height_at(xy)
     assert e[0] == pytest.approx(dem.errors_m[1]) and e[-1] == pytest.approx(dem.errors_m[2])
     assert np.abs(np.diff(e)).max() < 0.01  # 1.2 cm steps of the line: no jump
+
+
+def test_solve_gives_level_carriages_the_wheels_row():
+    """In a solve on a DEM stated at 0.10 m, carriages standing level on it take the wheels' row (step 4's facts
+    name them); stating 1 cm, the rotations cannot confirm it and every carriage keeps the lowest point's."""
+    import warnings
+
+    from workbench.solve import SolveOptions, SolveWarning, solve_consist
+
+    sim = simulate_consist(4, seed=21, pixel_sigma_px=0.7)
+    dem = dem_with_error(sim, 0.1, 8)
+    on = {}
+    for sigma in (0.10, 0.01):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", SolveWarning)
+            res = solve_consist(sim.carriages, sim.links, sim.views,
+                                SolveOptions(pixel_sigma_px=0.7, terrain_sigma_m=sigma), terrain=dem)
+        on[sigma] = next(st for st in res.steps if st.name == "4_all").facts["contact_on_wheels"]
+    assert len(on[0.10]) >= 3 and on[0.01] == []

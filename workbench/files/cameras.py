@@ -90,8 +90,9 @@ class PoseUncertainty:
     each a 6-vector (scene rotation vector of ``world_from_cam`` in rad, centre in m, ENU).
 
     ``model_covariance``: SfM model -> (7, 7) covariance of its similarity's error (log scale, rotation vector,
-    translation); ``jacobian``: view -> (its model, (6, 7)): the view's error is ``J @ e_model``, the same
-    ``e_model`` for every view of that model (their errors are correlated); ``own_covariance``: view -> (6, 6)
+    translation), (7 + r) square where the SfM poses' own error is stated (then ``I_r``); ``jacobian``: view ->
+    (its model, (6, 7) or (6, 7 + r)): the view's error is ``J @ e_model``, the same ``e_model`` for every view of
+    that model (their errors are correlated); ``own_covariance``: view -> (6, 6)
     for a view whose error is its own (independent of every other view's); ``not_modelled``: views placed
     without a stated pose covariance."""
 
@@ -118,7 +119,9 @@ def _finite_matrix(x: Any, shape: tuple[int, ...], where: str) -> np.ndarray:
 def parse_pose_uncertainty(doc: dict, path: Path | str) -> PoseUncertainty | None:
     """The ``georegistration.pose_uncertainty`` block of a cameras document, checked (None when absent);
     :class:`InputError` naming the key. A model whose covariance is null (the fit left it undetermined) leaves
-    its views not modelled."""
+    its views not modelled. A model with ``sfm_rank`` r (its SfM poses' own covariance stated) has its covariance
+    extended to (7 + r) square (the similarity's, then ``I_r``) and each of its views' Jacobian to (6, 7 + r)
+    (``[jacobian, sfm_factor]``), so the views' SfM errors stay shared and correlated as the similarity's."""
     block = (doc.get("georegistration") or {}).get("pose_uncertainty") if isinstance(doc, dict) else None
     if block is None:
         return None
@@ -127,12 +130,19 @@ def parse_pose_uncertainty(doc: dict, path: Path | str) -> PoseUncertainty | Non
             or not isinstance(block.get("views", {}), dict):
         raise InputError(f"{where}: must be an object with 'models' and 'views' objects; {SEE}")
     cov: dict[str, np.ndarray] = {}
+    ranks: dict[str, int] = {}
     for label, m in block.get("models", {}).items():
         if not isinstance(m, dict):
             raise InputError(f"{where}.models.{label}: must be an object with a 'covariance' (7 x 7 or null)")
+        r = m.get("sfm_rank")
+        if r is not None and (not isinstance(r, int) or isinstance(r, bool) or r < 1):
+            raise InputError(f"{where}.models.{label}.sfm_rank = {r!r}: must be a positive integer or null")
         if m.get("covariance") is not None:
             C = _finite_matrix(m["covariance"], (7, 7), f"{where}.models.{label}.covariance")
             cov[label] = 0.5 * (C + C.T)
+            if r:  # the SfM poses' own error: r more shared parameters z ~ N(0, I), beside the similarity's 7
+                ranks[label] = r
+                cov[label] = np.block([[cov[label], np.zeros((7, r))], [np.zeros((r, 7)), np.eye(r)]])
     jac: dict[str, tuple[str, np.ndarray]] = {}
     own: dict[str, np.ndarray] = {}
     missing = []
@@ -145,6 +155,10 @@ def parse_pose_uncertainty(doc: dict, path: Path | str) -> PoseUncertainty | Non
             if label not in block.get("models", {}):
                 raise InputError(f"{w}.model = {label!r} is not one of the models ({', '.join(block['models'])})")
             J = _finite_matrix(v.get("jacobian"), (6, 7), f"{w}.jacobian")
+            if label in ranks:  # [J, F]: the similarity's error and the view's share of the SfM poses' error
+                F = np.zeros((6, ranks[label])) if v.get("sfm_factor") is None else \
+                    _finite_matrix(v["sfm_factor"], (6, ranks[label]), f"{w}.sfm_factor")
+                J = np.hstack([J, F])
             if label in cov:
                 jac[name] = (label, J)
             else:

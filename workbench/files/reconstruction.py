@@ -23,11 +23,15 @@ __all__ = ["SfmView", "Reconstruction", "read_reconstruction"]
 
 @dataclass(frozen=True)
 class SfmView:
-    """A photo of an SfM model: its name, intrinsics and ``cam_from_model`` (4, 4), model units."""
+    """A photo of an SfM model: its name, intrinsics and ``cam_from_model`` (4, 4), model units; ``pose_factor``
+    (6, r): its rows of the model's pose covariance factor (the sfm stage's bundle adjustment, gauge: the centres'
+    similarity taken out; ``C_v = F F^T``, the model's views sharing one ``z ~ N(0, I_r)``; docs/formats.md), or
+    None when the file states none."""
 
     name: str
     intrinsics: CameraIntrinsics
     cam_from_model: np.ndarray
+    pose_factor: np.ndarray | None = field(default=None, compare=False)
 
 
 @dataclass(frozen=True)
@@ -63,7 +67,18 @@ def _views(images: Any, where: str) -> tuple[SfmView, ...]:
         intr = intrinsics_checked(s.get("intrinsics"), f"{w}.intrinsics")
         M = matrix_from_json(s.get("cam_from_model"), (4, 4), f"{w}.cam_from_model")
         rotation_checked(M[:3, :3], f"{w}.cam_from_model")
-        views.append(SfmView(s["name"], intr, M))
+        F = None
+        if s.get("pose_factor") is not None:
+            F = np.asarray(s["pose_factor"], dtype=float) if isinstance(s["pose_factor"], list) else None
+            if F is None or F.ndim != 2 or F.shape[0] != 6 or F.shape[1] < 1 or not np.all(np.isfinite(F)):
+                raise StageError(f"{w}.pose_factor: must be a 6 x r list of finite numbers (r >= 1), got "
+                                 f"{None if F is None else F.shape}; run the sfm stage again")
+        views.append(SfmView(s["name"], intr, M, F))
+    ranks = {v.pose_factor.shape[1] for v in views if v.pose_factor is not None}
+    if len(ranks) > 1 or (ranks and any(v.pose_factor is None for v in views)):
+        raise StageError(f"{where}: every image of a model needs a pose_factor of the same rank (found ranks "
+                         f"{sorted(ranks)}, {sum(v.pose_factor is None for v in views)} images without); run the "
+                         f"sfm stage again")
     return tuple(views)
 
 

@@ -175,7 +175,19 @@ def _views_out(placed: dict, resected: dict, images: dict[str, str], src: str) -
 
 POSE_PARAMETRISATION = ("a model's similarity error: [log scale, rotation vector (rad, scene frame, applied on the "
                         "left), translation (m, ENU)]; a view's pose error: [rotation vector of world_from_cam (rad, "
-                        "scene frame), centre (m, ENU)] = jacobian @ its model's similarity error")
+                        "scene frame), centre (m, ENU)] = jacobian @ its model's similarity error + sfm_factor @ z "
+                        "(its SfM pose's own error, z ~ N(0, I_sfm_rank) shared by the model's views)")
+
+
+def _sfm_factor(res: SimilarityResult, sv: SfmView) -> np.ndarray | None:
+    """(6, r) the view's SfM pose factor (model frame, :mod:`workbench.intrinsics.sfm_covariance`) carried into the
+    scene by the similarity: a rotation turns by ``R``, a centre moves by ``s R``; None when SfM stated none."""
+    if sv.pose_factor is None:
+        return None
+    T = np.zeros((6, 6))
+    T[:3, :3] = res.rotation
+    T[3:, 3:] = res.scale * res.rotation
+    return T @ np.asarray(sv.pose_factor, float)
 
 
 def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncertainty: dict) -> dict:
@@ -183,7 +195,8 @@ def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncer
     and each view's Jacobian (6, 7) from it, so that views of one model keep their shared (correlated) error; a
     view whose pose the shared-camera adjustment replaced carries that adjustment's covariance on its own, and so
     does a view placed on its own (resection: its control points' fit, the refined focal's doubt included when
-    the focal was refined). The SfM poses' own error is not included."""
+    the focal was refined). The SfM poses' own error, where the sfm stage stated it (each view's
+    ``pose_factor``), is each view's ``sfm_factor`` beside its Jacobian: its model's views share it."""
     models: dict[str, dict] = {}
     views: dict[str, dict] = {}
     for ve in out_views:
@@ -192,13 +205,17 @@ def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncer
             label, res, sv = placed[name]
             M = np.asarray(ve["cam_from_world"], float)
             if np.allclose(M, res.cam_from_world(sv.cam_from_model), rtol=0.0, atol=1e-9):
+                F = _sfm_factor(res, sv)
                 if label not in models:
                     models[label] = {"covariance": None if res.covariance is None else res.covariance.tolist(),
                                      "translation_enu": np.asarray(res.translation, float).tolist(),
-                                     "scale": float(res.scale)}
+                                     "scale": float(res.scale), "sfm_rank": None if F is None else int(F.shape[1])}
                 C = res.view_covariance(sv.cam_from_model)
+                if C is not None and F is not None:
+                    C = C + F @ F.T
                 views[name] = {"source": "similarity", "model": label,
                                "jacobian": res.view_jacobian(sv.cam_from_model).tolist(),
+                               "sfm_factor": None if F is None else F.tolist(),
                                "covariance_rotation_centre": None if C is None else C.tolist()}
                 continue
             u = uncertainty.get(name) or {}
@@ -213,9 +230,11 @@ def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncer
         views[name] = {"source": "resection" if name in resected else "other", "model": None, "jacobian": None,
                        "covariance_rotation_centre": None if C is None else np.asarray(C, float).tolist()}
     return {"parametrisation": POSE_PARAMETRISATION,
-            "not_included": "the SfM poses' own error relative to one another (SfM states none); a photo placed "
-                            "on its own (resection): the correlation of its error with the models' through the "
-                            "control points they share, and its SfM camera's error when the focal was not refined",
+            "not_included": ("the SfM poses' own error relative to one another (the reconstruction states none)"
+                             if any(m.get("sfm_rank") is None for m in models.values()) else
+                             "the SfM intrinsics' error beyond its first-order effect on the poses")
+            + "; a photo placed on its own (resection): the correlation of its error with the models' through the "
+              "control points they share, and its SfM camera's error when the focal was not refined",
             "models": models, "views": views}
 
 

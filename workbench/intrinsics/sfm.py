@@ -31,6 +31,7 @@ from ..core.camera import CameraIntrinsics
 from ..core.options import Range, check_options
 from ..core.settings import options_from_dict
 from ..errors import InputError, StageError
+from .sfm_covariance import intrinsic_parameters, reconstruction_pose_covariance
 
 log = logging.getLogger(__name__)
 
@@ -74,6 +75,8 @@ class SfmOptions:
     so that a run repeats bit for bit (COLMAP's threads share work in an order that changes from run to run,
     and the result with it). ``seed``: random seed.
     ``max_points``: at most this many 3-D points are written (a fixed-seed subsample).
+    ``pose_covariance``: state each model's pose covariance after bundle adjustment (each view's
+    ``pose_factor``, :mod:`.sfm_covariance`), which the georef stage carries into the photos' pose uncertainty.
     """
 
     camera_model: CameraModel = "RADIAL"
@@ -101,6 +104,7 @@ class SfmOptions:
     deterministic: bool = True
     seed: Annotated[int, Range(ge=0)] = 0
     max_points: Annotated[int, Range(ge=0)] = 20000
+    pose_covariance: bool = True
 
     def __post_init__(self) -> None:
         check_options(self, "sfm options")
@@ -214,6 +218,7 @@ class SfmView:
     intrinsics: CameraIntrinsics
     cam_from_model: np.ndarray  # (4, 4)
     n_points: int  # 3-D points it observes
+    pose_factor: np.ndarray | None = None  # (6, r): its rows of the model's pose covariance factor (.sfm_covariance)
 
     @property
     def center_model(self) -> np.ndarray:
@@ -222,8 +227,16 @@ class SfmView:
 
 
 def _images_json(views: list[SfmView], relative: Callable[[Path], str]) -> list[dict]:
-    return [{"name": v.name, "image": relative(v.path), "intrinsics": v.intrinsics.to_dict(),
-             "cam_from_model": np.asarray(v.cam_from_model).tolist(), "n_points": v.n_points} for v in views]
+    out = []
+    for v in views:
+        d = {"name": v.name, "image": relative(v.path), "intrinsics": v.intrinsics.to_dict(),
+             "cam_from_model": np.asarray(v.cam_from_model).tolist(), "n_points": v.n_points}
+        if v.pose_factor is not None:
+            F = np.asarray(v.pose_factor, float)
+            d["pose_factor"] = F.tolist()
+            d["covariance_rotation_centre"] = (F @ F.T).tolist()
+        out.append(d)
+    return out
 
 
 def _points_json(xyz: np.ndarray, rgb: np.ndarray, n_total: int) -> dict:
@@ -491,7 +504,7 @@ def run_sfm(images: list[Path], *, options: SfmOptions | None = None, prior: Cam
             raise StageError(f"structure from motion built no model from the {len(names)} photos in {image_dir}: "
                              f"too few matches between them. Take photos with more overlap (each part of the "
                              f"scene in 3 or more photos, 60-80 % overlap), or use another camera.source")
-        result = _convert(rec, others, db, images, used_opts)
+        result = _convert(rec, others, db, images, used_opts, prior_fixed)
 
     n_reg = len(result.views)
     if prior_used is not None and not prior_fixed:
@@ -516,9 +529,30 @@ def run_sfm(images: list[Path], *, options: SfmOptions | None = None, prior: Cam
     return result
 
 
-def _model_parts(rec, by_name: dict[str, Path], opts: SfmOptions):
+def _pose_covariance(rec, views: list[SfmView], opts: SfmOptions, intrinsics_fixed: bool) -> dict | None:
+    """Each view's ``pose_factor`` set from the model's pose covariance (:mod:`.sfm_covariance`, in place); its
+    statistics, or None (not asked for, or not determined: logged, the views keep no factor)."""
+    if not opts.pose_covariance:
+        return None
+    cam = rec.camera(rec.image(next(iter(rec.reg_image_ids()))).camera_id)
+    params = [] if intrinsics_fixed else intrinsic_parameters(cam.model.name, opts.refine_focal,
+                                                               opts.refine_principal_point, opts.refine_distortion)
+    try:
+        pc = reconstruction_pose_covariance(
+            rec, {i: rec.image(i).name for i in rec.reg_image_ids()},
+            lambda c: intrinsics_from_colmap(c.model.name, c.width, c.height, c.params), params)
+    except (ValueError, np.linalg.LinAlgError) as exc:
+        log.warning("sfm: no pose covariance for a model of %d photos: %s", len(views), exc)
+        return {"error": str(exc)}
+    for v in views:
+        v.pose_factor = pc.factor.get(v.name)
+    return pc.stats
+
+
+def _model_parts(rec, by_name: dict[str, Path], opts: SfmOptions, intrinsics_fixed: bool = False):
     """Views (sorted by name), points (a fixed-seed subsample of at most ``opts.max_points``), their total and
-    the model's statistics, of one COLMAP reconstruction."""
+    the model's statistics (with its pose covariance's: :func:`_pose_covariance`), of one COLMAP
+    reconstruction."""
     views = []
     for image_id in sorted(rec.reg_image_ids()):
         im = rec.image(image_id)
@@ -545,17 +579,19 @@ def _model_parts(rec, by_name: dict[str, Path], opts: SfmOptions):
         "median_point_error_px": float(np.median(err)) if n_total else 0.0,
         "mean_track_length": float(track.mean()) if n_total else 0.0,
         "mean_observations_per_image": float(rec.compute_mean_observations_per_reg_image()),
+        "pose_covariance": _pose_covariance(rec, views, opts, intrinsics_fixed),
     }
     return views, xyz, rgb, n_total, stats
 
 
-def _convert(rec, others, db_path: Path, images: list[Path], opts: SfmOptions) -> SfmResult:
+def _convert(rec, others, db_path: Path, images: list[Path], opts: SfmOptions,
+             intrinsics_fixed: bool = False) -> SfmResult:
     """The main model ``rec`` and the separate ``others`` (largest first) as an :class:`SfmResult`, with the
     reason every photo is not in the main model."""
     import pycolmap
 
     by_name = {p.name: p for p in images}
-    views, xyz, rgb, n_total, model_stats = _model_parts(rec, by_name, opts)
+    views, xyz, rgb, n_total, model_stats = _model_parts(rec, by_name, opts, intrinsics_fixed)
     registered = {v.name for v in views}
     models = []
     covered = set(registered)
@@ -566,7 +602,7 @@ def _convert(rec, others, db_path: Path, images: list[Path], opts: SfmOptions) -
             n_dropped += 1
             continue
         covered |= names_r
-        v2, xyz2, rgb2, n2, st2 = _model_parts(r, by_name, opts)
+        v2, xyz2, rgb2, n2, st2 = _model_parts(r, by_name, opts, intrinsics_fixed)
         models.append(SfmModel(views=v2, points_xyz=xyz2, points_rgb=rgb2, n_points_total=n2, stats=st2))
 
     # why were the others left out?

@@ -90,5 +90,7 @@ def run_sfm_stage(project: Project, progress: Progress) -> StageResult:
         "camera_model": st["camera_model"], "matcher": st["matcher"],
         "retried_forward_motion": st["retried_forward_motion"], "timings_s": st["timings_s"],
         "warnings": st["warnings"],
+        "pose_covariance": {k: v for k, v in (st.get("pose_covariance") or {}).items() if k != "parametrisation"}
+        or None,
     }
     return StageResult(outputs={"reconstruction": path}, stats=stats)

@@ -681,7 +681,7 @@ def add_view_camera_uncertainty(res: Any, carriages: Sequence[Any], links: Seque
         name = views[v].name
         if name in jacobian:
             label, J = jacobian[name]
-            B[label] = B.get(label, np.zeros((P, 7))) + Rv @ np.asarray(J, float)
+            B[label] = B.get(label, np.zeros((P, np.shape(J)[1]))) + Rv @ np.asarray(J, float)
         elif name in own_covariance:
             C_cam += Rv @ np.asarray(own_covariance[name], float) @ Rv.T
         else:
