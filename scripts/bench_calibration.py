@@ -484,18 +484,19 @@ def route_relative_focal(n, seed0, log=print, pp_uniform=False):
 # ----------------------------------------------------------------------------------------------------------
 MV_CASES = ((5, 0.5), (4, 1.0))  # (cars, pixel sigma of the hand picks) of each base incident, cycled
 MV_DRAWS = 10  # noise draws per generated incident (its geometry rendered once, ~15 s)
+REAL_SFM_MAX_SEEDS = 12  # --real-sfm: incidents tried at most (SfM places too few photos of some)
 
 
-def _mv_base(work: Path, seed: int, n_cars: int) -> Path:
-    """A generated incident (``workbench synth``: 800x600 photos, 8 multi-view photos, 2 panorama photos) set up
+def _mv_base(work: Path, seed: int, n_cars: int, size: tuple[int, int] = (800, 600)) -> Path:
+    """A generated incident (``workbench synth``: ``size`` photos, 8 multi-view photos, 2 panorama photos) set up
     for the multi-view route (camera source sfm, the multi-view photos), with its control points' true pixels
-    and coordinates cached (``cp_exact.json``)."""
+    and coordinates cached (``cp_exact.json``). Photos other than 800x600 go to ``mv<W>_<seed>``."""
     from workbench.synth.control_points import control_points_document
     from workbench.synth.generate import SynthOptions, generate_incident
 
-    root = work / f"mv_{seed}" / "projects" / "inc"
+    root = work / (f"mv_{seed}" if size == (800, 600) else f"mv{size[0]}_{seed}") / "projects" / "inc"
     if not (root / "cp_exact.json").is_file():
-        generate_incident(root, SynthOptions(seed=seed, n_cars=n_cars, photo_width=800, photo_height=600,
+        generate_incident(root, SynthOptions(seed=seed, n_cars=n_cars, photo_width=size[0], photo_height=size[1],
                                              n_panorama=2, n_multiview=8, supersample=1,
                                              layers_dir="../../terrain"))
         t = (root / "project.toml").read_text()
@@ -520,8 +521,98 @@ def _sfm_noisy(rec: dict, scale: float, rng, sigma_deg: float, sigma_m: float) -
     return rec
 
 
+def _real_sfm(root: Path, own_covariance: bool = True) -> dict:
+    """The sfm stage itself (pycolmap, as ``workbench run`` runs it) on the base incident's multi-view photos, run
+    once per incident (its reconstruction cached as ``sfm_real.json``: the run is deterministic, and the noise
+    draws change only the picks and the control points). ``own_covariance`` False: the views' SfM pose
+    covariance (``covariance_rotation_centre``) dropped, the route as it was before the sfm stage stated it."""
+    cache = root / "sfm_real.json"
+    if not cache.is_file():
+        from workbench.intrinsics.stage import run_sfm_stage
+        from workbench.project import Project
+
+        t0 = time.perf_counter()
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            run_sfm_stage(Project(root), lambda *a: None)
+        doc = json.loads((root / "out" / "sfm" / "reconstruction.json").read_text())
+        doc.setdefault("stats", {})["bench_sfm_wall_s"] = round(time.perf_counter() - t0, 1)
+        cache.write_text(json.dumps(doc))
+    doc = json.loads(cache.read_text())
+    if not own_covariance:
+        for images in [doc.get("images", [])] + [m.get("images", []) for m in doc.get("models", [])]:
+            for im in images:
+                im.pop("pose_factor", None)
+                im.pop("covariance_rotation_centre", None)
+        doc.pop("pose_covariance", None)
+    return doc
+
+
+def sfm_view_errors(cameras: dict, truth: dict, cameras_path: Path) -> list[dict]:
+    """Every placed photo's scene pose error against the truth (rotation vector of ``world_from_cam`` (rad, scene
+    frame, on the left) and centre (m, ENU): the order of ``pose_uncertainty``) and its stated covariance
+    (:meth:`~workbench.files.cameras.PoseUncertainty.view_covariance`): per view the error, the stated sigmas and
+    the Mahalanobis distance squared (6 dof)."""
+    from scipy.spatial.transform import Rotation
+
+    from workbench.files.cameras import parse_pose_uncertainty
+
+    pu = parse_pose_uncertainty(cameras, cameras_path)
+    true_of = {Path(p.get("photo", "")).name: np.asarray(p["cam_from_world"], float) for p in truth.get("photos", [])}
+    out = []
+    for v in cameras.get("views", []):
+        Mt = true_of.get(v["name"])
+        if Mt is None:
+            continue
+        Me = np.asarray(v["cam_from_world"], float)
+        w = Rotation.from_matrix(Me[:3, :3].T @ Mt[:3, :3]).as_rotvec()  # world_from_cam_est = Exp(w) world_from_cam_true
+        e = np.concatenate([w, (-Me[:3, :3].T @ Me[:3, 3]) - (-Mt[:3, :3].T @ Mt[:3, 3])])
+        C = None if pu is None else pu.view_covariance(v["name"])
+        rec = {"view": v["name"], "err": e.tolist(), "rot_err_deg": float(np.degrees(np.linalg.norm(w))),
+               "centre_err_m": float(np.linalg.norm(e[3:])), "sigma": None, "maha2": None}
+        if C is not None:
+            rec["sigma"] = np.sqrt(np.maximum(np.diag(C), 0.0)).tolist()
+            rec["maha2"] = float(e @ np.linalg.pinv(C, rcond=1e-12, hermitian=True) @ e)
+        out.append(rec)
+    return out
+
+
+def print_placed_split(recs: list[dict], info: dict) -> None:
+    """--real-sfm: the carriages of draws whose photos an SfM model's similarity placed (some stated pose
+    covariance) apart from those of draws where every photo was placed on its own (resected: none stated), with
+    the camera term and with the fit's own intervals."""
+    placed = {e["draw"] for e in info["view_errors"] if e["sigma"] is not None}
+    for label, rr in (("", recs), (" before (the fit's own)", info.get("fit_records", []))):
+        for what, keep in (("SfM model placed", True), ("photos resected", False)):
+            sub = [r for r in rr if (int(r["problem"][2:]) in placed) == keep]
+            if sub:
+                print_table(f"multiview{label}, draws with {what} (incidents "
+                            f"{sorted({int(r['problem'][2:]) // 1000 for r in sub})})", axis_stats(sub))
+    st = [e for e in info["view_errors"] if e["draw"] in placed and e["sigma"] is not None]
+    if st:
+        print("SfM-placed " + view_error_summary(st))
+
+
+def view_error_summary(errs: list[dict]) -> str:
+    """One line on the placed photos' pose errors against their stated covariance (:func:`sfm_view_errors`)."""
+    if not errs:
+        return ""
+    E = np.array([e["err"] for e in errs])
+    line = (f"photo poses ({len(errs)} over the draws): RMS rotation error {np.degrees(np.sqrt(np.mean(np.sum(E[:, :3] ** 2, 1)))):.3f} deg, "
+            f"RMS centre error {np.sqrt(np.mean(np.sum(E[:, 3:] ** 2, 1))):.3f} m")
+    st = [e for e in errs if e["sigma"] is not None]
+    if st:
+        Z = np.array([e["err"] for e in st]) / np.maximum(np.array([e["sigma"] for e in st]), 1e-300)
+        rz = np.sqrt(np.mean(Z ** 2, axis=0))
+        m2 = np.array([e["maha2"] for e in st])
+        line += (f"; stated for {len(st)}: RMS z rotation {' '.join(f'{x:.2f}' for x in rz[:3])}, centre "
+                 f"{' '.join(f'{x:.2f}' for x in rz[3:])}; mean Mahalanobis^2 / 6 {np.mean(m2) / 6:.2f} "
+                 f"(median {np.median(m2) / 6:.2f})")
+    return line
+
+
 def mv_draw(root: Path, draw_seed: int, sigma_px: float, cp_sigma_px: float = 0.5,
-            sfm_noise: tuple[float, float] = (0.0, 0.0)) -> dict:
+            sfm_noise: tuple[float, float] = (0.0, 0.0), real_sfm: str | None = None) -> dict:
     """One noise draw on a multi-view base incident: the control points' pixels + N(0, ``cp_sigma_px``) and
     their coordinates + N(0, sigma_m) (the survey error they state), an exact SfM model in a random frame (a
     random similarity; ``sfm_noise`` (deg, m): each SfM pose disturbed, :func:`_sfm_noisy`), hand picks (true
@@ -544,7 +635,10 @@ def mv_draw(root: Path, draw_seed: int, sigma_px: float, cp_sigma_px: float = 0.
     atomic_write_json(root / "control_points.json", cp)
     scale = float(np.exp(rng.uniform(-1.5, 1.5)))
     S = similarity(scale, rng.uniform(-180, 180, 3) * [1, 0.5, 1], rng.normal(0.0, 50.0, 3))
-    rec = true_reconstruction(root, S)
+    if real_sfm is not None:  # pycolmap's model of the photos (its own frame), with or without its covariance
+        rec = _real_sfm(root, own_covariance=real_sfm == "covariance")
+    else:
+        rec = true_reconstruction(root, S)
     if any(sfm_noise):
         rec = _sfm_noisy(rec, scale, rng, *sfm_noise)
     atomic_write_json(root / "out" / "sfm" / "reconstruction.json", rec)
@@ -555,31 +649,52 @@ def mv_draw(root: Path, draw_seed: int, sigma_px: float, cp_sigma_px: float = 0.
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         run_georef(project, lambda *a: None)
+        if real_sfm is not None:  # picks only in the photos placed (SfM or the georef left some out), as a user would
+            placed = {v["name"] for v in json.loads((root / "out/georef/cameras.json").read_text())["views"]}
+            corr = json.loads((root / "correspondences.json").read_text())
+            corr["observations"] = [o for o in corr["observations"] if o["view"] in placed]
+            atomic_write_json(root / "correspondences.json", corr)
         run_solve(project, lambda *a: None)
+    cameras = json.loads((root / "out/georef/cameras.json").read_text())
     return {"solution": json.loads((root / "out/solve/solution.json").read_text()), "truth": truth,
-            "cameras": json.loads((root / "out/georef/cameras.json").read_text())}
+            "cameras": cameras, "view_errors": sfm_view_errors(cameras, truth, root / "out/georef/cameras.json")}
 
 
 def route_multiview(n: int, seed0: int, log=print, work: Path | None = None, draws: int = MV_DRAWS,
-                    sfm_noise: tuple[float, float] = (0.0, 0.0)) -> tuple[list[dict], dict]:
+                    sfm_noise: tuple[float, float] = (0.0, 0.0), real_sfm: str | None = None
+                    ) -> tuple[list[dict], dict]:
     """Generated incidents (seeds from ``seed0``), each solved ``draws`` times with fresh noise (:func:`mv_draw`);
     the records with the camera term (``camera_uncertainty``) and, in ``info["fit_records"]``, the same carriages
     against the fit's own intervals (``sigma_*_fit_*``: the intervals before the camera term)."""
     work = work or REPO / "bench_out" / "calibration_multiview"
     recs, info = [], {"seeds": [], "failed": [], "left_out": 0, "no_interval": 0, "time_s": 0.0, "work": str(work),
-                      "fit_records": [], "draws": draws, "sfm_noise_deg_m": list(sfm_noise)}
+                      "fit_records": [], "draws": draws, "sfm_noise_deg_m": list(sfm_noise),
+                      "real_sfm": real_sfm, "view_errors": []}
     t0, k = time.perf_counter(), 0
+    dead: set[int] = set()  # real SfM: incidents whose first draw failed (the same SfM model in every draw)
     while len(recs) < n:
         seed = seed0 + k // draws
+        if real_sfm is not None and (seed - seed0 >= REAL_SFM_MAX_SEEDS or seed in dead):
+            if seed - seed0 >= REAL_SFM_MAX_SEEDS:
+                log(f"  {REAL_SFM_MAX_SEEDS} incidents tried: stopping")
+                break
+            k += 1
+            continue
         n_cars, sigma = MV_CASES[(k // draws) % len(MV_CASES)]
         draw_seed = 1000 * seed + k % draws
         k += 1
         t1 = time.perf_counter()
         try:
-            out = mv_draw(_mv_base(work, seed, n_cars), draw_seed, sigma, sfm_noise=sfm_noise)
+            # pycolmap registers 2 of 8 photos of an 800x600 incident (seed 951); at 1600x1200 (bench_sfm's size) more
+            base = _mv_base(work, seed, n_cars, (1600, 1200) if real_sfm else (800, 600))
+            out = mv_draw(base, draw_seed, sigma, sfm_noise=sfm_noise, real_sfm=real_sfm)
         except Exception as e:  # noqa: BLE001 - a failed draw is counted and named, not fatal
             info["failed"].append({"seed": seed, "draw": draw_seed, "error": f"{type(e).__name__}: {str(e)[:300]}"})
             log(f"  seed {seed} draw {draw_seed}: failed ({type(e).__name__}: {str(e)[:160]})")
+            if real_sfm is not None:
+                if (k - 1) % draws == 0:  # its first draw: the SfM model or its placement failed, skip the rest
+                    dead.add(seed)
+                continue
             if len(info["failed"]) >= 5 and len(info["failed"]) > len(info["seeds"]):
                 log("  most draws fail: stopping (a broken checkout, not a finding)")
                 break
@@ -591,6 +706,7 @@ def route_multiview(n: int, seed0: int, log=print, work: Path | None = None, dra
         recs += r
         info["fit_records"] += fit
         info["seeds"].append(draw_seed)
+        info["view_errors"] += [{"draw": draw_seed, **e} for e in out.get("view_errors", [])]
         info["left_out"] += left
         info["no_interval"] += no_int
         cu = sol.get("camera_uncertainty") or {}
@@ -633,6 +749,9 @@ def main(argv=None) -> int:
     ap.add_argument("--sfm-noise", type=float, nargs=2, default=(0.0, 0.0), metavar=("DEG", "M"),
                     help="route multiview: disturb each SfM pose by N(0, DEG) per rotation axis and N(0, M) per "
                          "centre axis (default exact SfM models)")
+    ap.add_argument("--real-sfm", choices=("covariance", "no-covariance"), default=None,
+                    help="route multiview: run the sfm stage (pycolmap) on the generated photos instead of the exact "
+                         "model; 'no-covariance' drops the views' SfM pose covariance it states (the route before)")
     ap.add_argument("--pp-uniform", action="store_true", help="route relative_focal: the principal point "
                     "uniform +-10 px off the centre (simulate_consist's), not drawn with the sigma the solve states")
     ap.add_argument("--merge", type=Path, nargs="*", default=None,
@@ -667,14 +786,25 @@ def main(argv=None) -> int:
         print(f"route {r}: solving until {a.n} carriages ...", flush=True)
         kw = {"work": a.work, "keep": not a.no_keep, "resolve": a.resolve, "survey_noise": a.survey_noise} \
             if r == "auto" else {"pp_uniform": a.pp_uniform} if r.startswith("relative") else \
-            {"work": a.work, "draws": a.draws, "sfm_noise": tuple(a.sfm_noise)} if r == "multiview" else \
+            {"work": a.work, "draws": a.draws, "sfm_noise": tuple(a.sfm_noise), "real_sfm": a.real_sfm} \
+            if r == "multiview" else \
             {"terrain": a.terrain, "terrain_sigma_m": a.terrain_sigma}
         recs, info = ROUTES[r](a.n, a.seed0, log=lambda m: print(m, flush=True), **kw)
+        if not recs:
+            print(f"route {r}: no carriage solved ({len(info.get('failed', []))} failures)")
+            result["routes"][r] = {"info": info, "records": []}
+            out.parent.mkdir(parents=True, exist_ok=True)
+            out.write_text(json.dumps(result, indent=1))
+            continue
         st = axis_stats(recs)
         extra = f", {info['time_s']:.0f} s; left out {info.get('left_out', 0)}"
         if "focal_rms_z" in info:
             extra += f"; focal: RMS z {info['focal_rms_z']:.3f}, coverage {100 * info['focal_coverage']:.1f} %"
         print_table(r, st, extra)
+        if info.get("view_errors"):
+            print(view_error_summary(info["view_errors"]))
+        if info.get("real_sfm"):
+            print_placed_split(recs, info)
         result["routes"][r] = {"stats": st, "info": info, "records": recs}
         if info.get("fit_records"):  # the fit's own intervals against the truth moved by the camera's error
             st_fit = axis_stats(info["fit_records"])

@@ -211,7 +211,7 @@ def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncer
                                      "translation_enu": np.asarray(res.translation, float).tolist(),
                                      "scale": float(res.scale), "sfm_rank": None if F is None else int(F.shape[1])}
                 C = res.view_covariance(sv.cam_from_model)
-                if C is not None and F is not None:
+                if C is not None and F is not None:  # the similarity's share and the SfM pose's own
                     C = C + F @ F.T
                 views[name] = {"source": "similarity", "model": label,
                                "jacobian": res.view_jacobian(sv.cam_from_model).tolist(),

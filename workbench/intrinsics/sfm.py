@@ -76,7 +76,9 @@ class SfmOptions:
     and the result with it). ``seed``: random seed.
     ``max_points``: at most this many 3-D points are written (a fixed-seed subsample).
     ``pose_covariance``: state each model's pose covariance after bundle adjustment (each view's
-    ``pose_factor``, :mod:`.sfm_covariance`), which the georef stage carries into the photos' pose uncertainty.
+    ``pose_factor``, :mod:`.sfm_covariance`), which the georef stage carries into the photos' pose uncertainty;
+    ``pose_covariance_intrinsics``: with the error of the intrinsics bundle adjustment refined marginalised into it
+    (else the poses' covariance given the intrinsics).
     """
 
     camera_model: CameraModel = "RADIAL"
@@ -105,6 +107,7 @@ class SfmOptions:
     seed: Annotated[int, Range(ge=0)] = 0
     max_points: Annotated[int, Range(ge=0)] = 20000
     pose_covariance: bool = True
+    pose_covariance_intrinsics: bool = True
 
     def __post_init__(self) -> None:
         check_options(self, "sfm options")
@@ -535,7 +538,7 @@ def _pose_covariance(rec, views: list[SfmView], opts: SfmOptions, intrinsics_fix
     if not opts.pose_covariance:
         return None
     cam = rec.camera(rec.image(next(iter(rec.reg_image_ids()))).camera_id)
-    params = [] if intrinsics_fixed else intrinsic_parameters(cam.model.name, opts.refine_focal,
+    params = [] if intrinsics_fixed or not opts.pose_covariance_intrinsics else intrinsic_parameters(cam.model.name, opts.refine_focal,
                                                                opts.refine_principal_point, opts.refine_distortion)
     try:
         pc = reconstruction_pose_covariance(
