@@ -492,7 +492,8 @@ def multiview_camera_uncertainty(res: Any, carriages: list, links: list, views: 
     for label, C7 in pu.model_covariance.items():
         d = np.sqrt(np.clip(np.diag(C7), 0.0, None))
         models[label] = {"sigma_log_scale": float(d[0]), "sigma_rotation_deg": np.degrees(d[1:4]).tolist(),
-                         "sigma_translation_m": d[4:].tolist(),
+                         "sigma_translation_m": d[4:7].tolist(),
+                         "sfm_rank": int(len(d) - 7),  # the SfM poses' own error carried beside the similarity
                          "views": sorted(n for n, (m, _) in pu.jacobian.items() if m == label and n in names)}
     return {"multiview": True, "models": models, "per_carriage": per_car,
             "own": sorted(n for n in pu.own_covariance if n in names),
@@ -509,8 +510,10 @@ def _multiview_record(camera_unc: dict) -> dict:
             "a photo whose pose the shared-camera adjustment replaced, or placed on its own (resection), carries that "
             "fit's covariance on its own. Each carriage follows the photos it is measured in, weighted by their information on its pose "
             "and the couplings (first order: a common motion of the cameras moves it rigidly, the scale by its "
-            "cameras' weighted shifts); sigma_*_fit_* give the fit's alone. Not included: the SfM poses' error "
-            "relative to one another, the terrain contact's hold against a camera error")
+            "cameras' weighted shifts); sigma_*_fit_* give the fit's alone. The SfM poses' error relative to one "
+            "another is carried for a model whose reconstruction states it (sfm_rank > 0). Not included: the SfM "
+            "intrinsics' error beyond its first-order effect on the poses, the SfM poses' error where the "
+            "reconstruction states none, the terrain contact's hold against a camera error")
     if camera_unc["not_modelled"]:
         note += "; the pose error of " + ", ".join(camera_unc["not_modelled"]) + " (no pose covariance stated)"
     if partly:
