@@ -26,9 +26,9 @@ CALIBRATION = {
                  "another) they held the truth in 93.5-96.2 % of cases per axis (418 carriages): calibrated. With "
                  "real SfM models the SfM poses' own covariance is carried; on the two incidents where one was "
                  "placed (24 carriages) the intervals held the truth in every case and were 7-15 times wider than "
-                 "the errors (the SfM intrinsics' error is not carried); photos placed each on their own carry no "
-                 "pose error yet, and there the intervals held the truth in 56-95 % of cases per axis (75 "
-                 "carriages): too narrow.",
+                 "the errors (the SfM intrinsics' error is not carried); photos placed each on their own carry "
+                 "their resection's covariance, and there the intervals held the truth in 92-100 % of cases per "
+                 "axis (75 carriages, RMS of error / sigma 0.78-1.10).",
 }
 
 
