@@ -218,28 +218,40 @@ def route_hand(n: int, seed0: int, estimate_focal: bool, log=print, terrain: boo
             res = solve_consist(sim.carriages, sim.links, sim.views,
                                 SolveOptions(pixel_sigma_px=sigma, estimate_focal=estimate_focal,
                                              compute_covariance=True, **tsig), terrain=sim.terrain if terrain else None)
-        info["seeds"].append(seed)
-        info["not_converged"] += res.status != "converged"
-        if estimate_focal and res.sigma_focal_px:
-            name = sim.views[0].name
-            info["focal_z"].append((res.focal_px[name] - sim.views[0].intrinsics.fx) / res.sigma_focal_px[name])
-        for c, M, ci in zip(res.carriages, sim.truth, sim.carriages):
-            if c.covariance_pose is None:
-                info["left_out"] += 1
-                continue
-            bt = M[:3, :3] @ [0, 0, ci.carriage_type.height_m / 2] + M[:3, 3]
-            recs.append(record(f"seed{seed}", c.number, c.world_from_carriage, c.body_centre_m, M, bt,
-                               c.sigma_body_centre_m, c.ci95_body_centre_m, c.sigma_hpr_deg, c.ci95_hpr_deg,
-                               n_cars=n_cars, sigma_px=sigma, converged=res.status == "converged",
-                               t_factor=res.ci95_factor, dof=res.dof))
+        score_consist(res, sim, seed, n_cars, sigma, estimate_focal, recs, info)
         if len(info["seeds"]) % 10 == 0:
             log(f"  {len(info['seeds'])} problems, {len(recs)} carriages, {time.perf_counter() - t0:.0f} s")
     info["time_s"] = time.perf_counter() - t0
+    focal_summary(info)
+    return recs, info
+
+
+def score_consist(res, sim, seed: int, n_cars: int, sigma: float, estimate_focal: bool, recs: list[dict],
+                  info: dict) -> None:
+    """One solved simulated consist scored against its truth: its carriages' records appended to ``recs``, the
+    problem's seed, convergence, left-out carriages and focal z in ``info`` (shared with bench_terrain_focal)."""
+    info["seeds"].append(seed)
+    info["not_converged"] += res.status != "converged"
+    if estimate_focal and res.sigma_focal_px:
+        name = sim.views[0].name
+        info["focal_z"].append((res.focal_px[name] - sim.views[0].intrinsics.fx) / res.sigma_focal_px[name])
+    for c, M, ci in zip(res.carriages, sim.truth, sim.carriages):
+        if c.covariance_pose is None:
+            info["left_out"] += 1
+            continue
+        bt = M[:3, :3] @ [0, 0, ci.carriage_type.height_m / 2] + M[:3, 3]
+        recs.append(record(f"seed{seed}", c.number, c.world_from_carriage, c.body_centre_m, M, bt,
+                           c.sigma_body_centre_m, c.ci95_body_centre_m, c.sigma_hpr_deg, c.ci95_hpr_deg,
+                           n_cars=n_cars, sigma_px=sigma, converged=res.status == "converged",
+                           t_factor=res.ci95_factor, dof=res.dof))
+
+
+def focal_summary(info: dict) -> None:
+    """The focal's RMS z, mean z and coverage over ``info["focal_z"]`` (when any), into ``info``."""
     if info["focal_z"]:
         fz = np.array(info["focal_z"])
-        info["focal_rms_z"] = float(np.sqrt(np.mean(fz ** 2)))
-        info["focal_coverage"] = float(np.mean(np.abs(fz) <= Z95))
-    return recs, info
+        info.update(focal_rms_z=float(np.sqrt(np.mean(fz ** 2))), focal_mean_z=float(fz.mean()),
+                    focal_coverage=float(np.mean(np.abs(fz) <= Z95)))
 
 
 def route_known(n, seed0, log=print, terrain=False, terrain_sigma_m=None):

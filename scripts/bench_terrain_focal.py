@@ -24,13 +24,12 @@ import time
 import warnings
 from pathlib import Path
 
-import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "scripts"))
 
-from bench_calibration import HAND_CASES, Z95, axis_stats, print_table, record  # noqa: E402
+from bench_calibration import HAND_CASES, axis_stats, focal_summary, print_table, score_consist  # noqa: E402
 from workbench.solve import SolveOptions, SolveWarning, solve_consist  # noqa: E402
 from workbench.solve.simulate import dem_with_error, simulate_consist  # noqa: E402
 
@@ -61,30 +60,14 @@ def route_dem(n: int, seed0: int, estimate_focal: bool, dem_sigma_m: float, log=
             res = solve_consist(sim.carriages, sim.links, sim.views,
                                 SolveOptions(pixel_sigma_px=sigma, estimate_focal=estimate_focal,
                                              compute_covariance=True, terrain_sigma_m=dem_sigma_m), terrain=dem)
-        info["seeds"].append(seed)
         facts = next((st.facts for st in res.steps if st.name == "4_all"), {})
         info["contact_rows"] += len(res.carriages)
         info["wheel_rows"] += len(facts.get("contact_on_wheels", []))
-        info["not_converged"] += res.status != "converged"
-        if estimate_focal and res.sigma_focal_px:
-            name = sim.views[0].name
-            info["focal_z"].append((res.focal_px[name] - sim.views[0].intrinsics.fx) / res.sigma_focal_px[name])
-        for c, M, ci in zip(res.carriages, sim.truth, sim.carriages):
-            if c.covariance_pose is None:
-                info["left_out"] += 1
-                continue
-            bt = M[:3, :3] @ [0, 0, ci.carriage_type.height_m / 2] + M[:3, 3]
-            recs.append(record(f"seed{seed}", c.number, c.world_from_carriage, c.body_centre_m, M, bt,
-                               c.sigma_body_centre_m, c.ci95_body_centre_m, c.sigma_hpr_deg, c.ci95_hpr_deg,
-                               n_cars=n_cars, sigma_px=sigma, converged=res.status == "converged",
-                               t_factor=res.ci95_factor, dof=res.dof))
+        score_consist(res, sim, seed, n_cars, sigma, estimate_focal, recs, info)
         if len(info["seeds"]) % 10 == 0:
             log(f"  {len(info['seeds'])} problems, {len(recs)} carriages, {time.perf_counter() - t0:.0f} s")
     info["time_s"] = time.perf_counter() - t0
-    if info["focal_z"]:
-        fz = np.array(info["focal_z"])
-        info.update(focal_rms_z=float(np.sqrt(np.mean(fz ** 2))), focal_mean_z=float(fz.mean()),
-                    focal_coverage=float(np.mean(np.abs(fz) <= Z95)))
+    focal_summary(info)
     return recs, info
 
 
