@@ -188,6 +188,31 @@ def record(problem: str, number: str, M_est: np.ndarray, body_est, M_true: np.nd
             "ci95": np.concatenate([ci_body, ci_hpr]).tolist(), **extra}
 
 
+GROSS_Z = 5.0  # an error beyond this many sigmas on some axis: a gross failure, not the tail of the noise model
+
+
+def print_doubts(route: str, recs: list[dict]) -> None:
+    """The carriages the solution marks doubtful (``files.solution.doubts_of``: the report, the viewer and the
+    exports show the mark beside the pose), the table again without them (what a reader who heeds the mark
+    relies on), and the gross failures (|z| > ``GROSS_Z`` on some axis) caught and missed by the mark."""
+    flagged = [x for x in recs if x.get("doubtful")]
+    if not flagged:
+        return
+
+    def zmax(x: dict) -> float:
+        return float(np.max(np.abs(np.divide(x["error"], x["sigma"]))))
+
+    gross = [x for x in recs if zmax(x) > GROSS_Z]
+    missed = [x for x in gross if not x.get("doubtful")]
+    print(f"{route}: {len(flagged)} of {len(recs)} carriages marked doubtful (max |z| "
+          + " ".join(f"{zmax(x):.1f}" for x in sorted(flagged, key=zmax, reverse=True))
+          + f"); gross failures (|z| > {GROSS_Z:g}): {len(gross)}, {len(gross) - len(missed)} marked"
+          + (", unmarked: " + ", ".join(f"{x['problem']}:{x['number']} ({zmax(x):.1f})" for x in missed)
+             if missed else ""))
+    print_table(route + " without the carriages marked doubtful", axis_stats([x for x in recs
+                                                                               if not x.get("doubtful")]))
+
+
 # ----------------------------------------------------------------------------------------------------------
 # routes 1 and 2: hand picks on simulated consists, focal known or estimated
 # ----------------------------------------------------------------------------------------------------------
@@ -345,7 +370,10 @@ def incident_records(problem: str, sol: dict, truth: dict, T_cam: np.ndarray | N
     """The placed carriages' records of one solved incident; the same against the fit's own intervals and the
     truth carried by the camera's error ``T_cam`` (:func:`camera_error`: what the fit alone got wrong); the number
     left out and the number placed without an interval (a pose its measured points do not determine)."""
+    from workbench.files.solution import doubts_of
+
     by_number = {c["number"]: c for c in truth["carriages"]}
+    doubts = doubts_of(sol)
     recs, fit, left, no_interval = [], [], 0, 0
     for c in sol["carriages"]:
         if c.get("world_from_carriage") is None:
@@ -361,7 +389,7 @@ def incident_records(problem: str, sol: dict, truth: dict, T_cam: np.ndarray | N
                            n_points=c["n_points"], t_factor=sol.get("ci95_factor"), dof=sol.get("dof"),
                            sigma_px=sol.get("sigma_px"), sigma_px_estimated=sol.get("sigma_px_estimated"),
                            camera_uncertainty=bool((sol.get("camera_uncertainty") or {}).get("included")),
-                           **extra))
+                           doubtful=c["number"] in doubts, **extra))
         if T_cam is not None and c.get("sigma_body_centre_fit_m") is not None:
             q = float(sol.get("ci95_factor") or Z95)
             sb, sh = np.asarray(c["sigma_body_centre_fit_m"], float), np.asarray(c["sigma_hpr_fit_deg"], float)
@@ -786,6 +814,7 @@ def main(argv=None) -> int:
                         x for x in v["info"].get("fit_records", []) if kept(x))
         for rt, recs in by_route.items():
             print_table(rt, axis_stats(recs))
+            print_doubts(rt, recs)
         return 0
     routes = [r.strip() for r in a.route.split(",") if r.strip()]
     for r in routes:
@@ -813,6 +842,7 @@ def main(argv=None) -> int:
         if "focal_rms_z" in info:
             extra += f"; focal: RMS z {info['focal_rms_z']:.3f}, coverage {100 * info['focal_coverage']:.1f} %"
         print_table(r, st, extra)
+        print_doubts(r, recs)
         if info.get("view_errors"):
             print(view_error_summary(info["view_errors"]))
         if info.get("real_sfm"):

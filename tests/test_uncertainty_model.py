@@ -53,7 +53,9 @@ def test_predictions_are_checked_against_the_measured_points():
     """Step 4b: predictions 36 px off (a far corner projected from a face's pose with the wrong roll) pull their
     car (4 measured points) further than its measured points allow (a shift chi-square of about 40), so they
     are released and the pose comes back to the measured points' fit (within 5 % of the pull); predictions
-    that agree with the measurements keep their weight (the pose is the one they give at full weight)."""
+    that agree with the measurements keep their weight (the pose is the one they give at full weight). A shift
+    that large (beyond the 1 - 1e-4 point, 27.9) also marks the car doubtful: one of its two poses is wrong."""
+    from workbench.files.solution import doubts_of
     names = sorted(next(iter(simulate_consist(3, seed=4).carriages[1].observations.values())))
 
     def measured_only(v, obs, clean):
@@ -65,7 +67,7 @@ def test_predictions_are_checked_against_the_measured_points():
                    [Observation(n, *(np.asarray(clean[n]) + off), sigma_px=2.0, derived=True) for n in names[4:]]
         return make
 
-    centre, note = {}, {}
+    centre, note, disagree = {}, {}, {}
     for label, make, release in (("measured", measured_only, 30.0),
                                  ("biased_kept", predictions(np.array([30.0, -20.0])), 1.0),
                                  ("biased", predictions(np.array([30.0, -20.0])), 30.0),
@@ -79,12 +81,16 @@ def test_predictions_are_checked_against_the_measured_points():
         step = {s.name: s for s in res.steps}["4b_predictions_checked"]
         assert step.ran == (label in ("biased", "good"))
         note[label] = step.note
+        disagree[label] = [w["car"] for w in res.warnings if w["kind"] == "predictions_disagree"]
         centre[label] = np.asarray(res.carriages[1].body_centre_m, float)
     pull = np.linalg.norm(centre["biased_kept"] - centre["measured"])
     assert pull > 0.005  # the biased predictions do bend the fit
     assert np.linalg.norm(centre["biased"] - centre["measured"]) < 0.05 * pull
     assert "released on every car with some" in note["biased"]
     assert "kept" in note["good"] and "released" not in note["good"]
+    number = sim.carriages[1].number
+    assert disagree == {"measured": [], "biased_kept": [], "biased": [number], "good_kept": [], "good": []}
+    assert set(doubts_of({"warnings": [{"car": number, "kind": "predictions_disagree", "message": "m"}]})) == {number}
     np.testing.assert_allclose(centre["good"], centre["good_kept"], atol=1e-6)
     with pytest.raises(SettingsError, match="prediction_release"):
         SolveOptions(prediction_release=0.5)
@@ -193,9 +199,14 @@ def test_predictions_check_is_repeated_on_the_mixed_fit(monkeypatch):
     _with(sim, 1, predictions)
     _with(sim, 2, predictions)
     res = solve_consist(sim.carriages, sim.links, sim.views, SolveOptions(pixel_sigma_px=0.5), terrain=None)
-    note = {s.name: s for s in res.steps}["4b_predictions_checked"].note
+    step = {s.name: s for s in res.steps}["4b_predictions_checked"]
+    note = step.note
     assert len(calls) == 2
     assert "released on every car with some" in note and "moved car(s) beyond the limit too" in note
+    # each car's shift when it was released: car 1's 20 (within the doubt limit), car 2's 30 in the second round
+    assert step.facts["shift_chi2_at_release"] == {sim.carriages[1].number: 20.0, sim.carriages[2].number: 30.0}
+    assert step.facts["doubtful"] == [sim.carriages[2].number]
+    assert [w["car"] for w in res.warnings if w["kind"] == "predictions_disagree"] == [sim.carriages[2].number]
 
     calls.clear()
     monkeypatch.setattr(chain, "_prediction_shift", lambda *a, **k: (calls.append(1), {1: 20.0, 2: 5.0})[1])

@@ -90,15 +90,16 @@ class Solution:
         return [c for c in self.carriages if not c.posed]
 
     def doubts(self) -> dict[str, str]:
-        """``{car number: the solver's message}`` for each carriage whose solution does not fit its measured points
-        (warnings of kind ``misfit``: a wrong branch or mismatched points; its pose and its interval are doubtful).
+        """``{car number: the solver's message}`` for each carriage whose pose and interval are doubtful (warnings of
+        :data:`DOUBT_KINDS`: its solution does not fit its measured points, a wrong branch or mismatched points; or
+        its measured points and its matched face's pose disagree beyond the noise model).
         Every reader that shows a pose shows this beside it."""
         return doubts_of(self.doc)
 
 
 def doubts_of(doc: dict) -> dict[str, str]:
-    """:meth:`Solution.doubts` of a ``solution.json`` document (dict): the carriages of the solver's ``misfit``
-    warnings, and each carriage ``carried`` (placed from its neighbours, too few points of its own) through a
+    """:meth:`Solution.doubts` of a ``solution.json`` document (dict): the carriages of the solver's
+    :data:`DOUBT_KINDS` warnings, and each carriage ``carried`` (placed from its neighbours, too few points of its own) through a
     held coupling from a doubtful one, along the chain."""
     out: dict[str, str] = {}
     for w in doc.get("warnings") or []:
@@ -120,7 +121,9 @@ def doubts_of(doc: dict) -> dict[str, str]:
     return out
 
 
-DOUBT_KINDS = ("misfit",)  # warning kinds that make a posed carriage's pose and interval doubtful
+# warning kinds that make a posed carriage's pose and interval doubtful: its solution does not fit its measured
+# points; its measured points and its matched face's pose disagree (solve step 4b)
+DOUBT_KINDS = ("misfit", "predictions_disagree")
 
 
 def _rigid(value: Any, where: str) -> np.ndarray:

@@ -383,10 +383,11 @@ def findings(project: Project, solution: dict) -> list[str]:
     doubts = doubts_of(solution)
     doubtful = [c["number"] for c in cars if str(c["number"]) in doubts]
     if doubtful:
-        out.append(f"Doubtful: car {', '.join(map(str, doubtful))}: the solution does not fit "
-                   f"{'its' if len(doubtful) == 1 else 'their'} marked points (a wrong pose branch or mismatched "
-                   f"points), so the pose and its interval may be far off; check the points before acting on it "
-                   f"(marked ‡ in section 2).")
+        its = 'its' if len(doubtful) == 1 else 'their'
+        out.append(f"Doubtful: car {', '.join(map(str, doubtful))}: {its} marked points do not settle {its} pose "
+                   f"(the solution does not fit them, or they disagree with the pose of the face they were matched "
+                   f"on: a wrong pose branch or mismatched points), so the pose and its interval may be far off; "
+                   f"check the points before acting on it (marked ‡ in section 2).")
     carried = [c["number"] for c in cars if c.get("status") == "carried"]
     if carried:
         out.append(f"Placed from their neighbours (too few marked points of their own): car {', '.join(carried)}.")

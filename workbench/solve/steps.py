@@ -15,7 +15,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from ..core.geometry import log_so3
+from ..core.geometry import log_so3, rotation_angle_deg
 from .active_set import ChainedFit, ChainedProblem
 from .bias import correct
 from .branches import retry_branches
@@ -30,6 +30,9 @@ from .track_prior import SoftRows, TrackPriorRecord, track_prior
 from .uncertainty import CovarianceModel, pixel_rows, solution_model
 
 CHI2_6_95 = 12.5916  # 95 % point of the chi-square distribution with 6 degrees of freedom
+# beyond this (the 1 - 1e-4 point, as the misfit check's p-value) a released car's two poses, its measured points'
+# and its face's, disagree more than the noise model allows once in 10,000 carriages: one of them is wrong
+CHI2_6_DOUBT = 27.8563
 
 
 @dataclass
@@ -319,8 +322,10 @@ def _prediction_shift(released: Problem, R, t, f, R_kept, t_kept, model: Covaria
 def _release_in_turn(s: SolveContext, kept: ChainedFit, d2: dict[int, float], shift) -> tuple:
     """With some cars' predictions released and the others kept, the kept ones can pull further: the mixed fit
     is checked in turn and a car it moves beyond the limit is released too. Returns (cars released, the mixed
-    problem and fit (None if not fitted), evaluations, the rounds' notes)."""
+    problem and fit (None if not fitted), evaluations, the rounds' notes, each released car's shift chi-square when
+    it was released)."""
     off = sorted(k for k, v in d2.items() if not v <= CHI2_6_95)
+    at_release = {k: d2[k] for k in off}
     prob_m, fit_m, nfev, notes = None, None, 0, []
     while off and len(off) < len(d2):
         prob_m = s.prob.with_predictions_scaled(s.options.prediction_release, off)
@@ -331,8 +336,35 @@ def _release_in_turn(s: SolveContext, kept: ChainedFit, d2: dict[int, float], sh
         if not more:
             break
         notes.append(", ".join(f"{s.cars[k].number} {d2m[k]:.1f}" for k in more))
+        at_release.update({k: d2m[k] for k in more})
         off = sorted(set(off) | set(more))
-    return off, prob_m, fit_m, nfev, notes
+    return off, prob_m, fit_m, nfev, notes, at_release
+
+
+def _flag_disagreements(s: SolveContext, at_release: dict[int, float], kept: Poses, final: Poses) -> list[str]:
+    """Warn (kind ``predictions_disagree``, a doubt: ``files.solution.DOUBT_KINDS``) on each released car whose
+    shift chi-square exceeded :data:`CHI2_6_DOUBT`: its measured points put it in one place, the pose of the face
+    they were matched on in another, and the noise model cannot explain the gap, so one of the two is wrong (a
+    face's mirrored pose, points matched on the wrong face or car). The solve keeps the measured points' pose and
+    their interval, which describe that pose's noise and not the choice between the two. Returns the cars'
+    numbers. On the fresh-seed automatic incidents (docs/calibration.md) this names all 4 carriages 7-70 sigmas
+    off, among 13 of 200."""
+    out = []
+    for k, d2 in sorted(at_release.items()):
+        if not d2 > CHI2_6_DOUBT:
+            continue
+        car = s.cars[k]
+        c = np.asarray(car.c_body, dtype=float)  # the body centre, carriage frame
+        moved = float(np.linalg.norm(kept.R[k] @ c + kept.t[k] - final.R[k] @ c - final.t[k]))
+        turned = rotation_angle_deg(kept.R[k], final.R[k])
+        record_warning(s.warnings, car, "predictions_disagree",
+                       f"car {car.number}: its measured points and the pose of the face they were matched on "
+                       f"disagree (shift chi-square {d2:.0f} with 6 degrees of freedom, limit {CHI2_6_DOUBT:.1f}): "
+                       f"the face's pose would put it {moved:.2f} m and {turned:.1f} deg from where its points "
+                       f"do; one of the two is wrong (points matched on the wrong face or car, or a pose on the wrong "
+                       f"branch); its pose and its interval are doubtful")
+        out.append(car.number)
+    return out
 
 
 def step_predictions(s: SolveContext, fit: ChainedFit) -> tuple[ChainedFit, Problem]:
@@ -359,7 +391,7 @@ def step_predictions(s: SolveContext, fit: ChainedFit) -> tuple[ChainedFit, Prob
 
     d2 = shift(kept.poses)
     listed = ", ".join(f"{cars[k].number} {d2[k]:.1f}" for k in sorted(d2))
-    off, prob_m, fit_m, nfev_m, rounds_note = _release_in_turn(s, kept, d2, shift)
+    off, prob_m, fit_m, nfev_m, rounds_note, at_release = _release_in_turn(s, kept, d2, shift)
     nfev += nfev_m
     s.nfev += nfev_m
     extra = (f"; then, with those released, the remaining predictions moved car(s) beyond the limit too "
@@ -375,10 +407,15 @@ def step_predictions(s: SolveContext, fit: ChainedFit) -> tuple[ChainedFit, Prob
         prob, fit = prob_m, fit_m
         note = (f"predictions released on car(s) {', '.join(cars[k].number for k in off)}, kept on the others "
                 f"(shift chi-square {listed}, 95 % limit {CHI2_6_95:.1f}){extra}")
+    disagree = _flag_disagreements(s, at_release if off else {}, kept.poses, fit.poses)
     s.steps.append(StepStats("4b_predictions_checked", True, f"{n_pred} predicted point(s) checked: fitted again "
                              f"with their sigmas x {options.prediction_release:g}; " + note,
                              pixel_cost(prob, kept.poses), pixel_cost(prob, fit.poses), nfev, fit.message,
-                             time.perf_counter() - t4b, s.changes(kept.poses, fit.poses)))
+                             time.perf_counter() - t4b, s.changes(kept.poses, fit.poses),
+                             {"released": [cars[k].number for k in off],
+                              "shift_chi2_at_release": {cars[k].number: round(v, 3) for k, v in at_release.items()}
+                              if off else {},
+                              "doubtful": disagree}))
     if not fit.ok:
         s.failures.append(f"step 4b: {fit.message}")
     return fit, prob
