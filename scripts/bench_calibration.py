@@ -608,7 +608,9 @@ def sfm_view_errors(cameras: dict, truth: dict, cameras_path: Path) -> list[dict
         w = Rotation.from_matrix(Me[:3, :3].T @ Mt[:3, :3]).as_rotvec()  # world_from_cam_est = Exp(w) world_from_cam_true
         e = np.concatenate([w, (-Me[:3, :3].T @ Me[:3, 3]) - (-Mt[:3, :3].T @ Mt[:3, 3])])
         C = None if pu is None else pu.view_covariance(v["name"])
-        rec = {"view": v["name"], "err": e.tolist(), "rot_err_deg": float(np.degrees(np.linalg.norm(w))),
+        src = (((cameras.get("georegistration") or {}).get("pose_uncertainty") or {}).get("views") or {}) \
+            .get(v["name"], {}).get("source")
+        rec = {"view": v["name"], "source": src, "err": e.tolist(), "rot_err_deg": float(np.degrees(np.linalg.norm(w))),
                "centre_err_m": float(np.linalg.norm(e[3:])), "sigma": None, "maha2": None}
         if C is not None:
             rec["sigma"] = np.sqrt(np.maximum(np.diag(C), 0.0)).tolist()
@@ -618,17 +620,19 @@ def sfm_view_errors(cameras: dict, truth: dict, cameras_path: Path) -> list[dict
 
 
 def print_placed_split(recs: list[dict], info: dict) -> None:
-    """--real-sfm: the carriages of draws whose photos an SfM model's similarity placed (some stated pose
-    covariance) apart from those of draws where every photo was placed on its own (resected: none stated), with
-    the camera term and with the fit's own intervals."""
-    placed = {e["draw"] for e in info["view_errors"] if e["sigma"] is not None}
+    """--real-sfm: the carriages of draws where an SfM model's similarity placed some photo (a view of source
+    ``similarity``; records before the source was kept: some stated pose covariance) apart from those of draws
+    where every photo was placed on its own (resected), with the camera term and with the fit's own intervals."""
+    placed = {e["draw"] for e in info["view_errors"]
+              if (e.get("source") == "similarity" if "source" in e else e["sigma"] is not None)}
     for label, rr in (("", recs), (" before (the fit's own)", info.get("fit_records", []))):
         for what, keep in (("SfM model placed", True), ("photos resected", False)):
             sub = [r for r in rr if (int(r["problem"][2:]) in placed) == keep]
             if sub:
                 print_table(f"multiview{label}, draws with {what} (incidents "
                             f"{sorted({int(r['problem'][2:]) // 1000 for r in sub})})", axis_stats(sub))
-    st = [e for e in info["view_errors"] if e["draw"] in placed and e["sigma"] is not None]
+    st = [e for e in info["view_errors"] if e["sigma"] is not None
+          and (e.get("source") == "similarity" if "source" in e else e["draw"] in placed)]
     if st:
         print("SfM-placed " + view_error_summary(st))
 
