@@ -7,7 +7,7 @@ import pytest
 from workbench.core.geometry import exp_so3, rot_z, rotation_between
 from workbench.rolling_stock import get_type
 from workbench.solve.simulate import PlaneTerrain, dem_with_error, simulate_consist
-from workbench.solve.terrain import Contact, on_wheels, surface_samples, wheel_points
+from workbench.solve.terrain import Contact, on_wheels, surface_samples, wheel_contact, wheel_points
 
 
 def _upright(terrain, yaw=0.4, xy=(3.0, -2.0)):
@@ -79,17 +79,27 @@ def test_carriage_on_its_side_keeps_the_lowest_point():
 
 
 def test_dem_with_error_adds_one_error_per_carriage():
-    """The simulated DEM: the plane plus one error a carriage under each carriage's wheels; zero sigma: the plane."""
+    """The simulated DEM: the ground each carriage stands on (its wheels' height at the truth) plus one error a
+    carriage under its wheels; with ``ground="plane"`` the plane plus that error (the carriages' walk about the
+    plane, the couplers' play, then in the DEM's error too); zero sigma: the wheels' ground exactly."""
     sim = simulate_consist(4, seed=11, pixel_sigma_px=0.7)
     dem = dem_with_error(sim, 0.1, 3)
+    flat = dem_with_error(sim, 0.1, 3, ground="plane")
     e = dem.errors_m
-    assert e.shape == (4,) and 0.0 < np.abs(e).max() < 0.5
+    assert e.shape == (4,) and 0.0 < np.abs(e).max() < 0.5 and np.allclose(flat.errors_m, e)
+    lifts = []
     for k, M in enumerate(sim.truth):
         X = wheel_points(surface_samples(sim.carriages[k].carriage_type, 400)) @ M[:3, :3].T + M[:3, 3]
-        assert np.allclose(dem.height_at(X[:, :2]) - sim.terrain.height_at(X[:, :2]), e[k])
-    assert np.allclose(dem_with_error(sim, 0.0, 3).errors_m, 0.0)
+        assert np.allclose(dem.height_at(X[:, :2]) - X[:, 2], e[k])
+        assert np.allclose(flat.height_at(X[:, :2]) - sim.terrain.height_at(X[:, :2]), e[k])
+        lifts.append(X[0, 2] - sim.terrain.height_at(X[:1, :2])[0])
+    assert lifts[0] == pytest.approx(0.0, abs=1e-9) and 0.0 < np.abs(lifts).max() < 0.1  # the couplers' walk
+    X = wheel_points(surface_samples(sim.carriages[2].carriage_type, 400)) @ sim.truth[2][:3, :3].T + sim.truth[2][:3, 3]
+    assert np.allclose(dem_with_error(sim, 0.0, 3).height_at(X[:, :2]), X[:, 2])
     with pytest.raises(ValueError, match="sigma_m"):
         dem_with_error(sim, -0.1, 3)
+    with pytest.raises(ValueError, match="ground"):
+        dem_with_error(sim, 0.1, 3, ground="rails")
 
 
 def test_on_wheels_refuses_a_carriage_on_one_end_or_of_unknown_attitude():
@@ -116,7 +126,8 @@ def test_dem_with_error_is_continuous_between_carriages():
     a, b = sim.truth[1][:2, 3], sim.truth[2][:2, 3]
     xy = a + np.linspace(0.0, 1.0, 2001)[:, None] * (b - a)
     e = dem.height_at(xy) - sim.terrain.height_at(xy)
-    assert e[0] == pytest.approx(dem.errors_m[1]) and e[-1] == pytest.approx(dem.errors_m[2])
+    ea, eb = dem.errors_m[1:3] + dem.ground_m[1:3]
+    assert e[0] == pytest.approx(ea) and e[-1] == pytest.approx(eb)
     assert np.abs(np.diff(e)).max() < 0.01  # 1.2 cm steps of the line: no jump
 
 
@@ -136,4 +147,38 @@ def test_solve_gives_level_carriages_the_wheels_row():
             res = solve_consist(sim.carriages, sim.links, sim.views,
                                 SolveOptions(pixel_sigma_px=0.7, terrain_sigma_m=sigma), terrain=dem)
         on[sigma] = next(st for st in res.steps if st.name == "4_all").facts["contact_on_wheels"]
+        dips = next(st for st in res.steps if st.name == "4_all").facts["contact_level_dip_m"]
     assert len(on[0.10]) >= 3 and on[0.01] == []
+    # stating 1 cm they are level to within their attitude's uncertainty: the lowest point's row less its dip
+    assert len(dips) >= 3 and all(0.002 < b < 0.10 for b in dips.values())
+
+
+def test_level_row_takes_out_the_lowest_samples_dip():
+    """A carriage standing level whose rotation is too uncertain to confirm it on its wheels against a 1 cm
+    terrain (0.1 deg per axis): wheel_contact gives the lowest sample's row raised by its expected dip; over 400
+    rotations drawn with that uncertainty (fixed seed) the raised row's mean stays at the truth's 0 while the
+    lowest sample's alone dips by about the dip. A carriage with one bogie in a ditch (2 deg), on its side or
+    of an unknown rotation keeps the plain lowest sample's row."""
+    ct = get_type("shoreliner")
+    S = surface_samples(ct, 400)
+    terrain = PlaneTerrain(0.02, -0.01)
+    R0, t0 = _upright(terrain)
+    C = np.eye(3) * np.deg2rad(0.1) ** 2
+    kind, dip = wheel_contact(S, R0, t0, terrain, C, 0.01)
+    assert kind == "level" and 0.005 < dip < 0.03
+    assert wheel_contact(S, R0, t0, terrain, C, 0.10) == ("wheels", 0.0)
+    rng = np.random.default_rng(11)
+    R = exp_so3(rng.normal(0.0, np.deg2rad(0.1), (400, 3))) @ R0
+    t = np.repeat(t0[None], len(R), axis=0)
+    rows = np.zeros(len(R), dtype=int)
+    lowest = Contact(terrain, {0: S}, 1.0).residuals(R, t, rows)
+    level = Contact(terrain, {0: S}, 1.0, dips={0: dip}).residuals(R, t, rows)
+    assert np.allclose(level, lowest + dip)
+    se = level.std() / np.sqrt(len(level))
+    assert abs(level.mean()) < 3 * se + 5e-4
+    assert -1.3 * dip < lowest.mean() < -0.7 * dip
+    pitched = R0 @ exp_so3(np.array([0.0, np.deg2rad(2.0), 0.0]))
+    assert wheel_contact(S, pitched, t0 + [0.0, 0.0, 0.3], terrain, C, 0.01) == ("lowest", 0.0)
+    side = exp_so3(np.array([np.pi / 2, 0.0, 0.0]))
+    assert wheel_contact(S, side, np.array([0.0, 0.0, 2.0]), PlaneTerrain(), C, 0.01) == ("lowest", 0.0)
+    assert wheel_contact(S, R0, t0, terrain, np.full((3, 3), np.nan), 0.01) == ("lowest", 0.0)

@@ -25,7 +25,7 @@ from .model import SolveOptions, StepStats, View
 from .plan import FOCAL_PINNED_REL_SD, Plan, best_view, focal_reason, focal_rel_sd
 from .pnp import place_carried, pnp_start, refine_alone
 from .problem import Car, Poses, Problem, chain_cost, pixel_cost, pose_changes, record_warning
-from .terrain import Contact, on_wheels, rest_on_terrain, surface_samples, wheel_points
+from .terrain import Contact, rest_on_terrain, surface_samples, wheel_contact, wheel_points
 from .track_prior import SoftRows, TrackPriorRecord, track_prior
 from .uncertainty import CovarianceModel, pixel_rows, solution_model
 
@@ -240,6 +240,38 @@ def _rotation_covariances(s: SolveContext, poses: Poses) -> dict[int, np.ndarray
     return out
 
 
+def _redip(s: SolveContext, fit: ChainedFit, start: Poses, dips: dict[int, float], track: Any):
+    """The carriages level to within their attitude's uncertainty at step 3 (``dips``) judged again
+    (:func:`.terrain.wheel_contact`) at step 4's solution ``fit`` with their rotations' covariance there (the whole
+    problem's: pixels, couplers, contact; the chain makes it tighter than their own pixels' alone): each gets the
+    wheels' row, the lowest point's raised by its dip evaluated again, or, its wheels now seen not level (a
+    derailed carriage the step-3 test could not tell), the plain lowest point's; then step 4 solved again, from
+    ``fit``, or from step 3's ``start`` (as the first solve) where no dip is left. Returns (problem, fit, wheels,
+    dips)."""
+    model = solution_model(s.prob, fit.poses, s.focal_views, s.plan.chains, s.contact, s.options)
+    contact = s.contact.terrain_contact if isinstance(s.contact, SoftRows) else s.contact
+    wheels, new = dict(contact.wheels), {}
+    for k, b in dips.items():
+        c = model.col.get(k)
+        C = model.cov[c:c + 3, c:c + 3] if c is not None else np.full((3, 3), np.nan)
+        if not np.all(np.isfinite(C)):
+            new[k] = b  # its uncertainty at the solution unknown: step 3's judgement stands
+            continue
+        kind, b2 = wheel_contact(s.samples[k], fit.poses.R[k], fit.poses.t[k], s.terrain, C,
+                                 s.options.terrain_sigma_m)
+        if kind == "wheels":
+            wheels[k] = wheel_points(s.samples[k])
+        elif kind == "level":
+            new[k] = b2
+    s.contact = Contact(s.terrain, s.samples, contact.scale, wheels=wheels, dips=new)
+    if track is not None:
+        s.contact = SoftRows(s.contact, track)
+    cp = s.chained(contact=s.contact)
+    fit2 = cp.solve(fit.poses if new or len(wheels) > len(contact.wheels) else start)
+    s.nfev += fit2.nfev
+    return cp, fit2, wheels, new
+
+
 def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalProfile | None) -> ChainedFit:
     """Step 4: everything optimised (with the terrain contact term), the profile's basin check, then the branch
     check (:func:`.branches.retry_branches`, restarting from step 3's start ``start3``)."""
@@ -247,16 +279,19 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
     options, terrain = s.options, s.terrain
     c0 = pixel_cost(s.prob, fit3.poses)
     wheels: dict[int, np.ndarray] = {}
+    dips: dict[int, float] = {}
     if terrain is not None and options.use_terrain_contact:
         # a carriage seen at step 3's poses to stand on all its wheels gets its wheels' contact row (unbiased by a
         # noisy rotation); any other (derailed onto one end or side, on its side or roof, or its attitude too
         # uncertain to tell) the lowest sample's
         cov_rot = _rotation_covariances(s, fit3.poses)
         nan3 = np.full((3, 3), np.nan)
-        wheels = {k: wheel_points(S) for k, S in s.samples.items()
-                  if on_wheels(S, fit3.poses.R[k], fit3.poses.t[k], terrain, cov_rot.get(k, nan3),
-                               options.terrain_sigma_m)}
-        s.contact = Contact(terrain, s.samples, options.pixel_sigma_px / options.terrain_sigma_m, wheels=wheels)
+        kinds = {k: wheel_contact(S, fit3.poses.R[k], fit3.poses.t[k], terrain, cov_rot.get(k, nan3),
+                                  options.terrain_sigma_m) for k, S in s.samples.items()}
+        wheels = {k: wheel_points(s.samples[k]) for k, (kind, _) in kinds.items() if kind == "wheels"}
+        dips = {k: b for k, (kind, b) in kinds.items() if kind == "level"}
+        s.contact = Contact(terrain, s.samples, options.pixel_sigma_px / options.terrain_sigma_m, wheels=wheels,
+                            dips=dips)
     track, s.track_records = track_prior(s.cars, s.plan.active, fit3.poses.R, fit3.poses.t, s.railways,
                                          options.track_sigma_m, options.pixel_sigma_px, options.track_gate_m)
     for rec in s.track_records:
@@ -269,6 +304,9 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
     fit = cp.solve(fit3.poses)
     s.nfev += fit.nfev
     nfev = fit.nfev
+    if dips:
+        cp, fit, wheels, dips = _redip(s, fit, fit3.poses, dips, track)
+        nfev += fit.nfev
     nfev_34 = fit3.nfev + fit.nfev
     note = ""
     if profile is not None:
@@ -283,7 +321,9 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
         note += "; " + "; ".join(retry.notes)
     terrain_contact = s.contact.terrain_contact if isinstance(s.contact, SoftRows) else s.contact
     note += (f"; soft terrain contact (sigma_z = {options.terrain_sigma_m} m; {len(wheels)} car(s) on all their "
-             f"wheels: their wheels' mean clearance, {len(s.samples) - len(wheels)}: their lowest point's)"
+             f"wheels: their wheels' mean clearance, {len(dips)} level to within their attitude's uncertainty: "
+             f"their lowest point's raised by its expected dip, {len(s.samples) - len(wheels) - len(dips)}: their lowest "
+             f"point's)"
              if terrain_contact is not None else
              ("; no terrain contact term (no terrain)" if terrain is None else "; terrain contact term off"))
     if track is not None:
@@ -296,6 +336,7 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
                               "restarted": retry.restarted, "branch_check_not_tried": retry.not_tried,
                               "terrain_contact": terrain_contact is not None,
                               "contact_on_wheels": [s.cars[k].number for k in sorted(wheels)],
+                              "contact_level_dip_m": {s.cars[k].number: round(b, 4) for k, b in sorted(dips.items())},
                               "track_prior_cars": [r.number for r in s.track_records if r.applied]}))
     if not fit.ok:
         s.failures.append(f"step 4: {fit.message}")
