@@ -31,7 +31,7 @@ from .principal_point import guessed_principal_point_term
 from .model import CarriageInput, ChainLink, Observation, SolveOptions, SolveWarning, View
 from .problem import AlignedObservation
 from .solver import solve_consist
-from .uncertainty import add_camera_uncertainty, add_view_camera_uncertainty
+from .camera_term import add_camera_uncertainty, add_view_camera_uncertainty
 
 log = logging.getLogger(__name__)
 
