@@ -14,9 +14,9 @@ error) and states ``terrain_sigma_m = --dem-sigma``: what a solve of a real inci
 accuracy (the solve stage states ``terrain.dem_vertical_accuracy_m``). ``--slack`` sets the couplings' play
 (default 0.03 m, as ``bench_calibration``). The problems, the noise and the figures are ``bench_calibration``'s
 routes ``known`` / ``focal`` (the same cases, seeds, records and table); the DEM's errors are drawn from the
-problem's seed + 7 000 000. The table's line counts the contact rows of each kind (step 4's facts): the wheels'
-mean clearance, the lowest point's raised by its expected dip (level to within the attitude's uncertainty), the
-rest the lowest point's.
+problem's seed + 7 000 000. The table's line counts the carriages on their wheels' row (step 4's facts) and among
+them those whose rotation from their own pixels could not confirm them level against the stated accuracy, kept
+on it at step 4's solution; the rest have the lowest point's row.
 """
 
 from __future__ import annotations
@@ -68,7 +68,7 @@ def route_dem(n: int, seed0: int, estimate_focal: bool, dem_sigma_m: float, log=
         facts = next((st.facts for st in res.steps if st.name == "4_all"), {})
         info["contact_rows"] += len(res.carriages)
         info["wheel_rows"] += len(facts.get("contact_on_wheels", []))
-        info["level_rows"] += len(facts.get("contact_level_dip_m", {}))
+        info["level_rows"] += len(facts.get("contact_level", {}))
         score_consist(res, sim, seed, n_cars, sigma, estimate_focal, recs, info)
         if len(info["seeds"]) % 10 == 0:
             log(f"  {len(info['seeds'])} problems, {len(recs)} carriages, {time.perf_counter() - t0:.0f} s")
@@ -110,7 +110,7 @@ def main(argv=None) -> int:
                                slack_m=a.slack, ground=a.ground)
         st = axis_stats(recs)
         extra = (f", {info['time_s']:.0f} s; left out {info['left_out']}; contact rows of {info['contact_rows']}: "
-                 f"wheels {info['wheel_rows']}, lowest + dip {info['level_rows']}")
+                 f"wheels {info['wheel_rows']} (unconfirmed at step 3, kept at step 4: {info['level_rows']})")
         if "focal_rms_z" in info:
             extra += (f"; focal: RMS z {info['focal_rms_z']:.3f}, mean z {info['focal_mean_z']:+.2f}, coverage "
                       f"{100 * info['focal_coverage']:.1f} %")

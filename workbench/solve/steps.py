@@ -240,36 +240,33 @@ def _rotation_covariances(s: SolveContext, poses: Poses) -> dict[int, np.ndarray
     return out
 
 
-def _redip(s: SolveContext, fit: ChainedFit, start: Poses, dips: dict[int, float], track: Any):
-    """The carriages level to within their attitude's uncertainty at step 3 (``dips``) judged again
-    (:func:`.terrain.wheel_contact`) at step 4's solution ``fit`` with their rotations' covariance there (the whole
-    problem's: pixels, couplers, contact; the chain makes it tighter than their own pixels' alone): each gets the
-    wheels' row, the lowest point's raised by its dip evaluated again, or, its wheels now seen not level (a
-    derailed carriage the step-3 test could not tell), the plain lowest point's; then step 4 solved again, from
-    ``fit``, or from step 3's ``start`` (as the first solve) where no dip is left. Returns (problem, fit, wheels,
-    dips)."""
+def _relevel(s: SolveContext, fit: ChainedFit, start: Poses, level: list[int], track: Any):
+    """Step 4's second look at the carriages given their wheels' row unconfirmed (``level``: their wheels as level
+    as their rotations from their own pixels could tell, not to within twice the terrain's stated accuracy): each
+    judged again (:func:`.terrain.wheel_contact`'s spread test) at step 4's solution ``fit`` with its rotation's
+    covariance there (the whole problem's: pixels, couplers, contact; the chain makes it tighter than its own
+    pixels'). One whose wheels are then seen not level (a derailed carriage the step-3 test could not tell) goes
+    back to the lowest point's row, and step 4 is solved again from step 3's ``start``. Returns (problem, fit,
+    wheels, dropped carriages)."""
     model = solution_model(s.prob, fit.poses, s.focal_views, s.plan.chains, s.contact, s.options)
     contact = s.contact.terrain_contact if isinstance(s.contact, SoftRows) else s.contact
-    wheels, new = dict(contact.wheels), {}
-    for k, b in dips.items():
+    wheels, dropped = dict(contact.wheels), []
+    for k in level:
         c = model.col.get(k)
         C = model.cov[c:c + 3, c:c + 3] if c is not None else np.full((3, 3), np.nan)
-        if not np.all(np.isfinite(C)):
-            new[k] = b  # its uncertainty at the solution unknown: step 3's judgement stands
-            continue
-        kind, b2 = wheel_contact(s.samples[k], fit.poses.R[k], fit.poses.t[k], s.terrain, C,
-                                 s.options.terrain_sigma_m)
-        if kind == "wheels":
-            wheels[k] = wheel_points(s.samples[k])
-        elif kind == "level":
-            new[k] = b2
-    s.contact = Contact(s.terrain, s.samples, contact.scale, wheels=wheels, dips=new)
+        if np.all(np.isfinite(C)) and wheel_contact(s.samples[k], fit.poses.R[k], fit.poses.t[k], s.terrain, C,
+                                                    np.inf) == "lowest":
+            wheels.pop(k)
+            dropped.append(k)
+    if not dropped:
+        return s.chained(contact=s.contact), fit, wheels, dropped
+    s.contact = Contact(s.terrain, s.samples, contact.scale, wheels=wheels)
     if track is not None:
         s.contact = SoftRows(s.contact, track)
     cp = s.chained(contact=s.contact)
-    fit2 = cp.solve(fit.poses if new or len(wheels) > len(contact.wheels) else start)
+    fit2 = cp.solve(start)
     s.nfev += fit2.nfev
-    return cp, fit2, wheels, new
+    return cp, fit2, wheels, dropped
 
 
 def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalProfile | None) -> ChainedFit:
@@ -279,19 +276,19 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
     options, terrain = s.options, s.terrain
     c0 = pixel_cost(s.prob, fit3.poses)
     wheels: dict[int, np.ndarray] = {}
-    dips: dict[int, float] = {}
+    level: list[int] = []
+    dropped: list[int] = []
     if terrain is not None and options.use_terrain_contact:
-        # a carriage seen at step 3's poses to stand on all its wheels gets its wheels' contact row (unbiased by a
-        # noisy rotation); any other (derailed onto one end or side, on its side or roof, or its attitude too
-        # uncertain to tell) the lowest sample's
+        # a carriage whose wheels are level at step 3's poses to within what its rotation's uncertainty explains
+        # gets its wheels' contact row (unbiased by a noisy rotation; confirmed, or judged again at the solution:
+        # _relevel); any other (derailed onto one end or side, on its side or roof) the lowest sample's
         cov_rot = _rotation_covariances(s, fit3.poses)
         nan3 = np.full((3, 3), np.nan)
         kinds = {k: wheel_contact(S, fit3.poses.R[k], fit3.poses.t[k], terrain, cov_rot.get(k, nan3),
                                   options.terrain_sigma_m) for k, S in s.samples.items()}
-        wheels = {k: wheel_points(s.samples[k]) for k, (kind, _) in kinds.items() if kind == "wheels"}
-        dips = {k: b for k, (kind, b) in kinds.items() if kind == "level"}
-        s.contact = Contact(terrain, s.samples, options.pixel_sigma_px / options.terrain_sigma_m, wheels=wheels,
-                            dips=dips)
+        level = [k for k, kind in kinds.items() if kind == "level"]
+        wheels = {k: wheel_points(s.samples[k]) for k, kind in kinds.items() if kind != "lowest"}
+        s.contact = Contact(terrain, s.samples, options.pixel_sigma_px / options.terrain_sigma_m, wheels=wheels)
     track, s.track_records = track_prior(s.cars, s.plan.active, fit3.poses.R, fit3.poses.t, s.railways,
                                          options.track_sigma_m, options.pixel_sigma_px, options.track_gate_m)
     for rec in s.track_records:
@@ -304,8 +301,8 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
     fit = cp.solve(fit3.poses)
     s.nfev += fit.nfev
     nfev = fit.nfev
-    if dips:
-        cp, fit, wheels, dips = _redip(s, fit, fit3.poses, dips, track)
+    if level:
+        cp, fit, wheels, dropped = _relevel(s, fit, fit3.poses, level, track)
         nfev += fit.nfev
     nfev_34 = fit3.nfev + fit.nfev
     note = ""
@@ -321,9 +318,9 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
         note += "; " + "; ".join(retry.notes)
     terrain_contact = s.contact.terrain_contact if isinstance(s.contact, SoftRows) else s.contact
     note += (f"; soft terrain contact (sigma_z = {options.terrain_sigma_m} m; {len(wheels)} car(s) on all their "
-             f"wheels: their wheels' mean clearance, {len(dips)} level to within their attitude's uncertainty: "
-             f"their lowest point's raised by its expected dip, {len(s.samples) - len(wheels) - len(dips)}: their lowest "
-             f"point's)"
+             f"wheels: their wheels' mean clearance ({len(level) - len(dropped)} of them level to within their "
+             f"attitude's uncertainty, confirmed at step 4's solution; {len(dropped)} dropped there), "
+             f"{len(s.samples) - len(wheels)}: their lowest point's)"
              if terrain_contact is not None else
              ("; no terrain contact term (no terrain)" if terrain is None else "; terrain contact term off"))
     if track is not None:
@@ -336,7 +333,8 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
                               "restarted": retry.restarted, "branch_check_not_tried": retry.not_tried,
                               "terrain_contact": terrain_contact is not None,
                               "contact_on_wheels": [s.cars[k].number for k in sorted(wheels)],
-                              "contact_level_dip_m": {s.cars[k].number: round(b, 4) for k, b in sorted(dips.items())},
+                              "contact_level": [s.cars[k].number for k in sorted(set(level) - set(dropped))],
+                              "contact_level_dropped": [s.cars[k].number for k in sorted(dropped)],
                               "track_prior_cars": [r.number for r in s.track_records if r.applied]}))
     if not fit.ok:
         s.failures.append(f"step 4: {fit.message}")

@@ -1,19 +1,16 @@
 """The terrain in the solve: resting a carriage on it (step 2) and the soft contact term (step 4).
 
-Each carriage's contact row is chosen by :func:`wheel_contact` from its pose at step 3 and its rotation's
-uncertainty. A carriage seen to stand on all its wheels (:func:`on_wheels`) gets the mean clearance of its wheel
-treads' lowest points (the samples on the type's bottom plane, :func:`wheel_points`), each over the terrain beneath
-it: linear in the pose on a plane, so a noisy rotation does not move it on average. Any other gets the lowest of all
-samples, which dips under a noisy rotation whichever way the rotation errs when several samples touch at the truth
-(a carriage level on its wheels: by about the wheelbase times the pitch error), so the fit lifted every such
-carriage; with the focal estimated the lift slid the consist up its rays towards the camera (up too high, the
-focal too short; docs/calibration.md, "Hand picks, unknown focal"). A carriage whose wheels are as level as its
-rotation's uncertainty can tell, but which that uncertainty cannot confirm on all its wheels against the terrain's
-stated accuracy, gets the lowest sample's row raised by that dip's expectation (:func:`expected_dip`, first order in
-the rotation's error): unbiased for a carriage standing level, and for one tilted within that uncertainty off by
-no more than the dip. Step 4 judges such a carriage again at its solution with its rotation's covariance there (the
-chain's and the contact's information added to its own pixels'). A derailed carriage (on one end or one side of its
-wheels, on its side or roof) keeps the lowest sample's row.
+Each carriage's contact row is chosen by :func:`wheel_contact` from its pose and its rotation's uncertainty. A
+carriage whose wheels are as level over the terrain as that uncertainty can tell gets the mean clearance of its
+wheel treads' lowest points (the samples on the type's bottom plane, :func:`wheel_points`), each over the terrain
+beneath it: linear in the pose on a plane, so a noisy rotation does not move it on average. Any other (derailed onto
+one end or one side of its wheels, on its side or roof) gets the lowest of all samples. That row dips under a noisy
+rotation whichever way the rotation errs when several samples touch at the truth (a carriage level on its wheels: by
+about the wheelbase times the pitch error), so for a level carriage the fit lifted it (with the focal estimated the
+consist slid up its rays: up too high, the focal too short), and, being concave in the tilt, it let the fit tilt a
+level carriage to meet it (docs/calibration.md, "Hand picks, unknown focal"). Step 4 judges a carriage whose
+rotation from its own pixels could not confirm it level against the terrain's stated accuracy again at its solution,
+with its rotation's covariance there (the chain's and the contact's information added to its pixels').
 """
 
 from __future__ import annotations
@@ -25,7 +22,6 @@ import numpy as np
 _SAMPLE_CACHE: dict[tuple[str, int], np.ndarray] = {}
 WHEEL_PLANE_TOL_M = 0.01  # a sample within 1 cm of the type's lowest (carriage z) lies on its wheels' rail plane
 WHEEL_SPREAD_SD = 4.0  # on_wheels' test: a wheel off the others' height by more sd than this is not on the ground
-DIP_DRAWS = 4096  # expected_dip's normal draws: its mean to about 1 % of the wheels' spread
 
 
 def surface_samples(ct: Any, n: int) -> np.ndarray:
@@ -68,62 +64,44 @@ def wheel_gradients(W: np.ndarray, R: np.ndarray, t: np.ndarray, terrain: Any) -
     return g - g.mean(axis=0)
 
 
-def expected_dip(G: np.ndarray, cov_rot: np.ndarray, n_draws: int = DIP_DRAWS) -> float:
-    """How far below the wheels' mean clearance the lowest of them lies on average when the rotation errs by
-    N(0, ``cov_rot``) (3, 3, rad^2) about a carriage standing level: E max_w (G_w . delta), ``G`` (n, 3) the
-    derivatives of each wheel point's clearance less the wheels' mean by the scene-frame rotation vector (m/rad).
-    First order in the rotation's error (exact on a plane for small rotations); a fixed set of ``n_draws`` normal
-    draws, so the same inputs give the same dip. Metres, >= 0."""
-    G = np.asarray(G, dtype=float).reshape(-1, 3)
-    C = np.asarray(cov_rot, dtype=float).reshape(3, 3)
-    w, V = np.linalg.eigh(0.5 * (C + C.T))
-    L = V * np.sqrt(np.maximum(w, 0.0))
-    z = np.random.default_rng(0).standard_normal((n_draws, 3))
-    return float(np.mean(np.max((z @ L.T) @ G.T, axis=1))) if len(G) else 0.0
-
-
 def wheel_contact(samples: np.ndarray, R: np.ndarray, t: np.ndarray, terrain: Any, cov_rot: np.ndarray,
-                  sigma_z: float) -> tuple[str, float]:
+                  sigma_z: float) -> str:
     """Which contact row a carriage (pose ``R`` (3, 3), ``t`` (3,); its surface ``samples`` (m, 3), carriage
     frame) gets, from its pose and its rotation's uncertainty ``cov_rot`` (3, 3), rad^2, of the scene-frame
-    rotation vector. Returns (kind, dip in metres):
+    rotation vector:
 
-    * ``("wheels", 0)``: seen to stand on all its wheels (:func:`on_wheels`): the wheels' mean clearance;
-    * ``("level", dip)``: its wheels as level as its rotation's uncertainty can tell (every one of its
+    * ``"wheels"``: seen to stand on all its wheels (:func:`on_wheels`): the wheels' mean clearance;
+    * ``"level"``: its wheels as level as its rotation's uncertainty can tell (every one of its
       :func:`wheel_points` as high over the terrain as the others to within :data:`WHEEL_SPREAD_SD` standard
       deviations of what that uncertainty explains, plus :data:`WHEEL_PLANE_TOL_M`; its lowest sample over the
       plane of the terrain under its wheels a wheel point) but that tolerance over twice the terrain's stated
-      accuracy ``sigma_z`` (m): the wheels' mean could be half the tolerance off the ground for a carriage on one
-      end. Its row is the lowest sample's raised by ``dip``, :func:`expected_dip`: how far the lowest wheel of a
-      level carriage dips under the rotation's error on average. Unbiased for a carriage standing level; for one
-      tilted within the tolerance it lowers the carriage by at most the dip (the lowest sample's row, which dips
-      on a level one, would raise it by as much), where the wheels' mean could lower it by half the tolerance;
-    * ``("lowest", 0)``: any other (derailed onto one end or one side, on its side or roof; off the terrain;
+      accuracy ``sigma_z`` (m): not confirmed, since a carriage on one end tilted within the tolerance would pass,
+      its wheels' mean half its wheels' spread off the ground. The solve gives it the wheels' row too and judges it
+      again at step 4's solution (:func:`.steps.step_all`);
+    * ``"lowest"``: any other (derailed onto one end or one side, on its side or roof; off the terrain;
       ``cov_rot`` not finite): the lowest sample's row."""
     S = np.asarray(samples, dtype=float).reshape(-1, 3)
     W = wheel_points(S)
     C = np.asarray(cov_rot, dtype=float).reshape(3, 3)
     if len(W) < 3 or not np.all(np.isfinite(C)):
-        return "lowest", 0.0
+        return "lowest"
     Xw = W @ R.T + t
     hw = np.asarray(terrain.height_at(Xw[:, :2]), dtype=float)
     if not np.all(np.isfinite(hw)):
-        return "lowest", 0.0
+        return "lowest"
     d = Xw[:, 2] - hw
     g = wheel_gradients(W, R, t, terrain)
     sd = np.sqrt(np.maximum(np.einsum("ni,ij,nj->n", g, C, g), 0.0))
     tol = WHEEL_SPREAD_SD * sd + WHEEL_PLANE_TOL_M
     if np.any(np.abs(d - d.mean()) > tol):
-        return "lowest", 0.0
+        return "lowest"
     A = np.column_stack([np.ones(len(Xw)), Xw[:, :2] - Xw[:, :2].mean(0)])
     coef, *_ = np.linalg.lstsq(A, hw, rcond=None)  # the ground's plane under the wheels (least squares)
     X = S @ R.T + t
     dp = X[:, 2] - (coef[0] + (X[:, :2] - Xw[:, :2].mean(0)) @ coef[1:])
     if not S[int(np.argmin(dp)), 2] <= S[:, 2].min() + WHEEL_PLANE_TOL_M:
-        return "lowest", 0.0
-    if not np.any(tol > 2.0 * sigma_z):
-        return "wheels", 0.0
-    return "level", expected_dip(g, C)
+        return "lowest"
+    return "level" if np.any(tol > 2.0 * sigma_z) else "wheels"
 
 
 def on_wheels(samples: np.ndarray, R: np.ndarray, t: np.ndarray, terrain: Any, cov_rot: np.ndarray,
@@ -134,7 +112,7 @@ def on_wheels(samples: np.ndarray, R: np.ndarray, t: np.ndarray, terrain: Any, c
     one on one end, whose wheels' mean clearance is half its wheels' spread off the ground), and its lowest sample
     a wheel point. A derailed carriage resting on one end or one side of its wheels, on its side or on its roof is
     not. Arguments as :func:`wheel_contact`."""
-    return wheel_contact(samples, R, t, terrain, cov_rot, sigma_z)[0] == "wheels"
+    return wheel_contact(samples, R, t, terrain, cov_rot, sigma_z) == "wheels"
 
 
 def rest_on_terrain(world_from_carriage: np.ndarray, carriage_type: Any, terrain: Any,
@@ -155,15 +133,14 @@ def rest_on_terrain(world_from_carriage: np.ndarray, carriage_type: Any, terrain
 class Contact:
     """Soft terrain contact per carriage, ``scale`` = px_sigma / sigma_z. A carriage in ``wheels`` (carriage index ->
     its :func:`wheel_points`) has the residual ``scale * mean_w (z_w - h(xy_w))`` over its wheel points; any other
-    the residual ``scale * (min_s (z_s - h(xy_s)) + dip)`` over its surface samples, ``dip`` its entry in ``dips``
-    (carriage index -> m, :func:`expected_dip`; 0 where absent).
+    the residual ``scale * min_s (z_s - h(xy_s))`` over its surface samples.
 
     ``samples``: carriage index -> its surface samples (m, 3), carriage frame, metres; ``self.cars`` keeps their
     order, which is the order of the batched :meth:`clearances` and of the contact rows. :meth:`clearance` is the
     lowest sample's height over the terrain (the reported clearance) whichever the row."""
 
     def __init__(self, terrain: Any, samples: dict[int, np.ndarray], scale: float, step: float = 0.05,
-                 wheels: dict[int, np.ndarray] | None = None, dips: dict[int, float] | None = None):
+                 wheels: dict[int, np.ndarray] | None = None):
         self.terrain, self.samples, self.scale, self.step = terrain, samples, scale, step
         self.cars = list(samples)
         self._row = {k: i for i, k in enumerate(self.cars)}
@@ -176,10 +153,6 @@ class Contact:
         for k, W in self.wheels.items():
             i = self._row[k]
             self._W[i, :len(W)], self._wvalid[i, :len(W)], self._on_wheels[i] = W, True, True
-        self._dip = np.zeros(len(self.cars))  # added to the lowest sample's row (wheel_contact's "level")
-        for k, b in (dips or {}).items():
-            if k in self._row and k not in self.wheels:
-                self._dip[self._row[k]] = float(b)
         m = max((len(S) for S in samples.values()), default=0)
         self._S = np.zeros((len(self.cars), m, 3))  # padded to the longest set; _valid marks the real samples
         self._valid = np.zeros((len(self.cars), m), dtype=bool)
@@ -241,7 +214,6 @@ class Contact:
         """The residuals of the rows ``rows`` (pixel units, NaN off the terrain) at the poses given per row."""
         rows = np.asarray(rows, dtype=int)
         d, _, _ = self.clearances(R_r, t_r, [self.cars[i] for i in rows])
-        d = d + self._dip[rows]
         w = self._on_wheels[rows]
         if w.any():
             d[w] = self._wheel_rows(R_r[w], t_r[w], rows[w], False)[0]
@@ -253,7 +225,6 @@ class Contact:
         sample's, or the wheel points' centroid's: exact on a plane, the slope under the wheels averaged on a
         curved terrain), on-terrain mask."""
         d, X, q = self.clearances(R_c, t_c)
-        d = d + self._dip
         gh = self.gradients(X[:, :2])
         w = self._on_wheels
         if w.any():
