@@ -3,8 +3,9 @@
 Parameters: per carriage a scene-frame rotation vector and the origin (6), plus each estimated focal (px).
 Held couplings enter as the soft prior ``T ~ N(0, (slack / sqrt 5)^2 I)`` (not the solver's hard bound), the
 weighting through the sandwich ``H^-1 G H^-1``, pose predictions with their face alignment's error (the others not
-at all), a face's shared misfit in ``G``; the pixel sigma is pooled with the configured one. The camera term:
-:mod:`.camera_term`. ``docs/solver.md``.
+at all), a face's shared misfit in ``G``; the pixel sigma is pooled with the configured one. Each carriage's
+response to a camera motion (:func:`camera_responses`) for the camera term (:mod:`.camera_term`).
+``docs/solver.md``.
 """
 
 from __future__ import annotations
@@ -23,7 +24,7 @@ from .problem import (Chains, Poses, Problem, carriage_weights, focal_groups, he
 # the camera term and the pose-covariance arithmetic live in .camera_term; level, principal_point and some tests
 # still import add_*_uncertainty, add_pose_covariance and camera_pose_jacobian from here
 from .camera_term import (add_camera_uncertainty, add_pose_covariance, add_view_camera_uncertainty,  # noqa: F401
-                          camera_pose_jacobian, inverse_psd, set_pose_covariance)
+                          camera_pose_jacobian, inverse_psd, set_camera_response, set_pose_covariance)
 from .alignment_covariance import alignment_term, views_per_face
 from .pose_covariance import pose_rows
 from .variance_components import (FALLBACK_FACE_SIGMA_PX, VarianceComponents, estimate_variance_components,
@@ -336,11 +337,40 @@ def misfit_carriages(prob: Problem, poses: Poses, sigma: float, p_value: float =
             if x > 2.0 * float(gammaincinv(max(m - 6, 1) / 2, 1.0 - p_value)) and x / m > relative * med}
 
 
+def camera_responses(prob: Problem, poses: Poses, focal_views, chains: Chains, contact,
+                     options: SolveOptions) -> dict[int, np.ndarray]:
+    """Each active carriage's first-order pose response (6, 6: scene rotation vector, origin) to a rigid motion of
+    the camera about the ENU origin (rotation vector, translation: :func:`.camera_term.motion_about`), as the
+    estimator responds: its pixels (the measured points and the predictions it fits, at the fit's weights and
+    robust weights) move with the camera, the couplings' offsets do not change when the whole consist moves, and the
+    terrain contact and the track prior stay in the world. With ``H = H_moving + H_world`` the information of the
+    cost the solver minimises (pixels at ``options.pixel_sigma_px``, the coupler prior, the soft rows), the least
+    squares moves by ``H^-1 H_moving A e = (A - H^-1 H_world A) e``, ``A`` every carriage's rigid motion with the
+    camera (docs/solver.md, "The camera's uncertainty"). Empty where no world-fixed row holds a carriage: every
+    carriage then moves rigidly with the camera (``B = A``)."""
+    J, r, col, P = pixel_rows(prob, poses.R, poses.t, poses.f, focal_views)
+    Jw, _, _ = contact_rows(contact, poses.R, poses.t, col, P, options.pixel_sigma_px)
+    if not len(Jw):
+        return {}
+    rho = np.repeat(_robust_weights((r.reshape(-1, 2) ** 2).sum(1), options.robust_loss, options.loss_scale_px), 2)
+    Hw = Jw.T @ Jw
+    H = (J * rho[:, None]).T @ J / options.pixel_sigma_px**2 + Hw \
+        + _prior_info(prob.cars, poses.R, poses.t, chains.members, chains.slacks, col, P)
+    A = np.zeros((P, 6))
+    for k in prob.active:
+        c = col[k]
+        A[c:c + 6] = np.eye(6)
+        A[c + 3:c + 6, :3] = -skew(poses.t[k])
+    B = A - inverse_psd(0.5 * (H + H.T)) @ (Hw @ A)
+    return {k: B[col[k]:col[k] + 6] for k in prob.active}
+
+
 def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Chains, contact, options: SolveOptions,
                       model: CovarianceModel | None = None) -> None:
     """Fill the covariance fields of a :class:`SolveResult` in place. ``model``: a :func:`solution_model` already
     computed (at the least-squares minimum, when the reported ``poses`` are bias-corrected: the pixel sigma is
-    estimated from the minimum's residuals and the intervals are centred on the reported poses)."""
+    estimated from the minimum's residuals and the intervals are centred on the reported poses). Each carriage result
+    also keeps its response to a camera motion (:func:`camera_responses`) for the camera term."""
     if model is None:
         model = solution_model(prob, poses, focal_views, chains, contact, options)
     R = poses.R
@@ -374,6 +404,8 @@ def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Cha
             record_warning(res.warnings, prob.cars[k], "undetermined",
                            f"car {cr.number}: its measured points do not determine its pose (predictions or the "
                            f"chain placed it); no interval is given")
+    for k, B0 in camera_responses(prob, poses, focal_views, chains, contact, options).items():
+        set_camera_response(res.carriages[k], B0)
     for i, grp in enumerate(focal_views):
         j = 6 * len(prob.active) + i
         for v in grp:
