@@ -222,7 +222,7 @@ def _profile_check(s: SolveContext, cp: ChainedProblem, fit: ChainedFit,
 
 def _rotation_covariances(s: SolveContext, poses: Poses) -> dict[int, np.ndarray]:
     """Each active carriage's rotation covariance (3, 3), rad^2, from its own pixels alone at ``poses`` (the focal
-    held; its translation marginalised): what step 3's held rotation may be off by, for :func:`.terrain.on_wheels`.
+    held; its translation marginalised): what step 3's held rotation may be off by, for :func:`.terrain.wheel_contact`.
     Not finite where its pixels do not fix its pose."""
     J, _, col, _ = pixel_rows(s.prob, poses.R, poses.t, poses.f, [])
     w_noise = np.repeat(s.prob.w_noise, 2)
