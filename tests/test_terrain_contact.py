@@ -7,7 +7,7 @@ import pytest
 from workbench.core.geometry import exp_so3, rot_z, rotation_between
 from workbench.rolling_stock import get_type
 from workbench.solve.simulate import PlaneTerrain, dem_with_error, simulate_consist
-from workbench.solve.terrain import Contact, on_wheels, surface_samples, wheel_points
+from workbench.solve.terrain import Contact, on_wheels, surface_samples, wheel_contact, wheel_points
 
 
 def _upright(terrain, yaw=0.4, xy=(3.0, -2.0)):
@@ -79,17 +79,28 @@ def test_carriage_on_its_side_keeps_the_lowest_point():
 
 
 def test_dem_with_error_adds_one_error_per_carriage():
-    """The simulated DEM: the plane plus one error a carriage under each carriage's wheels; zero sigma: the plane."""
+    """The simulated DEM: the ground each carriage stands on (its wheels' height at the truth) plus one error a
+    carriage under its wheels; with ``ground="plane"`` the plane plus that error (the carriages' walk about the
+    plane, the couplers' play, then in the DEM's error too); zero sigma: the wheels' ground exactly."""
     sim = simulate_consist(4, seed=11, pixel_sigma_px=0.7)
     dem = dem_with_error(sim, 0.1, 3)
+    flat = dem_with_error(sim, 0.1, 3, ground="plane")
     e = dem.errors_m
-    assert e.shape == (4,) and 0.0 < np.abs(e).max() < 0.5
+    assert e.shape == (4,) and 0.0 < np.abs(e).max() < 0.5 and np.allclose(flat.errors_m, e)
+    lifts = []
     for k, M in enumerate(sim.truth):
         X = wheel_points(surface_samples(sim.carriages[k].carriage_type, 400)) @ M[:3, :3].T + M[:3, 3]
-        assert np.allclose(dem.height_at(X[:, :2]) - sim.terrain.height_at(X[:, :2]), e[k])
-    assert np.allclose(dem_with_error(sim, 0.0, 3).errors_m, 0.0)
+        assert np.allclose(dem.height_at(X[:, :2]) - X[:, 2], e[k])
+        assert np.allclose(flat.height_at(X[:, :2]) - sim.terrain.height_at(X[:, :2]), e[k])
+        lifts.append(X[0, 2] - sim.terrain.height_at(X[:1, :2])[0])
+    assert lifts[0] == pytest.approx(0.0, abs=1e-9) and 0.0 < np.abs(lifts).max() < 0.1  # the couplers' walk
+    M2 = sim.truth[2]
+    X = wheel_points(surface_samples(sim.carriages[2].carriage_type, 400)) @ M2[:3, :3].T + M2[:3, 3]
+    assert np.allclose(dem_with_error(sim, 0.0, 3).height_at(X[:, :2]), X[:, 2])
     with pytest.raises(ValueError, match="sigma_m"):
         dem_with_error(sim, -0.1, 3)
+    with pytest.raises(ValueError, match="ground"):
+        dem_with_error(sim, 0.1, 3, ground="rails")
 
 
 def test_on_wheels_refuses_a_carriage_on_one_end_or_of_unknown_attitude():
@@ -116,24 +127,50 @@ def test_dem_with_error_is_continuous_between_carriages():
     a, b = sim.truth[1][:2, 3], sim.truth[2][:2, 3]
     xy = a + np.linspace(0.0, 1.0, 2001)[:, None] * (b - a)
     e = dem.height_at(xy) - sim.terrain.height_at(xy)
-    assert e[0] == pytest.approx(dem.errors_m[1]) and e[-1] == pytest.approx(dem.errors_m[2])
+    ea, eb = dem.errors_m[1:3] + dem.ground_m[1:3]
+    assert e[0] == pytest.approx(ea) and e[-1] == pytest.approx(eb)
     assert np.abs(np.diff(e)).max() < 0.01  # 1.2 cm steps of the line: no jump
 
 
 def test_solve_gives_level_carriages_the_wheels_row():
-    """In a solve on a DEM stated at 0.10 m, carriages standing level on it take the wheels' row (step 4's facts
-    name them); stating 1 cm, the rotations cannot confirm it and every carriage keeps the lowest point's."""
+    """In a solve on a DEM stated at 0.10 m, carriages standing level on it take the wheels' row, confirmed at step
+    3 (step 4's facts name them); stating 1 cm, their rotations from their own pixels cannot confirm it, and they
+    take it unconfirmed, kept at step 4's solution ("contact_level")."""
     import warnings
 
     from workbench.solve import SolveOptions, SolveWarning, solve_consist
 
     sim = simulate_consist(4, seed=21, pixel_sigma_px=0.7)
     dem = dem_with_error(sim, 0.1, 8)
-    on = {}
+    on, level = {}, {}
     for sigma in (0.10, 0.01):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", SolveWarning)
             res = solve_consist(sim.carriages, sim.links, sim.views,
                                 SolveOptions(pixel_sigma_px=0.7, terrain_sigma_m=sigma), terrain=dem)
-        on[sigma] = next(st for st in res.steps if st.name == "4_all").facts["contact_on_wheels"]
-    assert len(on[0.10]) >= 3 and on[0.01] == []
+        facts = next(st for st in res.steps if st.name == "4_all").facts
+        on[sigma], level[sigma] = facts["contact_on_wheels"], facts["contact_level"]
+        assert facts["contact_level_dropped"] == []
+    assert len(on[0.10]) >= 3 and level[0.10] == []
+    assert len(level[0.01]) >= 3 and set(level[0.01]) <= set(on[0.01])
+
+
+def test_wheel_contact_kinds():
+    """wheel_contact: a level carriage with a well-known rotation is on its wheels; with a rotation too uncertain
+    to confirm it against a 1 cm terrain (0.1 deg per axis) it is "level" (the wheels' row, judged again at step
+    4); one bogie in a ditch (2 deg against the plane), a carriage on its side or of an unknown covariance:
+    "lowest"."""
+    ct = get_type("shoreliner")
+    S = surface_samples(ct, 400)
+    terrain = PlaneTerrain(0.02, -0.01)
+    R0, t0 = _upright(terrain)
+    C = np.eye(3) * np.deg2rad(0.1) ** 2
+    assert wheel_contact(S, R0, t0, terrain, C, 0.10) == "wheels"
+    assert wheel_contact(S, R0, t0, terrain, C, 0.01) == "level"
+    assert wheel_contact(S, R0, t0, terrain, C, np.inf) == "wheels"
+    pitched = R0 @ exp_so3(np.array([0.0, np.deg2rad(2.0), 0.0]))
+    for sz in (0.01, 0.10, np.inf):
+        assert wheel_contact(S, pitched, t0 + [0.0, 0.0, 0.3], terrain, C, sz) == "lowest"
+    side = exp_so3(np.array([np.pi / 2, 0.0, 0.0]))
+    assert wheel_contact(S, side, np.array([0.0, 0.0, 2.0]), PlaneTerrain(), C, np.inf) == "lowest"
+    assert wheel_contact(S, R0, t0, terrain, np.full((3, 3), np.nan), 0.10) == "lowest"

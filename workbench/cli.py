@@ -389,6 +389,34 @@ def single_threaded_blas() -> None:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
+MALLOC_MMAP_BYTES = 2**31 - 1  # blocks up to this size from the heap (mallopt's value is a C int)
+
+
+def _freed_memory_kept() -> None:
+    """Large blocks taken from and kept in the process's heap (glibc ``mallopt``: ``M_MMAP_THRESHOLD`` 2 GiB,
+    ``M_TRIM_THRESHOLD`` -1: never trimmed) instead of mapped for each allocation and unmapped when freed. SIFT on
+    an upsampled photo allocates and frees about 3 GB of images; with fresh pages each time the kernel faulted them
+    in and zeroed them again for every photo, 1.2-1.6 s of system time each (docs/performance.md, seventh pass);
+    kept, a process's next photo reuses them. Set before the stages fork their workers, which inherit it. The
+    process keeps its peak heap until it ends (a command's process ends with the command). Nothing where the C
+    library is not glibc, or where the user tunes its allocator (``GLIBC_TUNABLES``, ``MALLOC_MMAP_THRESHOLD_``,
+    ``MALLOC_TRIM_THRESHOLD_``)."""
+    if any(k in os.environ for k in ("GLIBC_TUNABLES", "MALLOC_MMAP_THRESHOLD_", "MALLOC_TRIM_THRESHOLD_")):
+        return
+    try:
+        import ctypes
+
+        libc = ctypes.CDLL(None)
+        if not hasattr(libc, "gnu_get_libc_version") or not hasattr(libc, "mallopt"):
+            return
+        m_trim_threshold, m_mmap_threshold = -1, -3  # glibc's malloc.h
+        libc.mallopt(m_mmap_threshold, MALLOC_MMAP_BYTES)
+        # mallopt(3): -1 disables trimming (with a limit of 2 GiB, SIFT's ~3 GB went back after every photo)
+        libc.mallopt(m_trim_threshold, -1)
+    except (OSError, AttributeError):  # no C library to ask: the allocator's defaults
+        pass
+
+
 def _no_collection_at_exit() -> None:
     """The objects of a process about to end moved out of the garbage collector's reach (``gc.freeze``): the
     interpreter's collections at exit walked every one of them, 0.1-0.4 s after a `workbench stitch` (NumPy,
@@ -402,6 +430,8 @@ def _no_collection_at_exit() -> None:
 def main(argv: list[str] | None = None) -> None:
     """The ``workbench`` entry point: every error a user can cause is one line on stderr and exit status 2.
     ``argv`` None: the process's own command line, and the process ends with the command."""
+    if argv is None:
+        _freed_memory_kept()
     try:
         _run_command(argv)
     finally:

@@ -51,22 +51,24 @@ class PlaneTerrain:
 
 class DemWithError:
     """A DEM of the simulated ground with the error a terrain contact states: the plane ``ground`` (its
-    ``height_at``) plus one height error per carriage (``errors_m`` (n,), m), exact within ``radii_m`` (n,) of that
-    carriage's centre (``centres_xy`` (n, 2), scene m: its wheels' reach), and between the carriages the errors
-    blended by inverse squared distance to those discs (continuous: no step for a lowest point or a slope to
-    fall on). Independent per carriage, as the contact term takes a DEM's error (``terrain_sigma_m`` per
-    carriage); the ``height_at`` interface of the terrain model."""
+    ``height_at``) raised under each carriage by ``ground_m`` (n,), m (the ground that carriage stands on: its
+    wheels' height over the plane; 0: the plane), plus one height error per carriage (``errors_m`` (n,), m), exact
+    within ``radii_m`` (n,) of that carriage's centre (``centres_xy`` (n, 2), scene m: its wheels' reach), and
+    between the carriages the errors blended by inverse squared distance to those discs (continuous: no step for
+    a lowest point or a slope to fall on). Independent per carriage, as the contact term takes a DEM's error
+    (``terrain_sigma_m`` per carriage); the ``height_at`` interface of the terrain model."""
 
     def __init__(self, ground: PlaneTerrain, centres_xy: np.ndarray, errors_m: np.ndarray,
-                 radii_m: np.ndarray) -> None:
+                 radii_m: np.ndarray, ground_m: np.ndarray | None = None) -> None:
         self.ground = ground
         self.centres_xy = np.asarray(centres_xy, dtype=float).reshape(-1, 2)
         self.errors_m = np.asarray(errors_m, dtype=float).reshape(-1)
         self.radii_m = np.asarray(radii_m, dtype=float).reshape(-1)
         n = len(self.centres_xy)
-        if len(self.errors_m) != n or len(self.radii_m) != n:
-            raise ValueError(f"{self.centres_xy.shape=}, {self.errors_m.shape=}, {self.radii_m.shape=}: one error "
-                             f"and one radius per carriage")
+        self.ground_m = np.zeros(n) if ground_m is None else np.asarray(ground_m, dtype=float).reshape(-1)
+        if len(self.errors_m) != n or len(self.radii_m) != n or len(self.ground_m) != n:
+            raise ValueError(f"{self.centres_xy.shape=}, {self.errors_m.shape=}, {self.radii_m.shape=}, "
+                             f"{self.ground_m.shape=}: one error, radius and ground height per carriage")
 
     def height_at(self, xy: np.ndarray) -> np.ndarray:
         xy = np.asarray(xy, dtype=float).reshape(-1, 2)
@@ -74,9 +76,10 @@ class DemWithError:
         gap = np.maximum(dist - self.radii_m[None], 0.0)
         inside = gap <= 0.0
         w = 1.0 / np.maximum(gap, 1e-9) ** 2
-        err = (w @ self.errors_m) / w.sum(axis=1)
+        e = self.errors_m + self.ground_m
+        err = (w @ e) / w.sum(axis=1)
         own = np.where(inside, dist, np.inf).argmin(axis=1)  # inside a disc: that carriage's error (the nearest)
-        err = np.where(inside.any(axis=1), self.errors_m[own], err)
+        err = np.where(inside.any(axis=1), e[own], err)
         return self.ground.height_at(xy) + err
 
 
@@ -247,17 +250,26 @@ def redraw(sim: SimProblem, seed: int, pixel_sigma_px: float | None = None, offs
     return replace(sim, carriages=carriages, truth=truth, offsets=new_off, pixel_sigma_px=sigma, clean_pixels=clean)
 
 
-def dem_with_error(sim: SimProblem, sigma_m: float, seed: int) -> DemWithError:
-    """The DEM a solve of ``sim`` is given when its terrain is known to ``sigma_m`` per carriage: the simulated
-    plane plus N(0, ``sigma_m``) per carriage (:class:`DemWithError`, drawn from ``seed``), exact out to its
-    wheels (their farthest reach from the carriage's origin plus 0.5 m); the carriages stay on the plane, to
-    within the couplers' play."""
+def dem_with_error(sim: SimProblem, sigma_m: float, seed: int, ground: str = "carriages") -> DemWithError:
+    """The DEM a solve of ``sim`` is given when its terrain is known to ``sigma_m`` per carriage: the ground plus
+    N(0, ``sigma_m``) per carriage (:class:`DemWithError`, drawn from ``seed``), exact out to its wheels (their
+    farthest reach from the carriage's origin plus 0.5 m). ``ground``: ``"carriages"`` (default), the ground each
+    carriage stands on: the plane raised under it by its wheels' height over the plane at the truth (the
+    couplers' play, drawn in 3-D by :func:`simulate_consist`, lifts or sinks the carriages off the plane by a
+    random walk along the consist, 0-3 cm; a carriage on its wheels stands on the ground, so the DEM's error is
+    its stated error about where the wheels are); ``"plane"``: the plane itself, so the DEM's error about the
+    wheels is the stated error plus that walk."""
     if not (np.isfinite(sigma_m) and sigma_m >= 0):
         raise ValueError(f"dem_with_error: sigma_m = {sigma_m!r}; expected a non-negative height error in metres")
+    if ground not in ("carriages", "plane"):
+        raise ValueError(f"dem_with_error: ground = {ground!r}; expected 'carriages' or 'plane'")
     centres = np.array([M[:2, 3] for M in sim.truth])  # each carriage's origin, midway between its couplers
-    radii = []
-    for c in sim.carriages:
+    radii, lift = [], []
+    for c, M in zip(sim.carriages, sim.truth):
         W = wheel_points(surface_samples(c.carriage_type, 400))
         radii.append(float(np.linalg.norm(W[:, :2], axis=1).max()) + 0.5)
+        Xw = W @ M[:3, :3].T + M[:3, 3]
+        lift.append(float(np.mean(Xw[:, 2] - sim.terrain.height_at(Xw[:, :2]))))
     errors = np.random.default_rng(seed).normal(0.0, sigma_m, len(sim.truth))
-    return DemWithError(sim.terrain, centres, errors, np.array(radii))
+    return DemWithError(sim.terrain, centres, errors, np.array(radii),
+                        np.array(lift) if ground == "carriages" else None)

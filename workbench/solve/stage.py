@@ -31,7 +31,7 @@ from .principal_point import guessed_principal_point_term
 from .model import CarriageInput, ChainLink, Observation, SolveOptions, SolveWarning, View
 from .problem import AlignedObservation
 from .solver import solve_consist
-from .uncertainty import add_camera_uncertainty, add_view_camera_uncertainty
+from .camera_term import add_camera_uncertainty, add_view_camera_uncertainty
 
 log = logging.getLogger(__name__)
 
@@ -556,7 +556,8 @@ def _camera_uncertainty_record(camera_unc: dict | None, cam_doc: dict) -> dict:
                 "centre_enu": [0.0, 0.0, 0.0], "carriages": camera_unc.get("carriages", [])}
     return {"included": True,
             "note": "the georegistration's camera-pose covariance is added to every carriage's (first order: the "
-                    "poses move with the camera); sigma_*_fit_* give the fit's alone",
+                    "poses move with the camera, held where the terrain contact or the track prior holds them); "
+                    "sigma_*_fit_* give the fit's alone",
             "sigma_rotation_deg": np.degrees(sd[:3]).tolist(), "sigma_centre_m": sd[3:].tolist(),
             "centre_enu": np.asarray(camera_unc["centre_enu"], dtype=float).tolist(),
             "carriages": camera_unc.get("carriages", [])}

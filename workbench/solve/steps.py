@@ -25,7 +25,7 @@ from .model import SolveOptions, StepStats, View
 from .plan import FOCAL_PINNED_REL_SD, Plan, best_view, focal_reason, focal_rel_sd
 from .pnp import place_carried, pnp_start, refine_alone
 from .problem import Car, Poses, Problem, chain_cost, pixel_cost, pose_changes, record_warning
-from .terrain import Contact, on_wheels, rest_on_terrain, surface_samples, wheel_points
+from .terrain import Contact, rest_on_terrain, surface_samples, wheel_contact, wheel_points
 from .track_prior import SoftRows, TrackPriorRecord, track_prior
 from .uncertainty import CovarianceModel, pixel_rows, solution_model
 
@@ -222,7 +222,7 @@ def _profile_check(s: SolveContext, cp: ChainedProblem, fit: ChainedFit,
 
 def _rotation_covariances(s: SolveContext, poses: Poses) -> dict[int, np.ndarray]:
     """Each active carriage's rotation covariance (3, 3), rad^2, from its own pixels alone at ``poses`` (the focal
-    held; its translation marginalised): what step 3's held rotation may be off by, for :func:`.terrain.on_wheels`.
+    held; its translation marginalised): what step 3's held rotation may be off by, for :func:`.terrain.wheel_contact`.
     Not finite where its pixels do not fix its pose."""
     J, _, col, _ = pixel_rows(s.prob, poses.R, poses.t, poses.f, [])
     w_noise = np.repeat(s.prob.w_noise, 2)
@@ -240,6 +240,35 @@ def _rotation_covariances(s: SolveContext, poses: Poses) -> dict[int, np.ndarray
     return out
 
 
+def _relevel(s: SolveContext, fit: ChainedFit, start: Poses, level: list[int], track: Any):
+    """Step 4's second look at the carriages given their wheels' row unconfirmed (``level``: their wheels as level
+    as their rotations from their own pixels could tell, not to within twice the terrain's stated accuracy): each
+    judged again (:func:`.terrain.wheel_contact`'s spread test) at step 4's solution ``fit`` with its rotation's
+    covariance there (the whole problem's: pixels, couplers, contact; the chain makes it tighter than its own
+    pixels'). One whose wheels are then seen not level (a derailed carriage the step-3 test could not tell) goes
+    back to the lowest point's row, and step 4 is solved again from step 3's ``start``. Returns (problem, fit,
+    wheels, dropped carriages)."""
+    model = solution_model(s.prob, fit.poses, s.focal_views, s.plan.chains, s.contact, s.options)
+    contact = s.contact.terrain_contact if isinstance(s.contact, SoftRows) else s.contact
+    wheels, dropped = dict(contact.wheels), []
+    for k in level:
+        c = model.col.get(k)
+        C = model.cov[c:c + 3, c:c + 3] if c is not None else np.full((3, 3), np.nan)
+        if np.all(np.isfinite(C)) and wheel_contact(s.samples[k], fit.poses.R[k], fit.poses.t[k], s.terrain, C,
+                                                    np.inf) == "lowest":
+            wheels.pop(k)
+            dropped.append(k)
+    if not dropped:
+        return s.chained(contact=s.contact), fit, wheels, dropped
+    s.contact = Contact(s.terrain, s.samples, contact.scale, wheels=wheels)
+    if track is not None:
+        s.contact = SoftRows(s.contact, track)
+    cp = s.chained(contact=s.contact)
+    fit2 = cp.solve(start)
+    s.nfev += fit2.nfev
+    return cp, fit2, wheels, dropped
+
+
 def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalProfile | None) -> ChainedFit:
     """Step 4: everything optimised (with the terrain contact term), the profile's basin check, then the branch
     check (:func:`.branches.retry_branches`, restarting from step 3's start ``start3``)."""
@@ -247,15 +276,18 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
     options, terrain = s.options, s.terrain
     c0 = pixel_cost(s.prob, fit3.poses)
     wheels: dict[int, np.ndarray] = {}
+    level: list[int] = []
+    dropped: list[int] = []
     if terrain is not None and options.use_terrain_contact:
-        # a carriage seen at step 3's poses to stand on all its wheels gets its wheels' contact row (unbiased by a
-        # noisy rotation); any other (derailed onto one end or side, on its side or roof, or its attitude too
-        # uncertain to tell) the lowest sample's
+        # a carriage whose wheels are level at step 3's poses to within what its rotation's uncertainty explains
+        # gets its wheels' contact row (unbiased by a noisy rotation; confirmed, or judged again at the solution:
+        # _relevel); any other (derailed onto one end or side, on its side or roof) the lowest sample's
         cov_rot = _rotation_covariances(s, fit3.poses)
         nan3 = np.full((3, 3), np.nan)
-        wheels = {k: wheel_points(S) for k, S in s.samples.items()
-                  if on_wheels(S, fit3.poses.R[k], fit3.poses.t[k], terrain, cov_rot.get(k, nan3),
-                               options.terrain_sigma_m)}
+        kinds = {k: wheel_contact(S, fit3.poses.R[k], fit3.poses.t[k], terrain, cov_rot.get(k, nan3),
+                                  options.terrain_sigma_m) for k, S in s.samples.items()}
+        level = [k for k, kind in kinds.items() if kind == "level"]
+        wheels = {k: wheel_points(s.samples[k]) for k, kind in kinds.items() if kind != "lowest"}
         s.contact = Contact(terrain, s.samples, options.pixel_sigma_px / options.terrain_sigma_m, wheels=wheels)
     track, s.track_records = track_prior(s.cars, s.plan.active, fit3.poses.R, fit3.poses.t, s.railways,
                                          options.track_sigma_m, options.pixel_sigma_px, options.track_gate_m)
@@ -269,6 +301,9 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
     fit = cp.solve(fit3.poses)
     s.nfev += fit.nfev
     nfev = fit.nfev
+    if level:
+        cp, fit, wheels, dropped = _relevel(s, fit, fit3.poses, level, track)
+        nfev += fit.nfev
     nfev_34 = fit3.nfev + fit.nfev
     note = ""
     if profile is not None:
@@ -283,7 +318,9 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
         note += "; " + "; ".join(retry.notes)
     terrain_contact = s.contact.terrain_contact if isinstance(s.contact, SoftRows) else s.contact
     note += (f"; soft terrain contact (sigma_z = {options.terrain_sigma_m} m; {len(wheels)} car(s) on all their "
-             f"wheels: their wheels' mean clearance, {len(s.samples) - len(wheels)}: their lowest point's)"
+             f"wheels: their wheels' mean clearance ({len(level) - len(dropped)} of them level to within their "
+             f"attitude's uncertainty, confirmed at step 4's solution; {len(dropped)} dropped there), "
+             f"{len(s.samples) - len(wheels)}: their lowest point's)"
              if terrain_contact is not None else
              ("; no terrain contact term (no terrain)" if terrain is None else "; terrain contact term off"))
     if track is not None:
@@ -296,6 +333,8 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
                               "restarted": retry.restarted, "branch_check_not_tried": retry.not_tried,
                               "terrain_contact": terrain_contact is not None,
                               "contact_on_wheels": [s.cars[k].number for k in sorted(wheels)],
+                              "contact_level": [s.cars[k].number for k in sorted(set(level) - set(dropped))],
+                              "contact_level_dropped": [s.cars[k].number for k in sorted(dropped)],
                               "track_prior_cars": [r.number for r in s.track_records if r.applied]}))
     if not fit.ok:
         s.failures.append(f"step 4: {fit.message}")

@@ -1,13 +1,16 @@
 """The terrain in the solve: resting a carriage on it (step 2) and the soft contact term (step 4).
 
-The contact row of a carriage seen to stand on all its wheels (:func:`on_wheels`) is the mean clearance of its
+Each carriage's contact row is chosen by :func:`wheel_contact` from its pose and its rotation's uncertainty. A
+carriage whose wheels are as level over the terrain as that uncertainty can tell gets the mean clearance of its
 wheel treads' lowest points (the samples on the type's bottom plane, :func:`wheel_points`), each over the terrain
-beneath it: linear in the pose on a plane, so a noisy rotation does not move it on average. The lowest of all
-samples (the only row before issue 21's fix, and still the row of any other carriage: derailed onto one end or one
-side, on its side or roof, or its attitude too uncertain to tell) dips under a noisy rotation whichever way the
-rotation errs (by about the wheelbase times the pitch error), so the fit lifted every carriage on average; with the
-focal estimated the lift slid the carriages up their rays towards the camera (up too high, the focal too short;
-docs/calibration.md, "Hand picks, unknown focal").
+beneath it: linear in the pose on a plane, so a noisy rotation does not move it on average. Any other (derailed onto
+one end or one side of its wheels, on its side or roof) gets the lowest of all samples. That row dips under a noisy
+rotation whichever way the rotation errs when several samples touch at the truth (a carriage level on its wheels: by
+about the wheelbase times the pitch error), so for a level carriage the fit lifted it (with the focal estimated the
+consist slid up its rays: up too high, the focal too short), and, being concave in the tilt, it let the fit tilt a
+level carriage to meet it (docs/calibration.md, "Hand picks, unknown focal"). Step 4 judges a carriage whose
+rotation from its own pixels could not confirm it level against the terrain's stated accuracy again at its solution,
+with its rotation's covariance there (the chain's and the contact's information added to its pixels').
 """
 
 from __future__ import annotations
@@ -51,40 +54,65 @@ def terrain_slopes(terrain: Any, xy: np.ndarray, step: float = 0.05) -> np.ndarr
     return np.where(np.isfinite(g), g, 0.0)
 
 
-def on_wheels(samples: np.ndarray, R: np.ndarray, t: np.ndarray, terrain: Any, cov_rot: np.ndarray,
-              sigma_z: float) -> bool:
-    """Whether a carriage (pose ``R`` (3, 3), ``t`` (3,); its surface ``samples`` (m, 3), carriage frame) is seen
-    to stand on all its wheels: every one of its :func:`wheel_points` as high over the terrain as the others, to
-    within :data:`WHEEL_SPREAD_SD` standard deviations of what its rotation's uncertainty explains (``cov_rot``
-    (3, 3), rad^2, of the scene-frame rotation vector: a wheel point's clearance less the wheels' mean moves with
-    the rotation by its lever arm) plus :data:`WHEEL_PLANE_TOL_M`; that tolerance no more than twice the terrain's
-    stated accuracy ``sigma_z`` (m: else the rotation cannot tell a carriage on all its wheels from one on one end,
-    whose wheels' mean clearance is half its wheels' spread off the ground); and its lowest sample over the plane
-    of the terrain under its wheels a wheel point. A derailed carriage resting on one end or one side of its
-    wheels, on its side or on its roof is not: its row is the lowest sample's. False off the terrain or where
-    ``cov_rot`` is not finite."""
+def wheel_gradients(W: np.ndarray, R: np.ndarray, t: np.ndarray, terrain: Any) -> np.ndarray:
+    """The derivatives (n, 3), m/rad, of each wheel point's clearance (``W`` (n, 3), carriage frame) less the
+    wheels' mean clearance by the scene-frame rotation vector of the pose ``R`` (3, 3), ``t`` (3,): its lever arm
+    crossed with the terrain's upward normal (unnormalised) beneath it."""
+    Xw = np.asarray(W, dtype=float).reshape(-1, 3) @ R.T + t
+    a = np.column_stack([-terrain_slopes(terrain, Xw[:, :2]), np.ones(len(Xw))])
+    g = np.cross(Xw - t, a)  # d clearance / d rotation per wheel point
+    return g - g.mean(axis=0)
+
+
+def wheel_contact(samples: np.ndarray, R: np.ndarray, t: np.ndarray, terrain: Any, cov_rot: np.ndarray,
+                  sigma_z: float) -> str:
+    """Which contact row a carriage (pose ``R`` (3, 3), ``t`` (3,); its surface ``samples`` (m, 3), carriage
+    frame) gets, from its pose and its rotation's uncertainty ``cov_rot`` (3, 3), rad^2, of the scene-frame
+    rotation vector:
+
+    * ``"wheels"``: seen to stand on all its wheels (:func:`on_wheels`): the wheels' mean clearance;
+    * ``"level"``: its wheels as level as its rotation's uncertainty can tell (every one of its
+      :func:`wheel_points` as high over the terrain as the others to within :data:`WHEEL_SPREAD_SD` standard
+      deviations of what that uncertainty explains, plus :data:`WHEEL_PLANE_TOL_M`; its lowest sample over the
+      plane of the terrain under its wheels a wheel point) but that tolerance over twice the terrain's stated
+      accuracy ``sigma_z`` (m): not confirmed, since a carriage on one end tilted within the tolerance would pass,
+      its wheels' mean half its wheels' spread off the ground. The solve gives it the wheels' row too and judges it
+      again at step 4's solution (:func:`.steps.step_all`);
+    * ``"lowest"``: any other (derailed onto one end or one side, on its side or roof; off the terrain;
+      ``cov_rot`` not finite): the lowest sample's row."""
     S = np.asarray(samples, dtype=float).reshape(-1, 3)
     W = wheel_points(S)
     C = np.asarray(cov_rot, dtype=float).reshape(3, 3)
     if len(W) < 3 or not np.all(np.isfinite(C)):
-        return False
+        return "lowest"
     Xw = W @ R.T + t
     hw = np.asarray(terrain.height_at(Xw[:, :2]), dtype=float)
     if not np.all(np.isfinite(hw)):
-        return False
+        return "lowest"
     d = Xw[:, 2] - hw
-    a = np.column_stack([-terrain_slopes(terrain, Xw[:, :2]), np.ones(len(W))])
-    g = np.cross(Xw - t, a)  # d clearance / d rotation per wheel point
-    g = g - g.mean(axis=0)  # ... of the clearance less the wheels' mean
+    g = wheel_gradients(W, R, t, terrain)
     sd = np.sqrt(np.maximum(np.einsum("ni,ij,nj->n", g, C, g), 0.0))
     tol = WHEEL_SPREAD_SD * sd + WHEEL_PLANE_TOL_M
-    if np.any(tol > 2.0 * sigma_z) or np.any(np.abs(d - d.mean()) > tol):
-        return False
+    if np.any(np.abs(d - d.mean()) > tol):
+        return "lowest"
     A = np.column_stack([np.ones(len(Xw)), Xw[:, :2] - Xw[:, :2].mean(0)])
     coef, *_ = np.linalg.lstsq(A, hw, rcond=None)  # the ground's plane under the wheels (least squares)
     X = S @ R.T + t
     dp = X[:, 2] - (coef[0] + (X[:, :2] - Xw[:, :2].mean(0)) @ coef[1:])
-    return bool(S[int(np.argmin(dp)), 2] <= S[:, 2].min() + WHEEL_PLANE_TOL_M)
+    if not S[int(np.argmin(dp)), 2] <= S[:, 2].min() + WHEEL_PLANE_TOL_M:
+        return "lowest"
+    return "level" if np.any(tol > 2.0 * sigma_z) else "wheels"
+
+
+def on_wheels(samples: np.ndarray, R: np.ndarray, t: np.ndarray, terrain: Any, cov_rot: np.ndarray,
+              sigma_z: float) -> bool:
+    """Whether a carriage is seen to stand on all its wheels (:func:`wheel_contact`'s ``"wheels"``): its wheels
+    level over the terrain to within what its rotation's uncertainty explains, that tolerance no more than twice
+    the terrain's stated accuracy ``sigma_z`` (m: else the rotation cannot tell a carriage on all its wheels from
+    one on one end, whose wheels' mean clearance is half its wheels' spread off the ground), and its lowest sample
+    a wheel point. A derailed carriage resting on one end or one side of its wheels, on its side or on its roof is
+    not. Arguments as :func:`wheel_contact`."""
+    return wheel_contact(samples, R, t, terrain, cov_rot, sigma_z) == "wheels"
 
 
 def rest_on_terrain(world_from_carriage: np.ndarray, carriage_type: Any, terrain: Any,

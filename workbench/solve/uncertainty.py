@@ -3,7 +3,9 @@
 Parameters: per carriage a scene-frame rotation vector and the origin (6), plus each estimated focal (px).
 Held couplings enter as the soft prior ``T ~ N(0, (slack / sqrt 5)^2 I)`` (not the solver's hard bound), the
 weighting through the sandwich ``H^-1 G H^-1``, pose predictions with their face alignment's error (the others not
-at all), a face's shared misfit in ``G``; the pixel sigma is pooled with the configured one. ``docs/solver.md``.
+at all), a face's shared misfit in ``G``; the pixel sigma is pooled with the configured one. Each carriage's
+response to a camera motion (:func:`camera_responses`) for the camera term (:mod:`.camera_term`).
+``docs/solver.md``.
 """
 
 from __future__ import annotations
@@ -15,12 +17,14 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.special import gammaincinv, stdtrit  # quantiles as scipy.stats computes them (2 s to import)
 
-from ..core.frames import hpr_from_rotation
-from ..core.geometry import exp_so3, skew
+from ..core.geometry import skew
 from .model import SolveOptions
 from .problem import (Chains, Poses, Problem, carriage_weights, focal_groups, held_chains, prepare_cars,
                       record_warning)
-from .projection import project_with_jacobians
+# the camera term and the pose-covariance arithmetic live in .camera_term; level, principal_point and some tests
+# still import add_*_uncertainty, add_pose_covariance and camera_pose_jacobian from here
+from .camera_term import (add_camera_uncertainty, add_pose_covariance, add_view_camera_uncertainty,  # noqa: F401
+                          camera_pose_jacobian, inverse_psd, set_camera_response, set_pose_covariance)
 from .alignment_covariance import alignment_term, views_per_face
 from .pose_covariance import pose_rows
 from .variance_components import (FALLBACK_FACE_SIGMA_PX, VarianceComponents, estimate_variance_components,
@@ -111,16 +115,6 @@ def _robust_weights(r2: np.ndarray, loss: str, scale: float) -> np.ndarray:
     if loss == "cauchy":
         return 1.0 / (1.0 + z)
     raise ValueError(loss)
-
-
-def inverse_psd(H: np.ndarray) -> np.ndarray:
-    """Inverse of a symmetric positive (semi-)definite matrix: by Cholesky, else the pseudo-inverse."""
-    try:
-        L = np.linalg.cholesky(H)
-        Li = np.linalg.solve(L, np.eye(len(H)))
-        return Li.T @ Li
-    except np.linalg.LinAlgError:
-        return np.linalg.pinv(H)
 
 
 @dataclass
@@ -299,21 +293,6 @@ def _shared_misfit(J: np.ndarray, groups: np.ndarray, views: np.ndarray, uv: np.
     return out
 
 
-def _hpr_jac(Rk: np.ndarray, eps: float = 1e-6) -> np.ndarray:
-    """d (heading, pitch, roll) / d scene rotation vector (degrees per radian), central differences."""
-    J = np.zeros((3, 3))
-    for i in range(3):
-        d = np.zeros(3)
-        d[i] = eps
-        hp = np.array(hpr_from_rotation(exp_so3(d) @ Rk))
-        hm = np.array(hpr_from_rotation(exp_so3(-d) @ Rk))
-        diff = hp - hm
-        diff[0] = (diff[0] + 180.0) % 360.0 - 180.0
-        diff[2] = (diff[2] + 180.0) % 360.0 - 180.0
-        J[:, i] = diff / (2 * eps)
-    return J  # degrees per radian
-
-
 def body_centre_cov(model: CovarianceModel, cars, R, k: int) -> np.ndarray:
     """(3, 3) covariance of carriage ``k``'s body centre."""
     c = model.col[k]
@@ -329,45 +308,6 @@ def solution_model(prob: Problem, poses: Poses, focal_views, chains: Chains, con
                             options.pixel_sigma_px,
                             options.robust_loss, options.loss_scale_px, options.prior_dof,
                             face_sigma=options.face_sigma_px)
-
-
-def pose_determined(C: np.ndarray, rtol: float = 1e-9) -> bool:
-    """Whether a carriage's (6, 6) pose covariance is a covariance: finite and positive semi-definite to within
-    rounding (its least eigenvalue no lower than ``-rtol`` times its largest). Not so when the information it
-    inverts is numerically singular (a carriage whose measured points do not fix its pose: its predictions
-    placed it), where the computed variances are rounding noise, some of them negative."""
-    C = np.asarray(C, dtype=float)
-    if not np.all(np.isfinite(C)):
-        return False
-    ev = np.linalg.eigvalsh(0.5 * (C + C.T))
-    return bool(ev[0] >= -rtol * max(ev[-1], 0.0))
-
-
-def _set_pose_covariance(cr: Any, C: np.ndarray, R: np.ndarray, lever: np.ndarray, q: float,
-                         determined: bool = True) -> np.ndarray:
-    """Set a carriage result's ``covariance_pose`` (6, 6: scene rotation vector, origin) and the sigmas and 95 %
-    half widths (``q`` sigmas) of its origin, body centre and heading / pitch / roll that follow from it (all None,
-    no interval, when the data leave the pose ``determined`` False or the covariance is not one:
-    :func:`pose_determined`).
-    ``R`` (3, 3) its rotation, ``lever`` (3,) the body centre minus the origin in the scene frame (m). Returns
-    the body centre's Jacobian (3, 6)."""
-    if not (determined and pose_determined(C)):
-        # the measured points leave a direction of the pose undetermined (the inverse of a numerically singular
-        # information): its variances are rounding noise, and negative ones clipped to 0 would read "exact"
-        cr.covariance_pose = None
-        cr.sigma_position_m = cr.ci95_position_m = cr.sigma_body_centre_m = cr.ci95_body_centre_m = None
-        cr.sigma_hpr_deg = cr.ci95_hpr_deg = None
-        return np.hstack([-skew(lever), np.eye(3)])
-    cr.covariance_pose = C
-    sp = np.sqrt(np.maximum(np.diag(C[3:, 3:]), 0))
-    cr.sigma_position_m, cr.ci95_position_m = sp, q * sp
-    Jb = np.hstack([-skew(lever), np.eye(3)])
-    sb = np.sqrt(np.maximum(np.diag(Jb @ C @ Jb.T), 0))
-    cr.sigma_body_centre_m, cr.ci95_body_centre_m = sb, q * sb
-    Jh = _hpr_jac(R)
-    sh = np.sqrt(np.maximum(np.diag(Jh @ C[:3, :3] @ Jh.T), 0))
-    cr.sigma_hpr_deg, cr.ci95_hpr_deg = sh, q * sh
-    return Jb
 
 
 def misfit_carriages(prob: Problem, poses: Poses, sigma: float, p_value: float = 1e-4,
@@ -397,11 +337,40 @@ def misfit_carriages(prob: Problem, poses: Poses, sigma: float, p_value: float =
             if x > 2.0 * float(gammaincinv(max(m - 6, 1) / 2, 1.0 - p_value)) and x / m > relative * med}
 
 
+def camera_responses(prob: Problem, poses: Poses, focal_views, chains: Chains, contact,
+                     options: SolveOptions) -> dict[int, np.ndarray]:
+    """Each active carriage's first-order pose response (6, 6: scene rotation vector, origin) to a rigid motion of
+    the camera about the ENU origin (rotation vector, translation: :func:`.camera_term.motion_about`), as the
+    estimator responds: its pixels (the measured points and the predictions it fits, at the fit's weights and
+    robust weights) move with the camera, the couplings' offsets do not change when the whole consist moves, and the
+    terrain contact and the track prior stay in the world. With ``H = H_moving + H_world`` the information of the
+    cost the solver minimises (pixels at ``options.pixel_sigma_px``, the coupler prior, the soft rows), the least
+    squares moves by ``H^-1 H_moving A e = (A - H^-1 H_world A) e``, ``A`` every carriage's rigid motion with the
+    camera (docs/solver.md, "The camera's uncertainty"). Empty where no world-fixed row holds a carriage: every
+    carriage then moves rigidly with the camera (``B = A``)."""
+    J, r, col, P = pixel_rows(prob, poses.R, poses.t, poses.f, focal_views)
+    Jw, _, _ = contact_rows(contact, poses.R, poses.t, col, P, options.pixel_sigma_px)
+    if not len(Jw):
+        return {}
+    rho = np.repeat(_robust_weights((r.reshape(-1, 2) ** 2).sum(1), options.robust_loss, options.loss_scale_px), 2)
+    Hw = Jw.T @ Jw
+    H = (J * rho[:, None]).T @ J / options.pixel_sigma_px**2 + Hw \
+        + _prior_info(prob.cars, poses.R, poses.t, chains.members, chains.slacks, col, P)
+    A = np.zeros((P, 6))
+    for k in prob.active:
+        c = col[k]
+        A[c:c + 6] = np.eye(6)
+        A[c + 3:c + 6, :3] = -skew(poses.t[k])
+    B = A - inverse_psd(0.5 * (H + H.T)) @ (Hw @ A)
+    return {k: B[col[k]:col[k] + 6] for k in prob.active}
+
+
 def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Chains, contact, options: SolveOptions,
                       model: CovarianceModel | None = None) -> None:
     """Fill the covariance fields of a :class:`SolveResult` in place. ``model``: a :func:`solution_model` already
     computed (at the least-squares minimum, when the reported ``poses`` are bias-corrected: the pixel sigma is
-    estimated from the minimum's residuals and the intervals are centred on the reported poses)."""
+    estimated from the minimum's residuals and the intervals are centred on the reported poses). Each carriage result
+    also keeps its response to a camera motion (:func:`camera_responses`) for the camera term."""
     if model is None:
         model = solution_model(prob, poses, focal_views, chains, contact, options)
     R = poses.R
@@ -425,7 +394,7 @@ def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Cha
         cr = res.carriages[k]
         c = col[k]
         determined = model.undetermined is None or not model.undetermined[c:c + 6].any()
-        Jbs[k] = _set_pose_covariance(cr, cov[c:c + 6, c:c + 6], R[k], R[k] @ prob.cars[k].c_body, q, determined)
+        Jbs[k] = set_pose_covariance(cr, cov[c:c + 6, c:c + 6], R[k], R[k] @ prob.cars[k].c_body, q, determined)
         if k in misfit and cr.covariance_pose is not None:
             record_warning(res.warnings, prob.cars[k], "misfit",
                            f"car {cr.number}: the solution does not fit its points (RMS {misfit[k]:.1f} px against "
@@ -435,6 +404,8 @@ def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Cha
             record_warning(res.warnings, prob.cars[k], "undetermined",
                            f"car {cr.number}: its measured points do not determine its pose (predictions or the "
                            f"chain placed it); no interval is given")
+    for k, B0 in camera_responses(prob, poses, focal_views, chains, contact, options).items():
+        set_camera_response(res.carriages[k], B0)
     for i, grp in enumerate(focal_views):
         j = 6 * len(prob.active) + i
         for v in grp:
@@ -495,206 +466,4 @@ def crb(carriages: Sequence[Any], links: Sequence[Any], views: Sequence[Any], wo
     for i in range(len(fv)):
         j = 6 * N + i
         out["focal_sigma"].append(float(math.sqrt(model.cov[j, j])))
-    return out
-
-
-def camera_pose_jacobian(world_from_carriage: np.ndarray, centre_enu: np.ndarray) -> np.ndarray:
-    """(6, 6) derivative of a carriage's pose parameters (scene rotation vector ``w``, origin ``t``: the order of
-    ``covariance_pose``) with respect to a rigid error of the camera (rig) pose: a rotation ``d_theta`` (rad,
-    scene frame) about the camera centre ``centre_enu`` (3,) and a shift ``d_c`` (m) of that centre.
-
-    Poses solved from pixels move with the camera: ``R' = Exp(d_theta) R``, ``t' = c + d_c + Exp(d_theta) (t - c)``,
-    so ``d_w = d_theta`` and ``d_t = d_c - [t - c]x d_theta``."""
-    M = np.asarray(world_from_carriage, dtype=float)
-    A = np.eye(6)
-    A[3:, :3] = -skew(M[:3, 3] - np.asarray(centre_enu, dtype=float))
-    return A
-
-
-def add_camera_uncertainty(res: Any, centre_enu: np.ndarray, cov_camera: np.ndarray) -> list[str]:
-    """Add the georegistration's uncertainty of the camera pose to every carriage's covariance, in place.
-
-    ``cov_camera`` (6, 6): covariance of the camera's scene rotation vector (rad) and centre (m, ENU), as the
-    georef stage writes it (``georegistration.covariance_world_rotation_centre``). The fit's covariance
-    (``covariance_pose``) is that of the poses *relative to the camera*; a carriage's scene pose is the camera's
-    pose composed with it, so to first order its covariance is ``C_fit + A C_cam A^T``
-    (:func:`camera_pose_jacobian`; the two errors are independent: the control points are not the marked
-    points). The sigmas and 95 % intervals (position, body centre, heading / pitch / roll) are recomputed from
-    the sum with the fit's ``ci95_factor``; ``res.covariance`` (the fit's joint covariance, of which the
-    neighbour correlations are computed) stays the fit's: the camera moves every carriage together and does not
-    change where one lies relative to the next. Returns the numbers of the carriages changed."""
-    C_cam = np.asarray(cov_camera, dtype=float)
-    if C_cam.shape != (6, 6) or not np.all(np.isfinite(C_cam)):
-        raise ValueError(f"camera covariance must be a finite (6, 6) matrix, got shape {C_cam.shape}")
-    extra = {}
-    for cr in res.carriages:
-        if cr.world_from_carriage is not None:
-            A = camera_pose_jacobian(np.asarray(cr.world_from_carriage, dtype=float), centre_enu)
-            extra[cr.number] = A @ C_cam @ A.T
-    return list(add_pose_covariance(res, extra))
-
-
-def add_pose_covariance(res: Any, extra: dict[str, np.ndarray]) -> dict[str, dict]:
-    """Add ``extra[number]`` (6, 6: scene rotation vector, origin) to that carriage's ``covariance_pose``, in place,
-    and recompute its sigmas and 95 % intervals with the fit's ``ci95_factor`` (carriages without an interval
-    are left as they are). Returns, per carriage changed, the sigmas of the term alone: ``sigma_hpr_deg`` (3,),
-    ``sigma_body_centre_m`` (3,)."""
-    q = float(res.ci95_factor) if getattr(res, "ci95_factor", None) else 1.959963984540054
-    out = {}
-    for cr in res.carriages:
-        if cr.number not in extra or cr.covariance_pose is None or cr.world_from_carriage is None \
-                or cr.body_centre_m is None:
-            continue
-        M = np.asarray(cr.world_from_carriage, dtype=float)
-        X = np.asarray(extra[cr.number], dtype=float)
-        C = np.asarray(cr.covariance_pose, dtype=float) + X
-        Jb = _set_pose_covariance(cr, 0.5 * (C + C.T), M[:3, :3],
-                                  np.asarray(cr.body_centre_m, dtype=float) - M[:3, 3], q)
-        Jh = _hpr_jac(M[:3, :3])
-        out[cr.number] = {"sigma_hpr_deg": np.sqrt(np.maximum(np.diag(Jh @ X[:3, :3] @ Jh.T), 0.0)).tolist(),
-                          "sigma_body_centre_m": np.sqrt(np.maximum(np.diag(Jb @ X @ Jb.T), 0.0)).tolist()}
-    return out
-
-
-def view_information(world_from_carriage: np.ndarray, rows: dict[int, tuple[np.ndarray, np.ndarray]],
-                     views: Sequence[Any]) -> dict[int, np.ndarray]:
-    """Each view's pixel information (6, 6) on one carriage's pose parameters (scene rotation vector, origin: the
-    order of ``covariance_pose``) at ``world_from_carriage`` (4, 4). ``rows``: view index -> (the measured
-    points (n, 3) in the carriage frame, their weights (n,): 1 / sigma^2 in px^-2)."""
-    M = np.asarray(world_from_carriage, dtype=float)
-    out = {}
-    for v, (P, w) in rows.items():
-        _, J, _ = project_with_jacobians(P, M[:3, :3], M[:3, 3], views[v].cam_from_world, views[v].intrinsics, ())
-        out[v] = np.einsum("nai,n,naj->ij", J, np.asarray(w, float), J)
-    return out
-
-
-def view_shares(info: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
-    """``W_v = H^-1 H_v`` (6, 6) per view, ``H = sum_v H_v``: how a carriage's pose follows each view's camera
-    when the cameras move apart (the first-order response of its least-squares pose to a shift of view ``v``'s
-    pixels, each view's shift being the one that camera's own error would cause); the ``W_v`` sum to I, so a
-    motion common to every camera moves the carriage with it exactly. Where ``H`` is singular (the pose rests on
-    the chain as well), scalar shares ``trace H_v / trace H`` times I."""
-    H = sum(info.values())
-    ev = np.linalg.eigvalsh(0.5 * (H + H.T))
-    if ev[0] > 1e-10 * max(ev[-1], 1e-300):
-        return {v: np.linalg.solve(H, Hv) for v, Hv in info.items()}
-    tr = float(np.trace(H))
-    return {v: (float(np.trace(Hv)) / tr if tr > 0 else 1.0 / len(info)) * np.eye(6) for v, Hv in info.items()}
-
-
-def _measured_rows(cin: Any, cr: Any, vindex: dict[str, int], pixel_sigma_px: float
-                   ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
-    """A solved carriage's measured points in its final fit (its residuals' rows, predictions left out), per view
-    index: (points (n, 3) in the carriage frame, weights (n,): (pixel sigma / the point's sigma)^2)."""
-    rows: dict[int, tuple[list, list]] = {}
-    for vname, pts in (cr.residuals_px or {}).items():
-        for p in pts:
-            o = (cin.observations.get(vname) or {}).get(p)
-            if o is None or getattr(o, "derived", False) or vname not in vindex:
-                continue
-            sig = getattr(o, "sigma_px", None) or pixel_sigma_px
-            P, w = rows.setdefault(vindex[vname], ([], []))
-            P.append(cin.carriage_type.marked_points[p])
-            w.append((pixel_sigma_px / float(sig)) ** 2)
-    return {v: (np.asarray(P, float), np.asarray(w, float)) for v, (P, w) in rows.items()}
-
-
-def _coupler_information(links: Sequence[Any], carriages: Sequence[Any], res: Any, pos: dict[int, int],
-                         P: int) -> np.ndarray:
-    """(P, P) information of the held couplings' offset prior (``T ~ N(0, (slack / sqrt 5)^2 I)``, as the
-    covariance) between carriages both in ``pos`` (consist index -> block)."""
-    H = np.zeros((P, P))
-    for L in links:
-        a, b = int(L.front), int(L.rear)
-        if L.slack_m is None or a not in pos or b not in pos:
-            continue
-        Ra = np.asarray(res.carriages[a].world_from_carriage, float)[:3, :3]
-        Rb = np.asarray(res.carriages[b].world_from_carriage, float)[:3, :3]
-        JT = np.zeros((3, P))
-        ca, cb = 6 * pos[a], 6 * pos[b]
-        JT[:, ca:ca + 3] = skew(Ra @ np.asarray(carriages[a].carriage_type.coupler_rear, float))
-        JT[:, ca + 3:ca + 6] = -np.eye(3)
-        JT[:, cb:cb + 3] = -skew(Rb @ np.asarray(carriages[b].carriage_type.coupler_front, float))
-        JT[:, cb + 3:cb + 6] = np.eye(3)
-        H += JT.T @ JT / (float(L.slack_m) / math.sqrt(5.0)) ** 2
-    return H
-
-
-def add_view_camera_uncertainty(res: Any, carriages: Sequence[Any], links: Sequence[Any], views: Sequence[Any],
-                                pixel_sigma_px: float, model_covariance: dict[str, np.ndarray],
-                                jacobian: dict[str, tuple[str, np.ndarray]], own_covariance: dict[str, np.ndarray],
-                                weighting: str = "per_carriage") -> dict[str, dict]:
-    """Add the multi-view cameras' pose uncertainty to every carriage's covariance, in place (first order).
-
-    A view's pose error ``e_v`` (6: scene rotation vector of ``world_from_cam``, centre) is ``J_v e_m`` for a view
-    placed by SfM model ``m``'s similarity (``jacobian[view] = (m, J_v)``; ``e_m`` of covariance
-    ``model_covariance[m]`` (7, 7), shared by all of ``m``'s views, so their errors are correlated) or its own
-    (``own_covariance[view]`` (6, 6), independent). The carriages' poses respond as the least squares does:
-    ``dx = H^-1 sum_v H_v A_v e_v``, with ``H_v`` view ``v``'s pixel information on every carriage's pose
-    (their measured points, the carriage weighting, the pixel sigma ``res.sigma_px``), ``H`` all of it plus the
-    held couplings' prior, and ``A_v`` (:func:`camera_pose_jacobian` about view ``v``'s centre) the poses that keep
-    view ``v``'s pixels: a carriage seen in one view moves with that camera (as the central route's
-    :func:`add_camera_uncertainty`), a motion common to all cameras moves every carriage rigidly with it, and the
-    scale moves each by its cameras' information-weighted shifts. The terrain contact's resistance is not
-    modelled (the carriages move as on pixels alone, as on the central route). Predictions
-    (``Observation.derived``) carry no information and take no share. The fit's joint covariance
-    ``res.covariance`` stays the fit's. Returns carriage number -> {"views": view -> its share of the carriage's
-    own information (trace of ``H_k^-1 H_kv`` / 6), "not_modelled": the views it is measured in whose error is
-    not modelled}."""
-    q = float(res.ci95_factor) if getattr(res, "ci95_factor", None) else 1.959963984540054
-    vindex = {v.name: i for i, v in enumerate(views)}
-    centres = [-np.asarray(v.cam_from_world, float)[:3, :3].T @ np.asarray(v.cam_from_world, float)[:3, 3]
-               for v in views]
-    info: dict[int, dict[int, np.ndarray]] = {}
-    counts: dict[int, int] = {}
-    for k, (cin, cr) in enumerate(zip(carriages, res.carriages)):
-        if cr.covariance_pose is None or cr.world_from_carriage is None or cr.body_centre_m is None:
-            continue
-        rows = _measured_rows(cin, cr, vindex, pixel_sigma_px)
-        if rows:
-            info[k] = view_information(cr.world_from_carriage, rows, views)
-            counts[k] = sum(len(w) for _, w in rows.values())
-    if not info:
-        return {}
-    pos = {k: i for i, k in enumerate(info)}
-    P = 6 * len(pos)
-    n_mean = float(np.mean(list(counts.values())))
-    sig = float(res.sigma_px) if math.isfinite(float(getattr(res, "sigma_px", math.nan))) else pixel_sigma_px
-    H = _coupler_information(links, carriages, res, pos, P)
-    G = {v: np.zeros((P, 6)) for v in range(len(views))}  # H_v A_v
-    for k, per_view in info.items():
-        c = 6 * pos[k]
-        w2 = (n_mean / counts[k] if weighting == "per_carriage" else 1.0) / sig**2
-        M = np.asarray(res.carriages[k].world_from_carriage, float)
-        for v, Hkv in per_view.items():
-            H[c:c + 6, c:c + 6] += w2 * Hkv
-            G[v][c:c + 6] += w2 * Hkv @ camera_pose_jacobian(M, centres[v])
-    Hi = inverse_psd(0.5 * (H + H.T))
-    C_cam = np.zeros((P, P))
-    B: dict[str, np.ndarray] = {}
-    missing: set[str] = set()
-    for v, Gv in G.items():
-        if not Gv.any():
-            continue
-        Rv = Hi @ Gv  # (P, 6): every carriage's response to view v's pose error
-        name = views[v].name
-        if name in jacobian:
-            label, J = jacobian[name]
-            B[label] = B.get(label, np.zeros((P, np.shape(J)[1]))) + Rv @ np.asarray(J, float)
-        elif name in own_covariance:
-            C_cam += Rv @ np.asarray(own_covariance[name], float) @ Rv.T
-        else:
-            missing.add(name)
-    for label, Bm in B.items():
-        C_cam += Bm @ np.asarray(model_covariance[label], float) @ Bm.T
-    out = {}
-    for k, i in pos.items():
-        cr = res.carriages[k]
-        M = np.asarray(cr.world_from_carriage, dtype=float)
-        C = np.asarray(cr.covariance_pose, dtype=float) + C_cam[6 * i:6 * i + 6, 6 * i:6 * i + 6]
-        _set_pose_covariance(cr, 0.5 * (C + C.T), M[:3, :3], np.asarray(cr.body_centre_m, dtype=float) - M[:3, 3], q)
-        shares = view_shares(info[k])
-        out[cr.number] = {"views": {views[v].name: float(np.trace(W)) / 6.0 for v, W in shares.items()},
-                          "not_modelled": sorted(views[v].name for v in info[k] if views[v].name in missing)}
     return out
