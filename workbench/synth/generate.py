@@ -41,7 +41,7 @@ from ..render.offscreen import OffscreenScene, SceneMesh
 from ..rolling_stock import load_library
 from ..terrain.extrude import building_meshes
 from .buildings import make_buildings
-from .control_points import write_control_points
+from .control_points import PIXEL_SIGMA_PX, write_control_points
 from .layout import lay_consist
 from .scenarios import SCENARIOS, plan_consist
 from .terrain import make_terrain, write_dem_geotiff
@@ -469,6 +469,9 @@ def _write_settings(root: Path, settings_path: Path, scn, opts: SynthOptions, la
                      **({"coupling_to_next": p.coupling_to_next} if p.coupling_to_next else {})} for p in placed],
         "camera": {"source": "calibrated", "profile": "camera_profile.json", "photos": "photos/panorama",
                    "position_enu": [float(x) for x in pano_centre]},
+        # the control points this generator writes (write_control_points) are the true pixels plus this noise:
+        # stated, so that the georegistration's covariance is that of the picks it fits
+        "georef": {"pick_sigma_px": PIXEL_SIGMA_PX},
     }
     parse_settings(settings, str(settings_path))  # what we write must validate
     header = ("# Incident settings written by `workbench synth` (see docs/formats.md).\n"
