@@ -39,9 +39,13 @@ def test_synth_control_points_run_status(tmp_path: Path):
     for c in placed:
         t = truth[c["number"]]
         err = np.subtract(c["body_centre_enu"], t["body_centre_enu"])
+        assert np.linalg.norm(err) < 2.0, (c["number"], err)
+        if c["ci95_body_centre_m"] is None:  # placed by its chain or predictions: no interval, and said so
+            assert any(w["car"] == c["number"] and "do not determine its pose" in w["message"]
+                       for w in sol["warnings"]), sol["warnings"]
+            continue
         ci = np.asarray(c["ci95_body_centre_m"])
         assert np.all(ci > 0.01) and np.all(ci < 3.0), (c["number"], ci)  # neither absurdly sharp nor vague
-        assert np.linalg.norm(err) < 2.0, (c["number"], err)
         assert np.all(np.abs(err) <= 1.75 * ci + 0.05), (c["number"], err, ci)  # ~3.5 sigma per axis
         dh = (c["heading_deg"] - t["heading_deg"] + 180) % 360 - 180
         assert abs(dh) <= 1.75 * c["ci95_hpr_deg"][0] + 0.1, (c["number"], dh)
