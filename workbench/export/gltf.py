@@ -13,7 +13,6 @@ node shows it upright. Its extras hold the number, type, pose and uncertainty. T
 
 from __future__ import annotations
 
-import io
 import logging
 from typing import Any
 
@@ -23,7 +22,7 @@ import trimesh
 
 from ..core.geometry import quaternion_xyzw_from_matrix
 from ..files.scene import SceneCarriage
-from .scene import GLTF_FROM_ENU, ExportOptions, ExportScene, cap_image
+from .scene import GLTF_FROM_ENU, ExportOptions, ExportScene
 
 log = logging.getLogger(__name__)
 
@@ -66,11 +65,9 @@ class _GlbBuilder:
         self.g.accessors.append(acc)
         return len(self.g.accessors) - 1
 
-    def texture(self, image: Any, max_px: int, quality: int) -> int:
-        im = cap_image(image, max_px)
-        buf = io.BytesIO()
-        im.save(buf, format="JPEG", quality=quality)
-        self.g.images.append(gl.Image(bufferView=self.view(buf.getvalue()), mimeType="image/jpeg"))
+    def texture(self, jpeg: bytes) -> int:
+        """A texture from the JPEG bytes of its image (``ExportScene.jpeg``)."""
+        self.g.images.append(gl.Image(bufferView=self.view(jpeg), mimeType="image/jpeg"))
         self.g.textures.append(gl.Texture(sampler=0, source=len(self.g.images) - 1))
         return len(self.g.textures) - 1
 
@@ -154,7 +151,8 @@ def glb_bytes(scene: ExportScene, options: ExportOptions) -> tuple[bytes, dict]:
         tm = trimesh.Trimesh(t.vertices, t.faces, process=False)
         normals = _unit_normals(np.asarray(tm.vertex_normals)) @ G.T
         if t.texture is not None:
-            mat = b.material("terrain", texture=b.texture(t.texture, options.texture_max_px, options.jpeg_quality))
+            mat = b.material("terrain", texture=b.texture(scene.jpeg(t.texture, options.texture_max_px,
+                                                                        options.jpeg_quality)))
             m = b.mesh("terrain", t.vertices @ G.T, normals, t.faces, mat, uv=t.uv)
         else:
             mat = b.material("terrain")
@@ -174,7 +172,7 @@ def glb_bytes(scene: ExportScene, options: ExportOptions) -> tuple[bytes, dict]:
         uv = np.asarray(car.mesh(textured=True).visual.uv, dtype=float)
         uv = np.column_stack([uv[:, 0], 1.0 - uv[:, 1]])  # trimesh: origin bottom-left; glTF: top-left
         image = car.mesh(textured=True).visual.material.image
-        tex = b.texture(image, options.livery_max_px, options.jpeg_quality)
+        tex = b.texture(scene.jpeg(image, options.livery_max_px, options.jpeg_quality))
         mat = b.material(f"livery {car.number}", texture=tex, double_sided=True)
         m = b.mesh(f"{car.type_id} {car.number}", V @ G.T, N @ G.T, F, mat, uv=uv)
         tr, q = carriage_node_trs(car)

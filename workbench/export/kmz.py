@@ -29,7 +29,7 @@ from ..core.frames import SceneFrame, hpr_from_rotation
 from ..core.geometry import orthonormal, rot_z
 from .geojson import carriage_properties, footprint_enu
 from ..files.scene import SceneCarriage
-from .scene import ExportOptions, ExportScene, cap_image
+from .scene import ExportOptions, ExportScene
 
 log = logging.getLogger(__name__)
 
@@ -144,10 +144,8 @@ def kmz_bytes(scene: ExportScene, options: ExportOptions) -> tuple[bytes, dict]:
         V, M = model_vertices(car, R_local, float(hpr[0]))
         normals = np.repeat(car.mesh(textured=True).face_normals, 3, axis=0) @ M.T
         stem = f"car_{car.number}"
-        im = cap_image(car.mesh(textured=True).visual.material.image, options.livery_max_px)
-        buf = io.BytesIO()
-        im.save(buf, format="JPEG", quality=options.jpeg_quality)
-        files[f"models/{stem}.jpg"] = buf.getvalue()
+        files[f"models/{stem}.jpg"] = scene.jpeg(car.mesh(textured=True).visual.material.image, options.livery_max_px,
+                                                 options.jpeg_quality)
         files[f"models/{stem}.dae"] = collada_bytes(car, V, normals, f"{stem}.jpg")
         pm = _sub(models, "Placemark", id=f"model-{car.number}")
         _sub(pm, "name", f"{car.number} ({car.type_name})")
