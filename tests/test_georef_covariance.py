@@ -12,7 +12,7 @@ from workbench.files.control_points import ControlPoint
 from workbench.files.panorama import RigView
 from workbench.georef.central import solve_central
 from workbench.georef.options import GeorefOptions
-from workbench.solve.uncertainty import camera_pose_jacobian
+from workbench.solve.camera_term import camera_pose_jacobian
 
 
 def test_camera_covariance_is_honest_jointly_and_at_the_carriages():

@@ -1,7 +1,7 @@
 """The multi-view route's camera uncertainty carried into the carriages' intervals (issue 21; docs/calibration.md).
 
 A consist seen by two cameras of one SfM model placed by a similarity: the camera term the solve adds
-(:func:`workbench.solve.uncertainty.add_view_camera_uncertainty`) against the carriages' actual response to the
+(:func:`workbench.solve.camera_term.add_view_camera_uncertainty`) against the carriages' actual response to the
 similarity's error (finite differences of the solve, and a Monte Carlo of the similarity with the same pixels);
 then the georef and solve stages on a small generated multi-view incident."""
 
@@ -21,7 +21,7 @@ from workbench.georef.similarity import SimilarityResult
 from workbench.solve import SolveOptions, SolveWarning, solve_consist
 from workbench.solve.model import CarriageInput, View
 from workbench.solve.simulate import simulate_consist
-from workbench.solve.uncertainty import add_view_camera_uncertainty, camera_pose_jacobian
+from workbench.solve.camera_term import add_view_camera_uncertainty, camera_pose_jacobian
 
 SIGMA_PX = 0.5
 
@@ -324,7 +324,7 @@ def test_central_route_unchanged(small_incident, tmp_path):
     contact, which holds the carriages in the world, the response is ``B``: tests/test_camera_term.py)."""
     from workbench.project import Project
     from workbench.solve.stage import run_solve
-    from workbench.solve.uncertainty import camera_pose_jacobian as A_of
+    from workbench.solve.camera_term import camera_pose_jacobian as A_of
     from workbench.synth.handpicks import write_known_cameras, write_true_correspondences
 
     src, _ = small_incident

@@ -373,7 +373,7 @@ def test_the_levelled_covariance_keeps_the_fits_share_of_the_frame():
 
     from workbench.solve.level import add_levelling_uncertainty
     from workbench.solve.model import ChainLink
-    from workbench.solve.uncertainty import add_camera_uncertainty
+    from workbench.solve.camera_term import add_camera_uncertainty
 
     sim = relative_sim(220001, pixel_sigma_px=0.0)
     free = [ChainLink(k.front, k.rear, None) for k in sim.links]

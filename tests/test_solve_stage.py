@@ -237,7 +237,7 @@ def test_camera_pose_jacobian_matches_the_composition():
     pose parameters, against the exact composition with a small error."""
     from scipy.spatial.transform import Rotation
 
-    from workbench.solve.uncertainty import camera_pose_jacobian
+    from workbench.solve.camera_term import camera_pose_jacobian
 
     rng = np.random.default_rng(3)
     M = np.eye(4)

@@ -18,7 +18,8 @@ import numpy as np
 from ..core.geometry import exp_so3, rotation_angle_deg
 from .problem import Chains, Poses
 from ..core.camera import distort_with_derivs
-from .uncertainty import CovarianceModel, contact_rows, inverse_psd, pixel_rows, prior_rows
+from .camera_term import inverse_psd
+from .uncertainty import CovarianceModel, contact_rows, pixel_rows, prior_rows
 
 log = logging.getLogger(__name__)
 

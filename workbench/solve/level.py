@@ -23,7 +23,7 @@ from typing import Any
 import numpy as np
 
 from ..core.geometry import rotation_between, skew
-from .uncertainty import add_pose_covariance, camera_pose_jacobian
+from .camera_term import add_pose_covariance, camera_pose_jacobian
 
 __all__ = ["Levelling", "UprightCar", "level_from_carriages", "add_levelling_uncertainty"]
 
@@ -235,7 +235,7 @@ def add_levelling_uncertainty(res: Any, lev: Levelling) -> list[str]:
     frame (the camera at the origin), and return the numbers of the carriages changed.
 
     A carriage's error in the levelled frame is its fit's plus the frame's turn about the camera, ``e_i = d_i +
-    A_i d_phi`` (:func:`~workbench.solve.uncertainty.camera_pose_jacobian`), and the frame's turn comes partly from
+    A_i d_phi`` (:func:`~workbench.solve.camera_term.camera_pose_jacobian`), and the frame's turn comes partly from
     the same fit: ``d_phi = sum_j T_j d_theta_j + d_common`` (``T_j`` the :attr:`Levelling.tilt_response` of the
     cars used, ``d_common`` the track's tilt, the cars' own and any Birge excess). So beside ``A_i C_phi A_i^T``
     (``lev.cov_rotation``, which counts the cars used as independent) the fit's correlations enter: between the

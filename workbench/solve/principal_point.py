@@ -22,7 +22,8 @@ import numpy as np
 
 from .model import CarriageInput, ChainLink, SolveOptions, View
 from .problem import Problem, carriage_weights, focal_groups, held_chains, prepare_cars
-from .uncertainty import add_pose_covariance, camera_pose_jacobian, inverse_psd, pixel_rows, prior_rows
+from .camera_term import add_pose_covariance, camera_pose_jacobian, inverse_psd
+from .uncertainty import pixel_rows, prior_rows
 
 __all__ = ["GUESSED_PRINCIPAL_POINT_SIGMA", "GUESSED_SOURCES", "guessed_principal_point_sigma_px",
            "principal_point_response", "add_principal_point_uncertainty", "guessed_principal_point_term"]

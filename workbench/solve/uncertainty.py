@@ -21,10 +21,7 @@ from ..core.geometry import skew
 from .model import SolveOptions
 from .problem import (Chains, Poses, Problem, carriage_weights, focal_groups, held_chains, prepare_cars,
                       record_warning)
-# the camera term and the pose-covariance arithmetic live in .camera_term; level, principal_point and some tests
-# still import add_*_uncertainty, add_pose_covariance and camera_pose_jacobian from here
-from .camera_term import (add_camera_uncertainty, add_pose_covariance, add_view_camera_uncertainty,  # noqa: F401
-                          camera_pose_jacobian, inverse_psd, set_camera_response, set_pose_covariance)
+from .camera_term import inverse_psd, set_camera_response, set_pose_covariance
 from .alignment_covariance import alignment_term, views_per_face
 from .pose_covariance import pose_rows
 from .variance_components import (FALLBACK_FACE_SIGMA_PX, VarianceComponents, estimate_variance_components,
