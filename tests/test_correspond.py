@@ -507,31 +507,6 @@ def test_features_computed_ahead_give_the_same_points(incident, tmp_path):
     assert docs[0] == docs[1]
 
 
-def test_a_starved_prefetch_is_not_waited_for(tmp_path):
-    """A worker waits for the photo the prefetch is computing only while the prefetch gets a core: one that gets
-    none (here it sleeps; on a loaded machine, at the lowest priority, it may get almost none) is given up after
-    about a second, and the stage's end ends it instead of waiting for it."""
-    from workbench.correspond import prefetch
-
-    photo, entry = tmp_path / "a.jpg", tmp_path / "a.npz"
-    prefetch.start([photo], {photo.name: entry}, lambda p: time.sleep(60))
-    try:
-        status = prefetch._STATE["status"]
-        t0 = time.perf_counter()
-        while status[0] != prefetch.BUSY and time.perf_counter() - t0 < 30:
-            time.sleep(0.01)
-        prefetch.stop()
-        t0 = time.perf_counter()
-        prefetch.wait_for(photo.name, entry)
-        waited = time.perf_counter() - t0
-        assert status[0] == prefetch.BUSY and prefetch.STARVED_WINDOW_S <= waited < 5.0, waited
-    finally:
-        proc = prefetch._STATE.get("proc")
-        t0 = time.perf_counter()
-        prefetch.finish()
-    assert time.perf_counter() - t0 < 10.0 and proc is not None and not proc.is_alive()
-
-
 def test_reference_without_texture_needs_manual_points(incident):
     project, truth, _ = incident
     photos = project.photo_paths()[:1]

@@ -10,11 +10,8 @@ differ and the entry is not used (it is pruned at the end of the stage).
 
 The process runs at the lowest priority (:data:`NICE`): it takes the cores the run's own stages leave idle, not
 theirs. When the stage starts it stops the process from taking another photo (:func:`stop`); a photo the process is
-computing then is waited for by the worker that would compute it (:func:`wait_for`) while the process gets a core:
-on a machine loaded by other work a process at the lowest priority may get almost none, and a worker waiting for
-it would sit idle for minutes, so a worker that sees it get less than :data:`STARVED_SHARE` of a core over a second
-computes the photo itself (the stage then ends the process, :func:`finish`); the others are computed by the stage
-as before. Entries are written atomically, and the features are the same arrays whichever process
+computing then is waited for by the worker that would compute it (:func:`wait_for`); the others are computed by
+the stage as before. Entries are written atomically, and the features are the same arrays whichever process
 computes them (``match.photo_features``, OpenCV single-threaded in both).
 """
 
@@ -22,7 +19,6 @@ from __future__ import annotations
 
 import logging
 import multiprocessing as mp
-import os
 import time
 from pathlib import Path
 from typing import Callable
@@ -58,6 +54,8 @@ def start(photos: list[Path], files: dict[str, Path], compute: Callable[[Path], 
 
 
 def _work(photos: list[Path], compute: Callable[[Path], None], status, stop_flag) -> None:
+    import os
+
     try:  # the core the stages before leave free, not theirs: under load they were slowed by it (terrain 2.5 -> 6 s)
         os.nice(NICE)
     except (AttributeError, OSError):
@@ -96,33 +94,11 @@ def wait_for(name: str, entry: Path) -> None:
         return
     i = _STATE["names"].index(name)
     pid, t0 = _STATE["proc"].pid, time.monotonic()
-    w0, c0 = t0, _cpu_s(pid)
     while _STATE["status"][i] == BUSY and _alive(pid) and time.monotonic() - t0 < WAIT_MAX_S:
         time.sleep(0.02)
-        now = time.monotonic()
-        if now - w0 >= STARVED_WINDOW_S:
-            c1 = _cpu_s(pid)
-            if c0 is not None and c1 is not None and c1 - c0 < STARVED_SHARE * (now - w0):
-                log.info("correspond: the prefetch computing %s got %.0f %% of a core in the last %.1f s (a loaded "
-                         "machine): computed here", name, 100 * (c1 - c0) / (now - w0), now - w0)
-                _STATE["gave_up"] = True
-                return
-            w0, c0 = now, c1
 
 
 WAIT_MAX_S = 300.0  # a prefetch that has not finished a photo by then: the worker computes it itself
-STARVED_WINDOW_S = 1.0  # a waiting worker looks at the prefetch's CPU time this often
-STARVED_SHARE = 0.25  # the share of a core below which the prefetch is starved: the worker computes the photo
-
-
-def _cpu_s(pid: int) -> float | None:
-    """Process ``pid``'s CPU time so far (user + system, s), from ``/proc``; None where it cannot be read."""
-    try:
-        with open(f"/proc/{pid}/stat") as f:
-            fields = f.read().rsplit(")", 1)[1].split()
-        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
-    except (OSError, IndexError, ValueError):
-        return None
 
 
 def _alive(pid: int) -> bool:
@@ -137,12 +113,9 @@ def _alive(pid: int) -> bool:
 
 
 def finish() -> None:
-    """The stage ends: the prefetch process is reaped; one still computing a photo a worker computed itself (it was
-    starved, :func:`wait_for`) is ended first (its entry, written atomically, is the worker's already)."""
+    """The stage ends: the prefetch process is reaped."""
     proc = _STATE.get("proc")
     if proc is not None:
-        if _STATE.get("gave_up") and proc.is_alive():
-            proc.terminate()
         proc.join(timeout=60)
     _STATE.clear()
 
