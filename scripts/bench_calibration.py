@@ -224,31 +224,42 @@ def route_hand(n: int, seed0: int, estimate_focal: bool, log=print, terrain: boo
     """``terrain``: solve with the simulated plane as the terrain (step 2 and the contact term, as the solve stage
     runs with a DEM), its stated accuracy ``terrain_sigma_m`` (None: ``SolveOptions``' default). The simulated
     carriages rest on the plane to within 2 cm (1 sd: the couplers' play), so the plane is that accurate."""
-    recs, info = [], {"seeds": [], "skipped_seeds": [], "not_converged": 0, "left_out": 0, "time_s": 0.0,
-                      "focal_z": []}
+    info = {"seeds": [], "skipped_seeds": [], "not_converged": 0, "left_out": 0, "time_s": 0.0, "focal_z": []}
     tsig = {} if terrain_sigma_m is None else {"terrain_sigma_m": float(terrain_sigma_m)}
-    s = seed0
-    t0 = time.perf_counter()
+
+    def solve(sim, seed: int, sigma: float):
+        return solve_consist(sim.carriages, sim.links, sim.views,
+                             SolveOptions(pixel_sigma_px=sigma, estimate_focal=estimate_focal,
+                                          compute_covariance=True, **tsig), terrain=sim.terrain if terrain else None)
+
+    return hand_consists(n, seed0, estimate_focal, solve, info, log), info
+
+
+def hand_consists(n: int, seed0: int, estimate_focal: bool, solve, info: dict, log=print, **sim_kw) -> list[dict]:
+    """The hand routes' loop (here and in ``bench_terrain_focal``): fresh problems, :data:`HAND_CASES` cycled from
+    ``seed0``, simulated (``simulate_consist`` with ``sim_kw``; a seed it cannot place is listed as skipped), each
+    solved by ``solve(sim, seed, sigma)`` (its solver warnings silenced) and scored (:func:`score_consist`) until
+    ``n`` carriages have records; ``info`` filled as it goes, with the time and :func:`focal_summary`. Returns the
+    records."""
+    recs: list[dict] = []
+    s, t0 = seed0, time.perf_counter()
     while len(recs) < n:
         n_cars, sigma = HAND_CASES[(s - seed0) % len(HAND_CASES)]
-        seed = s
-        s += 1
+        seed, s = s, s + 1
         try:
-            sim = simulate_consist(n_cars, seed=seed, pixel_sigma_px=sigma)
+            sim = simulate_consist(n_cars, seed=seed, pixel_sigma_px=sigma, **sim_kw)
         except RuntimeError:
             info["skipped_seeds"].append(seed)
             continue
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", SolveWarning)
-            res = solve_consist(sim.carriages, sim.links, sim.views,
-                                SolveOptions(pixel_sigma_px=sigma, estimate_focal=estimate_focal,
-                                             compute_covariance=True, **tsig), terrain=sim.terrain if terrain else None)
+            res = solve(sim, seed, sigma)
         score_consist(res, sim, seed, n_cars, sigma, estimate_focal, recs, info)
         if len(info["seeds"]) % 10 == 0:
             log(f"  {len(info['seeds'])} problems, {len(recs)} carriages, {time.perf_counter() - t0:.0f} s")
     info["time_s"] = time.perf_counter() - t0
     focal_summary(info)
-    return recs, info
+    return recs
 
 
 def score_consist(res, sim, seed: int, n_cars: int, sigma: float, estimate_focal: bool, recs: list[dict],

@@ -24,8 +24,6 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
-import warnings
 from pathlib import Path
 
 
@@ -33,48 +31,36 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "scripts"))
 
-from bench_calibration import HAND_CASES, axis_stats, focal_summary, print_table, score_consist  # noqa: E402
-from workbench.solve import SolveOptions, SolveWarning, solve_consist  # noqa: E402
-from workbench.solve.simulate import dem_with_error, simulate_consist  # noqa: E402
+from bench_calibration import axis_stats, hand_consists, print_table  # noqa: E402
+from workbench.solve import SolveOptions, solve_consist  # noqa: E402
+from workbench.solve.simulate import dem_with_error  # noqa: E402
 
 DEM_SEED_OFFSET = 7_000_000  # the DEM's errors from another stream than the problem's
 
 
 def route_dem(n: int, seed0: int, estimate_focal: bool, dem_sigma_m: float, log=print,
               slack_m: float = 0.03, ground: str = "carriages") -> tuple[list[dict], dict]:
-    """Solve fresh problems (``bench_calibration.HAND_CASES`` cycled) on a DEM with error ``dem_sigma_m`` per
+    """Solve fresh problems (``bench_calibration.HAND_CASES`` cycled, :func:`bench_calibration.hand_consists`) on a DEM with error ``dem_sigma_m`` per
     carriage, stated as such, until ``n`` carriages have intervals; ``slack_m``: the couplings' play
     (``simulate_consist``'s; the carriages' spread about the plane grows with it along the consist, a random walk
     the contact's per-carriage model does not describe, unless the DEM is of the carriages' ground: ``ground``,
     as :func:`~workbench.solve.simulate.dem_with_error`). Returns (records, info)."""
-    recs, info = [], {"seeds": [], "skipped_seeds": [], "not_converged": 0, "left_out": 0, "focal_z": [],
+    info = {"seeds": [], "skipped_seeds": [], "not_converged": 0, "left_out": 0, "focal_z": [],
                       "dem_sigma_m": dem_sigma_m, "slack_m": slack_m, "ground": ground,
                       "contact_rows": 0, "wheel_rows": 0, "level_rows": 0}
-    s, t0 = seed0, time.perf_counter()
-    while len(recs) < n:
-        n_cars, sigma = HAND_CASES[(s - seed0) % len(HAND_CASES)]
-        seed, s = s, s + 1
-        try:
-            sim = simulate_consist(n_cars, seed=seed, pixel_sigma_px=sigma, slack_m=slack_m)
-        except RuntimeError:
-            info["skipped_seeds"].append(seed)
-            continue
+
+    def solve(sim, seed: int, sigma: float):
         dem = dem_with_error(sim, dem_sigma_m, seed + DEM_SEED_OFFSET, ground)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", SolveWarning)
-            res = solve_consist(sim.carriages, sim.links, sim.views,
-                                SolveOptions(pixel_sigma_px=sigma, estimate_focal=estimate_focal,
-                                             compute_covariance=True, terrain_sigma_m=dem_sigma_m), terrain=dem)
+        res = solve_consist(sim.carriages, sim.links, sim.views,
+                            SolveOptions(pixel_sigma_px=sigma, estimate_focal=estimate_focal,
+                                         compute_covariance=True, terrain_sigma_m=dem_sigma_m), terrain=dem)
         facts = next((st.facts for st in res.steps if st.name == "4_all"), {})
         info["contact_rows"] += len(res.carriages)
         info["wheel_rows"] += len(facts.get("contact_on_wheels", []))
         info["level_rows"] += len(facts.get("contact_level", {}))
-        score_consist(res, sim, seed, n_cars, sigma, estimate_focal, recs, info)
-        if len(info["seeds"]) % 10 == 0:
-            log(f"  {len(info['seeds'])} problems, {len(recs)} carriages, {time.perf_counter() - t0:.0f} s")
-    info["time_s"] = time.perf_counter() - t0
-    focal_summary(info)
-    return recs, info
+        return res
+
+    return hand_consists(n, seed0, estimate_focal, solve, info, log, slack_m=slack_m), info
 
 
 def main(argv=None) -> int:
