@@ -716,8 +716,8 @@ def mv_draw(root: Path, draw_seed: int, sigma_px: float, cp_sigma_px: float = 0.
 
 
 def route_multiview(n: int, seed0: int, log=print, work: Path | None = None, draws: int = MV_DRAWS,
-                    sfm_noise: tuple[float, float] = (0.0, 0.0), real_sfm: str | None = None
-                    ) -> tuple[list[dict], dict]:
+                    sfm_noise: tuple[float, float] = (0.0, 0.0), real_sfm: str | None = None,
+                    max_incidents: int = REAL_SFM_MAX_SEEDS) -> tuple[list[dict], dict]:
     """Generated incidents (seeds from ``seed0``), each solved ``draws`` times with fresh noise (:func:`mv_draw`);
     the records with the camera term (``camera_uncertainty``) and, in ``info["fit_records"]``, the same carriages
     against the fit's own intervals (``sigma_*_fit_*``: the intervals before the camera term)."""
@@ -729,9 +729,9 @@ def route_multiview(n: int, seed0: int, log=print, work: Path | None = None, dra
     dead: set[int] = set()  # real SfM: incidents whose first draw failed (the same SfM model in every draw)
     while len(recs) < n:
         seed = seed0 + k // draws
-        if real_sfm is not None and (seed - seed0 >= REAL_SFM_MAX_SEEDS or seed in dead):
-            if seed - seed0 >= REAL_SFM_MAX_SEEDS:
-                log(f"  {REAL_SFM_MAX_SEEDS} incidents tried: stopping")
+        if real_sfm is not None and (seed - seed0 >= max_incidents or seed in dead):
+            if seed - seed0 >= max_incidents:
+                log(f"  {max_incidents} incidents tried: stopping")
                 break
             k += 1
             continue
@@ -807,6 +807,9 @@ def main(argv=None) -> int:
     ap.add_argument("--real-sfm", choices=("covariance", "no-covariance"), default=None,
                     help="route multiview: run the sfm stage (pycolmap) on the generated photos instead of the exact "
                          "model; 'no-covariance' drops the views' SfM pose covariance it states (the route before)")
+    ap.add_argument("--real-sfm-incidents", type=int, default=REAL_SFM_MAX_SEEDS, metavar="N",
+                    help=f"with --real-sfm: incidents tried at most (default {REAL_SFM_MAX_SEEDS}; SfM places too "
+                         f"few photos of some)")
     ap.add_argument("--pp-uniform", action="store_true", help="route relative_focal: the principal point "
                     "uniform +-10 px off the centre (simulate_consist's), not drawn with the sigma the solve states")
     ap.add_argument("--merge", type=Path, nargs="*", default=None,
@@ -842,7 +845,8 @@ def main(argv=None) -> int:
         print(f"route {r}: solving until {a.n} carriages ...", flush=True)
         kw = {"work": a.work, "keep": not a.no_keep, "resolve": a.resolve, "survey_noise": a.survey_noise} \
             if r == "auto" else {"pp_uniform": a.pp_uniform} if r.startswith("relative") else \
-            {"work": a.work, "draws": a.draws, "sfm_noise": tuple(a.sfm_noise), "real_sfm": a.real_sfm} \
+            {"work": a.work, "draws": a.draws, "sfm_noise": tuple(a.sfm_noise), "real_sfm": a.real_sfm,
+             "max_incidents": a.real_sfm_incidents} \
             if r == "multiview" else \
             {"terrain": a.terrain, "terrain_sigma_m": a.terrain_sigma}
         recs, info = ROUTES[r](a.n, a.seed0, log=lambda m: print(m, flush=True), **kw)

@@ -457,9 +457,11 @@ def test_georef_carries_the_sfm_pose_covariance(multiview_incident, tmp_path):
     T = np.zeros((6, 6))
     T[:3, :3], T[3:, 3:] = A / s, A
     C7 = np.asarray(pu["models"]["main"]["covariance"])
+    S = np.asarray(pu["models"]["main"]["sfm_response"])  # the similarity follows the erring poses' control points
+    assert S.shape == (7, r) and np.abs(S).max() > 0
     for n, v in pu["views"].items():
         F, J = np.asarray(v["sfm_factor"]), np.asarray(v["jacobian"])
-        assert np.allclose(F, T @ Fm[n], rtol=1e-9, atol=1e-15)
+        assert np.allclose(F, T @ Fm[n] + J @ S, rtol=1e-9, atol=1e-15)
         assert np.allclose(np.asarray(v["covariance_rotation_centre"]), J @ C7 @ J.T + F @ F.T, rtol=1e-9, atol=1e-18)
     parsed = parse_pose_uncertainty(cams, "cameras.json")
     assert parsed.model_covariance["main"].shape == (7 + r, 7 + r)
@@ -474,3 +476,43 @@ def test_georef_carries_the_sfm_pose_covariance(multiview_incident, tmp_path):
         assert np.all(np.asarray(b["sigma_body_centre_m"]) >= np.asarray(a["sigma_body_centre_m"]) - 1e-12)
         n_wider += bool(np.any(np.asarray(b["sigma_body_centre_m"]) > 1.01 * np.asarray(a["sigma_body_centre_m"])))
     assert n_wider >= 2, n_wider
+
+
+def test_sfm_intrinsics_factor_against_the_solve_response(two_views):
+    """The SfM model's error moving the views' poses and their shared camera's intrinsics together (``sfm_factor``
+    and ``sfm_intrinsics_factor`` on one ``z ~ N(0, I_r)``; parse_pose_uncertainty's ``intrinsics_jacobian``)
+    against the solve run again with the poses and the focal and k1 moved by each of the factor's columns (finite
+    differences, the same pixels): the added sigmas agree to 3 %, and leaving the intrinsics' rows out misstates
+    some carriage's sigma by more than 10 %."""
+    sim, cars, sim_res, cfm = two_views
+    rng = np.random.default_rng(9)
+    r, params = 3, ("f", "k1")
+    sd = np.r_[[np.radians(0.05)] * 3, [0.03] * 3]
+    F = {n: rng.normal(size=(6, r)) * sd[:, None] / np.sqrt(r) for n in cfm}
+    K = rng.normal(size=(2, r)) * np.array([[0.004 * sim.views[0].intrinsics.fx], [0.01]]) / np.sqrt(r)
+    Cext = np.block([[np.zeros((7, 7)), np.zeros((7, r))], [np.zeros((r, 7)), np.eye(r)]])
+    views = _views(sim, sim_res, cfm)
+    res0 = _solve(sim, cars, views)
+    fit = [np.asarray(c.covariance_pose, float).copy() for c in res0.carriages]
+    jac = {v.name: ("main", np.hstack([sim_res.view_jacobian(cfm[v.name]), F[v.name]])) for v in views}
+    jac_k = {v.name: ("main", params, np.hstack([np.zeros((2, 7)), K])) for v in views}
+    terms = []
+    for with_k in (True, False):
+        res = copy.deepcopy(res0)
+        add_view_camera_uncertainty(res, cars, sim.links, views, SIGMA_PX, {"main": Cext}, jac, {},
+                                    intrinsics_jacobian=jac_k if with_k else None)
+        terms.append([np.asarray(c.covariance_pose) - f for c, f in zip(res.carriages, fit)])
+    B = np.zeros((len(cars), 6, 7 + r))
+    for j in range(r):
+        h = 0.1
+        vj = [View(name=v.name, intrinsics=v.intrinsics.moved(params, h * K[:, j]),
+                   cam_from_world=_moved_view(v, h * F[v.name][:3, j], h * F[v.name][3:, j]).cam_from_world)
+              for v in views]
+        B[:, :, 7 + j] = _pose_delta(_solve(sim, cars, vj), res0) / h
+    off = 0.0
+    for k, (Ck, C_no_k, Bk) in enumerate(zip(terms[0], terms[1], B)):
+        ratio = np.sqrt(np.diag(Ck) / np.diag(Bk @ Cext @ Bk.T))
+        assert np.all((0.97 < ratio) & (ratio < 1.03)), (k, ratio)
+        off = max(off, float(np.max(np.abs(np.sqrt(np.diag(C_no_k) / np.diag(Ck)) - 1.0))))
+    print(f"largest change without the intrinsics rows: {off:.3f}")
+    assert off > 0.10, off

@@ -322,8 +322,10 @@ def test_pose_covariance_against_a_monte_carlo_of_bundle_adjustment():
     """The SfM pose covariance (workbench.intrinsics.sfm_covariance, gauge: the centres' similarity taken out)
     against 16 bundle adjustments of the same scene with fresh pixel noise (0.5 px; poses, points and the focal
     free), each brought onto the truth by its centres' similarity: RMS of error / stated sigma 0.75-1.3 over the
-    rotations and over the centres (16 x 15 components each), the pixel sigma recovered within 15 %, and the
-    gauge holding (the stated centre errors carry no similarity: G^T W C = 0)."""
+    rotations and over the centres (16 x 15 components each) and over the focal (its rows of the same factor:
+    16 draws, 0.6-1.5), the poses and the focal together (their correlation: a focal error is compensated by the
+    poses) at a mean Mahalanobis^2 per rank of 0.7-1.35, the pixel sigma recovered within 15 %, and the gauge
+    holding (the stated centre errors carry no similarity: G^T W C = 0)."""
     from scipy.spatial.transform import Rotation
 
     from workbench.intrinsics.sfm_covariance import _gauge, pose_covariance
@@ -332,7 +334,7 @@ def test_pose_covariance_against_a_monte_carlo_of_bundle_adjustment():
     rng = np.random.default_rng(5)
     names = [f"v{i}" for i in range(len(M))]
     c_true = np.einsum("nji,nj->ni", M[:, :3, :3], -M[:, :3, 3])
-    Z, pc = [], None
+    Z, Zf, m2, pc = [], [], [], None
     for d in range(N_BA_DRAWS):
         uv = uv0 + rng.normal(0.0, 0.5, uv0.shape)
         Ms, Xs, K = _ba_solve(intr, M, X, img, pt, uv)
@@ -342,15 +344,26 @@ def test_pose_covariance_against_a_monte_carlo_of_bundle_adjustment():
             assert 0.85 * 0.5 < pc.stats["sigma_px"] < 1.15 * 0.5, pc.stats
         c_est = np.einsum("nji,nj->ni", Ms[:, :3, :3], -Ms[:, :3, 3])
         s, R, t, _ = similarity_align(c_est, c_true)  # the centres' similarity: the gauge the covariance states
+        joint = []
         for i, n in enumerate(names):
             Rwc = R @ Ms[i, :3, :3].T  # model_from_cam brought onto the truth
             w = R.T @ Rotation.from_matrix(Rwc @ M[i, :3, :3]).as_rotvec()  # back in the model frame
             e = np.r_[w, (R.T @ (s * R @ c_est[i] + t - c_true[i])) / s]
             Z.append(e / np.sqrt(np.diag(pc.marginal(n))))
+            joint.append(e)
+        Kf = pc.intrinsics_factor[names[0]]
+        Zf.append((K.fx - intr.fx) / float(np.sqrt((Kf @ Kf.T)[0, 0])))
+        LJ = np.vstack([pc.factor[n] for n in names] + [Kf])
+        e = np.r_[np.concatenate(joint), K.fx - intr.fx]
+        m2.append(float(e @ np.linalg.pinv(LJ @ LJ.T, rcond=1e-10, hermitian=True) @ e) / LJ.shape[1])
     Z = np.array(Z)
     rz_rot, rz_c = np.sqrt(np.mean(Z[:, :3] ** 2)), np.sqrt(np.mean(Z[:, 3:] ** 2))
-    print(f"RMS z rotation {rz_rot:.3f}, centre {rz_c:.3f}, sigma_px {pc.stats['sigma_px']:.3f}")
+    rz_f = float(np.sqrt(np.mean(np.square(Zf))))
+    print(f"RMS z rotation {rz_rot:.3f}, centre {rz_c:.3f}, focal {rz_f:.3f}, joint Mahalanobis^2 / rank "
+          f"{np.mean(m2):.3f}, sigma_px {pc.stats['sigma_px']:.3f}")
     assert 0.75 < rz_rot < 1.3 and 0.75 < rz_c < 1.3, (rz_rot, rz_c)
+    assert pc.params == ("f",) and all(pc.intrinsics_factor[n].shape == (1, LJ.shape[1]) for n in names)
+    assert 0.6 < rz_f < 1.5 and 0.7 < np.mean(m2) < 1.35, (rz_f, m2)
     L = np.vstack([pc.factor[n] for n in names])
     G, W = _gauge(c_first, L.shape[0])
     assert np.abs(G.T @ (W[:, None] * (L @ L.T))).max() < 1e-9 * np.abs(L @ L.T).max()
@@ -366,7 +379,7 @@ def test_sfm_states_each_models_pose_covariance(sfm_result, mv_set):
 
     _, truth = mv_set
     pc = sfm_result.stats["pose_covariance"]
-    assert pc["rank"] == 6 * 8 - 7 and pc["trace_share_kept"] > 0.999 and pc["intrinsics_refined"] == ["f", "k1", "k2"]
+    assert pc["rank"] == 6 * 8 + 3 - 7 and pc["trace_share_kept"] > 0.999 and pc["intrinsics_refined"] == ["f", "k1", "k2"]
     assert 0.2 < pc["sigma_px"] < 1.0 and 0.01 < pc["max_sigma_rotation_deg"] < 1.0
     tp, s, R, t, _ = _aligned(sfm_result, truth)
     z = []
@@ -379,6 +392,13 @@ def test_sfm_states_each_models_pose_covariance(sfm_result, mv_set):
     rec = parse_reconstruction(json.loads(json.dumps(sfm_result.to_json())), "reconstruction.json")
     F = {v.name: v.pose_factor for v in sfm_result.views}
     assert all(np.allclose(v.pose_factor, F[v.name], rtol=0, atol=0) for v in rec.main)
+    Fk = {v.name: v.intrinsics_factor for v in sfm_result.views}  # one camera: the same rows for every view
+    assert all(v.intrinsics_params == ("f", "k1", "k2") and np.array_equal(v.intrinsics_factor, Fk[v.name])
+               and np.array_equal(v.intrinsics_factor, rec.main[0].intrinsics_factor) for v in rec.main)
+    doc = sfm_result.to_json()
+    doc["images"][2]["intrinsics_factor"]["params"] = ["f", "k1", "zoom"]
+    with pytest.raises(StageError, match=r"images\[2\]\.intrinsics_factor\.params"):
+        parse_reconstruction(doc, "reconstruction.json")
     doc = sfm_result.to_json()
     doc["images"][1]["pose_factor"] = doc["images"][1]["pose_factor"][:5]
     with pytest.raises(StageError, match=r"images\[1\]\.pose_factor"):

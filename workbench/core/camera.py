@@ -9,7 +9,7 @@ exactly as OpenCV's ``projectPoints`` (coefficient order k1, k2, p1, p2, k3).
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
-from typing import Annotated
+from typing import Annotated, Sequence
 
 import numpy as np
 
@@ -142,6 +142,15 @@ class CameraIntrinsics:
     @classmethod
     def from_dict(cls, d: dict) -> "CameraIntrinsics":
         return cls(**d)
+
+    def moved(self, params: Sequence[str], delta: np.ndarray) -> "CameraIntrinsics":
+        """These intrinsics with the fields ``params`` moved by ``delta`` (len(params),): ``f`` moves ``fx`` and
+        ``fy`` together (a single-focal model's), the others are fields (pixels for fx, fy, cx, cy)."""
+        d = self.to_dict()
+        for name, x in zip(params, np.asarray(delta, dtype=float).reshape(-1)):
+            for k in (("fx", "fy") if name == "f" else (name,)):
+                d[k] += float(x)
+        return CameraIntrinsics.from_dict(d)
 
 
 @dataclass(frozen=True, kw_only=True)

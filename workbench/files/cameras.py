@@ -94,12 +94,16 @@ class PoseUncertainty:
     (its model, (6, 7) or (6, 7 + r)): the view's error is ``J @ e_model``, the same ``e_model`` for every view of
     that model (their errors are correlated); ``own_covariance``: view -> (6, 6)
     for a view whose error is its own (independent of every other view's); ``not_modelled``: views placed
-    without a stated pose covariance."""
+    without a stated pose covariance; ``intrinsics_jacobian``: view -> (its model, the intrinsics' names (fields
+    of :class:`CameraIntrinsics`, ``f`` for fx and fy together), (k, 7 + r)): the error of the SfM intrinsics the
+    view is projected with, ``J_k @ e_model`` (the SfM model's own error ``z`` moves its poses and intrinsics
+    together)."""
 
     model_covariance: dict[str, np.ndarray]
     jacobian: dict[str, tuple[str, np.ndarray]]
     own_covariance: dict[str, np.ndarray]
     not_modelled: tuple[str, ...]
+    intrinsics_jacobian: dict[str, tuple[str, tuple[str, ...], np.ndarray]] = field(default_factory=dict)
 
     def view_covariance(self, name: str) -> np.ndarray | None:
         """(6, 6) marginal covariance of one view's pose error, or None when it is not modelled."""
@@ -144,6 +148,7 @@ def parse_pose_uncertainty(doc: dict, path: Path | str) -> PoseUncertainty | Non
                 ranks[label] = r
                 cov[label] = np.block([[cov[label], np.zeros((7, r))], [np.zeros((r, 7)), np.eye(r)]])
     jac: dict[str, tuple[str, np.ndarray]] = {}
+    jac_k: dict[str, tuple[str, tuple[str, ...], np.ndarray]] = {}
     own: dict[str, np.ndarray] = {}
     missing = []
     for name, v in block.get("views", {}).items():
@@ -159,6 +164,9 @@ def parse_pose_uncertainty(doc: dict, path: Path | str) -> PoseUncertainty | Non
                 F = np.zeros((6, ranks[label])) if v.get("sfm_factor") is None else \
                     _finite_matrix(v["sfm_factor"], (6, ranks[label]), f"{w}.sfm_factor")
                 J = np.hstack([J, F])
+                if v.get("sfm_intrinsics_factor") is not None and label in cov:
+                    params, K = intrinsics_factor_checked(v["sfm_intrinsics_factor"], ranks[label], f"{w}.sfm_intrinsics_factor")
+                    jac_k[name] = (label, params, np.hstack([np.zeros((len(params), 7)), K]))
             if label in cov:
                 jac[name] = (label, J)
             else:
@@ -168,7 +176,19 @@ def parse_pose_uncertainty(doc: dict, path: Path | str) -> PoseUncertainty | Non
             own[name] = 0.5 * (C + C.T)
         else:
             missing.append(name)
-    return PoseUncertainty(cov, jac, own, tuple(sorted(missing)))
+    return PoseUncertainty(cov, jac, own, tuple(sorted(missing)), jac_k)
+
+
+INTRINSIC_PARAMS = ("f", "fx", "fy", "cx", "cy", "k1", "k2", "k3", "p1", "p2")
+
+
+def intrinsics_factor_checked(block: Any, r: int, where: str) -> tuple[tuple[str, ...], np.ndarray]:
+    """An ``{"params": [...], "factor": k x r}`` object checked: (the params, the factor)."""
+    params = block.get("params") if isinstance(block, dict) else None
+    if not isinstance(params, list) or not params or any(p not in INTRINSIC_PARAMS for p in params) \
+            or len(set(params)) != len(params):
+        raise InputError(f"{where}.params = {params!r}: must list distinct names of {', '.join(INTRINSIC_PARAMS)}")
+    return tuple(params), _finite_matrix(block.get("factor"), (len(params), r), f"{where}.factor")
 
 
 def rotation_checked(R: np.ndarray, where: str) -> np.ndarray:

@@ -15,8 +15,8 @@ import numpy as np
 
 from ..core.camera import CameraIntrinsics
 from ..core.io import matrix_from_json, read_json
-from ..errors import StageError
-from .cameras import intrinsics_checked, rotation_checked
+from ..errors import InputError, StageError
+from .cameras import intrinsics_checked, intrinsics_factor_checked, rotation_checked
 
 __all__ = ["SfmView", "Reconstruction", "read_reconstruction"]
 
@@ -26,12 +26,27 @@ class SfmView:
     """A photo of an SfM model: its name, intrinsics and ``cam_from_model`` (4, 4), model units; ``pose_factor``
     (6, r): its rows of the model's pose covariance factor (the sfm stage's bundle adjustment, gauge: the centres'
     similarity taken out; ``C_v = F F^T``, the model's views sharing one ``z ~ N(0, I_r)``; docs/formats.md), or
-    None when the file states none."""
+    None when the file states none; ``intrinsics_factor`` (k, r): its camera's refined intrinsics (named by
+    ``intrinsics_params``, fields of :class:`CameraIntrinsics`, ``f`` moving ``fx`` and ``fy`` together) in the
+    same factor, or None."""
 
     name: str
     intrinsics: CameraIntrinsics
     cam_from_model: np.ndarray
     pose_factor: np.ndarray | None = field(default=None, compare=False)
+    intrinsics_factor: np.ndarray | None = field(default=None, compare=False)
+    intrinsics_params: tuple[str, ...] = field(default=(), compare=False)
+
+
+def _intrinsics_factor(s: dict, r: int, w: str) -> tuple[np.ndarray | None, tuple[str, ...]]:
+    """A view's ``intrinsics_factor`` ({"params": [...], "factor": k x r}) checked; (None, ()) when absent."""
+    if s.get("intrinsics_factor") is None:
+        return None, ()
+    try:
+        params, F = intrinsics_factor_checked(s["intrinsics_factor"], r, f"{w}.intrinsics_factor")
+    except InputError as exc:
+        raise StageError(f"{exc}; run the sfm stage again") from None
+    return F, params
 
 
 @dataclass(frozen=True)
@@ -73,7 +88,8 @@ def _views(images: Any, where: str) -> tuple[SfmView, ...]:
             if F is None or F.ndim != 2 or F.shape[0] != 6 or F.shape[1] < 1 or not np.all(np.isfinite(F)):
                 raise StageError(f"{w}.pose_factor: must be a 6 x r list of finite numbers (r >= 1), got "
                                  f"{None if F is None else F.shape}; run the sfm stage again")
-        views.append(SfmView(s["name"], intr, M, F))
+        K, names = (None, ()) if F is None else _intrinsics_factor(s, F.shape[1], w)
+        views.append(SfmView(s["name"], intr, M, F, K, names))
     ranks = {v.pose_factor.shape[1] for v in views if v.pose_factor is not None}
     if len(ranks) > 1 or (ranks and any(v.pose_factor is None for v in views)):
         raise StageError(f"{where}: every image of a model needs a pose_factor of the same rank (found ranks "

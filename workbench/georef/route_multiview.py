@@ -176,18 +176,26 @@ def _views_out(placed: dict, resected: dict, images: dict[str, str], src: str) -
 POSE_PARAMETRISATION = ("a model's similarity error: [log scale, rotation vector (rad, scene frame, applied on the "
                         "left), translation (m, ENU)]; a view's pose error: [rotation vector of world_from_cam (rad, "
                         "scene frame), centre (m, ENU)] = jacobian @ its model's similarity error + sfm_factor @ z "
-                        "(its SfM pose's own error, z ~ N(0, I_sfm_rank) shared by the model's views)")
+                        "(its SfM model's own error, z ~ N(0, I_sfm_rank) shared by the model's views, the "
+                        "similarity's response to it included); its SfM intrinsics' error: "
+                        "sfm_intrinsics_factor @ z")
 
 
 def _sfm_factor(res: SimilarityResult, sv: SfmView) -> np.ndarray | None:
-    """(6, r) the view's SfM pose factor (model frame, :mod:`workbench.intrinsics.sfm_covariance`) carried into the
-    scene by the similarity: a rotation turns by ``R``, a centre moves by ``s R``; None when SfM stated none."""
+    """(6, r) the view's scene pose error per unit of its model's SfM pose error ``z``: its SfM pose factor (model
+    frame, :mod:`workbench.intrinsics.sfm_covariance`) carried into the scene by the similarity (a rotation turns
+    by ``R``, a centre moves by ``s R``), plus the similarity's own response to ``z`` (it was fitted to the
+    control points seen through those erring poses: ``res.sfm_sensitivity``, through the view's Jacobian); None
+    when SfM stated none."""
     if sv.pose_factor is None:
         return None
     T = np.zeros((6, 6))
     T[:3, :3] = res.rotation
     T[3:, 3:] = res.scale * res.rotation
-    return T @ np.asarray(sv.pose_factor, float)
+    F = T @ np.asarray(sv.pose_factor, float)
+    if res.sfm_sensitivity is not None and res.sfm_sensitivity.shape == (7, F.shape[1]):
+        F = F + res.view_jacobian(sv.cam_from_model) @ res.sfm_sensitivity
+    return F
 
 
 def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncertainty: dict) -> dict:
@@ -209,13 +217,19 @@ def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncer
                 if label not in models:
                     models[label] = {"covariance": None if res.covariance is None else res.covariance.tolist(),
                                      "translation_enu": np.asarray(res.translation, float).tolist(),
-                                     "scale": float(res.scale), "sfm_rank": None if F is None else int(F.shape[1])}
+                                     "scale": float(res.scale), "sfm_rank": None if F is None else int(F.shape[1]),
+                                     # (7, r): the similarity's response to the SfM error z, in each sfm_factor
+                                     "sfm_response": None if F is None or res.sfm_sensitivity is None else
+                                     np.asarray(res.sfm_sensitivity, float).tolist()}
                 C = res.view_covariance(sv.cam_from_model)
                 if C is not None and F is not None:  # the similarity's share and the SfM pose's own
                     C = C + F @ F.T
                 views[name] = {"source": "similarity", "model": label,
                                "jacobian": res.view_jacobian(sv.cam_from_model).tolist(),
                                "sfm_factor": None if F is None else F.tolist(),
+                               "sfm_intrinsics_factor": None if F is None or sv.intrinsics_factor is None else
+                               {"params": list(sv.intrinsics_params),
+                                "factor": np.asarray(sv.intrinsics_factor, float).tolist()},
                                "covariance_rotation_centre": None if C is None else C.tolist()}
                 continue
             u = uncertainty.get(name) or {}
@@ -232,7 +246,9 @@ def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncer
     return {"parametrisation": POSE_PARAMETRISATION,
             "not_included": ("the SfM poses' own error relative to one another (the reconstruction states none)"
                              if any(m.get("sfm_rank") is None for m in models.values()) else
-                             "the SfM intrinsics' error beyond its first-order effect on the poses")
+                             "the SfM intrinsics' error beyond its first-order effect on the poses"
+                             if any(v.get("model") and v.get("sfm_intrinsics_factor") is None for v in views.values())
+                             else "the SfM error beyond first order")
             + "; a photo placed on its own (resection): the correlation of its error with the models' through the "
               "control points they share, and its SfM camera's error when the focal was not refined",
             "models": models, "views": views}

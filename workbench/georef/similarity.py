@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
@@ -42,6 +42,10 @@ class SimilarityResult:
     # scaled by the reduced chi-square when above 1; None when the fit leaves it undetermined
     covariance: np.ndarray | None = None
     triangulated: dict[str, np.ndarray] = field(default_factory=dict)  # control point -> (3,) model frame
+    # (7, r) the fit's response (the order of ``covariance``) to the SfM poses' own error ``z`` (each view's
+    # ``pose_factor``, z ~ N(0, I_r) shared by the model's views): the control points and GPS centres seen through
+    # the erring poses pull the similarity with them (:func:`sfm_sensitivity`); None when SfM stated no factor
+    sfm_sensitivity: np.ndarray | None = None
 
     def centre_sigma_m(self, cam_from_model: np.ndarray) -> float | None:
         """1-sigma (square root of the largest eigenvalue, metres) of an SfM camera's centre in the scene, from
@@ -203,18 +207,7 @@ def _refine_similarity(start: tuple[float, np.ndarray, np.ndarray], obs: list[Pi
         obs_sig.append(pick_sigma(v.intrinsics, opts.sigma_px, cps[o.point].sigma_m, abs(depth)))
 
     def fun(p):
-        s, R, t = sim_from(p)
-        res = []
-        for o, sg in zip(obs, obs_sig):
-            v = views[o.view]
-            M = np.asarray(v.cam_from_model, float)
-            q = M[:3, :3] @ (R.T @ (X[o.point] - t) / s) + M[:3, 3]
-            z = q[2] if q[2] > 1e-9 else 1e-9
-            uv = v.intrinsics.pixels_from_normalized(v.intrinsics.distort(np.array([[q[0] / z, q[1] / z]])))[0]
-            res.extend((uv - o.uv) / sg)
-        for v, g in gps_items:
-            res.extend((s * R @ model_centre(v.cam_from_model) + t - g) / gsig)
-        return np.asarray(res)
+        return _weighted_residuals(sim_from(p), obs, obs_sig, views, X, gps_items, gsig)
 
     sol = least_squares(fun, np.zeros(7), loss=opts.loss, f_scale=opts.loss_scale, x_scale="jac", max_nfev=300)
     s, R, t = sim_from(sol.x)
@@ -233,6 +226,106 @@ def _refine_similarity(start: tuple[float, np.ndarray, np.ndarray], obs: list[Pi
     if cov is not None:  # d(log s), d(rotvec), d(t) of the parametrisation at the solution
         cov = cov.copy()
     return s, R, t, cov
+
+
+def _weighted_residuals(sim: tuple[float, np.ndarray, np.ndarray], obs: list[Pick], obs_sig: list[float],
+                        views: Sequence[SfmView], X: np.ndarray, gps_items: list[tuple[SfmView, np.ndarray]],
+                        gsig: np.ndarray) -> np.ndarray:
+    """The refinement's residuals at the similarity ``sim`` = (s, R, t): every pick's pixel error over its sigma
+    (2 per pick), then every GPS centre's error over its sigma (3 per centre)."""
+    s, R, t = sim
+    res = []
+    for o, sg in zip(obs, obs_sig):
+        v = views[o.view]
+        M = np.asarray(v.cam_from_model, float)
+        q = M[:3, :3] @ (R.T @ (X[o.point] - t) / s) + M[:3, 3]
+        z = q[2] if q[2] > 1e-9 else 1e-9
+        uv = v.intrinsics.pixels_from_normalized(v.intrinsics.distort(np.array([[q[0] / z, q[1] / z]])))[0]
+        res.extend((uv - o.uv) / sg)
+    for v, g in gps_items:
+        res.extend((s * R @ model_centre(v.cam_from_model) + t - g) / gsig)
+    return np.asarray(res)
+
+
+def _moved_view(v: SfmView, z: np.ndarray) -> SfmView:
+    """``v`` moved by the SfM error ``z`` (r,) of its model: its pose by ``pose_factor @ z`` (the rotation vector of
+    ``model_from_cam`` applied on the left (rad, model frame), then the centre (model units)) and its intrinsics by
+    ``intrinsics_factor @ z`` where the file states them."""
+    d = np.asarray(v.pose_factor, float) @ z
+    M = np.asarray(v.cam_from_model, float)
+    R = M[:3, :3] @ exp_so3(-d[:3])  # model_from_cam' = Exp(d) model_from_cam
+    out = np.eye(4)
+    out[:3, :3] = R
+    out[:3, 3] = -R @ (model_centre(M) + d[3:])
+    intr = v.intrinsics
+    if v.intrinsics_factor is not None:
+        intr = intr.moved(v.intrinsics_params, np.asarray(v.intrinsics_factor, float) @ z)
+    return replace(v, cam_from_model=out, intrinsics=intr)
+
+
+_LOSS_WEIGHT = {  # sqrt(rho'(z)), z the squared residual over the loss scale squared (scipy's losses)
+    "linear": lambda z: np.ones_like(z),
+    "huber": lambda z: np.where(z <= 1.0, 1.0, z ** -0.25),
+    "soft_l1": lambda z: (1.0 + z) ** -0.25,
+    "cauchy": lambda z: (1.0 + z) ** -0.5,
+    "arctan": lambda z: (1.0 + z ** 2) ** -0.5,
+}
+
+
+def sfm_sensitivity(sim: tuple[float, np.ndarray, np.ndarray], obs: list[Pick], views: Sequence[SfmView],
+                    X: np.ndarray, cps: Sequence[ControlPoint], gps_centres: dict[str, np.ndarray],
+                    opts: GeorefOptions, h: float = 1e-3) -> np.ndarray | None:
+    """(7, r) the refined similarity's first-order response to the SfM model's own error ``z`` (``pose_factor``
+    (6, r) of every view and, where stated, its ``intrinsics_factor``; z ~ N(0, I_r) shared by the model's views):
+    ``dp = -(J^T W J)^-1 J^T W dr/dz``, with ``J`` the refinement's residuals' Jacobian in its 7 parameters (log
+    scale, rotation vector on the left in the scene frame, translation), ``W`` its robust loss's weights at the
+    solution, and ``dr/dz`` the residuals' change when the views' poses and intrinsics move along each factor
+    column (central differences, ``h`` in units of z).
+
+    Why it matters: the similarity is fitted to the control points (and GPS centres) *seen through the SfM
+    poses*; where a pose errs, the fit follows, so a view's scene pose error is ``jacobian @ (dp_picks + S z) +
+    T F z``, not ``jacobian @ dp_picks + T F z``. Near the control points the two SfM terms largely cancel (the
+    fit puts the model where its control points are), which is what the carriages among them see. None when a
+    view has no factor or the fit has no residuals."""
+    if not views or any(v.pose_factor is None for v in views) or (not obs and not gps_centres):
+        return None
+    F = [np.asarray(v.pose_factor, float) for v in views]
+    r = F[0].shape[1]
+    if any(f.shape != (6, r) for f in F):
+        return None
+    s0, R0, t0 = sim
+    gsig = np.asarray(opts.gps_sigma_m, float)
+    by_name = {v.name: i for i, v in enumerate(views)}
+    gps_idx = [(by_name[n], np.asarray(g, float)) for n, g in sorted(gps_centres.items()) if n in by_name]
+    obs_sig = []
+    for o in obs:
+        v = views[o.view]
+        Mv = np.asarray(v.cam_from_model, float)
+        depth = float((Mv[:3, :3] @ (R0.T @ (X[o.point] - t0) / s0) + Mv[:3, 3])[2]) * s0
+        obs_sig.append(pick_sigma(v.intrinsics, opts.sigma_px, cps[o.point].sigma_m, abs(depth)))
+
+    def resid(p: np.ndarray, vs: Sequence[SfmView]) -> np.ndarray:
+        sim_p = (s0 * math.exp(p[0]), exp_so3(p[1:4]) @ R0, t0 + p[4:7])
+        return _weighted_residuals(sim_p, obs, obs_sig, vs, X, [(vs[i], g) for i, g in gps_idx], gsig)
+
+    r0 = resid(np.zeros(7), views)
+    w = _LOSS_WEIGHT.get(opts.loss, _LOSS_WEIGHT["linear"])((r0 / opts.loss_scale) ** 2)
+    J = np.zeros((len(r0), 7))
+    for j in range(7):
+        e = np.zeros(7)
+        e[j] = 1e-6
+        J[:, j] = (resid(e, views) - resid(-e, views)) / (2 * e[j])
+    Jz = np.zeros((len(r0), r))
+    for j in range(r):
+        e = np.zeros(r)
+        e[j] = h
+        up = [_moved_view(v, e) for v in views]
+        dn = [_moved_view(v, -e) for v in views]
+        Jz[:, j] = (resid(np.zeros(7), up) - resid(np.zeros(7), dn)) / (2 * h)
+    A = J * w[:, None]
+    if np.linalg.matrix_rank(A) < 7:
+        return None
+    return -np.linalg.lstsq(A, Jz * w[:, None], rcond=None)[0]
 
 
 def _similarity_residuals(result: SimilarityResult, obs: list[Pick], views: Sequence[SfmView], X: np.ndarray,
@@ -295,7 +388,8 @@ def solve_similarity(views: Sequence[SfmView], cps: Sequence[ControlPoint], *,
     gps_items = [(name_to_view[n], np.asarray(g, float)) for n, g in sorted(gps_centres.items()) if n in name_to_view]
     s, R, t, cov = _refine_similarity(_robust_start(src_a, dst_a, sig_a, opts), obs, views, X, cps, gps_items, opts)
     result = SimilarityResult(s, R, t, [], {}, [], covariance=cov,
-                              triangulated={cps[k].name: Xm for k, Xm in tri_model.items()})
+                              triangulated={cps[k].name: Xm for k, Xm in tri_model.items()},
+                              sfm_sensitivity=sfm_sensitivity((s, R, t), obs, views, X, cps, gps_centres, opts))
     residuals = _similarity_residuals(result, obs, views, X, cps, tri_model, opts)
     gps_res = {v.name: (result.apply(model_centre(v.cam_from_model)) - g).tolist() for v, g in gps_items}
     stats = summarize_residuals(residuals, opts)

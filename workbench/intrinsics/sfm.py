@@ -222,6 +222,9 @@ class SfmView:
     cam_from_model: np.ndarray  # (4, 4)
     n_points: int  # 3-D points it observes
     pose_factor: np.ndarray | None = None  # (6, r): its rows of the model's pose covariance factor (.sfm_covariance)
+    # (k, r): its camera's refined intrinsics' rows of the same factor, ``intrinsics_params`` naming them
+    intrinsics_factor: np.ndarray | None = None
+    intrinsics_params: tuple[str, ...] = ()
 
     @property
     def center_model(self) -> np.ndarray:
@@ -238,6 +241,9 @@ def _images_json(views: list[SfmView], relative: Callable[[Path], str]) -> list[
             F = np.asarray(v.pose_factor, float)
             d["pose_factor"] = F.tolist()
             d["covariance_rotation_centre"] = (F @ F.T).tolist()
+            if v.intrinsics_factor is not None and v.intrinsics_params:
+                d["intrinsics_factor"] = {"params": list(v.intrinsics_params),
+                                          "factor": np.asarray(v.intrinsics_factor, float).tolist()}
         out.append(d)
     return out
 
@@ -549,6 +555,8 @@ def _pose_covariance(rec, views: list[SfmView], opts: SfmOptions, intrinsics_fix
         return {"error": str(exc)}
     for v in views:
         v.pose_factor = pc.factor.get(v.name)
+        v.intrinsics_factor = pc.intrinsics_factor.get(v.name)
+        v.intrinsics_params = pc.params if v.intrinsics_factor is not None else ()
     return pc.stats
 
 

@@ -51,10 +51,16 @@ PARAMETRISATION = ("each view's error: [rotation vector of model_from_cam (rad, 
 @dataclass
 class SfmPoseCovariance:
     """A model's pose covariance: ``factor[name]`` (6, r) per view (``C_v = F_v F_v^T``; the model's views share
-    ``z``), and the figures of the estimate (``stats``)."""
+    ``z``), ``intrinsics_factor[name]`` (len(params), r): the rows of the view's camera's refined intrinsics
+    (``params``, in :class:`CameraIntrinsics` units: pixels for ``f``, ``fx``, ``fy``, ``cx``, ``cy``) in the same
+    factor, so that a pose error and the intrinsics error that comes with it (a focal error compensated by a
+    shift along the optical axis) stay together; empty when no intrinsics were refined; and the figures of the
+    estimate (``stats``)."""
 
     factor: dict[str, np.ndarray]
     stats: dict = field(default_factory=dict)
+    intrinsics_factor: dict[str, np.ndarray] = field(default_factory=dict)
+    params: tuple[str, ...] = ()
 
     def marginal(self, name: str) -> np.ndarray:
         """(6, 6) covariance of one view's pose error."""
@@ -73,10 +79,7 @@ def intrinsic_parameters(model: str, refine_focal: bool, refine_principal_point:
 
 
 def _moved(intr: CameraIntrinsics, name: str, h: float) -> CameraIntrinsics:
-    d = intr.to_dict()
-    for k in (("fx", "fy") if name == "f" else (name,)):
-        d[k] += h
-    return CameraIntrinsics.from_dict(d)
+    return intr.moved((name,), np.array([h]))
 
 
 def _project(R: np.ndarray, c: np.ndarray, X: np.ndarray, cam_of: np.ndarray,
@@ -196,12 +199,23 @@ def pose_covariance(names: list[str], cam_from_model: np.ndarray, camera_index: 
     C = P @ X_g @ P.T
     C = 0.5 * (C + C.T)
     Cp = C[:6 * n_img, :6 * n_img]
-    ev, V = np.linalg.eigh(Cp)
+    # the factor of the poses and the intrinsics together (the intrinsics rows scaled to be comparable with the
+    # poses' for the truncation, then scaled back): L L^T = C up to the directions left out
+    nk = len(params)
+    u = np.ones(D)
+    if nk:
+        k_scale = np.sqrt(np.clip(np.diag(C)[6 * n_img:], 1e-300, None))
+        p_scale = float(np.sqrt(max(np.mean(np.diag(Cp)), 1e-300)))
+        u[6 * n_img:] = k_scale / p_scale
+    ev, V = np.linalg.eigh(C / np.outer(u, u))
     order = np.argsort(ev)[::-1]
     ev, V = np.clip(ev[order], 0.0, None), V[:, order]
     keep = min(max_rank, int(np.sum(ev > 1e-12 * max(ev[0], 1e-300))))
-    L = V[:, :keep] * np.sqrt(ev[:keep])
+    L = (V[:, :keep] * np.sqrt(ev[:keep])) * u[:, None]
     factor = {n: L[6 * i:6 * i + 6] for i, n in enumerate(names)}
+    cam_idx = np.asarray(camera_index, int)
+    k_factor = {n: L[6 * n_img + nk * cam_idx[i]:6 * n_img + nk * (cam_idx[i] + 1)] for i, n in enumerate(names)} \
+        if nk else {}
     sd = np.sqrt(np.clip(np.diag(Cp), 0.0, None)).reshape(n_img, 6)
     k_sd = np.sqrt(np.clip(np.diag(C)[6 * n_img:], 0.0, None))
     stats = {"parametrisation": PARAMETRISATION, "rank": keep,
@@ -214,7 +228,7 @@ def pose_covariance(names: list[str], cam_from_model: np.ndarray, camera_index: 
              "max_sigma_centre_model": float(sd[:, 3:].max()), "time_s": round(time.perf_counter() - t0, 3)}
     log.info("sfm: pose covariance of %d views from %d observations (sigma %.2f px): up to %.3f deg, %.4f model units",
              n_img, len(img), sigma, stats["max_sigma_rotation_deg"], stats["max_sigma_centre_model"])
-    return SfmPoseCovariance(factor, stats)
+    return SfmPoseCovariance(factor, stats, k_factor, tuple(params))
 
 
 def reconstruction_pose_covariance(rec, names_by_id: dict[int, str], intrinsics_of, params: list[str],

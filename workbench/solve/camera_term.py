@@ -193,6 +193,34 @@ def view_information(world_from_carriage: np.ndarray, rows: dict[int, tuple[np.n
     return out
 
 
+def view_intrinsics_cross(world_from_carriage: np.ndarray, rows: dict[int, tuple[np.ndarray, np.ndarray]],
+                          views: Sequence[Any], params: dict[int, tuple[str, ...]], rel_step: float = 1e-6
+                          ) -> dict[int, np.ndarray]:
+    """Per view ``v`` in ``params`` (view index -> the names of its intrinsics, fields of ``CameraIntrinsics``):
+    ``sum_n w_n J_n^T K_n`` (6, k) over one carriage's measured points in that view, ``J_n`` (2, 6) the pixel's
+    derivative in the carriage's pose (the order of ``covariance_pose``), ``K_n`` (2, k) in the view's intrinsics
+    (central differences, steps of ``rel_step`` times the focal for pixel quantities, ``rel_step`` for the
+    others). ``rows`` as :func:`view_information`'s."""
+    M = np.asarray(world_from_carriage, dtype=float)
+    out = {}
+    for v, (P, w) in rows.items():
+        names = params.get(v)
+        if not names:
+            continue
+        intr, cam = views[v].intrinsics, views[v].cam_from_world
+        _, J, _ = project_with_jacobians(P, M[:3, :3], M[:3, 3], cam, intr, ())
+        K = np.zeros((len(P), 2, len(names)))
+        for j, name in enumerate(names):
+            h = rel_step * (abs(intr.fx) if name in ("f", "fx", "fy", "cx", "cy") else 1.0)
+            d = np.zeros(len(names))
+            d[j] = h
+            up, _, _ = project_with_jacobians(P, M[:3, :3], M[:3, 3], cam, intr.moved(names, d), ())
+            dn, _, _ = project_with_jacobians(P, M[:3, :3], M[:3, 3], cam, intr.moved(names, -d), ())
+            K[:, :, j] = (up - dn) / (2 * h)
+        out[v] = np.einsum("nai,n,naj->ij", J, np.asarray(w, float), K)
+    return out
+
+
 def view_shares(info: dict[int, np.ndarray]) -> dict[int, np.ndarray]:
     """``W_v = H^-1 H_v`` (6, 6) per view, ``H = sum_v H_v``: how a carriage's pose follows each view's camera
     when the cameras move apart (the first-order response of its least-squares pose to a shift of view ``v``'s
@@ -248,13 +276,18 @@ def _coupler_information(links: Sequence[Any], carriages: Sequence[Any], res: An
 def add_view_camera_uncertainty(res: Any, carriages: Sequence[Any], links: Sequence[Any], views: Sequence[Any],
                                 pixel_sigma_px: float, model_covariance: dict[str, np.ndarray],
                                 jacobian: dict[str, tuple[str, np.ndarray]], own_covariance: dict[str, np.ndarray],
-                                weighting: str = "per_carriage") -> dict[str, dict]:
+                                weighting: str = "per_carriage",
+                                intrinsics_jacobian: dict[str, tuple[str, tuple[str, ...], np.ndarray]] | None = None
+                                ) -> dict[str, dict]:
     """Add the multi-view cameras' pose uncertainty to every carriage's covariance, in place (first order).
 
     A view's pose error ``e_v`` (6: scene rotation vector of ``world_from_cam``, centre) is ``J_v e_m`` for a view
     placed by SfM model ``m``'s similarity (``jacobian[view] = (m, J_v)``; ``e_m`` of covariance
     ``model_covariance[m]`` (7, 7), shared by all of ``m``'s views, so their errors are correlated) or its own
-    (``own_covariance[view]`` (6, 6), independent). The carriages' poses respond as the least squares does:
+    (``own_covariance[view]`` (6, 6), independent). A view projected with SfM intrinsics that err with the model
+    (``intrinsics_jacobian[view] = (m, params, J_k)``: ``dk = J_k e_m``) moves the carriages by
+    ``-H^-1 sum_k J^T W K dk`` as well (``K`` the pixels' derivative in those intrinsics): a pose error that the
+    intrinsics' error compensates in the image moves the photo but hardly the carriages. The carriages' poses respond as the least squares does:
     ``dx = H^-1 sum_v H_v A_v e_v``, with ``H_v`` view ``v``'s pixel information on every carriage's pose
     (their measured points, the carriage weighting, the pixel sigma ``res.sigma_px``), ``H`` all of it plus the
     held couplings' prior, and ``A_v`` (:func:`camera_pose_jacobian` about view ``v``'s centre) the poses that keep
@@ -270,7 +303,10 @@ def add_view_camera_uncertainty(res: Any, carriages: Sequence[Any], links: Seque
     vindex = {v.name: i for i, v in enumerate(views)}
     centres = [-np.asarray(v.cam_from_world, float)[:3, :3].T @ np.asarray(v.cam_from_world, float)[:3, 3]
                for v in views]
+    jac_k = {vindex[n]: t for n, t in (intrinsics_jacobian or {}).items() if n in vindex and n in jacobian}
+    k_params = {v: t[1] for v, t in jac_k.items()}
     info: dict[int, dict[int, np.ndarray]] = {}
+    cross: dict[int, dict[int, np.ndarray]] = {}
     counts: dict[int, int] = {}
     for k, (cin, cr) in enumerate(zip(carriages, res.carriages)):
         if cr.covariance_pose is None or cr.world_from_carriage is None or cr.body_centre_m is None:
@@ -278,6 +314,7 @@ def add_view_camera_uncertainty(res: Any, carriages: Sequence[Any], links: Seque
         rows = _measured_rows(cin, cr, vindex, pixel_sigma_px)
         if rows:
             info[k] = view_information(cr.world_from_carriage, rows, views)
+            cross[k] = view_intrinsics_cross(cr.world_from_carriage, rows, views, k_params) if k_params else {}
             counts[k] = sum(len(w) for _, w in rows.values())
     if not info:
         return {}
@@ -287,6 +324,7 @@ def add_view_camera_uncertainty(res: Any, carriages: Sequence[Any], links: Seque
     sig = float(res.sigma_px) if math.isfinite(float(getattr(res, "sigma_px", math.nan))) else pixel_sigma_px
     H = _coupler_information(links, carriages, res, pos, P)
     G = {v: np.zeros((P, 6)) for v in range(len(views))}  # H_v A_v
+    G_k = {v: np.zeros((P, len(t[1]))) for v, t in jac_k.items()}  # J^T W K, per view's intrinsics
     for k, per_view in info.items():
         c = 6 * pos[k]
         w2 = (n_mean / counts[k] if weighting == "per_carriage" else 1.0) / sig**2
@@ -294,6 +332,8 @@ def add_view_camera_uncertainty(res: Any, carriages: Sequence[Any], links: Seque
         for v, Hkv in per_view.items():
             H[c:c + 6, c:c + 6] += w2 * Hkv
             G[v][c:c + 6] += w2 * Hkv @ camera_pose_jacobian(M, centres[v])
+        for v, Xkv in cross[k].items():
+            G_k[v][c:c + 6] += w2 * Xkv
     Hi = inverse_psd(0.5 * (H + H.T))
     C_cam = np.zeros((P, P))
     B: dict[str, np.ndarray] = {}
@@ -306,6 +346,8 @@ def add_view_camera_uncertainty(res: Any, carriages: Sequence[Any], links: Seque
         if name in jacobian:
             label, J = jacobian[name]
             B[label] = B.get(label, np.zeros((P, np.shape(J)[1]))) + Rv @ np.asarray(J, float)
+            if v in jac_k and jac_k[v][0] == label and G_k[v].any():
+                B[label] -= Hi @ G_k[v] @ np.asarray(jac_k[v][2], float)
         elif name in own_covariance:
             C_cam += Rv @ np.asarray(own_covariance[name], float) @ Rv.T
         else:

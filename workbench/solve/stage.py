@@ -484,7 +484,7 @@ def multiview_camera_uncertainty(res: Any, carriages: list, links: list, views: 
     if pu is None or not (pu.jacobian or pu.own_covariance):
         return None
     per_car = add_view_camera_uncertainty(res, carriages, links, views, opts.pixel_sigma_px, pu.model_covariance,
-                                          pu.jacobian, pu.own_covariance, opts.weighting)
+                                          pu.jacobian, pu.own_covariance, opts.weighting, pu.intrinsics_jacobian)
     names = {v.name for v in views}
     sd = np.array([np.sqrt(np.clip(np.diag(C), 0.0, None)) for n in sorted(names)
                    if (C := pu.view_covariance(n)) is not None]).reshape(-1, 6)
@@ -510,10 +510,11 @@ def _multiview_record(camera_unc: dict) -> dict:
             "a photo whose pose the shared-camera adjustment replaced, or placed on its own (resection), carries that "
             "fit's covariance on its own. Each carriage follows the photos it is measured in, weighted by their information on its pose "
             "and the couplings (first order: a common motion of the cameras moves it rigidly, the scale by its "
-            "cameras' weighted shifts); sigma_*_fit_* give the fit's alone. The SfM poses' error relative to one "
-            "another is carried for a model whose reconstruction states it (sfm_rank > 0). Not included: the SfM "
-            "intrinsics' error beyond its first-order effect on the poses, the SfM poses' error where the "
-            "reconstruction states none, the terrain contact's hold against a camera error")
+            "cameras' weighted shifts); sigma_*_fit_* give the fit's alone. The SfM model's own error (its poses "
+            "relative to one another, its refined intrinsics where stated, and the similarity's response to "
+            "both through the control points) is carried for a model whose reconstruction states it "
+            "(sfm_rank > 0). Not included: the SfM error where the reconstruction states none, the terrain "
+            "contact's hold against a camera error")
     if camera_unc["not_modelled"]:
         note += "; the pose error of " + ", ".join(camera_unc["not_modelled"]) + " (no pose covariance stated)"
     if partly:
