@@ -692,6 +692,23 @@ def test_multiview_shared_camera_adjusted_and_uncertainty_honest(sample, tmp_pat
     # with the adjustment off the stated sigmas do not cover the error: that is what it fixes
     worst = max((e for e in off.values() if e[2] is not None), key=lambda e: e[0])
     assert worst[2] > 3.0, off
+    # what the solve carries: the adjusted photos as one group sharing the adjustment's error, their poses and the
+    # refined intrinsics on one factor; each photo's marginal from it covers its centre error as well
+    pu = doc["georegistration"]["pose_uncertainty"]
+    adjusted = {n: v for n, v in pu["views"].items() if v["source"] == "camera_adjustment"}
+    assert adjusted and {v["model"] for v in adjusted.values()} == {"camera_adjustment[0]"}, pu["views"]
+    assert pu["models"]["camera_adjustment[0]"]["kind"] == "camera_adjustment"
+    from workbench.georef.shared_camera import INTRINSIC_SETS
+
+    truth_by = {Path(p["photo"]).name: p for p in truth["photos"]}
+    m2 = []
+    for n, v in adjusted.items():
+        assert v["sfm_intrinsics_factor"]["params"] == list(INTRINSIC_SETS[adj["chosen"]])
+        F = np.asarray(v["sfm_factor"])
+        d = np.asarray(next(w for w in doc["views"] if w["name"] == n)["center_enu"]) - truth_by[n]["center_enu"]
+        m2.append(float(d @ np.linalg.solve((F @ F.T)[3:, 3:], d)))
+    print("adjusted photos' centre Mahalanobis^2 (3 dof):", np.round(m2, 2))
+    assert sum(x < 7.81 for x in m2) >= 0.85 * len(m2) and 0.2 < float(np.mean(m2)) < 6.0, m2
 
 
 def test_multiview_main_model_is_checked(sample, tmp_path):

@@ -157,6 +157,10 @@ def _adjust_group(base: CameraIntrinsics, names: list[str], by_name: dict[str, d
                                                                      chosen["sigma_rot_deg"][n]),
                           "from": "joint adjustment of the shared camera (intrinsics free)",
                           "intrinsics": "refined (" + best + ")" if best != "sfm" else "sfm"}
+        if best != "sfm":  # the photo takes the chosen adjustment's pose and intrinsics: their joint error
+            fac = chosen["factor"]
+            uncertainty[n]["joint"] = {"pose_factor": fac["poses"][n], "params": fac["params"],
+                                       "intrinsics_factor": fac["intrinsics"]}
         M = free_adj["poses"][n]
         centres[n] = -M[:3, :3].T @ M[:3, 3]
     return report, uncertainty, centres, refined
@@ -198,6 +202,9 @@ def adjust_cameras(models, placed: dict, resected: dict, out_views: list[dict], 
         report, unc, centres, intr = _adjust_group(base_of[key], names, by_name, placed, resected, cps, opts)
         if report is None:
             continue
+        for u in unc.values():  # the photos of one adjusted camera share its error (one factor)
+            if "joint" in u:
+                u["joint"]["group"] = f"camera_adjustment[{len(adjustments)}]"
         if intr is not None:
             refined[key] = intr
         uncertainty.update(unc)

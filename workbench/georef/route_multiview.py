@@ -198,6 +198,11 @@ def _sfm_factor(res: SimilarityResult, sv: SfmView) -> np.ndarray | None:
     return F
 
 
+def _for_reading(uncertainty: dict) -> dict:
+    """``view_uncertainty`` as written: each photo's figures, without the joint factor ``pose_uncertainty`` carries."""
+    return {n: {k: v for k, v in u.items() if k != "joint"} for n, u in uncertainty.items()}
+
+
 def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncertainty: dict) -> dict:
     """``georegistration.pose_uncertainty`` (docs/formats.md): each placed model's similarity covariance (7, 7)
     and each view's Jacobian (6, 7) from it, so that views of one model keep their shared (correlated) error; a
@@ -233,6 +238,17 @@ def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncer
                                "covariance_rotation_centre": None if C is None else C.tolist()}
                 continue
             u = uncertainty.get(name) or {}
+            if u.get("joint") is not None:  # the shared camera's adjustment: its photos' poses and intrinsics
+                j = u["joint"]
+                F, K = np.asarray(j["pose_factor"], float), np.asarray(j["intrinsics_factor"], float)
+                models.setdefault(j["group"], {"covariance": np.zeros((7, 7)).tolist(), "translation_enu": [0.0] * 3,
+                                               "scale": 1.0, "sfm_rank": int(F.shape[1]), "sfm_response": None,
+                                               "kind": "camera_adjustment"})
+                views[name] = {"source": "camera_adjustment", "model": j["group"],
+                               "jacobian": np.zeros((6, 7)).tolist(), "sfm_factor": F.tolist(),
+                               "sfm_intrinsics_factor": {"params": list(j["params"]), "factor": K.tolist()},
+                               "covariance_rotation_centre": (F @ F.T).tolist()}
+                continue
             if u.get("cov_centre_enu_m2") is not None and u.get("sigma_rotation_deg") is not None:
                 C = np.zeros((6, 6))
                 C[:3, :3] = np.radians(float(u["sigma_rotation_deg"])) ** 2 * np.eye(3)
@@ -378,7 +394,7 @@ def _placed_doc(project: Project, rec_path: Path, rdoc: dict, src: str, p: _Plac
                               for r in p.reports],
                           "n_views_placed": n_done, "unregistered": unreg,
                           "resected": [r["report"] for _, r in sorted(resected.items())],
-                          "view_uncertainty": uncertainty, "camera_adjustment": adjustments,
+                          "view_uncertainty": _for_reading(uncertainty), "camera_adjustment": adjustments,
                           "pose_uncertainty": _pose_uncertainty(p.placed, resected, out_views, uncertainty)})
     if p.main_res is None:
         block["main_model_error"] = str(p.main_error)
@@ -391,7 +407,7 @@ def _placed_doc(project: Project, rec_path: Path, rdoc: dict, src: str, p: _Plac
                           for _, r in sorted(resected.items())],
              "models": [{k: v for k, v in r.items() if k not in ("residuals", "world_from_model")}
                         for r in p.reports],
-             "unregistered": unreg, "view_uncertainty": uncertainty, "camera_adjustment": adjustments}
+             "unregistered": unreg, "view_uncertainty": _for_reading(uncertainty), "camera_adjustment": adjustments}
     return doc, stats
 
 
@@ -422,12 +438,12 @@ def multiview_route(project: Project, opts: GeorefOptions, where: str) -> tuple[
     if p.main_res is None and p.first_res is None:  # only resected photos
         doc, stats = _resected_only_doc(project, rec_path, src, resected, p.reports, unreg)
         doc["views"] = out_views
-        doc["georegistration"].update({"view_uncertainty": uncertainty, "camera_adjustment": adjustments,
+        doc["georegistration"].update({"view_uncertainty": _for_reading(uncertainty), "camera_adjustment": adjustments,
                                        "pose_uncertainty": _pose_uncertainty(p.placed, resected, out_views,
                                                                              uncertainty)})
         if p.main_error is not None:
             doc["georegistration"]["main_model_error"] = str(p.main_error)
-        stats.update({"view_uncertainty": uncertainty, "camera_adjustment": adjustments})
+        stats.update({"view_uncertainty": _for_reading(uncertainty), "camera_adjustment": adjustments})
         return doc, stats
     return _placed_doc(project, rec_path, rdoc, src, p, cps, resected, out_views, unreg, uncertainty, adjustments,
                        len(done))

@@ -164,8 +164,33 @@ def adjust_shared_camera(intr: CameraIntrinsics, poses: dict[str, np.ndarray], c
     return {"intrinsics": it, "poses": out_poses, "cov_centre": cov_c, "sigma_rot_deg": sig_r,
             "sigma_intrinsics": sig_i, "values": values, "free": list(free), "condition": cond, "chi2_red": chi2,
             "rms_px": float(np.sqrt(np.mean(err ** 2))), "n_observations": len(vi), "n_photos": len(names),
-            "dof": dof, "variance_factor": vf,
+            "dof": dof, "variance_factor": vf, "factor": _joint_factor(cov, it, free, names, Rs),
             "residual": residual}
+
+
+def _joint_factor(cov: np.ndarray, it: CameraIntrinsics, free: Sequence[str], names: list[str],
+                  Rs: list[np.ndarray]) -> dict:
+    """The adjustment's joint covariance of its photos' poses and the free intrinsics as one factor ``L``
+    (``C = L L^T``, the photos sharing ``z ~ N(0, I_r)``): ``{"poses": photo -> (6, r)`` in the order of
+    ``georegistration.pose_uncertainty`` (rotation vector of ``world_from_cam`` in the scene frame, centre in m),
+    ``"params"``: the intrinsics' names (``f`` moving fx and fy together, in px), ``"intrinsics"`` (k, r)}."""
+    ni = len(free)
+    C = 0.5 * (cov + cov.T)
+    ev, V = np.linalg.eigh(C)
+    keep = ev > 1e-12 * max(float(ev.max()), 1e-300)
+    L = V[:, keep] * np.sqrt(ev[keep])
+    K = L[:ni].copy()
+    for j, k in enumerate(free):
+        if k == "f":  # the adjustment's focal is log(f / f_sfm): df = f dlog
+            K[j] *= it.fx
+    poses = {}
+    for i, n in enumerate(names):
+        b = ni + 6 * i
+        T = np.zeros((6, 6))
+        T[:3, :3] = -np.asarray(Rs[i], float).T  # cam_from_world' = Exp(q) R: world_from_cam' = Exp(-R^T q) R^T
+        T[3:, 3:] = np.eye(3)
+        poses[n] = T @ L[b:b + 6]
+    return {"poses": poses, "params": list(free), "intrinsics": K}
 
 
 def held_out_errors(intr: CameraIntrinsics, poses: dict[str, np.ndarray], cps: Sequence[ControlPoint],
