@@ -112,13 +112,21 @@ def motion_about(centre_enu: np.ndarray) -> np.ndarray:
 CAMERA_RESPONSE_ATTR = "camera_response_pose"  # where the solve keeps a carriage result's (6, 6) response
 
 
-def set_camera_response(cr: Any, response: np.ndarray | None) -> None:
+WORLD_INFORMATION_ATTR = "world_information_pose"  # (its (6, 6) world-fixed information, the cost's pixel sigma)
+
+
+def set_camera_response(cr: Any, response: np.ndarray | None, world_information: np.ndarray | None = None,
+                        pixel_sigma_px: float | None = None) -> None:
     """Keep on a carriage result its pose's first-order response (6, 6: scene rotation vector, origin) to a rigid
     motion of the camera about the ENU origin (rotation vector, translation: :func:`motion_about`), as the solve
-    computed it with the terms fixed in the world holding the carriage (None: it moves rigidly with the camera).
-    Not a field of the result: it is not written to ``solution.json``, and a result rebuilt from its fields
-    (``dataclasses.replace``) does not keep it (the camera term then moves the carriage rigidly)."""
+    computed it with the terms fixed in the world holding the carriage (None: it moves rigidly with the camera),
+    and the information of those terms on its pose (6, 6; in the cost's units, pixels at ``pixel_sigma_px``: the
+    multi-view term, :func:`add_view_camera_uncertainty`, adds it). Not fields of the result: they are not written
+    to ``solution.json``, and a result rebuilt from its fields (``dataclasses.replace``) does not keep them (the
+    camera term then moves the carriage rigidly)."""
     setattr(cr, CAMERA_RESPONSE_ATTR, None if response is None else np.asarray(response, dtype=float))
+    setattr(cr, WORLD_INFORMATION_ATTR, None if world_information is None or not pixel_sigma_px else
+            (np.asarray(world_information, dtype=float), float(pixel_sigma_px)))
 
 
 def camera_response(cr: Any, centre_enu: np.ndarray) -> np.ndarray:
@@ -293,8 +301,9 @@ def add_view_camera_uncertainty(res: Any, carriages: Sequence[Any], links: Seque
     held couplings' prior, and ``A_v`` (:func:`camera_pose_jacobian` about view ``v``'s centre) the poses that keep
     view ``v``'s pixels: a carriage seen in one view moves with that camera (as the central route's
     :func:`add_camera_uncertainty`), a motion common to all cameras moves every carriage rigidly with it, and the
-    scale moves each by its cameras' information-weighted shifts. The terrain contact's resistance is not
-    modelled (the carriages move as on pixels alone, as on the central route). Predictions
+    scale moves each by its cameras' information-weighted shifts. The terrain contact and the track prior,
+    fixed in the world, hold a carriage (their information, kept by the solve with :func:`set_camera_response`,
+    is in ``H`` but moves with no camera). Predictions
     (``Observation.derived``) carry no information and take no share. The fit's joint covariance
     ``res.covariance`` stays the fit's. Returns carriage number -> {"views": view -> its share of the carriage's
     own information (trace of ``H_k^-1 H_kv`` / 6), "not_modelled": the views it is measured in whose error is
@@ -334,6 +343,10 @@ def add_view_camera_uncertainty(res: Any, carriages: Sequence[Any], links: Seque
             G[v][c:c + 6] += w2 * Hkv @ camera_pose_jacobian(M, centres[v])
         for v, Xkv in cross[k].items():
             G_k[v][c:c + 6] += w2 * Xkv
+        held = getattr(res.carriages[k], WORLD_INFORMATION_ATTR, None)
+        if held is not None:  # the terrain contact, the track prior: fixed in the world, they hold the carriage
+            Hw, ps = held  # in the cost's units (pixels at ps); the pixel rows here are at sig
+            H[c:c + 6, c:c + 6] += Hw * (ps / sig) ** 2
     Hi = inverse_psd(0.5 * (H + H.T))
     C_cam = np.zeros((P, P))
     B: dict[str, np.ndarray] = {}

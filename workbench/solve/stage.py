@@ -507,14 +507,15 @@ def _multiview_record(camera_unc: dict) -> dict:
     partly = sorted(n for n, r in per_car.items() if r["not_modelled"])
     note = ("multi-view cameras: each SfM model's similarity covariance (7 x 7: log scale, rotation, translation, "
             "from the control points) carried to its photos' poses, the photos of one model sharing that error; "
-            "a photo whose pose the shared-camera adjustment replaced, or placed on its own (resection), carries that "
-            "fit's covariance on its own. Each carriage follows the photos it is measured in, weighted by their information on its pose "
+            "a photo placed on its own (resection) carries that fit's covariance on its own; the photos whose poses "
+            "the shared-camera adjustment replaced share that adjustment's error with the camera's refined "
+            "intrinsics. Each carriage follows the photos it is measured in, weighted by their information on its pose "
             "and the couplings (first order: a common motion of the cameras moves it rigidly, the scale by its "
-            "cameras' weighted shifts); sigma_*_fit_* give the fit's alone. The SfM model's own error (its poses "
+            "cameras' weighted shifts; the terrain contact and the track prior hold it in the world); "
+            "sigma_*_fit_* give the fit's alone. The SfM model's own error (its poses "
             "relative to one another, its refined intrinsics where stated, and the similarity's response to "
             "both through the control points) is carried for a model whose reconstruction states it "
-            "(sfm_rank > 0). Not included: the SfM error where the reconstruction states none, the terrain "
-            "contact's hold against a camera error")
+            "(sfm_rank > 0). Not included: the SfM error where the reconstruction states none")
     if camera_unc["not_modelled"]:
         note += "; the pose error of " + ", ".join(camera_unc["not_modelled"]) + " (no pose covariance stated)"
     if partly:

@@ -335,7 +335,7 @@ def misfit_carriages(prob: Problem, poses: Poses, sigma: float, p_value: float =
 
 
 def camera_responses(prob: Problem, poses: Poses, focal_views, chains: Chains, contact,
-                     options: SolveOptions) -> dict[int, np.ndarray]:
+                     options: SolveOptions) -> dict[int, tuple[np.ndarray, np.ndarray]]:
     """Each active carriage's first-order pose response (6, 6: scene rotation vector, origin) to a rigid motion of
     the camera about the ENU origin (rotation vector, translation: :func:`.camera_term.motion_about`), as the
     estimator responds: its pixels (the measured points and the predictions it fits, at the fit's weights and
@@ -343,8 +343,10 @@ def camera_responses(prob: Problem, poses: Poses, focal_views, chains: Chains, c
     terrain contact and the track prior stay in the world. With ``H = H_moving + H_world`` the information of the
     cost the solver minimises (pixels at ``options.pixel_sigma_px``, the coupler prior, the soft rows), the least
     squares moves by ``H^-1 H_moving A e = (A - H^-1 H_world A) e``, ``A`` every carriage's rigid motion with the
-    camera (docs/solver.md, "The camera's uncertainty"). Empty where no world-fixed row holds a carriage: every
-    carriage then moves rigidly with the camera (``B = A``)."""
+    camera (docs/solver.md, "The camera's uncertainty"). Returns carriage index -> (its response (6, 6), its
+    world-fixed information ``H_world`` block (6, 6), in the cost's units: pixels at ``options.pixel_sigma_px``;
+    the multi-view cameras' term adds it). Empty where no world-fixed row holds a carriage: every carriage then
+    moves rigidly with the camera (``B = A``)."""
     J, r, col, P = pixel_rows(prob, poses.R, poses.t, poses.f, focal_views)
     Jw, _, _ = contact_rows(contact, poses.R, poses.t, col, P, options.pixel_sigma_px)
     if not len(Jw):
@@ -359,7 +361,7 @@ def camera_responses(prob: Problem, poses: Poses, focal_views, chains: Chains, c
         A[c:c + 6] = np.eye(6)
         A[c + 3:c + 6, :3] = -skew(poses.t[k])
     B = A - inverse_psd(0.5 * (H + H.T)) @ (Hw @ A)
-    return {k: B[col[k]:col[k] + 6] for k in prob.active}
+    return {k: (B[col[k]:col[k] + 6], Hw[col[k]:col[k] + 6, col[k]:col[k] + 6]) for k in prob.active}
 
 
 def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Chains, contact, options: SolveOptions,
@@ -401,8 +403,8 @@ def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Cha
             record_warning(res.warnings, prob.cars[k], "undetermined",
                            f"car {cr.number}: its measured points do not determine its pose (predictions or the "
                            f"chain placed it); no interval is given")
-    for k, B0 in camera_responses(prob, poses, focal_views, chains, contact, options).items():
-        set_camera_response(res.carriages[k], B0)
+    for k, (B0, Hw_k) in camera_responses(prob, poses, focal_views, chains, contact, options).items():
+        set_camera_response(res.carriages[k], B0, Hw_k, options.pixel_sigma_px)
     for i, grp in enumerate(focal_views):
         j = 6 * len(prob.active) + i
         for v in grp:
