@@ -609,6 +609,13 @@ def test_multiview_resection_checks_a_wrong_sfm_focal(sample, tmp_path):
         assert 0.0 < abs(r["focal_check"]["refined_focal_px"] / true_f - 1) < 0.03, r["focal_check"]
         assert "focal refined" in r["intrinsics_from"]
         assert 0.001 < np.linalg.norm(np.asarray(placed[0]["center_enu"]) - truth_by[lone]["center_enu"]) < 0.5
+        # what the solve carries: its pose and the refined focal on one factor (a group of one photo), the
+        # focal's row of it the focal's stated sigma
+        pv = doc["georegistration"]["pose_uncertainty"]["views"][lone]
+        assert pv["source"] == "resection" and pv["model"] == f"resection[{lone}]", pv
+        K = np.asarray(pv["sfm_intrinsics_factor"]["factor"])
+        assert pv["sfm_intrinsics_factor"]["params"] == ["f"]
+        assert np.isclose(float(np.sqrt(K @ K.T)[0, 0]), r["focal_check"]["sigma_focal_px"], rtol=1e-6)
     else:
         (u,) = [u for u in doc["georegistration"]["unregistered"] if u["name"] == lone]
         assert "fix it only to" in u["reason"], u

@@ -89,3 +89,44 @@ def test_a_landmark_picked_in_several_photos_counts_once():
     assert n_multi > 150, n_multi  # landmarks seen in two photos or three
     m2 = np.array(m2)
     assert 4.5 < m2.mean() < 8.0, (m2.mean(), np.median(m2))
+
+
+def test_a_resection_with_its_focal_refined_states_pose_and_focal_together():
+    """One photo placed on its own from 12 control points (1 px picks, 5 cm survey) with a focal 5 % off, the
+    focal refined with the pose (``refine_resection_focal``) and the two written as one factor
+    (``shared_camera.joint_factor``, what ``pose_uncertainty`` carries as a group of one photo): over 40 draws the
+    7-d error (the scene rotation vector of ``world_from_cam``, the centre, the focal in px) has a mean squared
+    Mahalanobis distance near 7, the factor's pose rows reproduce the stated 6 x 6 covariance, its focal row the
+    stated focal sigma; the pose alone, without the focal's correlation, is not what the factor says (the
+    centre's error along the view is mostly the focal's)."""
+    from workbench.georef.central import refine_resection_focal
+    from workbench.georef.shared_camera import joint_factor
+
+    rng = np.random.default_rng(17)
+    true = CameraIntrinsics(width=1600, height=1200, fx=1400.0, fy=1400.0, cx=799.5, cy=599.5)
+    start = CameraIntrinsics.from_dict({**true.to_dict(), "fx": 1470.0, "fy": 1470.0})
+    centre = np.array([0.0, 0.0, 12.0])
+    M = look_at(centre, np.array([0.0, 110.0, 0.0]))
+    R = M[:3, :3]
+    X = np.column_stack([rng.uniform(-40, 40, 12), rng.uniform(60, 160, 12), rng.uniform(0, 8, 12)])
+    m2 = []
+    for _ in range(40):
+        cps = []
+        for k, x in enumerate(X):
+            uv = true.project(((x - centre) @ R.T)[None])[0] + rng.normal(0, 1.0, 2)
+            cps.append(ControlPoint(f"p{k}", x + rng.normal(0, 0.05, 3), 0.05, {"a.jpg": uv}))
+        res = solve_central([RigView("a.jpg", start, np.eye(3))], cps, opts=GeorefOptions())
+        ff = refine_resection_focal(start, res, cps, "a.jpg", GeorefOptions())
+        assert ff is not None
+        order = [6, 0, 1, 2, 3, 4, 5]
+        Me = ff["cam_from_world"]
+        j = joint_factor(np.asarray(ff["covariance_pose_focal"])[np.ix_(order, order)], ff["intrinsics"], ("f",),
+                         ["a.jpg"], [Me[:3, :3]])
+        F, K = j["poses"]["a.jpg"], j["intrinsics"]
+        assert np.allclose(F @ F.T, ff["covariance_world_rotation_centre"], rtol=1e-6, atol=1e-14)
+        assert np.isclose(float(np.sqrt((K @ K.T)[0, 0])), ff["sigma_focal_px"], rtol=1e-6)
+        Re = Me[:3, :3]
+        e = np.concatenate([log_so3(Re.T @ R), -Re.T @ Me[:3, 3] - centre, [ff["focal_px"] - true.fx]])
+        L = np.vstack([F, K])
+        m2.append(float(e @ np.linalg.solve(L @ L.T, e)))
+    assert 5.0 < float(np.mean(m2)) < 9.5, (np.mean(m2), np.median(m2))

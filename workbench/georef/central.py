@@ -607,7 +607,8 @@ def refine_resection_focal(intr: CameraIntrinsics, res: CentralResult, cps: Sequ
 
     Returns ``{"intrinsics", "cam_from_world" (4, 4), "focal_px", "sigma_focal_px", "sigma_centre_max_m",
     "covariance_world_rotation_centre" (6, 6: the pose's, the focal's doubt included; as
-    :func:`_covariance_stats`), "rms_px", "n_observations"}`` or None (fewer than 6 inlier picks: the focal is not
+    :func:`_covariance_stats`), "covariance_pose_focal" (7, 7: the fit's parameters, the pose and the focal
+    together), "rms_px", "n_observations"}`` or None (fewer than 6 inlier picks: the focal is not
     determined)."""
     obs = [(cps[k], np.asarray(cp_uv, float)) for k in range(len(cps)) for ph, cp_uv in cps[k].pixels.items()
            if ph == name]
@@ -657,4 +658,5 @@ def refine_resection_focal(intr: CameraIntrinsics, res: CentralResult, cps: Sequ
             "sigma_focal_px": float(it.fx * math.sqrt(max(cov[6, 6], 0.0))),
             "sigma_centre_max_m": float(np.sqrt(max(np.linalg.eigvalsh(0.5 * (Cc + Cc.T)).max(), 0.0))),
             "covariance_world_rotation_centre": _covariance_stats(R, cov[:6, :6])["covariance_world_rotation_centre"],
+            "covariance_pose_focal": cov,  # (7, 7): rotation on the left of cam_from_world, centre, log focal
             "rms_px": float(np.sqrt(np.mean(e ** 2))), "n_observations": len(obs)}

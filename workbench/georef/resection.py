@@ -14,6 +14,7 @@ from ..core.camera import CameraIntrinsics
 from ..errors import InputError
 from .camera_adjustment import intrinsics_key
 from .central import CentralResult, refine_resection_focal, solve_central
+from .shared_camera import joint_factor
 from ..files.control_points import ControlPoint
 from .documents import view_entry
 from ..files.panorama import RigView
@@ -105,6 +106,9 @@ def _resect_photo(name: str, intr: CameraIntrinsics, from_refined: bool, camera_
                                  "sigma_focal_px": ff["sigma_focal_px"], "rms_px": ff["rms_px"]}
         if abs(ff["focal_px"] - intr.fx) > opts.resect_focal_disagree_sigma * ff["sigma_focal_px"]:
             intr, cam_from_world, cov = ff["intrinsics"], ff["cam_from_world"], ff["covariance_world_rotation_centre"]
+            order = [6, 0, 1, 2, 3, 4, 5]  # the focal first, as joint_factor reads it
+            C7 = np.asarray(ff["covariance_pose_focal"], float)[np.ix_(order, order)]
+            report["joint"] = joint_factor(C7, intr, ("f",), [name], [cam_from_world[:3, :3]])
             report.update({"intrinsics_from": report["intrinsics_from"] + ", focal refined in the resection "
                            "(SfM's disagrees with this photo's control points)", "rms_px": ff["rms_px"],
                            "sigma_centre_max_m": ff["sigma_centre_max_m"]})
@@ -158,6 +162,7 @@ def resect_unplaced(photos: IncidentPhotos, models, placed: dict, cps: list[Cont
         intr, cam_from_world, report, caught, cov = done
         for wmsg in caught:
             warnings.warn(wmsg.message, wmsg.category, stacklevel=2)
+        joint = report.pop("joint", None)  # the pose and the refined focal together, where it was refined
         out[name] = {"entry": view_entry(name, photos.image_of(name), intr, cam_from_world, True), "report": report,
-                     "covariance": cov}
+                     "covariance": cov, "joint": joint}
     return out, why

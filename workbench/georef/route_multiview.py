@@ -257,6 +257,17 @@ def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncer
                                "covariance_rotation_centre": C.tolist()}
                 continue
         C = resected[name].get("covariance") if name in resected else None
+        j = resected[name].get("joint") if name in resected else None
+        if j is not None:  # its focal refined: the pose and the focal on one factor (a group of one photo)
+            F, K = np.asarray(j["poses"][name], float), np.asarray(j["intrinsics"], float)
+            label = f"resection[{name}]"
+            models[label] = {"covariance": np.zeros((7, 7)).tolist(), "translation_enu": [0.0] * 3, "scale": 1.0,
+                             "sfm_rank": int(F.shape[1]), "sfm_response": None, "kind": "resection"}
+            views[name] = {"source": "resection", "model": label, "jacobian": np.zeros((6, 7)).tolist(),
+                           "sfm_factor": F.tolist(), "sfm_intrinsics_factor": {"params": list(j["params"]),
+                                                                               "factor": K.tolist()},
+                           "covariance_rotation_centre": (F @ F.T).tolist()}
+            continue
         views[name] = {"source": "resection" if name in resected else "other", "model": None, "jacobian": None,
                        "covariance_rotation_centre": None if C is None else np.asarray(C, float).tolist()}
     return {"parametrisation": POSE_PARAMETRISATION,

@@ -164,13 +164,14 @@ def adjust_shared_camera(intr: CameraIntrinsics, poses: dict[str, np.ndarray], c
     return {"intrinsics": it, "poses": out_poses, "cov_centre": cov_c, "sigma_rot_deg": sig_r,
             "sigma_intrinsics": sig_i, "values": values, "free": list(free), "condition": cond, "chi2_red": chi2,
             "rms_px": float(np.sqrt(np.mean(err ** 2))), "n_observations": len(vi), "n_photos": len(names),
-            "dof": dof, "variance_factor": vf, "factor": _joint_factor(cov, it, free, names, Rs),
+            "dof": dof, "variance_factor": vf, "factor": joint_factor(cov, it, free, names, Rs),
             "residual": residual}
 
 
-def _joint_factor(cov: np.ndarray, it: CameraIntrinsics, free: Sequence[str], names: list[str],
-                  Rs: list[np.ndarray]) -> dict:
-    """The adjustment's joint covariance of its photos' poses and the free intrinsics as one factor ``L``
+def joint_factor(cov: np.ndarray, it: CameraIntrinsics, free: Sequence[str], names: list[str],
+                 Rs: list[np.ndarray]) -> dict:
+    """An adjustment's joint covariance (the free intrinsics first, ``f`` as log(f), then each photo's rotation
+    vector on the left of ``cam_from_world`` and centre; ``Rs`` the photos' rotations) as one factor ``L``
     (``C = L L^T``, the photos sharing ``z ~ N(0, I_r)``): ``{"poses": photo -> (6, r)`` in the order of
     ``georegistration.pose_uncertainty`` (rotation vector of ``world_from_cam`` in the scene frame, centre in m),
     ``"params"``: the intrinsics' names (``f`` moving fx and fy together, in px), ``"intrinsics"`` (k, r)}."""
