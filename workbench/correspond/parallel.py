@@ -99,7 +99,7 @@ def _run_one(index: int, phase: int = 2, token=None):
 def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int, str, str], None],
                on_result: Callable[[int, object], None] | None = None, first: Callable | None = None,
                on_first: Callable[[int, object], None] | None = None,
-               before_second: Callable[[], None] | None = None) -> list:
+               before_second: Callable[[], None] | None = None, order: list[int] | None = None) -> list:
     """``[fn(item, note) for item in items]``, on up to ``workers`` forked processes (in order).
 
     ``fn(item, note)`` does one photo and calls ``note(step, message)`` at each of its steps; the parent calls
@@ -112,13 +112,18 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
     platform, the items run here, one after the other. ``on_first(index, token)``: called in the parent as each
     item's first task finishes (any order). ``before_second()``: work of the parent's own, done once the workers
     are forked and the first tasks queued, before any second task is queued (what the second tasks need and the
-    workers, forked before it, read from files). A worker that dies (killed, out of memory) fails the map with a
-    RuntimeError instead of leaving it waiting.
+    workers, forked before it, read from files). ``order``: the items' indices in the order their (first) tasks
+    are queued (default: the items' order), e.g. a photo whose features another process is still computing last;
+    the results are still returned in the items' order. A worker that dies (killed, out of memory) fails the map
+    with a RuntimeError instead of leaving it waiting.
     """
     import cv2
 
     if before_second is not None and first is None:
         raise ValueError("before_second needs first tasks")
+    order = list(range(len(items))) if order is None else [int(i) for i in order]
+    if sorted(order) != list(range(len(items))):
+        raise ValueError(f"order must hold each index of the {len(items)} items once, got {order}")
     n = min(max(1, int(workers)), len(items))
     if n <= 1 or "fork" not in mp.get_all_start_methods():
         _JOB.clear()
@@ -126,15 +131,15 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
         try:
             if before_second is not None:
                 before_second()
-            out = []
-            for i in range(len(items)):
+            out: dict[int, object] = {}
+            for i in order:
                 token = _run_one(i, 1) if first is not None else None
                 if first is not None and on_first is not None:
                     on_first(i, token)
-                out.append(_run_one(i, 2, token))
+                out[i] = _run_one(i, 2, token)
                 if on_result is not None:
-                    on_result(i, out[-1])
-            return out
+                    on_result(i, out[i])
+            return [out[i] for i in range(len(items))]
         finally:
             _JOB.clear()
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -150,7 +155,7 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
     ex = ProcessPoolExecutor(max_workers=n, mp_context=ctx)
     try:
         phase0 = 1 if first is not None else 2
-        futures = {ex.submit(_run_one, i, phase0): (i, phase0) for i in range(len(items))}  # (forks the workers)
+        futures = {ex.submit(_run_one, i, phase0): (i, phase0) for i in order}  # (forks the workers)
         if before_second is not None:  # the parent's own work, with its own OpenCV threads
             cv2.setNumThreads(threads)
             before_second()

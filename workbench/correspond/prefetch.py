@@ -10,8 +10,9 @@ differ and the entry is not used (it is pruned at the end of the stage).
 
 The process runs at the lowest priority (:data:`NICE`): it takes the cores the run's own stages leave idle, not
 theirs. When the stage starts it stops the process from taking another photo (:func:`stop`); a photo the process is
-computing then is waited for by the worker that would compute it (:func:`wait_for`); the others are computed by
-the stage as before. Entries are written atomically, and the features are the same arrays whichever process
+computing then is queued after the other photos (``stage._match_photos``) and waited for by the worker that reaches
+it (:func:`wait_for`): while the workers compute the other photos the niced process gets no core, and once one
+worker has nothing else to do, the process has its core. The others are computed by the stage as before. Entries are written atomically, and the features are the same arrays whichever process
 computes them (``match.photo_features``, OpenCV single-threaded in both).
 """
 
