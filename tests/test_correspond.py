@@ -277,41 +277,53 @@ def test_photos_in_parallel_in_order_with_progress():
         map_photos(fails, [0, 1], 2, lambda *a: None)
 
 
-def test_photos_queued_in_the_given_order_results_in_the_items_order(tmp_path):
-    """``map_photos(order=...)``: the items' first tasks start in that order (the stage queues a photo whose features
-    the prefetch is computing last), each item's second task after its first, and the results, ``on_first`` tokens
-    and ``on_result`` values are the items' own, returned in the items' order."""
+def test_photos_held_back_are_queued_last_results_in_the_items_order(tmp_path):
+    """``map_photos(hold=...)`` (the stage holds back a photo whose features the prefetch is computing): a held item's
+    first task is queued once every other item's second task is, or as soon as ``hold`` turns false; each item's
+    second task after its first; the results, ``on_first`` tokens and ``on_result`` values are the items' own,
+    returned in the items' order."""
     from workbench.correspond.parallel import map_photos
 
-    log = tmp_path / "starts.txt"
+    log, flag = tmp_path / "starts.txt", tmp_path / "flag"
 
     def first(item, note):
         with open(log, "a") as f:
             f.write(f"1 {item} {time.monotonic()}\n")
-        time.sleep(0.05)
+        if item == 1 and flag.parent.joinpath("release").exists():
+            flag.touch()
+        time.sleep(0.1)
         return item + 10
 
     def second(item, note, token):
         with open(log, "a") as f:
             f.write(f"2 {item} {time.monotonic()}\n")
+        time.sleep(0.2)
         return (item, token)
 
+    def starts():
+        return {(int(a), int(b)): float(c) for a, b, c in (ln.split() for ln in log.read_text().splitlines())}
+
+    items = list(range(5))
     for workers in (1, 2):
         log.write_text("")
         firsts, results = {}, {}
-        out = map_photos(second, [0, 1, 2, 3], workers, lambda *a: None, first=first, order=[1, 2, 3, 0],
+        out = map_photos(second, items, workers, lambda *a: None, first=first, hold=lambda i: i == 0,
                          on_first=firsts.__setitem__, on_result=results.__setitem__)
-        assert out == [(0, 10), (1, 11), (2, 12), (3, 13)]
-        assert firsts == {i: i + 10 for i in range(4)} and results == {i: (i, i + 10) for i in range(4)}
-        starts = {(int(a), int(b)): float(c) for a, b, c in (ln.split() for ln in log.read_text().splitlines())}
-        assert len(starts) == 8
-        assert all(starts[(1, 0)] > starts[(1, i)] for i in (1, 2, 3)), starts  # item 0 queued last
-        assert all(starts[(2, i)] > starts[(1, i)] for i in range(4)), starts
+        assert out == [(i, i + 10) for i in items]
+        assert firsts == {i: i + 10 for i in items} and results == {i: (i, i + 10) for i in items}
+        t = starts()
+        assert len(t) == 10
+        assert all(t[(2, i)] > t[(1, i)] for i in items), t
+        assert t[(1, 0)] > max(t[(1, i)] for i in items[1:]) + 0.09, t  # after the others' second tasks were queued
         if workers == 1:
-            assert [k for k in sorted(starts, key=starts.get)] == [(1, 1), (2, 1), (1, 2), (2, 2), (1, 3), (2, 3),
-                                                                   (1, 0), (2, 0)]
-    with pytest.raises(ValueError, match="each index"):
-        map_photos(second, [0, 1], 2, lambda *a: None, first=first, order=[1, 1])
+            assert sorted(t, key=t.get) == [(p, i) for i in items[1:] + [0] for p in (1, 2)]
+    # released as soon as hold turns false (item 1's first task makes it so): before the others' second tasks run
+    (tmp_path / "release").touch()
+    log.write_text("")
+    out = map_photos(second, items, 2, lambda *a: None, first=first, hold=lambda i: i == 0 and not flag.exists())
+    assert out == [(i, i + 10) for i in items]
+    t = starts()
+    assert t[(1, 0)] < max(t[(2, i)] for i in items[1:]), t
 
 
 # ---------------------------------------------------------------------------------------------------------

@@ -99,7 +99,7 @@ def _run_one(index: int, phase: int = 2, token=None):
 def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int, str, str], None],
                on_result: Callable[[int, object], None] | None = None, first: Callable | None = None,
                on_first: Callable[[int, object], None] | None = None,
-               before_second: Callable[[], None] | None = None, order: list[int] | None = None) -> list:
+               before_second: Callable[[], None] | None = None, hold: Callable[[int], bool] | None = None) -> list:
     """``[fn(item, note) for item in items]``, on up to ``workers`` forked processes (in order).
 
     ``fn(item, note)`` does one photo and calls ``note(step, message)`` at each of its steps; the parent calls
@@ -112,18 +112,18 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
     platform, the items run here, one after the other. ``on_first(index, token)``: called in the parent as each
     item's first task finishes (any order). ``before_second()``: work of the parent's own, done once the workers
     are forked and the first tasks queued, before any second task is queued (what the second tasks need and the
-    workers, forked before it, read from files). ``order``: the items' indices in the order their (first) tasks
-    are queued (default: the items' order), e.g. a photo whose features another process is still computing last;
-    the results are still returned in the items' order. A worker that dies (killed, out of memory) fails the map
-    with a RuntimeError instead of leaving it waiting.
+    workers, forked before it, read from files). ``hold(index)``: true for an item to hold back (a photo whose
+    features another process is computing: ``prefetch.py``): asked for every item when the map starts, such an
+    item's (first) task is queued at the end of the queue, once every other item's last task is queued, or as
+    soon as ``hold(index)`` turns false (the parent asks while it waits); one process takes them last. The results
+    are in the items' order whatever the order of the tasks. A worker that dies (killed, out of memory) fails the
+    map with a RuntimeError instead of leaving it waiting.
     """
     import cv2
 
     if before_second is not None and first is None:
         raise ValueError("before_second needs first tasks")
-    order = list(range(len(items))) if order is None else [int(i) for i in order]
-    if sorted(order) != list(range(len(items))):
-        raise ValueError(f"order must hold each index of the {len(items)} items once, got {order}")
+    held = [i for i in range(len(items)) if hold is not None and hold(i)]
     n = min(max(1, int(workers)), len(items))
     if n <= 1 or "fork" not in mp.get_all_start_methods():
         _JOB.clear()
@@ -132,7 +132,7 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
             if before_second is not None:
                 before_second()
             out: dict[int, object] = {}
-            for i in order:
+            for i in [i for i in range(len(items)) if i not in held] + held:
                 token = _run_one(i, 1) if first is not None else None
                 if first is not None and on_first is not None:
                     on_first(i, token)
@@ -155,14 +155,26 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
     ex = ProcessPoolExecutor(max_workers=n, mp_context=ctx)
     try:
         phase0 = 1 if first is not None else 2
-        futures = {ex.submit(_run_one, i, phase0): (i, phase0) for i in order}  # (forks the workers)
+        futures = {ex.submit(_run_one, i, phase0): (i, phase0) for i in range(len(items)) if i not in held}
+        last_queued = {i for i, phase in futures.values() if phase == 2}  # items whose last task is queued
         if before_second is not None:  # the parent's own work, with its own OpenCV threads
             cv2.setNumThreads(threads)
             before_second()
             cv2.setNumThreads(1)
         results: dict[int, object] = {}
         pending = set(futures)
-        while pending:
+        while pending or held:
+            # a held item at the end of the queue, or as soon as it need not wait
+            every_other = len(last_queued) + len(held) == len(items)
+            for i in [i for i in held if every_other or not hold(i)]:
+                held.remove(i)
+                g = ex.submit(_run_one, i, phase0)
+                futures[g] = (i, phase0)
+                pending.add(g)
+                if phase0 == 2:
+                    last_queued.add(i)
+            if not pending:
+                continue
             done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
             while not q.empty():
                 progress(*q.get())
@@ -172,6 +184,7 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
                     g = ex.submit(_run_one, i, 2, f.result())
                     futures[g] = (i, 2)
                     pending.add(g)
+                    last_queued.add(i)
                     if on_first is not None:
                         on_first(i, f.result())
                     continue

@@ -10,9 +10,10 @@ differ and the entry is not used (it is pruned at the end of the stage).
 
 The process runs at the lowest priority (:data:`NICE`): it takes the cores the run's own stages leave idle, not
 theirs. When the stage starts it stops the process from taking another photo (:func:`stop`); a photo the process is
-computing then is queued after the other photos (``stage._match_photos``) and waited for by the worker that reaches
-it (:func:`wait_for`): while the workers compute the other photos the niced process gets no core, and once one
-worker has nothing else to do, the process has its core. The others are computed by the stage as before. Entries are written atomically, and the features are the same arrays whichever process
+computing then is held back (:func:`computing`, ``stage._match_photos``) until the process has written it or every
+other photo's work is queued, and waited for by the worker that reaches it (:func:`wait_for`): while the workers
+compute the other photos the niced process gets no core, and at the end of the queue the waiting worker leaves it
+its core. The others are computed by the stage as before. Entries are written atomically, and the features are the same arrays whichever process
 computes them (``match.photo_features``, OpenCV single-threaded in both).
 """
 
@@ -88,14 +89,19 @@ def stop() -> dict:
     return {"done": done, "busy": busy}
 
 
+def computing(name: str, entry: Path) -> bool:
+    """Whether the prefetch is computing the photo ``name``'s features into ``entry`` now (the stage's own name for
+    it; another name: False)."""
+    if not _STATE or _STATE["files"].get(name) != entry:
+        return False
+    return _STATE["status"][_STATE["names"].index(name)] == BUSY and _alive(_STATE["proc"].pid)
+
+
 def wait_for(name: str, entry: Path) -> None:
     """In a worker: wait while the prefetch computes the photo ``name``'s features into ``entry`` (the stage's
     own name for it; another name: nothing to wait for)."""
-    if not _STATE or _STATE["files"].get(name) != entry:
-        return
-    i = _STATE["names"].index(name)
-    pid, t0 = _STATE["proc"].pid, time.monotonic()
-    while _STATE["status"][i] == BUSY and _alive(pid) and time.monotonic() - t0 < WAIT_MAX_S:
+    t0 = time.monotonic()
+    while computing(name, entry) and time.monotonic() - t0 < WAIT_MAX_S:
         time.sleep(0.02)
 
 
@@ -121,4 +127,4 @@ def finish() -> None:
     _STATE.clear()
 
 
-__all__ = ["start", "stop", "wait_for", "finish"]
+__all__ = ["start", "stop", "computing", "wait_for", "finish"]

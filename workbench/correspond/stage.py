@@ -315,16 +315,16 @@ class _PhotoMatcher:
 
 
 def _match_photos(matcher: _PhotoMatcher, photos: list[Path], intrinsics: dict[str, CameraIntrinsics],
-                  opts: MatchOptions, progress: Progress, carry_on: bool, references=None,
-                  busy: frozenset[str] = frozenset()
+                  opts: MatchOptions, progress: Progress, carry_on: bool, references=None
                   ) -> tuple[list[PhotoResult], dict[str, PhotoFeatures], PairHomographies | None]:
     """Every photo matched on worker processes: the results, in the photos' order, and, to carry points between
     the photos of a panorama set, their features and the homographies between them. ``references()``: builds the
     cars' references (into the cache, where the workers read them) once the workers are computing the photos'
-    features. ``busy``: the photos whose features the prefetch (``prefetch.py``) is computing as the stage starts;
-    their tasks are queued after the others', so the workers compute the other photos' features first, and by the
-    time one reaches a busy photo the prefetch has had a core (at niceness 19 it gets none while the workers and
-    the references' threads hold both), or little is left to wait for."""
+    features. A photo whose features the prefetch (``prefetch.py``) is computing as the stage starts is held back
+    (``map_photos(hold=...)``) until the prefetch has written them or every other photo's work is queued: at
+    niceness 19 the prefetch gets no core while the workers and the references' threads hold both, so a worker
+    that waited for it then would only wait; at the end of the queue, the worker that reaches it leaves its core
+    to the prefetch."""
     steps_done: set = set()
 
     def report(index: int, step: str, message: str) -> None:
@@ -365,10 +365,12 @@ def _match_photos(matcher: _PhotoMatcher, photos: list[Path], intrinsics: dict[s
         if pairs is not None:
             pairs.advance(features)
 
-    order = ([i for i, p in enumerate(photos) if p.name not in busy]
-             + [i for i, p in enumerate(photos) if p.name in busy])
+    def computed_ahead(index: int) -> bool:
+        name = photos[index].name
+        return prefetch.computing(name, matcher.photo_file[name])
+
     results = map_photos(matcher.match, photos, workers, report, on_result=done, first=matcher.features,
-                         on_first=features_done, before_second=before_second, order=order)
+                         on_first=features_done, before_second=before_second, hold=computed_ahead)
     features = {r.name: features[r.name] for r in results if r.name in features}  # in the photos' order
     return results, features, pairs
 
@@ -415,11 +417,10 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
 
     if cache_dir is None:
         references()
-    ahead = prefetch.stop()  # the photos not begun ahead of the stage are the stage's
+    prefetch.stop()  # the photos not begun ahead of the stage are the stage's
     try:
         results, features, pairs = _match_photos(matcher, photos, intrinsics, opts, progress, carry_on,
-                                                 references if cache_dir is not None else None,
-                                                 busy=frozenset(ahead.get("busy", ())))
+                                                 references if cache_dir is not None else None)
     finally:
         prefetch.finish()
         if cache_dir is None:
