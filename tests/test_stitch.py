@@ -670,3 +670,24 @@ def test_composed_panorama_is_the_photos_through_the_model(tmp_path):
         diff = np.abs(got[sel] - want.reshape(-1, 3).astype(float))
         assert sel.sum() > 1000
         assert np.median(diff) < 4.0, (s.name, np.median(diff))  # misplaced by a pixel: tens of levels
+
+
+def test_statistics_without_numpy_ma_equal_numpy():
+    """register.unique_sorted, median and percentile (which keep numpy.ma out of a fresh stitch) give NumPy's
+    np.unique (1-D and axis=0), np.median and np.percentile to the bit, NaN included."""
+    from workbench.stitch.register import median, percentile, unique_sorted
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 7, 50, 301):
+        for scale in (1e-4, 1.0, 3e5):
+            a = np.abs(rng.normal(size=n)) * scale
+            assert median(a) == float(np.median(a))
+            assert median(list(a)) == float(np.median(list(a)))
+            for q in (0, 10, 50, 90, 99.5, 100):
+                assert percentile(a, q) == float(np.percentile(a, q))
+        pairs = rng.integers(0, 9, size=(n, 2))
+        u = unique_sorted(pairs)
+        assert u.dtype == np.unique(pairs, axis=0).dtype and np.array_equal(u, np.unique(pairs, axis=0))
+        ids = rng.integers(0, 5, size=n)
+        assert np.array_equal(unique_sorted(ids), np.unique(ids))
+    assert np.isnan(median([1.0, np.nan, 2.0])) and np.isnan(percentile([1.0, np.nan, 2.0], 90))

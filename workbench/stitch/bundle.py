@@ -20,7 +20,7 @@ import numpy as np
 
 from ..core.camera import CameraIntrinsics
 from .bundle_problem import BundleOptions, Observations, RotationBundleProblem, min_work_scale
-from .register import PairMatch, PhotoFeatures
+from .register import PairMatch, PhotoFeatures, median, unique_sorted
 
 log = logging.getLogger(__name__)
 
@@ -185,7 +185,7 @@ def _robust_subset(obs: Observations, per_pair: int) -> np.ndarray:
     """(M,) bool: at most ``per_pair`` observations of each pair (a fixed random choice), for the robust pass."""
     rng = np.random.default_rng(0)
     sub = np.zeros(len(obs.a), dtype=bool)
-    for pid in np.unique(obs.pair):
+    for pid in unique_sorted(obs.pair):
         rows = np.flatnonzero(obs.pair == pid)
         sub[rng.permutation(rows)[:per_pair]] = True
     return sub
@@ -223,7 +223,7 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
         robust = opts.final_loss_median > 0
         if robust:  # soft L1 at the scale of the inliers' median residual
             err = np.max(np.linalg.norm(problem.transfer_all(x), axis=2), axis=1)
-            problem.c_loss = opts.final_loss_median * float(np.median(err[idx]))
+            problem.c_loss = opts.final_loss_median * median(err[idx])
         x, cost, n_ev = _solve(objective, x, idx, robust, 1e-10, 1, opts)
         nfev += n_ev
     res = problem.transfer_all(x) / problem.s_obs[:, None, None]

@@ -170,9 +170,9 @@ def _parallax(ba: BAResult, obs: Observations, wscale: dict[int, float], kept_pa
     err_deg = np.degrees(err_full / f_obs[:, None])
     u = ba.used
     rms_w = float(np.sqrt(np.mean(err_work[u] ** 2)))
-    p90_w = float(np.percentile(err_work[u], 90))
+    p90_w = reg.percentile(err_work[u], 90)
     per_pair = []
-    for pid in np.unique(obs.pair):
+    for pid in reg.unique_sorted(obs.pair):
         m = (obs.pair == pid) & u
         p = kept_pairs[pid]
         if m.any():
@@ -182,7 +182,7 @@ def _parallax(ba: BAResult, obs: Observations, wscale: dict[int, float], kept_pa
     parallax = {
         "verdict": verdict, "n_observations": int(len(u)), "n_used": int(u.sum()),
         "rms_work_px": round(rms_w, 4), "p90_work_px": round(p90_w, 4),
-        "median_work_px": round(float(np.median(err_work[u])), 4),
+        "median_work_px": round(reg.median(err_work[u]), 4),
         "rms_full_px": round(float(np.sqrt(np.mean(err_full[u] ** 2))), 4),
         "rms_deg": round(float(np.sqrt(np.mean(err_deg[u] ** 2))), 5),
         "threshold_rms_work_px": opts.parallax_rms_work_px, "threshold_p90_work_px": opts.parallax_p90_work_px,
@@ -213,7 +213,7 @@ def _panorama_model(ba: BAResult, kept: list[int], names: list[str], image_refs:
     Rs = {k: R @ R_axis.T for k, R in Rs.items()}
     sources = tuple(PanoramaSource(name=names[k], image=image_refs[k], intrinsics=ba.intrinsics[k],
                                    cam_from_pano=orthonormal(Rs[k])) for k in kept)
-    scale = float(np.median([ba.intrinsics[k].fx for k in kept]))
+    scale = reg.median([ba.intrinsics[k].fx for k in kept])
     model = _fit_extent(PanoramaModel(projection=proj, scale=scale, offset=(0.0, 0.0), width=1, height=1,
                                       sources=sources))
     out_scale = 1.0
@@ -229,7 +229,7 @@ def _compose_kept(model: PanoramaModel, photos: list[Path], kept: list[int], fou
                   progress: ProgressFn) -> tuple[np.ndarray, dict]:
     """The panorama composed at full resolution from the kept photos (the small ones as decoded at registration)."""
     # seam-resolution panorama: the photos' seam scale relative to the output panorama's scale
-    seam_scale = float(np.median([found.small[k].shape[1] / found.sizes[k][0] for k in kept])) / out_scale
+    seam_scale = reg.median([found.small[k].shape[1] / found.sizes[k][0] for k in kept]) / out_scale
     paths_kept = [photos[k] for k in kept]
     kept_full = {str(photos[k]): found.fulls.pop(k) for k in kept if k in found.fulls}
     found.fulls.clear()
