@@ -158,6 +158,12 @@ def test_markup_in_a_path_is_printed_as_it_is(tmp_path):
     one_line_error(r, "[red]inc[bold]", "settings file not found")
 
 
+def test_emoji_codes_in_a_path_are_printed_as_they_are(tmp_path):
+    r = wb("init", tmp_path / ":fire:inc:smile:")
+    assert r.returncode == 0, r.stderr
+    assert ":fire:inc:smile:" in r.stdout and "\N{FIRE}" not in r.stdout, r.stdout
+
+
 def test_init_with_a_bad_value_writes_nothing(tmp_path):
     root = tmp_path / "new"
     r = wb("init", root, "--crs", "EPSG:4326")

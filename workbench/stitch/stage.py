@@ -24,12 +24,9 @@ import cv2
 
 from ..errors import InputError
 from ..project import Project
-from ..files.exif import read_focal_px
-from ..files.intrinsics import photo_size
 from ..core.stage_api import Progress, StageResult
 from .options import StitchOptions, StitchResult
 from .photo_matching import describe_photo
-from .stitcher import stitch_photos
 
 log = logging.getLogger(__name__)
 
@@ -75,6 +72,11 @@ def _take_prefetch(photos: list[Path], options: StitchOptions) -> dict | None:
 def stitch_project(project: Project, progress: Progress = lambda f, m="": None,
                    options: StitchOptions = StitchOptions()) -> StitchResult:
     """Stitch the project's photo set along its intrinsics route (no files written)."""
+    # (imported here, not with the module: the prefetch starts describing the photos without them)
+    from ..files.exif import read_focal_px
+    from ..files.intrinsics import photo_size
+    from .stitcher import stitch_photos
+
     cam = project.settings.camera
     photos = project.photo_paths()
     described = _take_prefetch(photos, options)
