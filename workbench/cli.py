@@ -6,53 +6,89 @@ import datetime as _dt
 import logging
 import os
 import sys
+import threading
 from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.console import Console
 
 from .errors import WorkbenchError
 
 # Plain help (click's formatter): rich's help panels cost half a second at every `--help`.
 app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode=None,
                   help="Reconstruction workbench for train-accident scenes: one incident folder per incident.")
+
+
+class _Console:
+    """A rich ``Console`` made on first use (:attr:`real`; any other attribute is the console's): rich's console
+    (about 20 ms of imports) is loaded once a command prints, not before a stage command has started its stages'
+    early work (the panorama's descriptions, :meth:`Runner.prefetch`)."""
+
+    def __init__(self, **options) -> None:
+        self._options = options
+        self._console = None
+        self._lock = threading.Lock()  # (stages report progress from their threads)
+
+    @property
+    def real(self):
+        with self._lock:
+            if self._console is None:
+                from rich.console import Console
+
+                self._console = Console(**self._options)
+            return self._console
+
+    def __getattr__(self, name: str):
+        return getattr(self.real, name)
+
+
 # markup and emoji codes off: a photo or folder named like "[red]x" or ":fire:" is printed as it is, never parsed
-console = Console(stderr=True, markup=False, highlight=False, emoji=False)
-out = Console(markup=False, highlight=False, emoji=False)
+console = _Console(stderr=True, markup=False, highlight=False, emoji=False)
+out = _Console(markup=False, highlight=False, emoji=False)
 
 
-class _NoBars:
-    """What the commands use of a rich ``Progress`` where it would be disabled (the output is not a terminal): its
-    tasks and their updates kept, nothing drawn, its ``console`` the CLI's; rich's progress display not imported."""
+class _Bars:
+    """The commands' progress: rich's bars where the CLI's console is a terminal, else nothing drawn (what rich's
+    ``Progress(disable=True)`` did). Decided at the first task, so rich's console and live display (7-15 ms of
+    imports) are loaded after a stage command has started its stages' early work, and not at all without a
+    terminal."""
 
     def __init__(self) -> None:
-        self.console = console
-        self.tasks: dict[int, dict] = {}
+        self._bars = None  # rich's Progress, started at the first task on a terminal
+        self._tasks: dict[int, dict] = {}  # without a terminal: each task's fields, nothing drawn
 
-    def __enter__(self) -> "_NoBars":
+    def __enter__(self) -> "_Bars":
         return self
 
-    def __exit__(self, *exc) -> None:
-        return None
+    def __exit__(self, *exc):
+        return self._bars.__exit__(*exc) if self._bars is not None else None
+
+    @property
+    def console(self):
+        return self._bars.console if self._bars is not None else console
 
     def add_task(self, description: str, **fields) -> int:
-        self.tasks[len(self.tasks)] = {"description": description, **fields}
-        return len(self.tasks) - 1
+        if self._bars is None and not self._tasks and console.is_terminal:
+            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+            self._bars = Progress(TextColumn("[bold]{task.description:<10}"), BarColumn(),
+                                  TextColumn("{task.fields[msg]}", markup=False), TimeElapsedColumn(),
+                                  console=console.real, transient=False)
+            self._bars.__enter__()
+        if self._bars is not None:
+            return self._bars.add_task(description, **fields)
+        self._tasks[len(self._tasks)] = {"description": description, **fields}
+        return len(self._tasks) - 1
 
     def update(self, task: int, **fields) -> None:
-        self.tasks[task].update(fields)
+        if self._bars is not None:
+            self._bars.update(task, **fields)
+        else:
+            self._tasks[task].update(fields)
 
 
-def _progress():
-    """Progress bars on a terminal (rich's ``Progress``); else :class:`_NoBars`, which draws nothing (what rich's
-    ``Progress(disable=True)`` did, for the import of rich's live display: 7-15 ms of every command's start)."""
-    if not console.is_terminal:
-        return _NoBars()
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
-    return Progress(TextColumn("[bold]{task.description:<10}"), BarColumn(), TextColumn("{task.fields[msg]}", markup=False),
-                    TimeElapsedColumn(), console=console, transient=False)
+def _progress() -> _Bars:
+    return _Bars()
 
 
 @app.callback()
