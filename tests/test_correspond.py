@@ -556,6 +556,48 @@ def test_features_computed_ahead_give_the_same_points(incident, tmp_path):
     assert docs[0] == docs[1]
 
 
+def test_a_starved_prefetch_is_left_and_ended(tmp_path, monkeypatch):
+    """A worker that reaches the photo the prefetch is computing waits while the prefetch gets a core; one that gets
+    none (here it sleeps; on a loaded machine, at niceness 19, it may get none for minutes) is left after a window of
+    STARVED_WINDOW_S, and the stage's end ends it instead of waiting for it. One that computes is waited for (here
+    at niceness 0 and a share of 2 %, so that the suite's own load cannot starve it)."""
+    from workbench.correspond import prefetch
+
+    def spin(p):  # a prefetch that gets its core: computes for 2 s, then writes the entry
+        t = time.perf_counter()
+        while time.perf_counter() - t < 2.0:
+            pass
+        p.with_suffix(".npz").write_bytes(b"x")
+
+    for compute, starved in ((lambda p: time.sleep(60), True), (spin, False)):
+        if not starved:
+            monkeypatch.setattr(prefetch, "NICE", 0)
+            monkeypatch.setattr(prefetch, "STARVED_SHARE", 0.02)
+        photo = tmp_path / "a.jpg"
+        entry = photo.with_suffix(".npz")
+        entry.unlink(missing_ok=True)
+        prefetch.start([photo], {photo.name: entry}, compute)
+        try:
+            status = prefetch._STATE["status"]
+            t0 = time.perf_counter()
+            while status[0] != prefetch.BUSY and time.perf_counter() - t0 < 30:
+                time.sleep(0.01)
+            prefetch.stop()
+            assert prefetch.computing(photo.name, entry) and not prefetch.computing(photo.name, tmp_path / "b.npz")
+            t0 = time.perf_counter()
+            prefetch.wait_for(photo.name, entry)
+            waited = time.perf_counter() - t0
+            if starved:
+                assert status[0] == prefetch.BUSY and prefetch.STARVED_WINDOW_S <= waited < 5.0, waited
+            else:
+                assert status[0] == prefetch.DONE and entry.is_file() and 1.0 < waited < 5.0, waited
+        finally:
+            proc = prefetch._STATE.get("proc")
+            t0 = time.perf_counter()
+            prefetch.finish()
+        assert time.perf_counter() - t0 < 5.0 and proc is not None and not proc.is_alive()
+
+
 def test_reference_without_texture_needs_manual_points(incident):
     project, truth, _ = incident
     photos = project.photo_paths()[:1]

@@ -13,7 +13,9 @@ theirs. When the stage starts it stops the process from taking another photo (:f
 computing then is held back (:func:`computing`, ``stage._match_photos``) until the process has written it or every
 other photo's work is queued, and waited for by the worker that reaches it (:func:`wait_for`): while the workers
 compute the other photos the niced process gets no core, and at the end of the queue the waiting worker leaves it
-its core. The others are computed by the stage as before. Entries are written atomically, and the features are the same arrays whichever process
+its core. Where other work holds the cores (a loaded machine), the process may get none for minutes: a worker that
+sees it get less than :data:`STARVED_SHARE` of a core over :data:`STARVED_WINDOW_S` computes the photo itself, and
+the stage's end ends the process (:func:`finish`). The others are computed by the stage as before. Entries are written atomically, and the features are the same arrays whichever process
 computes them (``match.photo_features``, OpenCV single-threaded in both).
 """
 
@@ -21,6 +23,7 @@ from __future__ import annotations
 
 import logging
 import multiprocessing as mp
+import os
 import time
 from pathlib import Path
 from typing import Callable
@@ -56,8 +59,6 @@ def start(photos: list[Path], files: dict[str, Path], compute: Callable[[Path], 
 
 
 def _work(photos: list[Path], compute: Callable[[Path], None], status, stop_flag) -> None:
-    import os
-
     try:  # the core the stages before leave free, not theirs: under load they were slowed by it (terrain 2.5 -> 6 s)
         os.nice(NICE)
     except (AttributeError, OSError):
@@ -99,13 +100,41 @@ def computing(name: str, entry: Path) -> bool:
 
 def wait_for(name: str, entry: Path) -> None:
     """In a worker: wait while the prefetch computes the photo ``name``'s features into ``entry`` (the stage's
-    own name for it; another name: nothing to wait for)."""
+    own name for it; another name: nothing to wait for), and while it gets a core: one that got less than
+    :data:`STARVED_SHARE` of a core over :data:`STARVED_WINDOW_S` is left (the worker computes the photo)."""
     t0 = time.monotonic()
+    if not computing(name, entry):
+        return
+    pid = _STATE["proc"].pid
+    w0, c0 = t0, _cpu_s(pid)
     while computing(name, entry) and time.monotonic() - t0 < WAIT_MAX_S:
         time.sleep(0.02)
+        now = time.monotonic()
+        if now - w0 >= STARVED_WINDOW_S:
+            c1 = _cpu_s(pid)
+            if c0 is not None and c1 is not None and c1 - c0 < STARVED_SHARE * (now - w0):
+                log.info("correspond: the prefetch computing %s got %.0f %% of a core in the last %.1f s (other work "
+                         "holds the cores): computed here", name, 100 * (c1 - c0) / (now - w0), now - w0)
+                return
+            w0, c0 = now, c1
 
 
 WAIT_MAX_S = 300.0  # a prefetch that has not finished a photo by then: the worker computes it itself
+# A worker reaches the photo the prefetch is computing only when no other photo's work is left in the queue
+# (``parallel.map_photos(hold=...)``): its core is then the prefetch's, unless other work holds the cores (a loaded
+# machine, where a process at niceness 19 may get none for minutes). The worker then computes the photo itself.
+STARVED_WINDOW_S = 2.0
+STARVED_SHARE = 0.25
+
+
+def _cpu_s(pid: int) -> float | None:
+    """Process ``pid``'s CPU time so far (user + system, s), from ``/proc``; None where it cannot be read."""
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
 
 
 def _alive(pid: int) -> bool:
@@ -120,9 +149,14 @@ def _alive(pid: int) -> bool:
 
 
 def finish() -> None:
-    """The stage ends: the prefetch process is reaped."""
+    """The stage ends: the prefetch process is reaped. The stage has every photo's features then, so a process still
+    computing one (a worker left it, :func:`wait_for`) is ended, not waited for (its entry is written atomically: a
+    temp file it leaves is deleted with the entries the stage did not use)."""
     proc = _STATE.get("proc")
     if proc is not None:
+        if BUSY in _STATE["status"][:] and proc.is_alive():
+            log.info("correspond: the prefetch still computing a photo the stage computed itself is ended")
+            proc.terminate()
         proc.join(timeout=60)
     _STATE.clear()
 
