@@ -279,9 +279,9 @@ def test_photos_in_parallel_in_order_with_progress():
 
 def test_photos_held_back_are_queued_last_results_in_the_items_order(tmp_path):
     """``map_photos(hold=...)`` (the stage holds back a photo whose features the prefetch is computing): a held item's
-    first task is queued once every other item's second task is, or as soon as ``hold`` turns false; each item's
-    second task after its first; the results, ``on_first`` tokens and ``on_result`` values are the items' own,
-    returned in the items' order."""
+    first task is queued once every other item's first task is done, ahead of the second tasks not queued yet, or as
+    soon as ``hold`` turns false; each item's second task after its first; the results, ``on_first`` tokens and
+    ``on_result`` values are the items' own, returned in the items' order."""
     from workbench.correspond.parallel import map_photos
 
     log, flag = tmp_path / "starts.txt", tmp_path / "flag"
@@ -314,7 +314,9 @@ def test_photos_held_back_are_queued_last_results_in_the_items_order(tmp_path):
         t = starts()
         assert len(t) == 10
         assert all(t[(2, i)] > t[(1, i)] for i in items), t
-        assert t[(1, 0)] > max(t[(1, i)] for i in items[1:]) + 0.09, t  # after the others' second tasks were queued
+        assert t[(1, 0)] > max(t[(1, i)] for i in items[1:]) + 0.09, t  # after the others' first tasks are done
+        if workers == 2:  # ahead of the last second tasks
+            assert t[(1, 0)] < max(t[(2, i)] for i in items[1:]), t
         if workers == 1:
             assert sorted(t, key=t.get) == [(p, i) for i in items[1:] + [0] for p in (1, 2)]
     # released as soon as hold turns false (item 1's first task makes it so): before the others' second tasks run
