@@ -11,12 +11,13 @@ differ and the entry is not used (it is pruned at the end of the stage).
 The process runs at the lowest priority (:data:`NICE`): it takes the cores the run's own stages leave idle, not
 theirs. When the stage starts it stops the process from taking another photo (:func:`stop`); a photo the process is
 computing then is held back (:func:`computing`, ``stage._match_photos``) until the process has written it or every
-other photo's work is queued, and waited for by the worker that reaches it (:func:`wait_for`): while the workers
-compute the other photos the niced process gets no core, and at the end of the queue the waiting worker leaves it
-its core. Where other work holds the cores (a loaded machine), the process may get none for minutes: a worker that
-sees it get less than :data:`STARVED_SHARE` of a core over :data:`STARVED_WINDOW_S` computes the photo itself, and
-the stage's end ends the process (:func:`finish`). The others are computed by the stage as before. Entries are written atomically, and the features are the same arrays whichever process
-computes them (``match.photo_features``, OpenCV single-threaded in both).
+other photo's features are done, and waited for by the worker that reaches it (:func:`wait_for`): while the workers
+compute the other photos' features (and the parent the cars' references) the niced process gets no core; the
+worker that reaches it later leaves it its core. Where other work holds the cores (a loaded machine), the process
+may get none for minutes: a worker that sees it get less than :data:`STARVED_SHARE` of a core over
+:data:`STARVED_WINDOW_S` computes the photo itself, and the stage's end ends the process (:func:`finish`). The
+others are computed by the stage as before. Entries are written atomically, and the features are the same arrays
+whichever process computes them (``match.photo_features``, OpenCV single-threaded in both).
 """
 
 from __future__ import annotations
@@ -120,9 +121,10 @@ def wait_for(name: str, entry: Path) -> None:
 
 
 WAIT_MAX_S = 300.0  # a prefetch that has not finished a photo by then: the worker computes it itself
-# A worker reaches the photo the prefetch is computing only when no other photo's work is left in the queue
-# (``parallel.map_photos(hold=...)``): its core is then the prefetch's, unless other work holds the cores (a loaded
-# machine, where a process at niceness 19 may get none for minutes). The worker then computes the photo itself.
+# A worker reaches the photo the prefetch is computing only once every other photo's features are done and the
+# parent's references built (``parallel.map_photos(hold=...)``): its core is then the prefetch's, unless other work
+# holds the cores (a loaded machine, where a process at niceness 19 may get none for minutes). The worker then
+# computes the photo itself.
 STARVED_WINDOW_S = 2.0
 STARVED_SHARE = 0.25
 

@@ -321,10 +321,10 @@ def _match_photos(matcher: _PhotoMatcher, photos: list[Path], intrinsics: dict[s
     the photos of a panorama set, their features and the homographies between them. ``references()``: builds the
     cars' references (into the cache, where the workers read them) once the workers are computing the photos'
     features. A photo whose features the prefetch (``prefetch.py``) is computing as the stage starts is held back
-    (``map_photos(hold=...)``) until the prefetch has written them or every other photo's work is queued: at
-    niceness 19 the prefetch gets no core while the workers and the references' threads hold both, so a worker
-    that waited for it then would only wait; at the end of the queue, the worker that reaches it leaves its core
-    to the prefetch."""
+    (``map_photos(hold=...)``) until the prefetch has written them or every other photo's features are done (then
+    it goes ahead of the matches not queued yet): at niceness 19 the prefetch gets no core while the workers and
+    the references' threads hold both, so a worker that waited for it at the start would only wait; later, the
+    worker that reaches it leaves its core to the prefetch."""
     steps_done: set = set()
 
     def report(index: int, step: str, message: str) -> None:
