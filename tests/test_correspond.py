@@ -561,16 +561,17 @@ def test_features_computed_ahead_give_the_same_points(incident, tmp_path):
 def test_a_starved_prefetch_is_left_and_ended(tmp_path, monkeypatch):
     """A worker that reaches the photo the prefetch is computing waits while the prefetch gets a core; one that gets
     none (here it sleeps; on a loaded machine, at niceness 19, it may get none for minutes) is left after a window of
-    STARVED_WINDOW_S, and the stage's end ends it instead of waiting for it. One that computes is waited for (here
-    at niceness 0 and a share of 2 %, so that the suite's own load cannot starve it)."""
+    STARVED_WINDOW_S (here 0.5 s), and the stage's end ends it instead of waiting for it. One that computes is waited
+    for (here at niceness 0 and a share of 2 %, so that the suite's own load cannot starve it)."""
     from workbench.correspond import prefetch
 
-    def spin(p):  # a prefetch that gets its core: computes for 2 s, then writes the entry
+    def spin(p):  # a prefetch that gets its core: computes for 1 s, then writes the entry
         t = time.perf_counter()
-        while time.perf_counter() - t < 2.0:
+        while time.perf_counter() - t < 1.0:
             pass
         p.with_suffix(".npz").write_bytes(b"x")
 
+    monkeypatch.setattr(prefetch, "STARVED_WINDOW_S", 0.5)
     for compute, starved in ((lambda p: time.sleep(60), True), (spin, False)):
         if not starved:
             monkeypatch.setattr(prefetch, "NICE", 0)
@@ -592,7 +593,7 @@ def test_a_starved_prefetch_is_left_and_ended(tmp_path, monkeypatch):
             if starved:
                 assert status[0] == prefetch.BUSY and prefetch.STARVED_WINDOW_S <= waited < 5.0, waited
             else:
-                assert status[0] == prefetch.DONE and entry.is_file() and 1.0 < waited < 5.0, waited
+                assert status[0] == prefetch.DONE and entry.is_file() and 0.5 < waited < 4.0, waited
         finally:
             proc = prefetch._STATE.get("proc")
             t0 = time.perf_counter()
