@@ -115,9 +115,11 @@ def wait_for(name: str, entry: Path) -> None:
             c1 = _cpu_s(pid)
             if c0 is not None and c1 is not None and c1 - c0 < STARVED_SHARE * (now - w0):
                 log.info("correspond: the prefetch computing %s got %.0f %% of a core in the last %.1f s (other work "
-                         "holds the cores): computed here", name, 100 * (c1 - c0) / (now - w0), now - w0)
+                         "holds the cores): computed here after waiting %.1f s", name, 100 * (c1 - c0) / (now - w0),
+                         now - w0, now - t0)
                 return
             w0, c0 = now, c1
+    log.info("correspond: waited %.1f s for the prefetch computing %s", time.monotonic() - t0, name)
 
 
 WAIT_MAX_S = 300.0  # a prefetch that has not finished a photo by then: the worker computes it itself
