@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import datetime as _dt
+import gc
 import logging
 import os
 import sys
@@ -92,10 +93,40 @@ def _progress() -> _Bars:
 
 
 @app.callback()
-def _main(verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="-v info, -vv debug logging")) -> None:
+def _main(verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="-v info, -vv debug logging"),
+          ctx: typer.Context = None) -> None:
     level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     _one_line_warnings()
+    if ctx is None or ctx.invoked_subcommand not in _RUNS_STAGES:  # (those resume it as their first stage starts)
+        _resume_collection()
+
+
+_RUNS_STAGES: set[str] = {"run"}  # the commands that run stages (through _execute): `run` and one per stage
+_COLLECTION = {"paused": False}
+
+
+def _pause_collection() -> None:
+    """The garbage collector paused while the command starts: imports, parses its arguments, validates the settings
+    and (a stage command) starts its stages' early work. What is made then (modules, classes, validators) lives as
+    long as the process; collecting among it found nothing and cost a fresh `workbench stitch` 60-90 ms of its main
+    thread's CPU at load 5 (a full collection of every object, in the inputs stage, and the young generations'
+    during the imports). Resumed by :func:`_resume_collection`: by the command (at once, or as its first stage
+    starts), and in a process forked before that (a stage's or its early work's)."""
+    if gc.isenabled():
+        gc.disable()
+        _COLLECTION["paused"] = True
+        os.register_at_fork(after_in_child=_resume_collection)
+
+
+def _resume_collection() -> None:
+    """Where :func:`_pause_collection` paused the garbage collector (once; else nothing): the objects made so far
+    moved out of its reach (``gc.freeze``: the process's modules, classes and settings, not scanned again by later
+    collections) and the collector resumed."""
+    if _COLLECTION["paused"]:
+        _COLLECTION["paused"] = False
+        gc.freeze()
+        gc.enable()
 
 
 def _one_line_warnings() -> None:
@@ -223,6 +254,8 @@ def _execute(path: Path, **kw) -> None:
             return log_line
 
         def event(kind, spec, rec):
+            if kind == "start":  # (the collector paused at the command's start resumes: _pause_collection)
+                _resume_collection()
             if kind == "done" and spec.name in tasks:
                 prog.update(tasks[spec.name], completed=1.0, msg=f"done in {rec['duration_s']:.1f} s")
             if kind == "skipped":
@@ -284,6 +317,7 @@ def _stage_command(name: str, description: str) -> None:
 
     command.__doc__ = f"Run the {name} stage ({description}), and the stages before it that are not done."
     app.command(name=name)(command)
+    _RUNS_STAGES.add(name)
 
 
 def _print_outputs(project, statuses) -> None:
@@ -484,8 +518,6 @@ def _no_collection_at_exit() -> None:
     interpreter's collections at exit walked every one of them, 0.1-0.4 s after a `workbench stitch` (NumPy,
     OpenCV, SciPy loaded; docs/performance.md). The memory goes back with the process; the workbench closes its
     files itself, and the ``atexit`` handlers still run."""
-    import gc
-
     gc.freeze()
 
 
@@ -494,6 +526,7 @@ def main(argv: list[str] | None = None) -> None:
     ``argv`` None: the process's own command line, and the process ends with the command."""
     if argv is None:
         _freed_memory_kept()
+        _pause_collection()
     try:
         _run_command(argv)
     finally:
