@@ -181,6 +181,21 @@ def test_collection_paused_while_a_command_starts_and_resumed(tmp_path):
         assert "COLLECTING True" in r.stdout, (args, r.stdout[-500:], r.stderr[-2000:])
 
 
+def test_pydantic_plugins_looked_for_only_when_the_user_says(tmp_path):
+    """The CLI's settings are validated without reading every installed package's entry points for pydantic plugins,
+    unless the user sets PYDANTIC_DISABLE_PLUGINS themselves (empty: every plugin)."""
+    root = small_incident(tmp_path)
+    code = ("import sys\nimport pydantic.plugin._loader as loader\ncalls = []\nscan = loader.entry_points\n"
+            "loader.entry_points = lambda **kw: calls.append(kw) or scan(**kw)\n"
+            "from workbench.cli import main\nsys.argv = ['workbench', 'status', sys.argv[1]]\n"
+            "try:\n    main()\nexcept SystemExit:\n    pass\nprint('SCANS', len(calls))\n")
+    env = {k: v for k, v in os.environ.items() if k != "PYDANTIC_DISABLE_PLUGINS"}
+    for value, want in ((None, "SCANS 0"), ("", "SCANS 1")):
+        e = env if value is None else {**env, "PYDANTIC_DISABLE_PLUGINS": value}
+        r = subprocess.run([sys.executable, "-c", code, str(root)], capture_output=True, text=True, timeout=120, env=e)
+        assert want in r.stdout, (value, r.stdout[-500:], r.stderr[-2000:])
+
+
 def test_init_with_a_bad_value_writes_nothing(tmp_path):
     root = tmp_path / "new"
     r = wb("init", root, "--crs", "EPSG:4326")
