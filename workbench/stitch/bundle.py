@@ -24,7 +24,8 @@ from .register import PairMatch, PhotoFeatures, median, unique_sorted
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BAResult", "BundleOptions", "Observations", "bundle_adjust", "min_work_scale", "stack_observations"]
+__all__ = ["BAResult", "BundleOptions", "Observations", "bundle_adjust", "load_solver", "min_work_scale",
+           "stack_observations"]
 
 
 def stack_observations(pairs: list[PairMatch], feats: list[PhotoFeatures], kept: list[int], *,
@@ -134,6 +135,17 @@ def _minpack():
 
 
 _MINPACK: dict = {}
+
+
+def load_solver() -> None:
+    """Load what the adjustment will call now rather than at its first use: MINPACK's extension (:func:`_minpack`)
+    and SciPy's package, which its first call imports (for ``LowLevelCallable``), and NumPy's random generators,
+    which pick the matches it adjusts. Called while the photos' descriptions are still being computed on other
+    threads, these imports leave the path to the panorama."""
+    import numpy.random  # noqa: F401  (stack_observations, _robust_subset)
+    import scipy  # noqa: F401
+
+    _minpack()
 
 
 @dataclass

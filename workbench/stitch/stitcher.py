@@ -27,7 +27,7 @@ from ..core.geometry import orthonormal, rot_x, rot_y
 from ..core.panorama import PanoramaModel, PanoramaSource
 from ..errors import InputError
 from . import register as reg
-from .bundle import BAResult, BundleOptions, bundle_adjust, stack_observations
+from .bundle import BAResult, BundleOptions, bundle_adjust, load_solver, stack_observations
 from .bundle_problem import Observations, min_work_scale
 from .compose import compose
 from .options import ProgressFn, StitchOptions, StitchResult
@@ -267,6 +267,8 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
     calibrated = calibrated or {}
     focal_priors_px = focal_priors_px or {}
     fixed, source = _intrinsics_route(names, calibrated, focal_priors_px)
+    if described:  # the photos are being described on other threads (a prefetch): the adjustment's libraries
+        load_solver()  # loaded meanwhile, not after them
     found = read_and_match(photos, names, opts, calibrated, progress, timings, described)
     kept, rejected, kept_pairs = connected_set(found, photos, names, opts)
     progress(0.42, "rotations and focal")
