@@ -133,13 +133,13 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
     platform, the items run here, one after the other. ``on_first(index, token)``: called in the parent as each
     item's first task finishes (any order). ``before_second()``: work of the parent's own, done once the workers
     are forked and the first tasks queued, before any second task is queued (what the second tasks need and the
-    workers, forked before it, read from files). Second tasks are queued in the order their first tasks finished
-    while a worker is free (and one more, so that a worker finishing while the parent runs a callback finds one).
+    workers, forked before it, read from files). Second tasks are queued in the order their first tasks finished.
     ``hold(index)``: true for an item to hold back (a photo whose features another process is computing:
     ``prefetch.py``): asked for every item when the map starts, such an item's first task is queued once every
-    other item's first task is done, ahead of the second tasks not queued yet, or as soon as ``hold(index)`` turns
-    false (the parent asks while it waits); without ``first``, its task is queued last; one process takes them
-    last. The results are in the items' order whatever the order of the tasks. A worker that dies (killed, out of
+    other item's first task is done, or as soon as ``hold(index)`` turns false (the parent asks while it waits);
+    while an item is held, second tasks are queued only while a worker is free (and one more, so that a worker
+    finishing while the parent runs a callback finds one), so the held one goes ahead of those not queued yet.
+    Without ``first``, a held item's task is queued last; one process takes them last. The results are in the items' order whatever the order of the tasks. A worker that dies (killed, out of
     memory) fails the map with a RuntimeError instead of leaving it waiting.
     """
     import cv2
@@ -180,14 +180,15 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
             pending.add(g)
 
         def dispatch() -> None:
-            # a held item once every other first task is done, ahead of the second tasks not queued yet (they are
-            # queued only while a worker is free, and one more), or as soon as it need not be held
+            # a held item once every other first task is done, ahead of the second tasks not queued yet (while an
+            # item is held, they are queued only while a worker is free, and one more), or as soon as it need not
+            # be held
             for i in [i for i in held if not firsts_left or not hold(i)]:
                 held.remove(i)
                 submit(i, phase0)
                 if phase0 == 1:
                     firsts_left.add(i)
-            while ready and len(pending) <= n:
+            while ready and (not held or len(pending) <= n):
                 i, token = ready.pop(0)
                 submit(i, 2, token)
 
