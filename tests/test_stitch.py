@@ -5,6 +5,7 @@ rejected; parallax refused; the stage's files, with a true 3D point landing wher
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from dataclasses import replace
 from pathlib import Path
@@ -517,21 +518,29 @@ def test_prefetched_photos_give_the_same_panorama(sample_small, tmp_path, caplog
     from workbench.stitch import stage
 
     root = _copy_sample(sample_small, tmp_path / "inc")
-    project = Project(root)
-    plain = stage.stitch_project(project)
     caplog.set_level(logging.INFO, logger="workbench.stitch.stage")
-    runs = []
-    for touch in (False, True):
-        stage.prefetch(project)
-        if touch:  # a photo rewritten after it was described: described again by the stage
-            p = project.photo_paths()[0]
-            os.utime(p, ns=(p.stat().st_atime_ns, p.stat().st_mtime_ns + 1_000_000))
-        runs.append(stage.stitch_project(project))
-        assert not stage._PREFETCH
-    assert "described ahead of the stage" in caplog.text and "changed since" in caplog.text
-    for r in runs:
-        assert r.model.to_dict() == plain.model.to_dict()
-        assert np.array_equal(r.image, plain.image)
+    for source in ("calibrated", "exif"):  # (the pairs are matched ahead too where the lens is not calibrated)
+        toml = (root / "project.toml").read_text()
+        (root / "project.toml").write_text(re.sub(r'(?m)^source = "\w+"', f'source = "{source}"', toml, count=1))
+        project = Project(root)
+        assert project.settings.camera.source.value == source
+        plain = stage.stitch_project(project)
+        runs = []
+        caplog.clear()
+        for touch in (False, True):
+            stage.prefetch(project)
+            if touch:  # a photo rewritten after it was described: described again by the stage
+                p = project.photo_paths()[0]
+                os.utime(p, ns=(p.stat().st_atime_ns, p.stat().st_mtime_ns + 1_000_000))
+            runs.append(stage.stitch_project(project))
+            assert not stage._PREFETCH
+        n = len(project.photo_paths())
+        pairs = 0 if source == "calibrated" else n * (n - 1) // 2
+        assert f"{n} photos described ahead of the stage (and {pairs} pairs matched)" in caplog.text
+        assert "changed since" in caplog.text
+        for r in runs:
+            assert r.model.to_dict() == plain.model.to_dict()
+            assert np.array_equal(r.image, plain.image)
 
 
 # ----------------------------------------------------------------------------------------------------------

@@ -245,14 +245,16 @@ def _compose_kept(model: PanoramaModel, photos: list[Path], kept: list[int], fou
 def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options: StitchOptions = StitchOptions(),
                   calibrated: dict[str, CameraIntrinsics] | None = None,
                   focal_priors_px: dict[str, float | None] | None = None, image_refs: list[str] | None = None,
-                  progress: ProgressFn = lambda f, m="": None, described: dict | None = None) -> StitchResult:
+                  progress: ProgressFn = lambda f, m="": None, described: dict | None = None,
+                  matched: dict | None = None) -> StitchResult:
     """Stitch ``photos`` (paths) into one panorama.
 
     ``calibrated``: name -> intrinsics of the photo as on disk (route ``calibrated``: fixed, only rotations
     are estimated). ``focal_priors_px``: name -> EXIF focal in pixels or None (route ``exif``). Neither:
     focal (and k1) estimated (``fallback``). ``image_refs``: the path written into the model for each photo
     (default: the path as given). ``described``: photo index -> a future of its ``photo_matching.describe_photo``
-    with ``options``, started earlier. Raises :class:`InputError` if fewer than two photos can be registered or
+    with ``options``, started earlier; ``matched``: pair (i, j), i < j -> a future of its
+    ``photo_matching.match_described`` from them (used for the pairs without a calibrated lens). Raises :class:`InputError` if fewer than two photos can be registered or
     when the parallax check fails (``options.check_parallax``).
     """
     t_start = time.perf_counter()
@@ -269,7 +271,7 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
     fixed, source = _intrinsics_route(names, calibrated, focal_priors_px)
     if described:  # the photos are being described on other threads (a prefetch): the adjustment's libraries
         load_solver()  # loaded meanwhile, not after them
-    found = read_and_match(photos, names, opts, calibrated, progress, timings, described)
+    found = read_and_match(photos, names, opts, calibrated, progress, timings, described, matched)
     kept, rejected, kept_pairs = connected_set(found, photos, names, opts)
     progress(0.42, "rotations and focal")
     init, groups, R0 = _initial_cameras(kept, kept_pairs, found.sizes, names, calibrated, focal_priors_px, fixed,
