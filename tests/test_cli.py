@@ -158,6 +158,44 @@ def test_markup_in_a_path_is_printed_as_it_is(tmp_path):
     one_line_error(r, "[red]inc[bold]", "settings file not found")
 
 
+def test_emoji_codes_in_a_path_are_printed_as_they_are(tmp_path):
+    r = wb("init", tmp_path / ":fire:inc:smile:")
+    assert r.returncode == 0, r.stderr
+    assert ":fire:inc:smile:" in r.stdout and "\N{FIRE}" not in r.stdout, r.stdout
+
+
+def test_collection_paused_while_a_command_starts_and_resumed(tmp_path):
+    """The CLI's own process pauses the garbage collector while it starts; every command resumes it (a stage
+    command as its first stage starts), and so does a process forked while it is paused."""
+    root = small_incident(tmp_path)
+    fork = ("import gc, os\nfrom workbench import cli\ncli._pause_collection()\npaused = not gc.isenabled()\n"
+            "pid = os.fork()\nif pid == 0:\n    os._exit(0 if gc.isenabled() else 3)\n"
+            "child = os.waitstatus_to_exitcode(os.waitpid(pid, 0)[1])\ncli._resume_collection()\n"
+            "print('PAUSED', paused, 'CHILD', child, 'RESUMED', gc.isenabled(), gc.get_freeze_count() > 0)\n")
+    r = subprocess.run([sys.executable, "-c", fork], capture_output=True, text=True, timeout=120)
+    assert "PAUSED True CHILD 0 RESUMED True True" in r.stdout, (r.stdout, r.stderr[-2000:])
+    code = ("import gc, sys\nfrom workbench.cli import main\nsys.argv = ['workbench', *sys.argv[1:]]\n"
+            "try:\n    main()\nexcept SystemExit:\n    pass\nprint('COLLECTING', gc.isenabled())\n")
+    for args in (["types"], ["run", str(root), *FIRST]):
+        r = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=300)
+        assert "COLLECTING True" in r.stdout, (args, r.stdout[-500:], r.stderr[-2000:])
+
+
+def test_pydantic_plugins_looked_for_only_when_the_user_says(tmp_path):
+    """The CLI's settings are validated without reading every installed package's entry points for pydantic plugins,
+    unless the user sets PYDANTIC_DISABLE_PLUGINS themselves (empty: every plugin)."""
+    root = small_incident(tmp_path)
+    code = ("import sys\nimport pydantic.plugin._loader as loader\ncalls = []\nscan = loader.entry_points\n"
+            "loader.entry_points = lambda **kw: calls.append(kw) or scan(**kw)\n"
+            "from workbench.cli import main\nsys.argv = ['workbench', 'status', sys.argv[1]]\n"
+            "try:\n    main()\nexcept SystemExit:\n    pass\nprint('SCANS', len(calls))\n")
+    env = {k: v for k, v in os.environ.items() if k != "PYDANTIC_DISABLE_PLUGINS"}
+    for value, want in ((None, "SCANS 0"), ("", "SCANS 1")):
+        e = env if value is None else {**env, "PYDANTIC_DISABLE_PLUGINS": value}
+        r = subprocess.run([sys.executable, "-c", code, str(root)], capture_output=True, text=True, timeout=120, env=e)
+        assert want in r.stdout, (value, r.stdout[-500:], r.stderr[-2000:])
+
+
 def test_init_with_a_bad_value_writes_nothing(tmp_path):
     root = tmp_path / "new"
     r = wb("init", root, "--crs", "EPSG:4326")

@@ -277,6 +277,57 @@ def test_photos_in_parallel_in_order_with_progress():
         map_photos(fails, [0, 1], 2, lambda *a: None)
 
 
+def test_photos_held_back_are_queued_last_results_in_the_items_order(tmp_path):
+    """``map_photos(hold=...)`` (the stage holds back a photo whose features the prefetch is computing): a held item's
+    first task is queued once every other item's first task is done, ahead of the second tasks not queued yet, or as
+    soon as ``hold`` turns false; each item's second task after its first; the results, ``on_first`` tokens and
+    ``on_result`` values are the items' own, returned in the items' order."""
+    from workbench.correspond.parallel import map_photos
+
+    log, flag = tmp_path / "starts.txt", tmp_path / "flag"
+
+    def first(item, note):
+        with open(log, "a") as f:
+            f.write(f"1 {item} {time.monotonic()}\n")
+        if item == 1 and flag.parent.joinpath("release").exists():
+            flag.touch()
+        time.sleep(0.1)
+        return item + 10
+
+    def second(item, note, token):
+        with open(log, "a") as f:
+            f.write(f"2 {item} {time.monotonic()}\n")
+        time.sleep(0.2)
+        return (item, token)
+
+    def starts():
+        return {(int(a), int(b)): float(c) for a, b, c in (ln.split() for ln in log.read_text().splitlines())}
+
+    items = list(range(5))
+    for workers in (1, 2):
+        log.write_text("")
+        firsts, results = {}, {}
+        out = map_photos(second, items, workers, lambda *a: None, first=first, hold=lambda i: i == 0,
+                         on_first=firsts.__setitem__, on_result=results.__setitem__)
+        assert out == [(i, i + 10) for i in items]
+        assert firsts == {i: i + 10 for i in items} and results == {i: (i, i + 10) for i in items}
+        t = starts()
+        assert len(t) == 10
+        assert all(t[(2, i)] > t[(1, i)] for i in items), t
+        assert t[(1, 0)] > max(t[(1, i)] for i in items[1:]) + 0.09, t  # after the others' first tasks are done
+        if workers == 2:  # ahead of the last second tasks
+            assert t[(1, 0)] < max(t[(2, i)] for i in items[1:]), t
+        if workers == 1:
+            assert sorted(t, key=t.get) == [(p, i) for i in items[1:] + [0] for p in (1, 2)]
+    # released as soon as hold turns false (item 1's first task makes it so): before the others' second tasks run
+    (tmp_path / "release").touch()
+    log.write_text("")
+    out = map_photos(second, items, 2, lambda *a: None, first=first, hold=lambda i: i == 0 and not flag.exists())
+    assert out == [(i, i + 10) for i in items]
+    t = starts()
+    assert t[(1, 0)] < max(t[(2, i)] for i in items[1:]), t
+
+
 # ---------------------------------------------------------------------------------------------------------
 # a small synthetic incident through the stage
 # ---------------------------------------------------------------------------------------------------------
@@ -505,6 +556,49 @@ def test_features_computed_ahead_give_the_same_points(incident, tmp_path):
         assert not prefetch._STATE
         docs.append(Path(res.outputs["correspondences"]).read_bytes())
     assert docs[0] == docs[1]
+
+
+def test_a_starved_prefetch_is_left_and_ended(tmp_path, monkeypatch):
+    """A worker that reaches the photo the prefetch is computing waits while the prefetch gets a core; one that gets
+    none (here it sleeps; on a loaded machine, at niceness 19, it may get none for minutes) is left after a window of
+    STARVED_WINDOW_S (here 0.5 s), and the stage's end ends it instead of waiting for it. One that computes is waited
+    for (here at niceness 0 and a share of 2 %, so that the suite's own load cannot starve it)."""
+    from workbench.correspond import prefetch
+
+    def spin(p):  # a prefetch that gets its core: computes for 1 s, then writes the entry
+        t = time.perf_counter()
+        while time.perf_counter() - t < 1.0:
+            pass
+        p.with_suffix(".npz").write_bytes(b"x")
+
+    monkeypatch.setattr(prefetch, "STARVED_WINDOW_S", 0.5)
+    for compute, starved in ((lambda p: time.sleep(60), True), (spin, False)):
+        if not starved:
+            monkeypatch.setattr(prefetch, "NICE", 0)
+            monkeypatch.setattr(prefetch, "STARVED_SHARE", 0.02)
+        photo = tmp_path / "a.jpg"
+        entry = photo.with_suffix(".npz")
+        entry.unlink(missing_ok=True)
+        prefetch.start([photo], {photo.name: entry}, compute)
+        try:
+            status = prefetch._STATE["status"]
+            t0 = time.perf_counter()
+            while status[0] != prefetch.BUSY and time.perf_counter() - t0 < 30:
+                time.sleep(0.01)
+            prefetch.stop()
+            assert prefetch.computing(photo.name, entry) and not prefetch.computing(photo.name, tmp_path / "b.npz")
+            t0 = time.perf_counter()
+            prefetch.wait_for(photo.name, entry)
+            waited = time.perf_counter() - t0
+            if starved:
+                assert status[0] == prefetch.BUSY and prefetch.STARVED_WINDOW_S <= waited < 5.0, waited
+            else:
+                assert status[0] == prefetch.DONE and entry.is_file() and 0.5 < waited < 4.0, waited
+        finally:
+            proc = prefetch._STATE.get("proc")
+            t0 = time.perf_counter()
+            prefetch.finish()
+        assert time.perf_counter() - t0 < 5.0 and proc is not None and not proc.is_alive()
 
 
 def test_reference_without_texture_needs_manual_points(incident):

@@ -5,6 +5,7 @@ rejected; parallax refused; the stage's files, with a true 3D point landing wher
 from __future__ import annotations
 
 import json
+import re
 import shutil
 from dataclasses import replace
 from pathlib import Path
@@ -517,21 +518,29 @@ def test_prefetched_photos_give_the_same_panorama(sample_small, tmp_path, caplog
     from workbench.stitch import stage
 
     root = _copy_sample(sample_small, tmp_path / "inc")
-    project = Project(root)
-    plain = stage.stitch_project(project)
     caplog.set_level(logging.INFO, logger="workbench.stitch.stage")
-    runs = []
-    for touch in (False, True):
-        stage.prefetch(project)
-        if touch:  # a photo rewritten after it was described: described again by the stage
-            p = project.photo_paths()[0]
-            os.utime(p, ns=(p.stat().st_atime_ns, p.stat().st_mtime_ns + 1_000_000))
-        runs.append(stage.stitch_project(project))
-        assert not stage._PREFETCH
-    assert "described ahead of the stage" in caplog.text and "changed since" in caplog.text
-    for r in runs:
-        assert r.model.to_dict() == plain.model.to_dict()
-        assert np.array_equal(r.image, plain.image)
+    for source in ("calibrated", "exif"):  # (the pairs are matched ahead too where the lens is not calibrated)
+        toml = (root / "project.toml").read_text()
+        (root / "project.toml").write_text(re.sub(r'(?m)^source = "\w+"', f'source = "{source}"', toml, count=1))
+        project = Project(root)
+        assert project.settings.camera.source.value == source
+        plain = stage.stitch_project(project)
+        runs = []
+        caplog.clear()
+        for touch in (False, True):
+            stage.prefetch(project)
+            if touch:  # a photo rewritten after it was described: described again by the stage
+                p = project.photo_paths()[0]
+                os.utime(p, ns=(p.stat().st_atime_ns, p.stat().st_mtime_ns + 1_000_000))
+            runs.append(stage.stitch_project(project))
+            assert not stage._PREFETCH
+        n = len(project.photo_paths())
+        pairs = 0 if source == "calibrated" else n * (n - 1) // 2
+        assert f"{n} photos described ahead of the stage (and {pairs} pairs matched)" in caplog.text
+        assert "changed since" in caplog.text
+        for r in runs:
+            assert r.model.to_dict() == plain.model.to_dict()
+            assert np.array_equal(r.image, plain.image)
 
 
 # ----------------------------------------------------------------------------------------------------------
@@ -670,3 +679,24 @@ def test_composed_panorama_is_the_photos_through_the_model(tmp_path):
         diff = np.abs(got[sel] - want.reshape(-1, 3).astype(float))
         assert sel.sum() > 1000
         assert np.median(diff) < 4.0, (s.name, np.median(diff))  # misplaced by a pixel: tens of levels
+
+
+def test_statistics_without_numpy_ma_equal_numpy():
+    """register.unique_sorted, median and percentile (which keep numpy.ma out of a fresh stitch) give NumPy's
+    np.unique (1-D and axis=0), np.median and np.percentile to the bit, NaN included."""
+    from workbench.stitch.register import median, percentile, unique_sorted
+
+    rng = np.random.default_rng(5)
+    for n in (1, 2, 3, 7, 50, 301):
+        for scale in (1e-4, 1.0, 3e5):
+            a = np.abs(rng.normal(size=n)) * scale
+            assert median(a) == float(np.median(a))
+            assert median(list(a)) == float(np.median(list(a)))
+            for q in (0, 10, 50, 90, 99.5, 100):
+                assert percentile(a, q) == float(np.percentile(a, q))
+        pairs = rng.integers(0, 9, size=(n, 2))
+        u = unique_sorted(pairs)
+        assert u.dtype == np.unique(pairs, axis=0).dtype and np.array_equal(u, np.unique(pairs, axis=0))
+        ids = rng.integers(0, 5, size=n)
+        assert np.array_equal(unique_sorted(ids), np.unique(ids))
+    assert np.isnan(median([1.0, np.nan, 2.0])) and np.isnan(percentile([1.0, np.nan, 2.0], 90))

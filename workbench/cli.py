@@ -3,37 +3,130 @@
 from __future__ import annotations
 
 import datetime as _dt
+import gc
 import logging
 import os
 import sys
+import threading
 from pathlib import Path
 from typing import Optional
 
 import typer
-from rich.console import Console
 
 from .errors import WorkbenchError
 
 # Plain help (click's formatter): rich's help panels cost half a second at every `--help`.
 app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode=None,
                   help="Reconstruction workbench for train-accident scenes: one incident folder per incident.")
-# markup off: a photo or folder named like "[red]x" is printed as it is, never parsed as console markup
-console = Console(stderr=True, markup=False, highlight=False)
-out = Console(markup=False, highlight=False)
 
 
-def _progress():
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+class _Console:
+    """A rich ``Console`` made on first use (:attr:`real`; any other attribute is the console's): rich's console
+    (about 20 ms of imports) is loaded once a command prints, not before a stage command has started its stages'
+    early work (the panorama's descriptions, :meth:`Runner.prefetch`)."""
 
-    return Progress(TextColumn("[bold]{task.description:<10}"), BarColumn(), TextColumn("{task.fields[msg]}", markup=False),
-                    TimeElapsedColumn(), console=console, disable=not console.is_terminal, transient=False)
+    def __init__(self, **options) -> None:
+        self._options = options
+        self._console = None
+        self._lock = threading.Lock()  # (stages report progress from their threads)
+
+    @property
+    def real(self):
+        with self._lock:
+            if self._console is None:
+                from rich.console import Console
+
+                self._console = Console(**self._options)
+            return self._console
+
+    def __getattr__(self, name: str):
+        return getattr(self.real, name)
+
+
+# markup and emoji codes off: a photo or folder named like "[red]x" or ":fire:" is printed as it is, never parsed
+console = _Console(stderr=True, markup=False, highlight=False, emoji=False)
+out = _Console(markup=False, highlight=False, emoji=False)
+
+
+class _Bars:
+    """The commands' progress: rich's bars where the CLI's console is a terminal, else nothing drawn (what rich's
+    ``Progress(disable=True)`` did). Decided at the first task, so rich's console and live display (7-15 ms of
+    imports) are loaded after a stage command has started its stages' early work, and not at all without a
+    terminal."""
+
+    def __init__(self) -> None:
+        self._bars = None  # rich's Progress, started at the first task on a terminal
+        self._tasks: dict[int, dict] = {}  # without a terminal: each task's fields, nothing drawn
+
+    def __enter__(self) -> "_Bars":
+        return self
+
+    def __exit__(self, *exc):
+        return self._bars.__exit__(*exc) if self._bars is not None else None
+
+    @property
+    def console(self):
+        return self._bars.console if self._bars is not None else console
+
+    def add_task(self, description: str, **fields) -> int:
+        if self._bars is None and not self._tasks and console.is_terminal:
+            from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+            self._bars = Progress(TextColumn("[bold]{task.description:<10}"), BarColumn(),
+                                  TextColumn("{task.fields[msg]}", markup=False), TimeElapsedColumn(),
+                                  console=console.real, transient=False)
+            self._bars.__enter__()
+        if self._bars is not None:
+            return self._bars.add_task(description, **fields)
+        self._tasks[len(self._tasks)] = {"description": description, **fields}
+        return len(self._tasks) - 1
+
+    def update(self, task: int, **fields) -> None:
+        if self._bars is not None:
+            self._bars.update(task, **fields)
+        else:
+            self._tasks[task].update(fields)
+
+
+def _progress() -> _Bars:
+    return _Bars()
 
 
 @app.callback()
-def _main(verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="-v info, -vv debug logging")) -> None:
+def _main(verbose: int = typer.Option(0, "--verbose", "-v", count=True, help="-v info, -vv debug logging"),
+          ctx: typer.Context = None) -> None:
     level = logging.WARNING if verbose == 0 else logging.INFO if verbose == 1 else logging.DEBUG
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
     _one_line_warnings()
+    if ctx is None or ctx.invoked_subcommand not in _RUNS_STAGES:  # (those resume it as their first stage starts)
+        _resume_collection()
+
+
+_RUNS_STAGES: set[str] = {"run"}  # the commands that run stages (through _execute): `run` and one per stage
+_COLLECTION = {"paused": False}
+
+
+def _pause_collection() -> None:
+    """The garbage collector paused while the command starts: imports, parses its arguments, validates the settings
+    and (a stage command) starts its stages' early work. What is made then (modules, classes, validators) lives as
+    long as the process; collecting among it found nothing and cost a fresh `workbench stitch` 60-90 ms of its main
+    thread's CPU at load 5 (a full collection of every object, in the inputs stage, and the young generations'
+    during the imports). Resumed by :func:`_resume_collection`: by the command (at once, or as its first stage
+    starts), and in a process forked before that (a stage's or its early work's)."""
+    if gc.isenabled():
+        gc.disable()
+        _COLLECTION["paused"] = True
+        os.register_at_fork(after_in_child=_resume_collection)
+
+
+def _resume_collection() -> None:
+    """Where :func:`_pause_collection` paused the garbage collector (once; else nothing): the objects made so far
+    moved out of its reach (``gc.freeze``: the process's modules, classes and settings, not scanned again by later
+    collections) and the collector resumed."""
+    if _COLLECTION["paused"]:
+        _COLLECTION["paused"] = False
+        gc.freeze()
+        gc.enable()
 
 
 def _one_line_warnings() -> None:
@@ -161,6 +254,8 @@ def _execute(path: Path, **kw) -> None:
             return log_line
 
         def event(kind, spec, rec):
+            if kind == "start":  # (the collector paused at the command's start resumes: _pause_collection)
+                _resume_collection()
             if kind == "done" and spec.name in tasks:
                 prog.update(tasks[spec.name], completed=1.0, msg=f"done in {rec['duration_s']:.1f} s")
             if kind == "skipped":
@@ -222,6 +317,7 @@ def _stage_command(name: str, description: str) -> None:
 
     command.__doc__ = f"Run the {name} stage ({description}), and the stages before it that are not done."
     app.command(name=name)(command)
+    _RUNS_STAGES.add(name)
 
 
 def _print_outputs(project, statuses) -> None:
@@ -389,6 +485,14 @@ def single_threaded_blas() -> None:
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
+def no_pydantic_plugins() -> None:
+    """Pydantic's plugins not looked for unless the user sets ``PYDANTIC_DISABLE_PLUGINS`` (to an empty value: every
+    installed plugin; see pydantic's documentation): the workbench's models (settings, rolling-stock types) use
+    none, and looking for them reads every installed package's entry points, 5-8 ms of CPU before a stage command
+    starts its work. Must run before the settings' models are built."""
+    os.environ.setdefault("PYDANTIC_DISABLE_PLUGINS", "__all__")
+
+
 MALLOC_MMAP_BYTES = 2**31 - 1  # blocks up to this size from the heap (mallopt's value is a C int)
 
 
@@ -422,8 +526,6 @@ def _no_collection_at_exit() -> None:
     interpreter's collections at exit walked every one of them, 0.1-0.4 s after a `workbench stitch` (NumPy,
     OpenCV, SciPy loaded; docs/performance.md). The memory goes back with the process; the workbench closes its
     files itself, and the ``atexit`` handlers still run."""
-    import gc
-
     gc.freeze()
 
 
@@ -432,6 +534,7 @@ def main(argv: list[str] | None = None) -> None:
     ``argv`` None: the process's own command line, and the process ends with the command."""
     if argv is None:
         _freed_memory_kept()
+        _pause_collection()
     try:
         _run_command(argv)
     finally:
@@ -441,6 +544,7 @@ def main(argv: list[str] | None = None) -> None:
 
 def _run_command(argv: list[str] | None) -> None:
     single_threaded_blas()
+    no_pydantic_plugins()
     try:
         result = app(args=argv, standalone_mode=False)
     except WorkbenchError as exc:

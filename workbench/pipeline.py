@@ -43,8 +43,6 @@ def read_photo_info(path: Path) -> dict:
     """Size and EXIF focal of a photo; :class:`InputError` naming the file if it is corrupt or too large."""
     from PIL import Image, UnidentifiedImageError
 
-    from .files.exif import read_focal_px
-
     too_big = (f"{path}: larger than the {MAX_PIXELS // 1_000_000} MP limit (a decompression bomb, or a photo "
                f"to downscale first)")
     try:
@@ -71,10 +69,10 @@ def read_photo_info(path: Path) -> dict:
                          f"from the folder") from None
     from .files.exif import exif_focal_prior
 
-    with warnings.catch_warnings():  # the size is checked above; the EXIF readers open it with PIL's own limit
+    with warnings.catch_warnings():  # the size is checked above; the EXIF reader opens it with PIL's own limit
         warnings.simplefilter("ignore", Image.DecompressionBombWarning)
         prior = exif_focal_prior(path)
-        focal_px = read_focal_px(path)
+    focal_px = None if prior is None else prior.focal_px  # (what read_focal_px gives: the tags read once)
     return {"width": w, "height": h, "exif_focal_px": focal_px,
             "exif_prior": prior.to_dict() if prior is not None else None}
 

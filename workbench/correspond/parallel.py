@@ -96,10 +96,31 @@ def _run_one(index: int, phase: int = 2, token=None):
     return job["fn"](item, note, token)
 
 
+def _map_here(fn: Callable, items: list, progress: Callable, on_result: Callable | None, first: Callable | None,
+              on_first: Callable | None, before_second: Callable | None, order: list[int]) -> list:
+    """:func:`map_photos` in this process, the items in ``order``, the results in the items' order."""
+    _JOB.clear()
+    _JOB.update(fn=fn, items=items, note=progress, first=first)
+    try:
+        if before_second is not None:
+            before_second()
+        out: dict[int, object] = {}
+        for i in order:
+            token = _run_one(i, 1) if first is not None else None
+            if first is not None and on_first is not None:
+                on_first(i, token)
+            out[i] = _run_one(i, 2, token)
+            if on_result is not None:
+                on_result(i, out[i])
+        return [out[i] for i in range(len(items))]
+    finally:
+        _JOB.clear()
+
+
 def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int, str, str], None],
                on_result: Callable[[int, object], None] | None = None, first: Callable | None = None,
                on_first: Callable[[int, object], None] | None = None,
-               before_second: Callable[[], None] | None = None) -> list:
+               before_second: Callable[[], None] | None = None, hold: Callable[[int], bool] | None = None) -> list:
     """``[fn(item, note) for item in items]``, on up to ``workers`` forked processes (in order).
 
     ``fn(item, note)`` does one photo and calls ``note(step, message)`` at each of its steps; the parent calls
@@ -112,31 +133,24 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
     platform, the items run here, one after the other. ``on_first(index, token)``: called in the parent as each
     item's first task finishes (any order). ``before_second()``: work of the parent's own, done once the workers
     are forked and the first tasks queued, before any second task is queued (what the second tasks need and the
-    workers, forked before it, read from files). A worker that dies (killed, out of memory) fails the map with a
-    RuntimeError instead of leaving it waiting.
+    workers, forked before it, read from files). Second tasks are queued in the order their first tasks finished.
+    ``hold(index)``: true for an item to hold back (a photo whose features another process is computing:
+    ``prefetch.py``): asked for every item when the map starts, such an item's first task is queued once every
+    other item's first task is done, or as soon as ``hold(index)`` turns false (the parent asks while it waits);
+    while an item is held, second tasks are queued only while a worker is free (and one more, so that a worker
+    finishing while the parent runs a callback finds one), so the held one goes ahead of those not queued yet.
+    Without ``first``, a held item's task is queued last; one process takes them last. The results are in the items' order whatever the order of the tasks. A worker that dies (killed, out of
+    memory) fails the map with a RuntimeError instead of leaving it waiting.
     """
     import cv2
 
     if before_second is not None and first is None:
         raise ValueError("before_second needs first tasks")
+    held = [i for i in range(len(items)) if hold is not None and hold(i)]
     n = min(max(1, int(workers)), len(items))
     if n <= 1 or "fork" not in mp.get_all_start_methods():
-        _JOB.clear()
-        _JOB.update(fn=fn, items=items, note=progress, first=first)
-        try:
-            if before_second is not None:
-                before_second()
-            out = []
-            for i in range(len(items)):
-                token = _run_one(i, 1) if first is not None else None
-                if first is not None and on_first is not None:
-                    on_first(i, token)
-                out.append(_run_one(i, 2, token))
-                if on_result is not None:
-                    on_result(i, out[-1])
-            return out
-        finally:
-            _JOB.clear()
+        return _map_here(fn, items, progress, on_result, first, on_first, before_second,
+                         [i for i in range(len(items)) if i not in held] + held)
     from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
     from concurrent.futures.process import BrokenProcessPool
 
@@ -150,29 +164,56 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
     ex = ProcessPoolExecutor(max_workers=n, mp_context=ctx)
     try:
         phase0 = 1 if first is not None else 2
-        futures = {ex.submit(_run_one, i, phase0): (i, phase0) for i in range(len(items))}  # (forks the workers)
+        futures = {ex.submit(_run_one, i, phase0): (i, phase0) for i in range(len(items)) if i not in held}
+        firsts_left = {i for i, phase in futures.values() if phase == 1}  # first tasks queued or running
         if before_second is not None:  # the parent's own work, with its own OpenCV threads
             cv2.setNumThreads(threads)
             before_second()
             cv2.setNumThreads(1)
         results: dict[int, object] = {}
+        ready: list[tuple[int, object]] = []  # (item, token): first task done, second not queued yet
         pending = set(futures)
-        while pending:
+
+        def submit(i: int, phase: int, *args) -> None:
+            g = ex.submit(_run_one, i, phase, *args)
+            futures[g] = (i, phase)
+            pending.add(g)
+
+        def dispatch() -> None:
+            # a held item once every other first task is done, ahead of the second tasks not queued yet (while an
+            # item is held, they are queued only while a worker is free, and one more), or as soon as it need not
+            # be held
+            for i in [i for i in held if not firsts_left or not hold(i)]:
+                held.remove(i)
+                submit(i, phase0)
+                if phase0 == 1:
+                    firsts_left.add(i)
+            while ready and (not held or len(pending) <= n):
+                i, token = ready.pop(0)
+                submit(i, 2, token)
+
+        while pending or held or ready:
+            dispatch()
+            if not pending:
+                continue
             done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
             while not q.empty():
                 progress(*q.get())
-            for f in sorted(done, key=futures.get):
+            finished = sorted(done, key=futures.get)
+            for f in finished:
                 i, phase = futures[f]
-                if phase == 1:  # the item's second task, queued behind the first tasks of the others
-                    g = ex.submit(_run_one, i, 2, f.result())
-                    futures[g] = (i, 2)
-                    pending.add(g)
-                    if on_first is not None:
-                        on_first(i, f.result())
-                    continue
-                results[i] = f.result()  # re-raises a worker's exception here
-                left.value = len(items) - len(results)
-                if on_result is not None:
+                if phase == 1:  # its second task: queued by dispatch
+                    firsts_left.discard(i)
+                    ready.append((i, f.result()))
+                else:
+                    results[i] = f.result()  # re-raises a worker's exception here
+            left.value = len(items) - len(results)
+            dispatch()  # before the callbacks (the panorama's pairs): a worker may be free
+            for f in finished:
+                i, phase = futures[f]
+                if phase == 1 and on_first is not None:
+                    on_first(i, f.result())
+                elif phase == 2 and on_result is not None:
                     on_result(i, results[i])
         while not q.empty():
             progress(*q.get())

@@ -320,7 +320,11 @@ def _match_photos(matcher: _PhotoMatcher, photos: list[Path], intrinsics: dict[s
     """Every photo matched on worker processes: the results, in the photos' order, and, to carry points between
     the photos of a panorama set, their features and the homographies between them. ``references()``: builds the
     cars' references (into the cache, where the workers read them) once the workers are computing the photos'
-    features."""
+    features. A photo whose features the prefetch (``prefetch.py``) is computing as the stage starts is held back
+    (``map_photos(hold=...)``) until the prefetch has written them or every other photo's features are done (then
+    it goes ahead of the matches not queued yet): at niceness 19 the prefetch gets no core while the workers and
+    the references' threads hold both, so a worker that waited for it at the start would only wait; later, the
+    worker that reaches it leaves its core to the prefetch."""
     steps_done: set = set()
 
     def report(index: int, step: str, message: str) -> None:
@@ -361,8 +365,12 @@ def _match_photos(matcher: _PhotoMatcher, photos: list[Path], intrinsics: dict[s
         if pairs is not None:
             pairs.advance(features)
 
+    def computed_ahead(index: int) -> bool:
+        name = photos[index].name
+        return prefetch.computing(name, matcher.photo_file[name])
+
     results = map_photos(matcher.match, photos, workers, report, on_result=done, first=matcher.features,
-                         on_first=features_done, before_second=before_second)
+                         on_first=features_done, before_second=before_second, hold=computed_ahead)
     features = {r.name: features[r.name] for r in results if r.name in features}  # in the photos' order
     return results, features, pairs
 

@@ -12,11 +12,12 @@ from ..core.layout import LIBRARY_TYPES_DIR
 from ..errors import SettingsError, UnknownModelType
 from . import mesh_type
 from .geometry import FACE_NORMALS, Part, anchor_point, bogie_boxes, build_parts, equipment_box
-from .livery import Atlas, paint_atlas
 from .spec import POINT_TOLERANCE_M, AnySpec, CarriageSpec, MeshCarriageSpec, load_spec
 
 if TYPE_CHECKING:  # trimesh takes seconds to import: loaded when a mesh is built, not to list or check types
-    import trimesh
+    import trimesh  # (and the livery, PIL's drawing and fonts: loaded where a livery is painted)
+
+    from .livery import Atlas
 
 TYPES_DIR = LIBRARY_TYPES_DIR
 
@@ -190,6 +191,8 @@ class CarriageType:
             mesh.metadata["carriage_type"] = self.id
             mesh.metadata["car_number"] = number
             return mesh
+        from .livery import paint_atlas  # (PIL's drawing and fonts: only where a livery is painted)
+
         atlas, image = paint_atlas(self.spec, number)
         verts, uvs = [], []
         for part in self.parts():
@@ -215,6 +218,8 @@ class CarriageType:
         """(atlas layout, PIL image) of the livery for ``car_number`` (a parametric type's only)."""
         if self._loaded is not None:
             raise ValueError(f"{self.id}: a mesh type has no livery atlas")
+        from .livery import Atlas
+
         m = self.mesh(car_number, textured=True)
         return Atlas(self.spec), m.visual.material.image
 
@@ -279,9 +284,11 @@ def _load_type(path: Path) -> CarriageType:
     path = Path(path).resolve()
     with _cache_lock:
         hit = _cache.get(path)
+        checked = _spec_cache.get(path)
     if hit is not None and hit[0] == _stamp(path, hit[1].spec):
         return hit[1]
-    spec = load_spec(path)
+    # the file as :func:`load_specs` read and checked it, when unchanged since; else read now
+    spec = checked[1] if checked is not None and checked[0] == path.stat().st_mtime_ns else load_spec(path)
     ct = CarriageType(spec, path)
     with _cache_lock:
         _cache[path] = (_stamp(path, spec), ct)

@@ -15,6 +15,15 @@ Method and file format: ``docs/stitching.md``.
 """
 
 from .options import StitchOptions, StitchResult
-from .stitcher import stitch_photos
 
 __all__ = ["StitchOptions", "StitchResult", "stitch_photos"]
+
+
+def __getattr__(name: str):
+    """``stitch_photos`` imported on first use: the stage's prefetch (:mod:`.stage`) starts describing the photos
+    before the bundle adjustment and the composition are imported."""
+    if name == "stitch_photos":
+        from .stitcher import stitch_photos
+
+        return stitch_photos
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

@@ -20,11 +20,12 @@ import numpy as np
 
 from ..core.camera import CameraIntrinsics
 from .bundle_problem import BundleOptions, Observations, RotationBundleProblem, min_work_scale
-from .register import PairMatch, PhotoFeatures
+from .register import PairMatch, PhotoFeatures, median, unique_sorted
 
 log = logging.getLogger(__name__)
 
-__all__ = ["BAResult", "BundleOptions", "Observations", "bundle_adjust", "min_work_scale", "stack_observations"]
+__all__ = ["BAResult", "BundleOptions", "Observations", "bundle_adjust", "load_solver", "min_work_scale",
+           "stack_observations"]
 
 
 def stack_observations(pairs: list[PairMatch], feats: list[PhotoFeatures], kept: list[int], *,
@@ -136,6 +137,17 @@ def _minpack():
 _MINPACK: dict = {}
 
 
+def load_solver() -> None:
+    """Load what the adjustment will call now rather than at its first use: MINPACK's extension (:func:`_minpack`)
+    and SciPy's package, which its first call imports (for ``LowLevelCallable``), and NumPy's random generators,
+    which pick the matches it adjusts. Called while the photos' descriptions are still being computed on other
+    threads, these imports leave the path to the panorama."""
+    import numpy.random  # noqa: F401  (stack_observations, _robust_subset)
+    import scipy  # noqa: F401
+
+    _minpack()
+
+
 @dataclass
 class LMResult:
     """What :func:`least_squares` returns (the fields of SciPy's ``OptimizeResult`` that the adjustment reads)."""
@@ -185,7 +197,7 @@ def _robust_subset(obs: Observations, per_pair: int) -> np.ndarray:
     """(M,) bool: at most ``per_pair`` observations of each pair (a fixed random choice), for the robust pass."""
     rng = np.random.default_rng(0)
     sub = np.zeros(len(obs.a), dtype=bool)
-    for pid in np.unique(obs.pair):
+    for pid in unique_sorted(obs.pair):
         rows = np.flatnonzero(obs.pair == pid)
         sub[rng.permutation(rows)[:per_pair]] = True
     return sub
@@ -223,7 +235,7 @@ def bundle_adjust(obs: Observations, kept: list[int], groups: dict[int, int], in
         robust = opts.final_loss_median > 0
         if robust:  # soft L1 at the scale of the inliers' median residual
             err = np.max(np.linalg.norm(problem.transfer_all(x), axis=2), axis=1)
-            problem.c_loss = opts.final_loss_median * float(np.median(err[idx]))
+            problem.c_loss = opts.final_loss_median * median(err[idx])
         x, cost, n_ev = _solve(objective, x, idx, robust, 1e-10, 1, opts)
         nfev += n_ev
     res = problem.transfer_all(x) / problem.s_obs[:, None, None]

@@ -22,8 +22,8 @@ from .options import ProgressFn, StitchOptions
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Registration", "connected_set", "decode_reduced", "describe_photo", "read_and_match", "read_reduced",
-           "resize_to"]
+__all__ = ["Registration", "connected_set", "decode_reduced", "describe_photo", "match_described", "read_and_match",
+           "read_reduced", "resize_to"]
 
 
 def decode_reduced(path: Path, scale: float, *, flags: int = cv2.IMREAD_COLOR) -> tuple[np.ndarray, tuple[int, int]]:
@@ -175,18 +175,37 @@ def _match(pair: tuple[int, int], found: Registration, opts: StitchOptions) -> r
     return pm
 
 
+def match_described(pair: tuple[int, int], described: dict[int, Future], opts: StitchOptions) -> reg.PairMatch:
+    """Photos ``pair`` = (i, j), i < j, matched as :func:`read_and_match` matches them when their keypoints are
+    matched as detected (no calibrated lens), from ``described``: photo index -> a future of its
+    :func:`describe_photo` (with ``opts``). Waits for both descriptions; started ahead of the stage by its
+    prefetch, on the threads that describe the photos, while the stages before it run."""
+    i, j = pair
+    n = max(i, j) + 1
+    found = Registration([None] * n, [None] * n, [None] * n, [None] * n, [None] * n, [None] * n, {}, [])
+    for k in (i, j):
+        f, _, size, smooth, index, _ = described[k].result()
+        found.feats[k], found.sizes[k], found.grays[k], found.indexes[k] = f, size, smooth, index
+        found.lin[k] = f.keypoints  # (what _linearised gives without a calibrated lens)
+    return _match(pair, found, opts)
+
+
 def read_and_match(photos: list[Path], names: list[str], opts: StitchOptions, calibrated: dict[str, CameraIntrinsics],
                    progress: ProgressFn, timings: dict[str, float],
-                   described: dict[int, Future] | None = None) -> Registration:
+                   described: dict[int, Future] | None = None,
+                   matched: dict[tuple[int, int], Future] | None = None) -> Registration:
     """Every photo read and described, every pair matched (pipelined in threads: a pair as soon as both its photos
     are described; the result does not depend on the order). ``timings`` gets ``features_s`` and ``matching_s``.
-    ``described``: photo index -> a future of its :func:`describe_photo` started earlier (with ``opts``)."""
+    ``described``: photo index -> a future of its :func:`describe_photo` started earlier (with ``opts``);
+    ``matched``: pair (i, j), i < j -> a future of its :func:`match_described` started earlier from them (only
+    where no photo of the pair has a calibrated lens: its keypoints are matched as detected)."""
     n = len(photos)
     found = Registration([None] * n, [None] * n, [None] * n, [None] * n, [None] * n, [None] * n, {}, [])
     t0 = time.perf_counter()
     n_pairs = n * (n - 1) // 2
     with ThreadPoolExecutor(max_workers=_workers()) as pool:
         described = described or {}
+        matched = matched or {}
         futs = {described[k] if k in described else pool.submit(describe_photo, photos[k], names[k], k, opts): k
                 for k in range(n)}
         match_futs = []
@@ -199,7 +218,10 @@ def read_and_match(photos: list[Path], names: list[str], opts: StitchOptions, ca
             if full is not None:
                 found.fulls[k] = full
             progress(0.02 + 0.18 * (len(ready) + 1) / n, f"features {photos[k].name}")
-            match_futs += [pool.submit(_match, (min(i, k), max(i, k)), found, opts) for i in ready]
+            for i in ready:
+                pair = (min(i, k), max(i, k))
+                ahead = matched.get(pair) if not (calibrated.get(names[i]) or calibrated.get(names[k])) else None
+                match_futs.append(ahead if ahead is not None else pool.submit(_match, pair, found, opts))
             ready.append(k)
         timings["features_s"] = time.perf_counter() - t0
         t1 = time.perf_counter()

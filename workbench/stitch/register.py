@@ -93,6 +93,49 @@ def build_index(f: PhotoFeatures, trees: int = 4) -> "cv2.flann_Index | None":
     return cv2.flann_Index(f.descriptors, {"algorithm": 1, "trees": int(trees)})
 
 
+def unique_sorted(a: np.ndarray) -> np.ndarray:
+    """``np.unique(a)`` of a 1-D array, or ``np.unique(a, axis=0)`` of an (n, k) one: the distinct values (rows,
+    in lexicographic order), sorted. Without NumPy's ``np.unique``, which imports ``numpy.ma`` (10-16 ms of a
+    fresh process's CPU) to ask whether the array is masked."""
+    a = np.asarray(a)
+    if a.ndim == 1:
+        s = np.sort(a)
+        keep = np.ones(len(s), dtype=bool)
+        keep[1:] = s[1:] != s[:-1]
+        return s[keep]
+    s = a[np.lexsort(a.T[::-1])] if len(a) else a  # lexsort's last key is the primary one: column 0
+    keep = np.ones(len(s), dtype=bool)
+    keep[1:] = np.any(s[1:] != s[:-1], axis=1)
+    return s[keep]
+
+
+def median(values) -> float:
+    """``float(np.median(values))`` of numbers (any shape, flattened): the middle value, or the mean of the two middle
+    ones, NaN if any is NaN. Without ``np.median``, which imports ``numpy.ma`` for its NaN check."""
+    a = np.sort(np.asarray(values, dtype=float).ravel())
+    n = len(a)
+    if n == 0 or np.isnan(a[-1]):  # (np.sort puts NaNs last)
+        return float("nan")
+    return float(a[n // 2]) if n % 2 else float((a[n // 2 - 1] + a[n // 2]) / 2.0)
+
+
+def percentile(values, q: float) -> float:
+    """``float(np.percentile(values, q))`` (its default, linear interpolation, with its arithmetic) of numbers (any
+    shape, flattened), ``q`` in [0, 100]; NaN if any is NaN. Without ``np.percentile``, which imports ``numpy.ma``."""
+    a = np.sort(np.asarray(values, dtype=float).ravel())
+    n = len(a)
+    if n == 0 or np.isnan(a[-1]):
+        return float("nan")
+    v = (n - 1) * (float(q) / 100.0)  # the virtual index
+    if v >= n - 1:
+        return float(a[-1])
+    lo = np.floor(v)
+    g = v - lo
+    x0, x1 = a[int(lo)], a[int(lo) + 1]
+    d = x1 - x0
+    return float(x1 - d * (1.0 - g)) if g >= 0.5 else float(x0 + d * g)
+
+
 def _ratio_matches(index: "cv2.flann_Index", query: np.ndarray, ratio: float, checks: int) -> tuple[np.ndarray, np.ndarray]:
     """(query indices, train indices) of the query descriptors whose nearest neighbour passes Lowe's ratio test."""
     ind, dist = index.knnSearch(query, 2, params={"checks": checks})
@@ -115,7 +158,7 @@ def match_pair(i: int, j: int, fi: PhotoFeatures, fj: PhotoFeatures, lin_i: np.n
     qi, tj = _ratio_matches(index_j, fi.descriptors, ratio, checks)  # i -> j
     qj, ti = _ratio_matches(index_i, fj.descriptors, ratio, checks)  # j -> i
     both = np.concatenate([np.column_stack([qi, tj]), np.column_stack([ti, qj])])
-    idx = np.unique(both, axis=0) if len(both) else both.reshape(0, 2)
+    idx = unique_sorted(both) if len(both) else both.reshape(0, 2)
     if len(idx) < 8:
         return PairMatch(i, j, len(idx), 0, 0.0, None, np.zeros(0, int), np.zeros(0, int))
     src, dst = lin_i[idx[:, 0]], lin_j[idx[:, 1]]
@@ -253,7 +296,7 @@ def focal_from_homographies(pairs: list[PairMatch], centres: dict[int, tuple[flo
         f0, f1 = _focals_from_homography(Hc / Hc[2, 2])
         if f0 and f1:
             fs.append(np.sqrt(f0 * f1))
-    return float(np.median(fs)) if fs else None
+    return median(fs) if fs else None
 
 
 def _focal_candidate(d1: float, d2: float, v1: float, v2: float) -> float | None:

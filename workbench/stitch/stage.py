@@ -24,12 +24,9 @@ import cv2
 
 from ..errors import InputError
 from ..project import Project
-from ..files.exif import read_focal_px
-from ..files.intrinsics import photo_size
 from ..core.stage_api import Progress, StageResult
 from .options import StitchOptions, StitchResult
-from .photo_matching import describe_photo
-from .stitcher import stitch_photos
+from .photo_matching import describe_photo, match_described
 
 log = logging.getLogger(__name__)
 
@@ -47,19 +44,27 @@ def _stamps(photos: list[Path]) -> tuple:
 def prefetch(project: Project, options: StitchOptions = StitchOptions()) -> None:
     """Start describing the panorama photos (read, SIFT, FLANN index: ``photo_matching.describe_photo``) on two
     threads while the command does what comes before the stage (starting, the inputs and terrain stages): OpenCV
-    releases the interpreter, so the second core works. The stage takes the results when its photos are
-    unchanged since (paths, sizes, modification times) and its options the same; else they are dropped."""
+    releases the interpreter, so the second core works. Unless the lens is calibrated (its keypoints are matched
+    undistorted), every pair is then matched there too (``photo_matching.match_described``), each once its two
+    photos are described. The stage takes the results when its photos are unchanged since (paths, sizes,
+    modification times) and its options the same; else they are dropped."""
     photos = project.photo_paths()
     stamps = _stamps(photos)  # before reading: a photo changed meanwhile is described again by the stage
     pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="stitch prefetch")
     futures = {k: pool.submit(describe_photo, p, p.name, k, options) for k, p in enumerate(photos)}
+    matched = {}
+    if project.settings.camera.source.value != "calibrated":
+        # (queued after every description: a match waiting for its photos never holds up one of them)
+        matched = {(i, j): pool.submit(match_described, (i, j), futures, options)
+                   for j in range(len(photos)) for i in range(j)}
     pool.shutdown(wait=False)
     with _PREFETCH_LOCK:
-        _PREFETCH.update(stamps=stamps, options=options, futures=futures)
+        _PREFETCH.update(stamps=stamps, options=options, futures=futures, matched=matched)
 
 
-def _take_prefetch(photos: list[Path], options: StitchOptions) -> dict | None:
-    """The prefetched descriptions of ``photos`` (index -> future), if they are of these photos as they are now."""
+def _take_prefetch(photos: list[Path], options: StitchOptions) -> tuple[dict, dict] | None:
+    """The prefetched descriptions of ``photos`` (index -> future) and matches (pair -> future), if they are of
+    these photos as they are now."""
     with _PREFETCH_LOCK:
         pre = dict(_PREFETCH)
         _PREFETCH.clear()
@@ -68,16 +73,22 @@ def _take_prefetch(photos: list[Path], options: StitchOptions) -> dict | None:
     if pre["options"] != options or pre["stamps"] != _stamps(photos):
         log.info("stitch: the photos changed since they were described ahead of the stage; described again")
         return None
-    log.info("stitch: %d photos described ahead of the stage", len(pre["futures"]))
-    return pre["futures"]
+    log.info("stitch: %d photos described ahead of the stage (and %d pairs matched)", len(pre["futures"]),
+             len(pre["matched"]))
+    return pre["futures"], pre["matched"]
 
 
 def stitch_project(project: Project, progress: Progress = lambda f, m="": None,
                    options: StitchOptions = StitchOptions()) -> StitchResult:
     """Stitch the project's photo set along its intrinsics route (no files written)."""
+    # (imported here, not with the module: the prefetch starts describing the photos without them)
+    from ..files.exif import read_focal_px
+    from ..files.intrinsics import photo_size
+    from .stitcher import stitch_photos
+
     cam = project.settings.camera
     photos = project.photo_paths()
-    described = _take_prefetch(photos, options)
+    described, matched = _take_prefetch(photos, options) or (None, None)
     names = [p.name for p in photos]
     calibrated = None
     priors = None
@@ -96,7 +107,8 @@ def stitch_project(project: Project, progress: Progress = lambda f, m="": None,
         if missing:
             log.warning("stitch: no EXIF focal length in %s; the focal is estimated from the photos", missing)
     return stitch_photos(photos, names=names, options=options, calibrated=calibrated, focal_priors_px=priors,
-                         image_refs=[project.relative(p) for p in photos], progress=progress, described=described)
+                         image_refs=[project.relative(p) for p in photos], progress=progress, described=described,
+                         matched=matched if calibrated is None else None)
 
 
 def panorama_json(result: StitchResult) -> dict:

@@ -27,7 +27,7 @@ from ..core.geometry import orthonormal, rot_x, rot_y
 from ..core.panorama import PanoramaModel, PanoramaSource
 from ..errors import InputError
 from . import register as reg
-from .bundle import BAResult, BundleOptions, bundle_adjust, stack_observations
+from .bundle import BAResult, BundleOptions, bundle_adjust, load_solver, stack_observations
 from .bundle_problem import Observations, min_work_scale
 from .compose import compose
 from .options import ProgressFn, StitchOptions, StitchResult
@@ -170,9 +170,9 @@ def _parallax(ba: BAResult, obs: Observations, wscale: dict[int, float], kept_pa
     err_deg = np.degrees(err_full / f_obs[:, None])
     u = ba.used
     rms_w = float(np.sqrt(np.mean(err_work[u] ** 2)))
-    p90_w = float(np.percentile(err_work[u], 90))
+    p90_w = reg.percentile(err_work[u], 90)
     per_pair = []
-    for pid in np.unique(obs.pair):
+    for pid in reg.unique_sorted(obs.pair):
         m = (obs.pair == pid) & u
         p = kept_pairs[pid]
         if m.any():
@@ -182,7 +182,7 @@ def _parallax(ba: BAResult, obs: Observations, wscale: dict[int, float], kept_pa
     parallax = {
         "verdict": verdict, "n_observations": int(len(u)), "n_used": int(u.sum()),
         "rms_work_px": round(rms_w, 4), "p90_work_px": round(p90_w, 4),
-        "median_work_px": round(float(np.median(err_work[u])), 4),
+        "median_work_px": round(reg.median(err_work[u]), 4),
         "rms_full_px": round(float(np.sqrt(np.mean(err_full[u] ** 2))), 4),
         "rms_deg": round(float(np.sqrt(np.mean(err_deg[u] ** 2))), 5),
         "threshold_rms_work_px": opts.parallax_rms_work_px, "threshold_p90_work_px": opts.parallax_p90_work_px,
@@ -213,7 +213,7 @@ def _panorama_model(ba: BAResult, kept: list[int], names: list[str], image_refs:
     Rs = {k: R @ R_axis.T for k, R in Rs.items()}
     sources = tuple(PanoramaSource(name=names[k], image=image_refs[k], intrinsics=ba.intrinsics[k],
                                    cam_from_pano=orthonormal(Rs[k])) for k in kept)
-    scale = float(np.median([ba.intrinsics[k].fx for k in kept]))
+    scale = reg.median([ba.intrinsics[k].fx for k in kept])
     model = _fit_extent(PanoramaModel(projection=proj, scale=scale, offset=(0.0, 0.0), width=1, height=1,
                                       sources=sources))
     out_scale = 1.0
@@ -229,7 +229,7 @@ def _compose_kept(model: PanoramaModel, photos: list[Path], kept: list[int], fou
                   progress: ProgressFn) -> tuple[np.ndarray, dict]:
     """The panorama composed at full resolution from the kept photos (the small ones as decoded at registration)."""
     # seam-resolution panorama: the photos' seam scale relative to the output panorama's scale
-    seam_scale = float(np.median([found.small[k].shape[1] / found.sizes[k][0] for k in kept])) / out_scale
+    seam_scale = reg.median([found.small[k].shape[1] / found.sizes[k][0] for k in kept]) / out_scale
     paths_kept = [photos[k] for k in kept]
     kept_full = {str(photos[k]): found.fulls.pop(k) for k in kept if k in found.fulls}
     found.fulls.clear()
@@ -245,14 +245,16 @@ def _compose_kept(model: PanoramaModel, photos: list[Path], kept: list[int], fou
 def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options: StitchOptions = StitchOptions(),
                   calibrated: dict[str, CameraIntrinsics] | None = None,
                   focal_priors_px: dict[str, float | None] | None = None, image_refs: list[str] | None = None,
-                  progress: ProgressFn = lambda f, m="": None, described: dict | None = None) -> StitchResult:
+                  progress: ProgressFn = lambda f, m="": None, described: dict | None = None,
+                  matched: dict | None = None) -> StitchResult:
     """Stitch ``photos`` (paths) into one panorama.
 
     ``calibrated``: name -> intrinsics of the photo as on disk (route ``calibrated``: fixed, only rotations
     are estimated). ``focal_priors_px``: name -> EXIF focal in pixels or None (route ``exif``). Neither:
     focal (and k1) estimated (``fallback``). ``image_refs``: the path written into the model for each photo
     (default: the path as given). ``described``: photo index -> a future of its ``photo_matching.describe_photo``
-    with ``options``, started earlier. Raises :class:`InputError` if fewer than two photos can be registered or
+    with ``options``, started earlier; ``matched``: pair (i, j), i < j -> a future of its
+    ``photo_matching.match_described`` from them (used for the pairs without a calibrated lens). Raises :class:`InputError` if fewer than two photos can be registered or
     when the parallax check fails (``options.check_parallax``).
     """
     t_start = time.perf_counter()
@@ -267,7 +269,9 @@ def stitch_photos(photos: list[Path], *, names: list[str] | None = None, options
     calibrated = calibrated or {}
     focal_priors_px = focal_priors_px or {}
     fixed, source = _intrinsics_route(names, calibrated, focal_priors_px)
-    found = read_and_match(photos, names, opts, calibrated, progress, timings, described)
+    if described:  # the photos are being described on other threads (a prefetch): the adjustment's libraries
+        load_solver()  # loaded meanwhile, not after them
+    found = read_and_match(photos, names, opts, calibrated, progress, timings, described, matched)
     kept, rejected, kept_pairs = connected_set(found, photos, names, opts)
     progress(0.42, "rotations and focal")
     init, groups, R0 = _initial_cameras(kept, kept_pairs, found.sizes, names, calibrated, focal_priors_px, fixed,
