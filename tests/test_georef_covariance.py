@@ -129,3 +129,38 @@ def test_a_resection_with_its_focal_refined_states_pose_and_focal_together():
         L = np.vstack([F, K])
         m2.append(float(e @ np.linalg.solve(L @ L.T, e)))
     assert 5.0 < float(np.mean(m2)) < 9.5, (np.mean(m2), np.median(m2))
+
+
+def test_a_resection_with_sfm_intrinsics_carries_their_error():
+    """One photo resected with SfM's intrinsics (12 control points, 1 px picks, 5 cm survey) where SfM's focal and
+    k1 are off by a drawn error of their stated covariance (2 % and 0.02, correlated): the pose's error is its own
+    fit's plus its response to that error (``resection.intrinsics_response``, ``D``): over 30 draws the mean squared
+    Mahalanobis distance of the 6-d error against ``C_own + D C_k D^T`` is near 6 (5.3 measured), against ``C_own``
+    alone it is far above (147: the fit alone takes the intrinsics as exact)."""
+    from workbench.georef.resection import intrinsics_response
+
+    rng = np.random.default_rng(23)
+    true = CameraIntrinsics(width=1600, height=1200, fx=1400.0, fy=1400.0, cx=799.5, cy=599.5, k1=-0.05)
+    Ck = np.array([[28.0 ** 2, 0.3 * 28.0 * 0.02], [0.3 * 28.0 * 0.02, 0.02 ** 2]])  # f (px), k1
+    Lk = np.linalg.cholesky(Ck)
+    centre = np.array([0.0, 0.0, 12.0])
+    M = look_at(centre, np.array([0.0, 110.0, 0.0]))
+    R = M[:3, :3]
+    X = np.column_stack([rng.uniform(-40, 40, 12), rng.uniform(60, 160, 12), rng.uniform(0, 8, 12)])
+    with_k, own_only = [], []
+    for _ in range(30):
+        sfm = true.moved(("f", "k1"), Lk @ rng.normal(size=2))
+        cps = []
+        for k, x in enumerate(X):
+            uv = true.project(((x - centre) @ R.T)[None])[0] + rng.normal(0, 1.0, 2)
+            cps.append(ControlPoint(f"p{k}", x + rng.normal(0, 0.05, 3), 0.05, {"a.jpg": uv}))
+        res = solve_central([RigView("a.jpg", sfm, np.eye(3))], cps, opts=GeorefOptions())
+        Me = res.cam_from_world(np.eye(3))
+        C = np.asarray(res.stats["covariance_world_rotation_centre"], float)
+        D = intrinsics_response(sfm, Me, cps, "a.jpg", res.residuals, ("f", "k1"), GeorefOptions())
+        Re = Me[:3, :3]
+        e = np.concatenate([log_so3(Re.T @ R), res.centre_enu - centre])
+        with_k.append(float(e @ np.linalg.solve(C + D @ Ck @ D.T, e)))
+        own_only.append(float(e @ np.linalg.solve(C, e)))
+    assert 4.0 < float(np.mean(with_k)) < 8.5, (np.mean(with_k), np.mean(own_only))
+    assert float(np.mean(own_only)) > 3.0 * float(np.mean(with_k)), (np.mean(with_k), np.mean(own_only))

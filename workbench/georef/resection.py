@@ -11,6 +11,7 @@ from typing import Callable
 import numpy as np
 
 from ..core.camera import CameraIntrinsics
+from ..core.geometry import exp_so3
 from ..errors import InputError
 from .camera_adjustment import intrinsics_key
 from .central import CentralResult, refine_resection_focal, solve_central
@@ -19,6 +20,7 @@ from ..files.control_points import ControlPoint
 from .documents import view_entry
 from ..files.panorama import RigView
 from .options import GeorefOptions, GeorefResidualsLarge
+from .picks import pick_sigma
 
 __all__ = ["IncidentPhotos", "resect_unplaced"]
 
@@ -118,6 +120,94 @@ def _resect_photo(name: str, intr: CameraIntrinsics, from_refined: bool, camera_
     return (intr, cam_from_world, report, caught, cov), None
 
 
+def _factor(C: np.ndarray) -> np.ndarray:
+    """A factor ``L`` of a covariance (``C = L L^T``), its null directions left out."""
+    ev, V = np.linalg.eigh(0.5 * (C + C.T))
+    keep = ev > 1e-12 * max(float(ev.max()), 1e-300)
+    return V[:, keep] * np.sqrt(ev[keep])
+
+
+def _sfm_camera_errors(models) -> dict[str, tuple[tuple[str, ...], np.ndarray]]:
+    """SfM camera (:func:`intrinsics_key`) -> (its refined intrinsics' names, a factor (k, q) of their stated
+    marginal covariance), for the cameras the sfm stage stated it for (``intrinsics_factor``)."""
+    out: dict[str, tuple[tuple[str, ...], np.ndarray]] = {}
+    for _, vs in models:
+        for v in vs:
+            key = intrinsics_key(v.intrinsics)
+            if v.intrinsics_factor is not None and v.intrinsics_params and key not in out:
+                K = np.asarray(v.intrinsics_factor, float)
+                out[key] = (tuple(v.intrinsics_params), _factor(K @ K.T))
+    return out
+
+
+def intrinsics_response(intr: CameraIntrinsics, cam_from_world: np.ndarray, cps: list[ControlPoint], name: str,
+                        residuals: list[dict], params: tuple[str, ...], opts: GeorefOptions) -> np.ndarray | None:
+    """(6, k) the first-order response of a photo's resected pose (the rotation vector of ``world_from_cam`` in
+    the scene frame, the centre in m: ``pose_uncertainty``'s order) to an error of the intrinsics it was resected
+    with (``params``, ``CameraIntrinsics.moved``'s names): ``-(J_p^T W J_p)^-1 J_p^T W J_k`` over its inlier picks
+    (central differences); None with fewer than 4 of them."""
+    inl = {(r["point"], r["view"]) for r in residuals if r.get("inlier")}
+    obs = [(cp, np.asarray(cp.pixels[name], float)) for cp in cps if name in cp.pixels and (cp.name, name) in inl]
+    if len(obs) < 4:
+        return None
+    X = np.array([cp.enu for cp, _ in obs])
+    UV = np.array([uv for _, uv in obs])
+    R0 = np.asarray(cam_from_world, float)[:3, :3]
+    c0 = -R0.T @ np.asarray(cam_from_world, float)[:3, 3]
+    depth = ((X - c0) @ R0.T)[:, 2]
+    sig = np.array([pick_sigma(intr, opts.sigma_px, cp.sigma_m, abs(d)) for (cp, _), d in zip(obs, depth)])
+
+    def r(p: np.ndarray, dk: np.ndarray) -> np.ndarray:
+        q = (X - c0 - p[3:]) @ (exp_so3(p[:3]) @ R0).T  # cam_from_world' = Exp(p) R, centre c + dc
+        return ((intr.moved(params, dk).project(q) - UV) / sig[:, None]).ravel()
+
+    Jp, Jk = np.zeros((2 * len(X), 6)), np.zeros((2 * len(X), len(params)))
+    for j in range(6):
+        e = np.zeros(6)
+        e[j] = 1e-6 if j < 3 else 1e-4
+        Jp[:, j] = (r(e, np.zeros(len(params))) - r(-e, np.zeros(len(params)))) / (2 * e[j])
+    for j, k in enumerate(params):
+        d = np.zeros(len(params))
+        d[j] = 1e-6 * (abs(intr.fx) if k in ("f", "fx", "fy", "cx", "cy") else 1.0)
+        Jk[:, j] = (r(np.zeros(6), d) - r(np.zeros(6), -d)) / (2 * d[j])
+    D = -np.linalg.lstsq(Jp, Jk, rcond=None)[0]
+    T = np.eye(6)
+    T[:3, :3] = -R0.T  # cam_from_world' = Exp(q) R: world_from_cam' = Exp(-R^T q) R^T
+    return T @ D
+
+
+def _camera_groups(out: dict[str, dict], models, cps: list[ControlPoint], opts: GeorefOptions) -> None:
+    """The photos resected with an SfM camera's intrinsics as SfM gave them (not refined), grouped by camera: each
+    photo's pose error is its own fit's plus its response to that camera's stated error (:func:`intrinsics_response`),
+    which the photos of one camera share with the intrinsics the solve projects them with; written as one factor
+    per camera into each photo's ``joint`` (in place). Photos of a camera without a stated error keep their own."""
+    cams = _sfm_camera_errors(models)
+    groups: dict[str, list[tuple[str, np.ndarray, np.ndarray]]] = {}
+    for name, r in sorted(out.items()):
+        intr = CameraIntrinsics.from_dict(r["entry"]["intrinsics"])
+        key = intrinsics_key(intr)
+        if r.get("joint") is not None or r.get("covariance") is None or key not in cams \
+                or not r["report"]["intrinsics_from"].startswith(("sfm", "main model")):
+            continue
+        D = intrinsics_response(intr, np.asarray(r["entry"]["cam_from_world"], float), cps, name,
+                                r["report"]["residuals"], cams[key][0], opts)
+        if D is not None:
+            groups.setdefault(key, []).append((name, _factor(np.asarray(r["covariance"], float)), D))
+    for key, members in sorted(groups.items()):
+        params, Lk = cams[key]
+        rank = sum(L.shape[1] for _, L, _ in members) + Lk.shape[1]
+        K = np.zeros((len(params), rank))
+        K[:, rank - Lk.shape[1]:] = Lk
+        col = 0
+        for name, L, D in members:
+            F = np.zeros((6, rank))
+            F[:, col:col + L.shape[1]] = L
+            F[:, rank - Lk.shape[1]:] = D @ Lk
+            col += L.shape[1]
+            out[name]["joint"] = {"poses": {name: F}, "params": list(params), "intrinsics": K,
+                                  "group": f"resection[camera of {members[0][0]}]"}
+
+
 def resect_unplaced(photos: IncidentPhotos, models, placed: dict, cps: list[ControlPoint], gps: dict,
                     opts: GeorefOptions, where: str,
                     refined: dict[str, CameraIntrinsics] | None = None) -> tuple[dict[str, dict], dict[str, str]]:
@@ -165,4 +255,5 @@ def resect_unplaced(photos: IncidentPhotos, models, placed: dict, cps: list[Cont
         joint = report.pop("joint", None)  # the pose and the refined focal together, where it was refined
         out[name] = {"entry": view_entry(name, photos.image_of(name), intr, cam_from_world, True), "report": report,
                      "covariance": cov, "joint": joint}
+    _camera_groups(out, models, cps, opts)
     return out, why

@@ -260,7 +260,7 @@ def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncer
         j = resected[name].get("joint") if name in resected else None
         if j is not None:  # its focal refined: the pose and the focal on one factor (a group of one photo)
             F, K = np.asarray(j["poses"][name], float), np.asarray(j["intrinsics"], float)
-            label = f"resection[{name}]"
+            label = j.get("group") or f"resection[{name}]"  # a camera's photos resected with its SfM intrinsics
             models[label] = {"covariance": np.zeros((7, 7)).tolist(), "translation_enu": [0.0] * 3, "scale": 1.0,
                              "sfm_rank": int(F.shape[1]), "sfm_response": None, "kind": "resection"}
             views[name] = {"source": "resection", "model": label, "jacobian": np.zeros((6, 7)).tolist(),
@@ -277,7 +277,8 @@ def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncer
                              if any(v.get("model") and v.get("sfm_intrinsics_factor") is None for v in views.values())
                              else "the SfM error beyond first order")
             + "; a photo placed on its own (resection): the correlation of its error with the models' through the "
-              "control points they share, and its SfM camera's error when the focal was not refined",
+              "control points and the SfM camera they share (its camera's stated error is carried with the other "
+              "photos resected with that camera)",
             "models": models, "views": views}
 
 
