@@ -161,7 +161,8 @@ def test_markup_in_a_path_is_printed_as_it_is(tmp_path):
 def test_emoji_codes_in_a_path_are_printed_as_they_are(tmp_path):
     r = wb("init", tmp_path / ":fire:inc:smile:")
     assert r.returncode == 0, r.stderr
-    assert ":fire:inc:smile:" in r.stdout and "\N{FIRE}" not in r.stdout, r.stdout
+    out = r.stdout.replace("\n", "")  # rich wraps a long path at the console's width, anywhere in it
+    assert ":fire:inc:smile:" in out and "\N{FIRE}" not in out, r.stdout
 
 
 def test_collection_paused_while_a_command_starts_and_resumed(tmp_path):
