@@ -15,6 +15,17 @@ from workbench.georef.options import GeorefOptions
 from workbench.solve.camera_term import camera_pose_jacobian
 
 
+def _picked_in_one_photo(intr: CameraIntrinsics, R: np.ndarray, centre: np.ndarray, X: np.ndarray,
+                         rng: np.random.Generator) -> list[ControlPoint]:
+    """Control points ``X`` (n, 3) picked in one photo ``a.jpg`` (``cam_from_world`` rotation ``R``, ``centre``):
+    each pick its true pixel + N(0, 1 px), each point surveyed with N(0, 5 cm) per axis (stated 5 cm)."""
+    cps = []
+    for k, x in enumerate(X):
+        uv = intr.project(((x - centre) @ R.T)[None])[0] + rng.normal(0, 1.0, 2)
+        cps.append(ControlPoint(f"p{k}", x + rng.normal(0, 0.05, 3), 0.05, {"a.jpg": uv}))
+    return cps
+
+
 def test_camera_covariance_is_honest_jointly_and_at_the_carriages():
     """One 1600 x 1200 photo from 12 m up, 8 control points 60-160 m away (1 px picks, 5 cm survey error): over
     60 draws the camera's 6-d error has a mean squared Mahalanobis distance near 6 (chi-square, 6 dof; the sign
@@ -30,10 +41,7 @@ def test_camera_covariance_is_honest_jointly_and_at_the_carriages():
     target = np.array([5.0, 105.0, 1.5])  # a carriage among the control points
     m2, z = [], []
     for _ in range(60):
-        cps = []
-        for k, x in enumerate(X):
-            uv = intr.project(((x - centre) @ R.T)[None])[0] + rng.normal(0, 1.0, 2)
-            cps.append(ControlPoint(f"p{k}", x + rng.normal(0, 0.05, 3), 0.05, {"a.jpg": uv}))
+        cps = _picked_in_one_photo(intr, R, centre, X, rng)
         res = solve_central([RigView("a.jpg", intr, np.eye(3))], cps, opts=GeorefOptions())
         C = np.asarray(res.stats["covariance_world_rotation_centre"], float)
         # the error as the scene's rigid motion that takes the true camera onto the estimate (the bench's)
@@ -110,10 +118,7 @@ def test_a_resection_with_its_focal_refined_states_pose_and_focal_together():
     X = np.column_stack([rng.uniform(-40, 40, 12), rng.uniform(60, 160, 12), rng.uniform(0, 8, 12)])
     m2 = []
     for _ in range(30):
-        cps = []
-        for k, x in enumerate(X):
-            uv = true.project(((x - centre) @ R.T)[None])[0] + rng.normal(0, 1.0, 2)
-            cps.append(ControlPoint(f"p{k}", x + rng.normal(0, 0.05, 3), 0.05, {"a.jpg": uv}))
+        cps = _picked_in_one_photo(true, R, centre, X, rng)
         res = solve_central([RigView("a.jpg", start, np.eye(3))], cps, opts=GeorefOptions())
         ff = refine_resection_focal(start, res, cps, "a.jpg", GeorefOptions())
         assert ff is not None
@@ -150,10 +155,7 @@ def test_a_resection_with_sfm_intrinsics_carries_their_error():
     with_k, own_only = [], []
     for _ in range(30):
         sfm = true.moved(("f", "k1"), Lk @ rng.normal(size=2))
-        cps = []
-        for k, x in enumerate(X):
-            uv = true.project(((x - centre) @ R.T)[None])[0] + rng.normal(0, 1.0, 2)
-            cps.append(ControlPoint(f"p{k}", x + rng.normal(0, 0.05, 3), 0.05, {"a.jpg": uv}))
+        cps = _picked_in_one_photo(true, R, centre, X, rng)
         res = solve_central([RigView("a.jpg", sfm, np.eye(3))], cps, opts=GeorefOptions())
         Me = res.cam_from_world(np.eye(3))
         C = np.asarray(res.stats["covariance_world_rotation_centre"], float)
