@@ -15,7 +15,7 @@ from ..core.geometry import exp_so3
 from ..errors import InputError
 from .camera_adjustment import intrinsics_key
 from .central import CentralResult, refine_resection_focal, solve_central
-from .shared_camera import joint_factor
+from .shared_camera import covariance_factor, joint_factor
 from ..files.control_points import ControlPoint
 from .documents import view_entry
 from ..files.panorama import RigView
@@ -110,7 +110,9 @@ def _resect_photo(name: str, intr: CameraIntrinsics, from_refined: bool, camera_
             intr, cam_from_world, cov = ff["intrinsics"], ff["cam_from_world"], ff["covariance_world_rotation_centre"]
             order = [6, 0, 1, 2, 3, 4, 5]  # the focal first, as joint_factor reads it
             C7 = np.asarray(ff["covariance_pose_focal"], float)[np.ix_(order, order)]
-            report["joint"] = joint_factor(C7, intr, ("f",), [name], [cam_from_world[:3, :3]])
+            j = joint_factor(C7, intr, ("f",), [name], [cam_from_world[:3, :3]])
+            report["joint"] = {"group": f"resection[{name}]", "pose_factor": j["poses"][name],
+                               "params": j["params"], "intrinsics_factor": j["intrinsics"]}
             report.update({"intrinsics_from": report["intrinsics_from"] + ", focal refined in the resection "
                            "(SfM's disagrees with this photo's control points)", "rms_px": ff["rms_px"],
                            "sigma_centre_max_m": ff["sigma_centre_max_m"]})
@@ -118,13 +120,6 @@ def _resect_photo(name: str, intr: CameraIntrinsics, from_refined: bool, camera_
     if reason is not None:
         return None, f"placing it on its own failed the checks: {reason}"
     return (intr, cam_from_world, report, caught, cov), None
-
-
-def _factor(C: np.ndarray) -> np.ndarray:
-    """A factor ``L`` of a covariance (``C = L L^T``), its null directions left out."""
-    ev, V = np.linalg.eigh(0.5 * (C + C.T))
-    keep = ev > 1e-12 * max(float(ev.max()), 1e-300)
-    return V[:, keep] * np.sqrt(ev[keep])
 
 
 def _sfm_camera_errors(models) -> dict[str, tuple[tuple[str, ...], np.ndarray]]:
@@ -136,7 +131,7 @@ def _sfm_camera_errors(models) -> dict[str, tuple[tuple[str, ...], np.ndarray]]:
             key = intrinsics_key(v.intrinsics)
             if v.intrinsics_factor is not None and v.intrinsics_params and key not in out:
                 K = np.asarray(v.intrinsics_factor, float)
-                out[key] = (tuple(v.intrinsics_params), _factor(K @ K.T))
+                out[key] = (tuple(v.intrinsics_params), covariance_factor(K @ K.T))
     return out
 
 
@@ -192,7 +187,7 @@ def _camera_groups(out: dict[str, dict], models, cps: list[ControlPoint], opts: 
         D = intrinsics_response(intr, np.asarray(r["entry"]["cam_from_world"], float), cps, name,
                                 r["report"]["residuals"], cams[key][0], opts)
         if D is not None:
-            groups.setdefault(key, []).append((name, _factor(np.asarray(r["covariance"], float)), D))
+            groups.setdefault(key, []).append((name, covariance_factor(np.asarray(r["covariance"], float)), D))
     for key, members in sorted(groups.items()):
         params, Lk = cams[key]
         rank = sum(L.shape[1] for _, L, _ in members) + Lk.shape[1]
@@ -204,8 +199,8 @@ def _camera_groups(out: dict[str, dict], models, cps: list[ControlPoint], opts: 
             F[:, col:col + L.shape[1]] = L
             F[:, rank - Lk.shape[1]:] = D @ Lk
             col += L.shape[1]
-            out[name]["joint"] = {"poses": {name: F}, "params": list(params), "intrinsics": K,
-                                  "group": f"resection[camera of {members[0][0]}]"}
+            out[name]["joint"] = {"group": f"resection[camera of {members[0][0]}]", "pose_factor": F,
+                                  "params": list(params), "intrinsics_factor": K}
 
 
 def resect_unplaced(photos: IncidentPhotos, models, placed: dict, cps: list[ControlPoint], gps: dict,

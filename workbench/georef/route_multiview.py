@@ -203,6 +203,22 @@ def _for_reading(uncertainty: dict) -> dict:
     return {n: {k: v for k, v in u.items() if k != "joint"} for n, u in uncertainty.items()}
 
 
+def _group_view(models: dict, views: dict, name: str, joint: dict, source: str) -> None:
+    """A photo whose error is shared by a group of photos placed without a similarity (one shared camera's
+    adjustment, the photos resected with one SfM camera, a resection with its focal refined): the group written as
+    a model with no similarity error (its ``covariance`` zero) whose ``z`` moves the photos' poses (``sfm_factor``)
+    and the intrinsics they are projected with (``sfm_intrinsics_factor``). ``joint``: {"group", "pose_factor"
+    (6, r), "params", "intrinsics_factor" (k, r)} (camera_adjustment.py, resection.py)."""
+    F, K = np.asarray(joint["pose_factor"], float), np.asarray(joint["intrinsics_factor"], float)
+    models.setdefault(joint["group"], {"covariance": np.zeros((7, 7)).tolist(), "translation_enu": [0.0] * 3,
+                                       "scale": 1.0, "sfm_rank": int(F.shape[1]), "sfm_response": None,
+                                       "kind": source})
+    views[name] = {"source": source, "model": joint["group"], "jacobian": np.zeros((6, 7)).tolist(),
+                   "sfm_factor": F.tolist(), "sfm_intrinsics_factor": {"params": list(joint["params"]),
+                                                                       "factor": K.tolist()},
+                   "covariance_rotation_centre": (F @ F.T).tolist()}
+
+
 def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncertainty: dict) -> dict:
     """``georegistration.pose_uncertainty`` (docs/formats.md): each placed model's similarity covariance (7, 7)
     and each view's Jacobian (6, 7) from it, so that views of one model keep their shared (correlated) error; a
@@ -239,15 +255,7 @@ def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncer
                 continue
             u = uncertainty.get(name) or {}
             if u.get("joint") is not None:  # the shared camera's adjustment: its photos' poses and intrinsics
-                j = u["joint"]
-                F, K = np.asarray(j["pose_factor"], float), np.asarray(j["intrinsics_factor"], float)
-                models.setdefault(j["group"], {"covariance": np.zeros((7, 7)).tolist(), "translation_enu": [0.0] * 3,
-                                               "scale": 1.0, "sfm_rank": int(F.shape[1]), "sfm_response": None,
-                                               "kind": "camera_adjustment"})
-                views[name] = {"source": "camera_adjustment", "model": j["group"],
-                               "jacobian": np.zeros((6, 7)).tolist(), "sfm_factor": F.tolist(),
-                               "sfm_intrinsics_factor": {"params": list(j["params"]), "factor": K.tolist()},
-                               "covariance_rotation_centre": (F @ F.T).tolist()}
+                _group_view(models, views, name, u["joint"], "camera_adjustment")
                 continue
             if u.get("cov_centre_enu_m2") is not None and u.get("sigma_rotation_deg") is not None:
                 C = np.zeros((6, 6))
@@ -258,15 +266,8 @@ def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncer
                 continue
         C = resected[name].get("covariance") if name in resected else None
         j = resected[name].get("joint") if name in resected else None
-        if j is not None:  # its focal refined: the pose and the focal on one factor (a group of one photo)
-            F, K = np.asarray(j["poses"][name], float), np.asarray(j["intrinsics"], float)
-            label = j.get("group") or f"resection[{name}]"  # a camera's photos resected with its SfM intrinsics
-            models[label] = {"covariance": np.zeros((7, 7)).tolist(), "translation_enu": [0.0] * 3, "scale": 1.0,
-                             "sfm_rank": int(F.shape[1]), "sfm_response": None, "kind": "resection"}
-            views[name] = {"source": "resection", "model": label, "jacobian": np.zeros((6, 7)).tolist(),
-                           "sfm_factor": F.tolist(), "sfm_intrinsics_factor": {"params": list(j["params"]),
-                                                                               "factor": K.tolist()},
-                           "covariance_rotation_centre": (F @ F.T).tolist()}
+        if j is not None:  # its focal refined, or its SfM camera's error carried: a group (resection.py)
+            _group_view(models, views, name, j, "resection")
             continue
         views[name] = {"source": "resection" if name in resected else "other", "model": None, "jacobian": None,
                        "covariance_rotation_centre": None if C is None else np.asarray(C, float).tolist()}

@@ -168,6 +168,13 @@ def adjust_shared_camera(intr: CameraIntrinsics, poses: dict[str, np.ndarray], c
             "residual": residual}
 
 
+def covariance_factor(C: np.ndarray) -> np.ndarray:
+    """A factor ``L`` of a covariance (``C = L L^T``, eigen-directions; its null directions left out)."""
+    ev, V = np.linalg.eigh(0.5 * (np.asarray(C, float) + np.asarray(C, float).T))
+    keep = ev > 1e-12 * max(float(ev.max()), 1e-300)
+    return V[:, keep] * np.sqrt(ev[keep])
+
+
 def joint_factor(cov: np.ndarray, it: CameraIntrinsics, free: Sequence[str], names: list[str],
                  Rs: list[np.ndarray]) -> dict:
     """An adjustment's joint covariance (the free intrinsics first, ``f`` as log(f), then each photo's rotation
@@ -176,10 +183,7 @@ def joint_factor(cov: np.ndarray, it: CameraIntrinsics, free: Sequence[str], nam
     ``georegistration.pose_uncertainty`` (rotation vector of ``world_from_cam`` in the scene frame, centre in m),
     ``"params"``: the intrinsics' names (``f`` moving fx and fy together, in px), ``"intrinsics"`` (k, r)}."""
     ni = len(free)
-    C = 0.5 * (cov + cov.T)
-    ev, V = np.linalg.eigh(C)
-    keep = ev > 1e-12 * max(float(ev.max()), 1e-300)
-    L = V[:, keep] * np.sqrt(ev[keep])
+    L = covariance_factor(cov)
     K = L[:ni].copy()
     for j, k in enumerate(free):
         if k == "f":  # the adjustment's focal is log(f / f_sfm): df = f dlog
