@@ -163,3 +163,23 @@ def quaternion_xyzw_from_matrix(R: np.ndarray) -> np.ndarray:
         q[k] = R[k, i] + R[i, k]
         q[3] = R[k, j] - R[j, k]
     return q / np.linalg.norm(q)
+
+
+def boxes_overlap(c1: np.ndarray, R1: np.ndarray, h1: np.ndarray, c2: np.ndarray, R2: np.ndarray, h2: np.ndarray,
+                  margin: float = 0.0) -> bool:
+    """Whether two oriented boxes overlap (the separating-axis test): centres ``c`` (3,), rotations ``R`` (3, 3)
+    box -> world, half extents ``h`` (3,), same units. ``margin`` > 0 counts boxes closer than it as overlapping;
+    ``margin`` < 0 only boxes that interpenetrate by more than ``-margin`` along every axis."""
+    axes = [R1[:, i] for i in range(3)] + [R2[:, i] for i in range(3)]
+    axes += [np.cross(R1[:, i], R2[:, j]) for i in range(3) for j in range(3)]
+    d = c2 - c1
+    for a in axes:
+        n = np.linalg.norm(a)
+        if n < 1e-9:
+            continue
+        a = a / n
+        r1 = np.sum(np.abs(R1.T @ a) * h1)
+        r2 = np.sum(np.abs(R2.T @ a) * h2)
+        if abs(d @ a) > r1 + r2 + margin:
+            return False
+    return True

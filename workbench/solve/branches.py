@@ -2,19 +2,24 @@
 
 A carriage whose pixels the chained solution does not fit (chi-square), or one with too few points for its fit
 to tell (:data:`FEW_POINTS`), is restarted from its other PnP branches (and, for the latter, from poses carried
-from its chain neighbours); the chained cost judges. ``docs/solver.md``, "A carriage on the wrong branch".
+from its chain neighbours); the chained cost judges. A carriage ``carried`` by its chain (too few points to be posed
+alone) is restarted from turns about its held couplings and from either side and its roof. Where a restart ends
+in another minimum that fits nearly as well (:data:`AMBIGUOUS_CHI2`), the carriage's pose is ambiguous: the
+stage marks it doubtful. ``docs/solver.md``, "A carriage on the wrong branch".
 """
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
 from scipy.special import gammaincinv  # the chi-square quantile as scipy.stats computes it, without its import
 
-from ..core.geometry import rotation_angle_deg
+from ..core.geometry import boxes_overlap, exp_so3, log_so3, rot_x, rot_z, rotation_angle_deg
 from .active_set import ChainedFit, ChainedProblem
+from .layout import ChainLayout, residuals_and_jacobian
 from .pnp import pnp_branches
 from .problem import Car, Poses, Problem
 from .terrain import rest_on_terrain
@@ -22,6 +27,19 @@ from .terrain import rest_on_terrain
 # A carriage with at most this many distinct points cannot show a wrong PnP branch in its own pixels (4 or 5
 # points fit P3P's other poses with a chi-square of 2 to 4 degrees of freedom): the chained cost judges them
 FEW_POINTS = 5
+
+# Another minimum of the chained cost is a rival to the solution when its chi-square is at most this much higher:
+# with equal prior odds its posterior probability is then at least 1 % (2 ln 99). A carriage with a rival 10 deg or
+# more away, beyond a ridge of the cost (not the same valley), is marked ambiguous.
+AMBIGUOUS_CHI2 = 2.0 * math.log(99.0)
+RIVAL_MIN_DEG = 10.0
+# a rival that puts the carriage's body this deep (m, along every axis) into another carriage's is no rival: two
+# bodies cannot share that much space (a telescoped car, one body driven into the next, is not covered)
+RIVAL_OVERLAP_M = 0.5
+# a carried carriage's starts about each held coupling: turned about the scene's up (a jack-knife), and rolled
+# about its own length onto either side or its roof
+COUPLER_TURNS_DEG = (-135.0, -90.0, -60.0, -30.0, 30.0, 60.0, 90.0, 135.0, 180.0)
+COUPLER_ROLLS_DEG = (-90.0, 90.0, 180.0)
 
 
 def car_chi2(prob: Problem, poses: Poses, sigma: float) -> dict[int, tuple[float, int]]:
@@ -66,6 +84,72 @@ def neighbour_poses(cars: list[Car], chains: list[list[int]], k: int, poses: Pos
     return out
 
 
+def coupler_starts(cars: list[Car], chains: list[list[int]], k: int, poses: Poses) -> list[tuple]:
+    """Starts of carriage ``k`` about each of its held couplings at ``poses``: its rotation turned about the scene's
+    up by :data:`COUPLER_TURNS_DEG` and rolled about its x axis by :data:`COUPLER_ROLLS_DEG`, its coupler kept on
+    the neighbour's. ``[(R (3, 3), t (3,), how)]``."""
+    R, t = poses.R, poses.t
+    joints = []  # (the coupling's point in the world, k's coupler in its frame, the neighbour's number)
+    for ch in chains:
+        if k not in ch or len(ch) < 2:
+            continue
+        j = ch.index(k)
+        if j > 0:
+            a = ch[j - 1]
+            joints.append((t[a] + R[a] @ cars[a].c_rear, cars[k].c_front, cars[a].number))
+        if j < len(ch) - 1:
+            b = ch[j + 1]
+            joints.append((t[b] + R[b] @ cars[b].c_front, cars[k].c_rear, cars[b].number))
+    out = []
+    for p, c, other in joints:
+        turns = [(rot_z(math.radians(a)) @ R[k], f"turned {a:+.0f} deg about its coupling with {other}")
+                 for a in COUPLER_TURNS_DEG]
+        rolls = [(R[k] @ rot_x(math.radians(a)), f"rolled {a:+.0f} deg at its coupling with {other}")
+                 for a in COUPLER_ROLLS_DEG]
+        out += [(Rk, p - Rk @ c, how) for Rk, how in turns + rolls]
+    return out
+
+
+def chi2_of(cp: ChainedProblem, poses: Poses) -> float:
+    """The chained problem's chi-square at ``poses``: its whitened pixel residuals (each row's own noise, at the
+    pixel sigma) and its terrain contact and coupler prior rows (in units of the pixel sigma), unweighted by the
+    per-carriage normalisation and without the robust loss."""
+    prob, sig = cp.prob, cp.options.pixel_sigma_px
+    lay = ChainLayout(cp.chains, True, [], cp.cars, poses, None, sig)
+    r, _ = residuals_and_jacobian(prob, lay, lay.x0, cp.contact, False)
+    m = 2 * len(prob.P)
+    noise = np.repeat(np.where(prob.w_noise > 0, prob.w_noise, 1.0), 2)
+    return float(np.sum((r[:m] / noise) ** 2) + np.sum(r[m:] ** 2)) / sig**2
+
+
+def body_inside(cp: ChainedProblem, poses: Poses, k: int, depth_m: float = RIVAL_OVERLAP_M) -> str | None:
+    """The number of a carriage whose body carriage ``k``'s body enters by more than ``depth_m`` at ``poses`` (each
+    body its type's first collision box), or None."""
+    def box(i):
+        c, h = cp.cars[i].ctype.collision_boxes()[0]
+        return poses.R[i] @ np.asarray(c, float) + poses.t[i], poses.R[i], np.asarray(h, float)
+
+    ck, Rk, hk = box(k)
+    for i in cp.prob.active:
+        if i != k and boxes_overlap(ck, Rk, hk, *box(i), margin=-depth_m):
+            return cp.cars[i].number
+    return None
+
+
+def _between(a: Poses, b: Poses, s: float) -> Poses:
+    """The poses a fraction ``s`` of the way from ``a`` to ``b`` (rotations along their geodesic)."""
+    R = np.stack([Ra @ exp_so3(s * log_so3(Ra.T @ Rb)) for Ra, Rb in zip(a.R, b.R)])
+    return Poses(R, (1.0 - s) * a.t + s * b.t, (1.0 - s) * a.f + s * b.f)
+
+
+def ridge_between(cp: ChainedProblem, a: Poses, b: Poses, n: int = 7) -> float:
+    """How far the chi-square rises between the minima ``a`` and ``b`` above the higher of the two, along the
+    straight path between them (``n`` inner points): 0 where the path stays in one valley."""
+    ends = max(chi2_of(cp, a), chi2_of(cp, b))
+    inner = max(chi2_of(cp, _between(a, b, s)) for s in np.linspace(0.0, 1.0, n + 2)[1:-1])
+    return max(inner - ends, 0.0)
+
+
 @dataclass
 class BranchRetry:
     """What :func:`retry_branches` found: the cheaper solution (None: none), evaluations spent, notes."""
@@ -75,6 +159,9 @@ class BranchRetry:
     notes: list[str] = field(default_factory=list)
     restarted: list[dict] = field(default_factory=list)  # {"car", "from"}: cars restarted from another start
     not_tried: list[str] = field(default_factory=list)  # cars the evaluation cap left untried
+    # {"car" (index), "number", "angle_deg", "shift_m", "delta_chi2", "ridge_chi2", "from", "world_from_carriage"}:
+    # a rival minimum
+    ambiguous: list[dict] = field(default_factory=list)
 
 
 @dataclass
@@ -86,14 +173,16 @@ class _Candidate:
     how: str
 
 
-def _cheapest_restart(cp: ChainedProblem, k: int, alts: list, sol: Poses, cost: float, terrain, nfev: int,
-                      max_nfev: int) -> tuple[_Candidate | None, int]:
+def _restarts(cp: ChainedProblem, k: int, alts: list, sol: Poses, cost: float, terrain, nfev: int,
+              max_nfev: int) -> tuple[_Candidate | None, list[_Candidate], int]:
     """Step 4 (capped at 40 evaluations) from ``sol`` with carriage ``k`` on each start of ``alts`` (rested on the
-    terrain when given); the cheapest if cheaper than ``cost``, and the evaluations spent so far."""
+    terrain when given): the cheapest if cheaper than ``cost`` (converged), every restart, and the evaluations
+    spent so far."""
     options = cp.options
     opt3 = replace(options, max_iterations=min(int(options.max_iterations), 40))
     best: _Candidate | None = None
     best_cost = cost
+    every = []
     for Rk, tk, how in alts:
         start = sol.copy()
         start.R[k], start.t[k] = Rk, tk
@@ -106,9 +195,10 @@ def _cheapest_restart(cp: ChainedProblem, k: int, alts: list, sol: Poses, cost: 
         fit = cp.solve(start, options=opt3)
         nfev += fit.nfev
         c2 = cp.cost(fit.poses)
+        every.append(_Candidate(fit, c2, Rk, start.t[k].copy(), how))
         if c2 < best_cost * (1.0 - 1e-9):
             best_cost = c2
-            best = _Candidate(fit, c2, Rk, start.t[k].copy(), how)
+            best = every[-1]
         if nfev >= max_nfev:
             break
     if best is not None and (not best.fit.ok or opt3.max_iterations < options.max_iterations):
@@ -116,8 +206,39 @@ def _cheapest_restart(cp: ChainedProblem, k: int, alts: list, sol: Poses, cost: 
         nfev += fit.nfev
         c2 = cp.cost(fit.poses)
         if c2 <= best.cost:
-            best.fit, best.cost = fit, c2
-    return best, nfev
+            best = _Candidate(fit, c2, best.R, best.t, best.how)
+    return best, every, nfev
+
+
+def _rival(cp: ChainedProblem, k: int, every: list[tuple[Poses, str]], sol: Poses, nfev: int,
+           max_tries: int = 3) -> tuple[dict | None, int]:
+    """Among the restarts ``every`` (``(poses, how)``) of carriage ``k``, the lowest chi-square one that ends :data:`RIVAL_MIN_DEG` or
+    more from ``sol``'s pose, converged, within :data:`AMBIGUOUS_CHI2` of ``sol`` and beyond a ridge of the cost
+    (one unit of chi-square or more: another valley, not the far end of the solution's own), its body not inside
+    another carriage's (:func:`body_inside`); None if none. At
+    most ``max_tries`` restarts are converged."""
+    chi_sol = chi2_of(cp, sol)
+    cands = sorted(((chi2_of(cp, P), P, how) for P, how in every
+                    if rotation_angle_deg(P.R[k], sol.R[k]) >= RIVAL_MIN_DEG), key=lambda x: x[0])
+    for chi, P, how in cands[:max_tries]:
+        if chi - chi_sol > 2.0 * AMBIGUOUS_CHI2:  # a capped fit: its minimum may be lower, but not by that much
+            break
+        fit = cp.solve(P)
+        nfev += fit.nfev
+        angle = rotation_angle_deg(fit.poses.R[k], sol.R[k])
+        d = chi2_of(cp, fit.poses) - chi_sol
+        if angle < RIVAL_MIN_DEG or d > AMBIGUOUS_CHI2 or body_inside(cp, fit.poses, k) is not None:
+            continue
+        ridge = ridge_between(cp, sol, fit.poses)
+        if ridge < 1.0:
+            continue
+        car = cp.cars[k]
+        shift = float(np.linalg.norm(fit.poses.R[k] @ car.c_body + fit.poses.t[k] - sol.R[k] @ car.c_body - sol.t[k]))
+        M = np.eye(4)
+        M[:3, :3], M[:3, 3] = fit.poses.R[k], fit.poses.t[k]
+        return {"car": k, "number": car.number, "angle_deg": angle, "shift_m": shift, "delta_chi2": d,
+                "ridge_chi2": ridge, "from": how, "world_from_carriage": M.tolist()}, nfev
+    return None, nfev
 
 
 def retry_branches(cp: ChainedProblem, solo: Sequence[int], start: Poses, sol: Poses, terrain=None,
@@ -127,39 +248,61 @@ def retry_branches(cp: ChainedProblem, solo: Sequence[int], start: Poses, sol: P
     the cheapest chained solution: the misfit carriages (worst first, at most ``max_cars``) from their other PnP
     branches (from ``start``), and with ``few_points`` every chained carriage with at most :data:`FEW_POINTS`
     points (fewest first) and every carriage of ``one_face`` (one-face carriages posed at an estimated focal,
-    chained or not: a plane's two PnP poses fit about equally) also from its neighbours' poses (from ``sol``).
-    No new start once ``max_nfev`` evaluations are spent."""
+    chained or not: a plane's two PnP poses fit about equally) also from its neighbours' poses (from ``sol``), and
+    every carried carriage (on its chain, not observable alone) from turns and rolls about its held couplings
+    (:func:`coupler_starts`), whose restart is kept only when its chi-square is lower by more than
+    :data:`AMBIGUOUS_CHI2` (the pose carried from its neighbour, the smaller jack-knife, stays where the data cannot
+    tell). A carriage of the latter two kinds whose restarts find a rival minimum (:func:`_rival`) is listed in
+    ``ambiguous``. No new start once ``max_nfev`` evaluations are spent."""
     cars, options = cp.cars, cp.options
     solo_set = set(solo)
-    chained = [k for ch in cp.chains.members if len(ch) > 1 for k in ch if k in solo_set]
+    in_chains = [k for ch in cp.chains.members if len(ch) > 1 for k in ch]
+    chained = [k for k in in_chains if k in solo_set]
     sig = options.pixel_sigma_px
     flagged = misfit_cars(cp.prob, sol, sig, chained)
     few = sorted((k for k in chained if len(cars[k].distinct) <= FEW_POINTS),
                  key=lambda k: len(cars[k].distinct)) if few_points else []
     few += [k for k in one_face if k in solo_set and k not in few]
-    if not flagged and not few:
+    carried = [k for k in in_chains if k not in solo_set and k in cp.prob.by_car] if few_points else []
+    if not flagged and not few and not carried:
         return BranchRetry()
     cost = cp.cost(sol)
     out = BranchRetry()
     tried: set[int] = set()
     n_flag_tried = 0
     start = Poses(start.R.copy(), start.t.copy(), start.f)
-    while out.nfev < max_nfev:
-        k = next((i for i in flagged if i not in tried), None) if n_flag_tried < max_cars else None
+    spent = 0  # the evaluations of the misfit and few-point carriages (capped); each carried one has its own cap
+    while True:
+        k = next((i for i in flagged if i not in tried), None) if n_flag_tried < max_cars and spent < max_nfev \
+            else None
         if k is not None:
             n_flag_tried += 1
-        else:
+        elif spent < max_nfev:
             k = next((i for i in few if i not in tried), None)
+        if k is None:
+            k = next((i for i in carried if i not in tried), None)
         if k is None:
             break
         tried.add(k)
-        alts = [(Rk, tk, "another PnP branch") for Rk, tk, _ in pnp_branches(cp.prob, cars, k, start, options)]
+        if k in carried:
+            alts = [(Rk, tk, "a pose carried from its neighbour")
+                    for Rk, tk in neighbour_poses(cars, cp.chains.members, k, sol)
+                    if rotation_angle_deg(Rk, sol.R[k]) >= 5.0]
+            alts += coupler_starts(cars, cp.chains.members, k, sol)
+        else:
+            alts = [(Rk, tk, "another PnP branch") for Rk, tk, _ in pnp_branches(cp.prob, cars, k, start, options)]
         if k in few:
             alts += [(Rk, tk, "a pose carried from its neighbour")
                      for Rk, tk in neighbour_poses(cars, cp.chains.members, k, sol)
                      if rotation_angle_deg(Rk, sol.R[k]) >= 5.0]
-        best, out.nfev = _cheapest_restart(cp, k, alts, sol, cost, terrain, out.nfev, max_nfev)
+        n0 = out.nfev
+        cap = n0 + max_nfev if k in carried else n0 + max(max_nfev - spent, 0)
+        best, every, out.nfev = _restarts(cp, k, alts, sol, cost, terrain, out.nfev, cap)
+        ends = [(c.fit.poses, c.how) for c in every]
+        if best is not None and k in carried and chi2_of(cp, best.fit.poses) > chi2_of(cp, sol) - AMBIGUOUS_CHI2:
+            best = None  # cheaper, but not by what tells two poses apart: the carried pose stays, the rival is named
         if best is not None:
+            ends.append((sol, "the solution before the restart"))
             out.restarted.append({"car": cars[k].number, "from": best.how})
             out.notes.append(f"car {cars[k].number} restarted from {best.how} "
                              f"({rotation_angle_deg(best.R, sol.R[k]):.0f} deg from the solution's): cost "
@@ -168,8 +311,14 @@ def retry_branches(cp: ChainedProblem, solo: Sequence[int], start: Poses, sol: P
             sol = best.fit.poses
             start.R[k], start.t[k] = best.R, best.t
             flagged = misfit_cars(cp.prob, sol, sig, chained)
+        if k in few or k in carried:
+            rival, out.nfev = _rival(cp, k, ends, sol, out.nfev)
+            if rival is not None:
+                out.ambiguous.append(rival)
+        if k not in carried:
+            spent += out.nfev - n0
     left = [i for i in (flagged[:max_cars] + few) if i not in tried]
-    if out.nfev >= max_nfev and left:
+    if spent >= max_nfev and left:
         out.not_tried = [cars[i].number for i in dict.fromkeys(left)]
         out.notes.append(f"branch check stopped after {out.nfev} evaluations (its cap): car(s) "
                          f"{', '.join(cars[i].number for i in dict.fromkeys(left))} not tried on other poses")

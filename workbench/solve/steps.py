@@ -316,6 +316,12 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
         fit = retry.fit
     if retry.notes:
         note += "; " + "; ".join(retry.notes)
+    for a in retry.ambiguous:
+        record_warning(s.warnings, s.cars[a["car"]], "ambiguous",
+                       f"car {a['number']}: another pose, {a['angle_deg']:.0f} deg and {a['shift_m']:.1f} m from the "
+                       f"solution's, fits its points about as well (chi-square {a['delta_chi2']:+.1f}; restarted "
+                       f"from {a['from']}): too few points tell them apart; its pose and its interval are doubtful "
+                       f"(a measured point on another face would settle it)")
     terrain_contact = s.contact.terrain_contact if isinstance(s.contact, SoftRows) else s.contact
     note += (f"; soft terrain contact (sigma_z = {options.terrain_sigma_m} m; {len(wheels)} car(s) on all their "
              f"wheels: their wheels' mean clearance ({len(level) - len(dropped)} of them level to within their "
@@ -331,6 +337,7 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
                              nfev, fit.message, time.perf_counter() - t4, s.changes(fit3.poses, fit.poses),
                              {"active_set_rounds": fit.rounds, "links_at_slack": fit.n_active,
                               "restarted": retry.restarted, "branch_check_not_tried": retry.not_tried,
+                              "ambiguous": [{k: v for k, v in a.items() if k != "car"} for a in retry.ambiguous],
                               "terrain_contact": terrain_contact is not None,
                               "contact_on_wheels": [s.cars[k].number for k in sorted(wheels)],
                               "contact_level": [s.cars[k].number for k in sorted(set(level) - set(dropped))],

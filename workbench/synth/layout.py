@@ -15,6 +15,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..core.frames import Rigid, hpr_from_rotation, rotation_from_hpr
+from ..core.geometry import boxes_overlap
 
 log = logging.getLogger(__name__)
 
@@ -49,23 +50,6 @@ class PlacedCar:
 
 
 # ---------------------------------------------------------------------------------------------------
-def _obb_overlap(c1, R1, h1, c2, R2, h2, margin: float = 0.0) -> bool:
-    """Separating-axis test of two oriented boxes (centre (3,), rotation (3,3) box->world, half extents (3,))."""
-    axes = [R1[:, i] for i in range(3)] + [R2[:, i] for i in range(3)]
-    axes += [np.cross(R1[:, i], R2[:, j]) for i in range(3) for j in range(3)]
-    d = c2 - c1
-    for a in axes:
-        n = np.linalg.norm(a)
-        if n < 1e-9:
-            continue
-        a = a / n
-        r1 = np.sum(np.abs(R1.T @ a) * h1)
-        r2 = np.sum(np.abs(R2.T @ a) * h2)
-        if abs(d @ a) > r1 + r2 + margin:
-            return False
-    return True
-
-
 def _world_boxes(car_type, pose: Rigid):
     out = []
     for centre, half in car_type.collision_boxes():
@@ -76,7 +60,7 @@ def _world_boxes(car_type, pose: Rigid):
 def cars_overlap(a: PlacedCar, b: PlacedCar, margin: float = 0.02) -> bool:
     for c1, R1, h1 in _world_boxes(a.ctype, a.world_from_carriage):
         for c2, R2, h2 in _world_boxes(b.ctype, b.world_from_carriage):
-            if _obb_overlap(c1, R1, h1, c2, R2, h2, margin):
+            if boxes_overlap(c1, R1, h1, c2, R2, h2, margin):
                 return True
     return False
 
