@@ -28,8 +28,8 @@ CALIBRATION = {
                  "another) they held the truth in 93.5-96.2 % of cases per axis (418 carriages): calibrated. With "
                  "pycolmap's own models (52 incidents, the SfM model's poses and intrinsics carried together) they "
                  "held it in 91.3-98.1 % of cases per axis (309 carriages; RMS of error / sigma 0.86-1.20, heading "
-                 "a little narrow); a carriage carried by the chain on 2 measured points was 7-10 m off on a "
-                 "wrong branch in one incident, unmarked.",
+                 "a little narrow); a carriage carried by the chain on 2 measured points that another pose fits "
+                 "about as well is marked doubtful (every gross failure there was marked).",
 }
 
 

@@ -385,8 +385,9 @@ def findings(project: Project, solution: dict) -> list[str]:
     if doubtful:
         its = 'its' if len(doubtful) == 1 else 'their'
         out.append(f"Doubtful: car {', '.join(map(str, doubtful))}: {its} marked points do not settle {its} pose "
-                   f"(the solution does not fit them, or they disagree with the pose of the face they were matched "
-                   f"on: a wrong pose branch or mismatched points), so the pose and its interval may be far off; "
+                   f"(the solution does not fit them, they disagree with the pose of the face they were matched on, "
+                   f"or another pose fits them about as well: a wrong pose branch or mismatched points), so the pose "
+                   f"and its interval may be far off; "
                    f"check the points before acting on it (marked ‡ in section 2).")
     carried = [c["number"] for c in cars if c.get("status") == "carried"]
     if carried:

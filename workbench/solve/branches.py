@@ -216,13 +216,17 @@ def _rival(cp: ChainedProblem, k: int, every: list[tuple[Poses, str]], sol: Pose
     more from ``sol``'s pose, converged, within :data:`AMBIGUOUS_CHI2` of ``sol`` and beyond a ridge of the cost
     (one unit of chi-square or more: another valley, not the far end of the solution's own), its body not inside
     another carriage's (:func:`body_inside`); None if none. At
-    most ``max_tries`` restarts are converged."""
+    most ``max_tries`` restarts are converged, each ending elsewhere than the others and outside other bodies."""
     chi_sol = chi2_of(cp, sol)
     cands = sorted(((chi2_of(cp, P), P, how) for P, how in every
                     if rotation_angle_deg(P.R[k], sol.R[k]) >= RIVAL_MIN_DEG), key=lambda x: x[0])
-    for chi, P, how in cands[:max_tries]:
-        if chi - chi_sol > 2.0 * AMBIGUOUS_CHI2:  # a capped fit: its minimum may be lower, but not by that much
-            break
+    seen: list[np.ndarray] = []
+    for chi, P, how in cands:
+        if chi - chi_sol > 2.0 * AMBIGUOUS_CHI2 or len(seen) >= max_tries:  # capped fits: their minima may be
+            break  # lower, but not by that much
+        if body_inside(cp, P, k) is not None or any(rotation_angle_deg(P.R[k], R) < RIVAL_MIN_DEG for R in seen):
+            continue  # folded into another carriage, or a restart that ended where one already examined did
+        seen.append(P.R[k])
         fit = cp.solve(P)
         nfev += fit.nfev
         angle = rotation_angle_deg(fit.poses.R[k], sol.R[k])
@@ -271,7 +275,7 @@ def retry_branches(cp: ChainedProblem, solo: Sequence[int], start: Poses, sol: P
     tried: set[int] = set()
     n_flag_tried = 0
     start = Poses(start.R.copy(), start.t.copy(), start.f)
-    spent = 0  # the evaluations of the misfit and few-point carriages (capped); each carried one has its own cap
+    spent = 0  # the evaluations of the misfit and few-point carriages (capped); a carried one runs all its starts
     while True:
         k = next((i for i in flagged if i not in tried), None) if n_flag_tried < max_cars and spent < max_nfev \
             else None
@@ -296,7 +300,8 @@ def retry_branches(cp: ChainedProblem, solo: Sequence[int], start: Poses, sol: P
                      for Rk, tk in neighbour_poses(cars, cp.chains.members, k, sol)
                      if rotation_angle_deg(Rk, sol.R[k]) >= 5.0]
         n0 = out.nfev
-        cap = n0 + max_nfev if k in carried else n0 + max(max_nfev - spent, 0)
+        # a carried carriage's starts all run (each capped at 40 evaluations): its rivals are what they find
+        cap = n0 + max(max_nfev, 40 * len(alts)) if k in carried else n0 + max(max_nfev - spent, 0)
         best, every, out.nfev = _restarts(cp, k, alts, sol, cost, terrain, out.nfev, cap)
         ends = [(c.fit.poses, c.how) for c in every]
         if best is not None and k in carried and chi2_of(cp, best.fit.poses) > chi2_of(cp, sol) - AMBIGUOUS_CHI2:
