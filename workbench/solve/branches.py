@@ -66,9 +66,9 @@ def misfit_cars(prob: Problem, poses: Poses, sigma: float, cands: Sequence[int],
     return sorted(out, key=lambda k: -c2[k][0] / c2[k][1])
 
 
-def neighbour_poses(cars: list[Car], chains: list[list[int]], k: int, poses: Poses):
-    """Poses of carriage ``k`` carried from each chain neighbour over the held coupling: the neighbour's rotation
-    (the jack-knife angle is what is lost) and the coupler on the neighbour's."""
+def held_couplings(cars: list[Car], chains: list[list[int]], k: int, poses: Poses) -> list[tuple]:
+    """Carriage ``k``'s held couplings at ``poses``: ``(neighbour index, the coupling's point in the world (3,),
+    k's coupler there in its own frame (3,))`` for each chain neighbour, front then rear."""
     R, t = poses.R, poses.t
     out = []
     for ch in chains:
@@ -77,35 +77,31 @@ def neighbour_poses(cars: list[Car], chains: list[list[int]], k: int, poses: Pos
         j = ch.index(k)
         if j > 0:
             a = ch[j - 1]
-            out.append((R[a].copy(), t[a] + R[a] @ cars[a].c_rear - R[a] @ cars[k].c_front))
+            out.append((a, t[a] + R[a] @ cars[a].c_rear, cars[k].c_front))
         if j < len(ch) - 1:
             b = ch[j + 1]
-            out.append((R[b].copy(), t[b] + R[b] @ cars[b].c_front - R[b] @ cars[k].c_rear))
+            out.append((b, t[b] + R[b] @ cars[b].c_front, cars[k].c_rear))
     return out
+
+
+def neighbour_poses(cars: list[Car], chains: list[list[int]], k: int, poses: Poses):
+    """Poses of carriage ``k`` carried from each chain neighbour over the held coupling: the neighbour's rotation
+    (the jack-knife angle is what is lost) and the coupler on the neighbour's."""
+    return [(poses.R[a].copy(), p - poses.R[a] @ c) for a, p, c in held_couplings(cars, chains, k, poses)]
 
 
 def coupler_starts(cars: list[Car], chains: list[list[int]], k: int, poses: Poses) -> list[tuple]:
     """Starts of carriage ``k`` about each of its held couplings at ``poses``: its rotation turned about the scene's
     up by :data:`COUPLER_TURNS_DEG` and rolled about its x axis by :data:`COUPLER_ROLLS_DEG`, its coupler kept on
     the neighbour's. ``[(R (3, 3), t (3,), how)]``."""
-    R, t = poses.R, poses.t
-    joints = []  # (the coupling's point in the world, k's coupler in its frame, the neighbour's number)
-    for ch in chains:
-        if k not in ch or len(ch) < 2:
-            continue
-        j = ch.index(k)
-        if j > 0:
-            a = ch[j - 1]
-            joints.append((t[a] + R[a] @ cars[a].c_rear, cars[k].c_front, cars[a].number))
-        if j < len(ch) - 1:
-            b = ch[j + 1]
-            joints.append((t[b] + R[b] @ cars[b].c_front, cars[k].c_rear, cars[b].number))
+    Rk0 = poses.R[k]
     out = []
-    for p, c, other in joints:
-        turns = [(rot_z(math.radians(a)) @ R[k], f"turned {a:+.0f} deg about its coupling with {other}")
-                 for a in COUPLER_TURNS_DEG]
-        rolls = [(R[k] @ rot_x(math.radians(a)), f"rolled {a:+.0f} deg at its coupling with {other}")
-                 for a in COUPLER_ROLLS_DEG]
+    for a, p, c in held_couplings(cars, chains, k, poses):
+        other = cars[a].number
+        turns = [(rot_z(math.radians(d)) @ Rk0, f"turned {d:+.0f} deg about its coupling with {other}")
+                 for d in COUPLER_TURNS_DEG]
+        rolls = [(Rk0 @ rot_x(math.radians(d)), f"rolled {d:+.0f} deg at its coupling with {other}")
+                 for d in COUPLER_ROLLS_DEG]
         out += [(Rk, p - Rk @ c, how) for Rk, how in turns + rolls]
     return out
 
