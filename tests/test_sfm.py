@@ -369,6 +369,23 @@ def test_pose_covariance_against_a_monte_carlo_of_bundle_adjustment():
     assert np.abs(G.T @ (W[:, None] * (L @ L.T))).max() < 1e-9 * np.abs(L @ L.T).max()
 
 
+def test_pose_covariance_refuses_poses_its_observations_do_not_fix():
+    """A degenerate model (here a focal run off to 1e160 px, as a two-view model's did to 41 000 px in a generated
+    incident) gave a covariance of NaNs, whose statistics then failed the sfm stage's JSON write
+    (reconstruction.json: 'Out of range float values'); it is refused with a ValueError, which the stage logs and
+    writes no pose factor for."""
+    import warnings
+
+    from workbench.intrinsics.sfm_covariance import pose_covariance
+
+    intr, M, X, img, pt, uv0 = _ba_problem(4)
+    names = [f"v{i}" for i in range(len(M))]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        with pytest.raises(ValueError, match="do not fix their poses"):
+            pose_covariance(names, M, np.zeros(len(M), int), [intr.with_focal(1e160)], img, pt, uv0, X, ["f"])
+
+
 def test_sfm_states_each_models_pose_covariance(sfm_result, mv_set):
     """The rendered set's SfM poses: each view's pose_factor (6 x r, r = 6 N - 7: the full rank but the gauge)
     written to reconstruction.json and read back; its centres' errors after the centres' similarity against the

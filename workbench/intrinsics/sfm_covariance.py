@@ -198,6 +198,8 @@ def pose_covariance(names: list[str], cam_from_model: np.ndarray, camera_index: 
     P = np.eye(D) - G @ np.linalg.solve(G.T @ (W[:, None] * G), (G * W[:, None]).T)
     C = P @ X_g @ P.T
     C = 0.5 * (C + C.T)
+    if not np.all(np.isfinite(C)):  # a degenerate model (e.g. two views and a focal run off): no covariance to state
+        raise ValueError(f"the {n_img} views' observations do not fix their poses (the covariance is not finite)")
     Cp = C[:6 * n_img, :6 * n_img]
     # the factor of the poses and the intrinsics together (the intrinsics rows scaled to be comparable with the
     # poses' for the truncation, then scaled back): L L^T = C up to the directions left out
