@@ -31,13 +31,15 @@ from ..core.camera import CameraIntrinsics
 from ..core.options import Range, check_options
 from ..core.settings import options_from_dict
 from ..errors import InputError, StageError
+from .colmap_camera import CAMERA_MODELS, CameraModel, colmap_params_from_intrinsics, intrinsics_from_colmap
 from .sfm_covariance import intrinsic_parameters, reconstruction_pose_covariance
 
 log = logging.getLogger(__name__)
 
-CameraModel = Literal["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"]
+__all__ = ["CAMERA_MODELS", "CameraModel", "SfmOptions", "SfmResult", "colmap_params_from_intrinsics",
+           "intrinsics_from_colmap", "run_sfm", "similarity_align"]
+
 Matcher = Literal["auto", "exhaustive", "sequential"]
-CAMERA_MODELS = get_args(CameraModel)
 MATCHERS = get_args(Matcher)
 
 
@@ -79,6 +81,11 @@ class SfmOptions:
     ``pose_factor``, :mod:`.sfm_covariance`), which the georef stage carries into the photos' pose uncertainty;
     ``pose_covariance_intrinsics``: with the error of the intrinsics bundle adjustment refined marginalised into it
     (else the poses' covariance given the intrinsics).
+    ``focal_hold_retry``: where the refined focal runs off the initial one (a profile or EXIF) by a factor over
+    :data:`FOCAL_RUN_OFF` (narrow baselines and few photos leave a model whose focal they do not determine), map
+    again with the focal held at the initial one and keep that model if it registers more photos, or as many at
+    a mean reprojection error within :data:`HELD_ERROR_RATIO` of the free one's (a wrong initial focal registers
+    fewer photos or fits them worse, and the free model stays).
     """
 
     camera_model: CameraModel = "RADIAL"
@@ -108,6 +115,7 @@ class SfmOptions:
     max_points: Annotated[int, Range(ge=0)] = 20000
     pose_covariance: bool = True
     pose_covariance_intrinsics: bool = True
+    focal_hold_retry: bool = True
 
     def __post_init__(self) -> None:
         check_options(self, "sfm options")
@@ -134,55 +142,6 @@ class SfmOptions:
         stay: lowering them lets look-alike matches place photos wrongly)."""
         return replace(self, init_max_forward_motion=1.0, init_min_tri_angle_deg=min(self.init_min_tri_angle_deg, 4.0),
                        init_min_num_inliers=min(self.init_min_num_inliers, 50), refine_distortion=False)
-
-
-# --------------------------------------------------------------------------------------------------------
-# camera conversions (COLMAP <-> our Brown model)
-# --------------------------------------------------------------------------------------------------------
-def intrinsics_from_colmap(model: str, width: int, height: int, params) -> CameraIntrinsics:
-    """Our :class:`CameraIntrinsics` of a COLMAP camera (exact for the models of :data:`CAMERA_MODELS`).
-
-    COLMAP's principal point is 0.5 px larger than ours (its top-left pixel centre is at (0.5, 0.5)).
-    """
-    p = [float(x) for x in params]
-    if model == "SIMPLE_PINHOLE":
-        f, cx, cy = p
-        d = dict(fx=f, fy=f, cx=cx, cy=cy)
-    elif model == "PINHOLE":
-        fx, fy, cx, cy = p
-        d = dict(fx=fx, fy=fy, cx=cx, cy=cy)
-    elif model == "SIMPLE_RADIAL":
-        f, cx, cy, k = p
-        d = dict(fx=f, fy=f, cx=cx, cy=cy, k1=k)
-    elif model == "RADIAL":
-        f, cx, cy, k1, k2 = p
-        d = dict(fx=f, fy=f, cx=cx, cy=cy, k1=k1, k2=k2)
-    elif model == "OPENCV":
-        fx, fy, cx, cy, k1, k2, p1, p2 = p
-        d = dict(fx=fx, fy=fy, cx=cx, cy=cy, k1=k1, k2=k2, p1=p1, p2=p2)
-    else:
-        raise ValueError(f"COLMAP camera model {model!r} has no exact Brown equivalent; use one of {CAMERA_MODELS}")
-    d["cx"] -= 0.5
-    d["cy"] -= 0.5
-    return CameraIntrinsics(width=int(width), height=int(height), **d)
-
-
-def colmap_params_from_intrinsics(model: str, intr: CameraIntrinsics) -> tuple[list[float], list[str]]:
-    """COLMAP ``params`` of ``model`` for our intrinsics, and the terms the model cannot hold (dropped)."""
-    cx, cy = intr.cx + 0.5, intr.cy + 0.5
-    f = 0.5 * (intr.fx + intr.fy)
-    dropped = []
-    if intr.skew != 0.0:
-        dropped.append("skew")
-    if model in ("SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL") and intr.fx != intr.fy:
-        dropped.append("fx != fy")
-    names = {"SIMPLE_PINHOLE": ("k1", "k2", "k3", "p1", "p2"), "PINHOLE": ("k1", "k2", "k3", "p1", "p2"),
-             "SIMPLE_RADIAL": ("k2", "k3", "p1", "p2"), "RADIAL": ("k3", "p1", "p2"), "OPENCV": ("k3",)}[model]
-    dropped += [n for n in names if getattr(intr, n) != 0.0]
-    params = {"SIMPLE_PINHOLE": [f, cx, cy], "PINHOLE": [intr.fx, intr.fy, cx, cy],
-              "SIMPLE_RADIAL": [f, cx, cy, intr.k1], "RADIAL": [f, cx, cy, intr.k1, intr.k2],
-              "OPENCV": [intr.fx, intr.fy, cx, cy, intr.k1, intr.k2, intr.p1, intr.p2]}[model]
-    return [float(x) for x in params], dropped
 
 
 def similarity_align(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
@@ -434,6 +393,49 @@ def _match_features(db: Path, matcher: str, opts: SfmOptions) -> None:
                                   verification_options=verification, device=pycolmap.Device.cpu)
 
 
+# the refined focal this many times the initial one, or less than its inverse: a model the photos may not determine
+FOCAL_RUN_OFF = 1.5
+# the model mapped with the focal held is kept at as many photos registered when its mean reprojection error is at
+# most this many times the free model's
+HELD_ERROR_RATIO = 2.0  # wrong initial focals (0.55-0.65 times, test set): 2.6-3.2; a run-off one (seed 967): 1.45
+
+
+def _main_focal(rec) -> float:
+    """The focal (px) of the camera of a model's first registered image."""
+    c = rec.camera(rec.image(next(iter(rec.reg_image_ids()))).camera_id)
+    return float(intrinsics_from_colmap(c.model.name, c.width, c.height, c.params).fx)
+
+
+def _map_focal_held(db: Path, image_dir: Path, tmp: Path, opts: SfmOptions, rec, f_initial: float,
+                    progress: Callable[[float, str], None], warnings: list[str]) -> tuple | None:
+    """Where ``rec``'s refined focal ran off ``f_initial`` (:data:`FOCAL_RUN_OFF`): the model mapped again with
+    the focal held at the initial one, if kept (``SfmOptions.focal_hold_retry``): (main model, other models, the
+    options, a record of the check); ``(None, None, None, record)`` where the held model is not kept; None where the
+    focal did not run off."""
+    f_free = _main_focal(rec)
+    if max(f_free / f_initial, f_initial / f_free) <= FOCAL_RUN_OFF:
+        return None
+    held = replace(opts, refine_focal=False)
+    log.info("sfm: the focal ran off to %.0f px from %.0f px; mapping again with it held", f_free, f_initial)
+    progress(0.85, "incremental mapping (the focal held at the initial one)")
+    rec2, others2 = _map(db, image_dir, tmp / "sparse_held", held, False)
+    n_free, e_free = rec.num_reg_images(), float(rec.compute_mean_reprojection_error())
+    n2 = rec2.num_reg_images() if rec2 is not None else 0
+    e2 = float(rec2.compute_mean_reprojection_error()) if n2 else float("inf")
+    kept = n2 >= 2 and (n2 > n_free or (n2 == n_free and e2 <= HELD_ERROR_RATIO * e_free))
+    record = {"focal_free_px": f_free, "focal_initial_px": f_initial, "n_registered_free": n_free,
+              "n_registered_held": n2, "mean_reprojection_error_free_px": e_free,
+              "mean_reprojection_error_held_px": e2 if n2 else None, "kept": bool(kept)}
+    if kept:
+        warnings.append(f"the SfM focal ran off to {f_free:.0f} px from the initial {f_initial:.0f} px (a model its "
+                        f"photos do not determine: narrow baselines, few photos); mapped again with the focal held at "
+                        f"{f_initial:.0f} px: {n2} photos registered (free: {n_free}), mean reprojection error "
+                        f"{e2:.2f} px (free: {e_free:.2f} px). The poses' covariance is given that focal: its own "
+                        f"error is not in it")
+        return rec2, others2, held, record
+    return None, None, None, record
+
+
 def _map_or_retry(db: Path, image_dir: Path, tmp: Path, opts: SfmOptions, prior_fixed: bool, n_images: int,
                   progress: Callable[[float, str], None], warnings: list[str]):
     """Incremental mapping; again with the forward-motion thresholds if fewer than half the photos register
@@ -513,10 +515,18 @@ def run_sfm(images: list[Path], *, options: SfmOptions | None = None, prior: Cam
             raise StageError(f"structure from motion built no model from the {len(names)} photos in {image_dir}: "
                              f"too few matches between them. Take photos with more overlap (each part of the "
                              f"scene in 3 or more photos, 60-80 % overlap), or use another camera.source")
+        focal_check = None
+        if opts.focal_hold_retry and prior_used is not None and not prior_fixed and used_opts.refine_focal:
+            held = _map_focal_held(db, image_dir, tmp, used_opts, rec, prior_used.fx, progress, warnings)
+            if held is not None:
+                focal_check = held[3]
+                if held[0] is not None:
+                    rec, others, used_opts = held[0], held[1], held[2]
+            timings["mapping_s"] = time.perf_counter() - t0
         result = _convert(rec, others, db, images, used_opts, prior_fixed)
 
     n_reg = len(result.views)
-    if prior_used is not None and not prior_fixed:
+    if prior_used is not None and not prior_fixed and used_opts.refine_focal:
         f_sfm = result.views[0].intrinsics.fx
         change = f_sfm / prior_used.fx - 1
         if abs(change) > 0.15:
@@ -529,6 +539,7 @@ def run_sfm(images: list[Path], *, options: SfmOptions | None = None, prior: Cam
         "options": asdict(used_opts), "timings_s": {k: round(v, 3) for k, v in timings.items()},
         "time_s": round(sum(timings.values()), 3),
         "prior": None if prior_used is None else {**prior_used.to_dict(), "fixed": bool(prior_fixed)},
+        "focal_held": focal_check,
         "warnings": warnings,
     })
     log.info("sfm: %d/%d photos registered, %d points, mean reprojection error %.2f px, f = %.1f px",
