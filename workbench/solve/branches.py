@@ -172,8 +172,8 @@ class _Candidate:
 def _restarts(cp: ChainedProblem, k: int, alts: list, sol: Poses, cost: float, terrain, nfev: int,
               max_nfev: int) -> tuple[_Candidate | None, list[_Candidate], int]:
     """Step 4 (capped at 40 evaluations) from ``sol`` with carriage ``k`` on each start of ``alts`` (rested on the
-    terrain when given): the cheapest if cheaper than ``cost`` (converged), every restart, and the evaluations
-    spent so far."""
+    terrain when given): the cheapest if cheaper than ``cost`` (converged) and its body not inside another
+    carriage's (:func:`body_inside`), every restart, and the evaluations spent so far."""
     options = cp.options
     opt3 = replace(options, max_iterations=min(int(options.max_iterations), 40))
     best: _Candidate | None = None
@@ -192,7 +192,7 @@ def _restarts(cp: ChainedProblem, k: int, alts: list, sol: Poses, cost: float, t
         nfev += fit.nfev
         c2 = cp.cost(fit.poses)
         every.append(_Candidate(fit, c2, Rk, start.t[k].copy(), how))
-        if c2 < best_cost * (1.0 - 1e-9):
+        if c2 < best_cost * (1.0 - 1e-9) and body_inside(cp, fit.poses, k) is None:  # not folded into another
             best_cost = c2
             best = every[-1]
         if nfev >= max_nfev:
@@ -201,18 +201,19 @@ def _restarts(cp: ChainedProblem, k: int, alts: list, sol: Poses, cost: float, t
         fit = cp.solve(best.fit.poses)  # the cheapest, converged
         nfev += fit.nfev
         c2 = cp.cost(fit.poses)
-        if c2 <= best.cost:
+        if c2 <= best.cost and body_inside(cp, fit.poses, k) is None:
             best = _Candidate(fit, c2, best.R, best.t, best.how)
     return best, every, nfev
 
 
 def _rival(cp: ChainedProblem, k: int, every: list[tuple[Poses, str]], sol: Poses, nfev: int,
            max_tries: int = 3) -> tuple[dict | None, int]:
-    """Among the restarts ``every`` (``(poses, how)``) of carriage ``k``, the lowest chi-square one that ends :data:`RIVAL_MIN_DEG` or
-    more from ``sol``'s pose, converged, within :data:`AMBIGUOUS_CHI2` of ``sol`` and beyond a ridge of the cost
-    (one unit of chi-square or more: another valley, not the far end of the solution's own), its body not inside
-    another carriage's (:func:`body_inside`); None if none. At
-    most ``max_tries`` restarts are converged, each ending elsewhere than the others and outside other bodies."""
+    """Among the restarts ``every`` (``(poses, how)``) of carriage ``k``, the lowest chi-square one that ends
+    :data:`RIVAL_MIN_DEG` or more from ``sol``'s pose, converged, at most :data:`AMBIGUOUS_CHI2` above ``sol``'s
+    chi-square (or below it: a carried carriage's restart better by less than that is not taken),
+    beyond a ridge of the cost (one unit of chi-square or more: another valley, not the far end of the solution's
+    own), its body not inside another carriage's (:func:`body_inside`); None if none. At most ``max_tries``
+    restarts are converged, each ending elsewhere than the others and outside other bodies."""
     chi_sol = chi2_of(cp, sol)
     cands = sorted(((chi2_of(cp, P), P, how) for P, how in every
                     if rotation_angle_deg(P.R[k], sol.R[k]) >= RIVAL_MIN_DEG), key=lambda x: x[0])
