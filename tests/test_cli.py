@@ -278,6 +278,70 @@ def test_help_and_status_load_no_stage_code(tmp_path):
         assert "HEAVY []" in r.stdout, (args, r.stdout[-500:], r.stderr[-2000:])
 
 
+def test_stage_commands_start_early_work_only_through_the_runner(tmp_path, monkeypatch):
+    """A stage command's early work (the panorama's descriptions on threads) is started by a ``Runner.run``, which
+    forks what it forks first: never by the CLI before the runner's forks (threads only after forks). With
+    ``--force`` on a done stage, by the stage's own step (the runner passes a done stage's by unless forced)."""
+    from types import SimpleNamespace
+
+    from workbench import cli
+
+    names = ["inputs", "terrain", "stitch", "correspond", "solve"]
+
+    class Runner:
+        stages = [SimpleNamespace(name=n) for n in names]
+
+        def __init__(self, done):
+            self.done, self.runs = done, []
+
+        def status(self):
+            return [SimpleNamespace(name=n, status="done" if n in self.done else "not run", record=None, reason="")
+                    for n in names]
+
+        def prefetch(self, *a, **k):
+            raise AssertionError("early work started outside a run, before its forks")
+
+        def run(self, **kw):
+            self.runs.append((kw["prefetch"], kw.get("only"), kw.get("until"), kw.get("force", False)))
+            return self.status()
+
+    forced = [{"until": "terrain"}, {"only": ["stitch"], "force": True}]
+    plain = [{"until": "terrain"}, {"only": ["stitch"], "force": False}]
+    for steps, done, expect in (
+            (forced, {"inputs", "stitch"}, [["inputs", "terrain"], ["stitch"]]),  # stitched: its own step
+            (forced, {"inputs"}, [["inputs", "terrain", "stitch"], False]),  # not yet: with the first, as unforced
+            (plain, {"inputs", "stitch"}, [["inputs", "terrain", "stitch"], False]),
+            ([{"force": True}], set(names), [None])):  # `workbench run --force`: one step, every stage's
+        runner = Runner(done)
+        monkeypatch.setattr(cli, "_runner", lambda path, jobs=None, r=runner: (SimpleNamespace(root=tmp_path), r))
+        cli._execute(tmp_path, steps=[dict(st) for st in steps])
+        assert [p for p, *_ in runner.runs] == expect, (steps, done, runner.runs)
+        assert [(o, u, f) for _, o, u, f in runner.runs] == [(st.get("only"), st.get("until"), st.get("force", False))
+                                                            for st in steps]
+
+
+def test_the_stitch_head_start_only_for_a_stitch_to_do(tmp_path, monkeypatch):
+    """`workbench [-v] stitch PATH [--force]` starts describing the photos before it parses its arguments
+    (cli._head_start): for exactly that command line, and not where the stitch is recorded done unless forced."""
+    from workbench import cli
+    from workbench.stitch import stage
+
+    root = tmp_path / "inc"
+    assert wb("init", root).returncode == 0
+    started = []
+    monkeypatch.setattr(stage, "head_start", lambda project: started.append(project.root) or True)
+    cases = [(["stitch", str(root)], True), (["-v", "stitch", str(root), "--force"], True),
+             (["--verbose", "stitch", "--force", str(root)], True), (["stitch"], False),
+             (["stitch", str(root), "--help"], False), (["stitch", str(root), str(root)], False),
+             (["run", str(root)], False), (["correspond", str(root)], False), (["stitch", str(tmp_path / "no")], False)]
+    for force_only in (False, True):
+        for args, expect in cases:
+            started.clear()
+            cli._head_start(args)
+            assert started == ([root.resolve()] if expect and (not force_only or "--force" in args) else []), args
+        (root / "out" / "state.json").write_text(json.dumps({"stitch": {"status": "done"}}))  # recorded done
+
+
 def test_a_library_warning_is_one_line(tmp_path):
     """A WorkbenchWarning reaches the user once, as one line (no Python source line), even when the library also
     logs it."""

@@ -480,6 +480,20 @@ def test_cli_runs_the_stitch_stage(sample_small, tmp_path):
     assert set(state["stitch"]["outputs"]) >= {"panorama_image", "panorama_model", "stats"}
     model = PanoramaModel.from_dict(json.loads((root / "out" / "stitch" / "panorama.json").read_text()))
     assert len(model.sources) == len(sample_small["paths"])
+    # `workbench stitch`: no head start where the stitch is done (the stage is skipped); forced, the photos are
+    # described from the process's start (cli._head_start), the runner's prefetch leaves them be, and the stage
+    # takes them: the same panorama to the byte
+    first = {f: (root / "out" / "stitch" / f).read_bytes() for f in ("panorama.jpg", "panorama.json")}
+    toml = root / "project.toml"  # (no terrain: the copy does not have the sample's DEM)
+    toml.write_text(re.sub(r'(?m)^dem = .*$', "", toml.read_text()))
+    r = subprocess.run([str(exe), "-v", "stitch", str(root)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and "stitch: up to date, skipped" in r.stderr, r.stdout + r.stderr
+    assert "described" not in r.stderr, r.stderr
+    r = subprocess.run([str(exe), "-v", "stitch", str(root), "--force"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "being described already (the command's head start)" in r.stderr, r.stderr
+    assert "photos described ahead of the stage" in r.stderr, r.stderr
+    assert {f: (root / "out" / "stitch" / f).read_bytes() for f in first} == first
 
 
 def test_minpack_called_as_scipy_calls_it():
