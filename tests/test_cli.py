@@ -175,8 +175,9 @@ def test_collection_paused_while_a_command_starts_and_resumed(tmp_path):
             "print('PAUSED', paused, 'CHILD', child, 'RESUMED', gc.isenabled(), gc.get_freeze_count() > 0)\n")
     r = subprocess.run([sys.executable, "-c", fork], capture_output=True, text=True, timeout=120)
     assert "PAUSED True CHILD 0 RESUMED True True" in r.stdout, (r.stdout, r.stderr[-2000:])
-    code = ("import gc, sys\nfrom workbench.cli import main\nsys.argv = ['workbench', *sys.argv[1:]]\n"
-            "try:\n    main()\nexcept SystemExit:\n    pass\nprint('COLLECTING', gc.isenabled())\n")
+    # (the process's own command ends the process: the check runs among its exit handlers)
+    code = ("import atexit, gc, sys\nfrom workbench.cli import main\nsys.argv = ['workbench', *sys.argv[1:]]\n"
+            "atexit.register(lambda: print('COLLECTING', gc.isenabled()))\nmain()\n")
     for args in (["types"], ["run", str(root), *FIRST]):
         r = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=300)
         assert "COLLECTING True" in r.stdout, (args, r.stdout[-500:], r.stderr[-2000:])
@@ -189,7 +190,7 @@ def test_pydantic_plugins_looked_for_only_when_the_user_says(tmp_path):
     code = ("import sys\nimport pydantic.plugin._loader as loader\ncalls = []\nscan = loader.entry_points\n"
             "loader.entry_points = lambda **kw: calls.append(kw) or scan(**kw)\n"
             "from workbench.cli import main\nsys.argv = ['workbench', 'status', sys.argv[1]]\n"
-            "try:\n    main()\nexcept SystemExit:\n    pass\nprint('SCANS', len(calls))\n")
+            "import atexit\natexit.register(lambda: print('SCANS', len(calls)))\nmain()\n")
     env = {k: v for k, v in os.environ.items() if k != "PYDANTIC_DISABLE_PLUGINS"}
     for value, want in ((None, "SCANS 0"), ("", "SCANS 1")):
         e = env if value is None else {**env, "PYDANTIC_DISABLE_PLUGINS": value}
@@ -276,6 +277,21 @@ def test_help_and_status_load_no_stage_code(tmp_path):
     for args in (["--help"], ["status", str(root)], ["types"]):
         r = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=120)
         assert "HEAVY []" in r.stdout, (args, r.stdout[-500:], r.stderr[-2000:])
+
+
+def test_the_process_ends_with_the_command_its_exit_handlers_run(tmp_path):
+    """The process's own command ends the process (cli._end_process): the exit status is the command's, what it
+    printed and what its exit handlers print is flushed, and a thread still running (early work a failed command
+    did not take) is not waited for."""
+    code = ("import atexit, sys, threading, time\nfrom workbench.cli import main\n"
+            "threading.Thread(target=time.sleep, args=(60,)).start()\n"
+            "atexit.register(lambda: print('HANDLER', flush=False))\nsys.argv = ['workbench', *sys.argv[1:]]\n"
+            "main()\nprint('NOT REACHED')\n")
+    for args, status in ((["types"], 0), (["status", str(tmp_path / "none")], 2), (["bogus"], 2)):
+        r = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=30)
+        assert r.returncode == status, (args, r.returncode, r.stderr[-2000:])
+        assert r.stdout.rstrip().endswith("HANDLER") and "NOT REACHED" not in r.stdout, (args, r.stdout[-300:])
+        assert ("shoreliner" in r.stdout) == (args == ["types"]), r.stdout[-300:]
 
 
 def test_stage_commands_start_early_work_only_through_the_runner(tmp_path, monkeypatch):
