@@ -521,6 +521,25 @@ def test_minpack_called_as_scipy_calls_it():
         assert np.array_equal(ours.x, ref.x) and ours.cost == ref.cost and ours.nfev == ref.nfev
 
 
+def test_exif_tags_read_once_per_unchanged_photo(tmp_path, monkeypatch):
+    """The stitch's EXIF focal priors (read_focal_px) reuse the tags the inputs stage read from the same unchanged
+    file (files.exif.read_exif_tags); a photo rewritten since is read again."""
+    from workbench.files import exif
+
+    p = tmp_path / "a.jpg"
+    img = np.full((60, 80, 3), 128, np.uint8)
+    exif.write_jpeg(p, img, focal_length_mm=20.0, sensor_width_mm=23.5)
+    reads = []
+    real = exif._read_exif_tags
+    monkeypatch.setattr(exif, "_read_exif_tags", lambda path: reads.append(path) or real(path))
+    f0 = exif.read_focal_px(p)
+    assert exif.exif_focal_prior(p).focal_px == f0 and len(reads) == 1
+    exif.read_exif_tags(p)[2].clear()  # (each caller gets its own copy)
+    assert exif.read_focal_px(p) == f0 and len(reads) == 1
+    exif.write_jpeg(p, img, focal_length_mm=40.0, sensor_width_mm=23.5)
+    assert exif.read_focal_px(p) == pytest.approx(2 * f0) and len(reads) == 2
+
+
 @needs_data
 def test_prefetched_photos_give_the_same_panorama(sample_small, tmp_path, caplog):
     """The photos described ahead of the stage (stage.prefetch, while the inputs stage runs) give the panorama of
