@@ -45,9 +45,8 @@ class _Console:
         return getattr(self.real, name)
 
     def _plain_file(self):
-        """The file this console writes to, where rich would write plain text to it: not a terminal (its ``isatty``
-        False), neither of rich's switches ``TTY_COMPATIBLE`` and ``FORCE_COLOR`` set, no IPython loaded, and rich's
-        console not made yet; else None (rich decides and writes)."""
+        """This console's file where rich would write plain text to it (not a tty, neither ``TTY_COMPATIBLE`` nor
+        ``FORCE_COLOR`` set, no IPython, rich's console not made yet); else None (rich decides and writes)."""
         if self._console is not None or "TTY_COMPATIBLE" in os.environ or "FORCE_COLOR" in os.environ \
                 or "IPython" in sys.modules:
             return None
@@ -62,10 +61,9 @@ class _Console:
         return False if self._plain_file() is not None else self.real.is_terminal
 
     def print(self, *objects, **options) -> None:
-        """rich's ``Console.print``; but plain strings to a file that is not a terminal (:meth:`_plain_file`) are
-        written there as rich writes them (joined by spaces, the control characters that rich's ``Text`` takes out
-        taken out, tabs expanded), without loading rich (15-20 ms of a `workbench stitch`), and not folded at the
-        80 columns that rich assumes for a file (a log line stays one line)."""
+        """rich's ``Console.print``; plain strings to a file that is not a terminal (:meth:`_plain_file`) are written
+        as rich writes them (the control characters rich takes out taken out, tabs expanded) but not folded at 80
+        columns (a log line stays one line), without loading rich (15-20 ms of a `workbench stitch`)."""
         file = self._plain_file()
         if file is None or not all(isinstance(o, str) for o in objects) or set(options) - {"highlight"}:
             self.real.print(*objects, **options)
@@ -307,11 +305,9 @@ def _execute(path: Path, **kw) -> None:
 
 def _prefetches(runner, steps: list[dict]) -> list[list[str] | None | bool]:
     """The early work (``Runner.run``'s ``prefetch``) of each of the runner's ``steps``, always started by a step's
-    run, which forks its processes first (a stage beside another), so that no thread runs when a process is forked.
-    The first step starts that of every stage the steps may run (the panorama's features while the inputs and
-    terrain stages run), but that of a stage which a later step forces and which is done now: the runner passes a
-    done stage by unless its step forces it, so that step starts it (``workbench stitch --force`` on a stitched
-    incident). Every other step: none."""
+    run, which forks its processes first, so that no thread runs when a process is forked. The first step starts
+    that of every stage the steps may run, but that of a stage which a later step forces and which is done now
+    (the runner passes a done stage by unless forced): that step starts it (``workbench stitch --force``)."""
     ahead = _stages_of(runner, steps)
     forced = {k: _stages_of(runner, [st]) for k, st in enumerate(steps) if k and st.get("force")}
     out: list[list[str] | None | bool] = [ahead] + [False] * (len(steps) - 1)
@@ -598,22 +594,16 @@ def main(argv: list[str] | None = None) -> None:
 
 
 def _end_process(code) -> None:
-    """End the process with the command's exit status (``code`` as ``SystemExit``'s) the way the interpreter does,
-    less its teardown of every module and object (20 ms after a `workbench stitch`: docs/performance.md, ninth
-    pass): the exit handlers run (``atexit``: logging's, multiprocessing's, temporary files'), then the standard
-    streams are flushed and the process ends (``os._exit``). Threads still running (the panorama's early work that
-    a failed command did not take) end with it, as daemons do, without being waited for. Where the interpreter
-    has no exit-handler runner to call, the interpreter's own exit."""
+    """End the process with the command's exit status (``code`` as ``SystemExit``'s), as the interpreter does but
+    for its teardown of every module and object (15-30 ms after a `workbench stitch`: docs/performance.md, ninth
+    pass): the exit handlers run (``atexit``), the standard streams are flushed, ``os._exit``. Threads still running
+    (early work a failed command did not take) are not waited for. Without ``atexit._run_exitfuncs``: nothing."""
     run_handlers = getattr(atexit, "_run_exitfuncs", None)
     if run_handlers is None:
         return
-    if code is None:
-        status = 0
-    elif isinstance(code, int):
-        status = code
-    else:  # (as the interpreter: a message on stderr, status 1)
+    status = 0 if code is None else code if isinstance(code, int) else 1
+    if not isinstance(code, (int, type(None))):  # (as the interpreter: the message on stderr, status 1)
         print(code, file=sys.stderr)
-        status = 1
     run_handlers()
     for stream in (sys.stdout, sys.stderr):
         try:
@@ -630,7 +620,9 @@ def _head_start(args: list[str]) -> None:
     """``workbench [-v] stitch PATH [--force]``: the panorama's photos described (and matched) on two threads from
     the process's start (:func:`workbench.stitch.stage.head_start`, from the photo folder and camera source as
     written in ``project.toml``), while this thread parses the arguments, loads the settings' models and validates
-    the settings (pydantic, pyproj: about 0.15 s); OpenCV releases the interpreter. The stage takes the work only
+    the settings (pydantic: about 0.1 s); OpenCV releases the interpreter. The CRS as written is checked in a
+    process forked first (:func:`workbench.core.crs.check_ahead`), whose verdict the validation takes: this
+    process does not load pyproj, which no stage of the command uses. The stage takes the work only
     where the validated settings give the same photos and options (else it is dropped, and any error is the
     command's to report, as without the head start). Nothing for any other command line, where a stage up to the
     stitch may run in a forked process or start other early work (threads only after forks), or where the stitch
@@ -653,6 +645,11 @@ def _head_start(args: list[str]) -> None:
         project = Project(paths[0])
         if not force and project.recorded_status("stitch") == "done":
             return
+        crs = project.written_setting("location", "crs")
+        if isinstance(crs, str):  # checked beside this process (forked before the photos' threads start)
+            from .core.crs import check_ahead
+
+            check_ahead(crs)
         single_threaded_blas()  # (before NumPy is loaded)
         from .stitch.stage import head_start
 
