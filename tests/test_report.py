@@ -338,3 +338,29 @@ def test_the_report_names_the_georegistrations_priors():
     assert "the photos' EXIF GPS (±3.5 m, 1σ)" in t and "p1.jpg's compass 123° (±15°)" in t
     assert "Not used: p2.jpg: GPSImgDirection 80.0 deg is magnetic" in t
     assert priors_text({}) is None and priors_text({"priors": {"used": [], "notes": []}}) is None
+
+
+def test_renders_read_ahead_are_the_same(incident, tmp_path):
+    """The render stage's work ahead (the runner does it while the correspond stage runs): with the carriages' models,
+    the terrain layers and their shading read before, the stage draws every picture the same, to the pixel."""
+    work = tmp_path / "inc"
+    shutil.copytree(incident.root, work)
+    project = Project(work)
+    with pytest.MonkeyPatch.context() as mp:
+        for k, v in SMALL.items():
+            mp.setattr(render_stage, k, v)
+        steps = sum(1 for _ in render_stage.ahead(project))
+        assert steps >= 4 and render_stage._AHEAD["root"] == project.root
+        layers = render_stage._AHEAD["layers"]
+        assert layers["terrain"] is not None
+        render_stage.run_render(project, lambda f, m="": None)
+    assert not render_stage._AHEAD  # taken by the stage
+    from workbench.render.ahead import shaded_ahead
+
+    assert shaded_ahead(layers["terrain"]) is not None
+    pictures = sorted(p.name for p in incident.stage_dir("render").glob("*.png"))
+    assert len(pictures) >= 8
+    for name in pictures:
+        a = np.asarray(Image.open(incident.stage_dir("render") / name))
+        b = np.asarray(Image.open(project.stage_dir("render") / name))
+        assert a.shape == b.shape and np.array_equal(a, b), name

@@ -389,7 +389,8 @@ STAGES: list[StageSpec] = [
               ahead="workbench.report.render_stage:ahead", ahead_from="correspond"),
     StageSpec("report", "incident report (HTML and PDF) from the stages' statistics and renders",
               "workbench.report.report_stage:run_report", inputs=_report_inputs,
-              settings_sections=("incident", "location", "consist", "terrain.railways"), depends_on=("render",)),
+              settings_sections=("incident", "location", "consist", "terrain.railways"), depends_on=("render",),
+              ahead="workbench.report.report_stage:ahead", ahead_from="correspond"),  # WeasyPrint, matplotlib
 ]
 STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES)
 

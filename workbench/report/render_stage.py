@@ -606,7 +606,7 @@ _AHEAD: dict = {}  # what ahead() read in this process: {"root": the incident's 
 
 def ahead(project: Project) -> Iterator[None]:
     """``StageSpec.ahead``: the stage's work that needs no solution, one step per item, done in the stage's process
-    while the correspond stage runs (``runner``): Open3D imported, each carriage's textured model built (the
+    while the correspond stage runs (``runner``): Open3D and matplotlib imported, each carriage's textured model built (the
     carriage type keeps it: the scene's carriages are copies of it), the terrain, buildings and track read
     (:func:`scene_layers`) and their shading data computed (``render.ahead``). :func:`run_render` takes
     the layers; every picture is the same as without. The consist's carriages are all built: which ones the
@@ -615,6 +615,14 @@ def ahead(project: Project) -> Iterator[None]:
     from ..render.ahead import remember
     from ..render.offscreen import SceneMesh, shading_data
 
+    yield
+    import matplotlib  # the map's figure (draw_map), drawn while the other pictures render
+
+    matplotlib.use("Agg")
+    import matplotlib.patheffects  # noqa: F401
+    import matplotlib.pyplot  # noqa: F401
+
+    _font(12)  # (matplotlib's font list, read once)
     yield
     types = project.carriage_types()
     for car in project.settings.consist:

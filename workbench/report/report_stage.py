@@ -23,7 +23,7 @@ import os
 import platform
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -646,6 +646,16 @@ def write_pdf(html: str, base_dir: Path, path: Path) -> int:
     doc = weasyprint.HTML(string=html, base_url=str(base_dir)).render()
     atomic_write(path, lambda p: doc.write_pdf(p))
     return len(doc.pages)
+
+
+def ahead(project: Project) -> Iterator[None]:
+    """``StageSpec.ahead``: the stage's imports, one step each, done in its process while the correspond stage runs
+    (``runner``): the PDF engine (WeasyPrint, about a second) and matplotlib, which the figures' process (forked from
+    this one) then has loaded."""
+    load_pdf_engine()
+    yield
+    _plt()
+    yield
 
 
 def run_report(project: Project, progress: Progress) -> StageResult:
