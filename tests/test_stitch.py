@@ -546,6 +546,7 @@ def test_prefetched_photos_give_the_same_panorama(sample_small, tmp_path, caplog
     the stage's own description, and are dropped when a photo changed since."""
     import logging
     import os
+    import threading
 
     from workbench.project import Project
     from workbench.stitch import stage
@@ -567,6 +568,8 @@ def test_prefetched_photos_give_the_same_panorama(sample_small, tmp_path, caplog
                 os.utime(p, ns=(p.stat().st_atime_ns, p.stat().st_mtime_ns + 1_000_000))
             runs.append(stage.stitch_project(project))
             assert not stage._PREFETCH
+            # (no prefetch thread outlives the stage: a later stage may fork)
+            assert not [t for t in threading.enumerate() if t.name.startswith("stitch prefetch")]
         n = len(project.photo_paths())
         pairs = 0 if source == "calibrated" else n * (n - 1) // 2
         assert f"{n} photos described ahead of the stage (and {pairs} pairs matched)" in caplog.text

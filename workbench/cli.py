@@ -625,8 +625,8 @@ def _head_start(args: list[str]) -> None:
     process does not load pyproj, which no stage of the command uses. The stage takes the work only
     where the validated settings give the same photos and options (else it is dropped, and any error is the
     command's to report, as without the head start). Nothing for any other command line, where a stage up to the
-    stitch may run in a forked process or start other early work (threads only after forks), or where the stitch
-    is recorded done and not forced (the runner decides whether it runs)."""
+    stitch may run in a forked process (beside another, or ahead) or start other early work (threads only after
+    forks), or where the stitch is recorded done and not forced (the runner decides whether it runs)."""
     words = [a for a in args if a not in _VERBOSE]
     if words[:1] != ["stitch"] or any(w.startswith("-") and w != "--force" for w in words[1:]):
         return
@@ -638,7 +638,7 @@ def _head_start(args: list[str]) -> None:
         from .pipeline import STAGES
 
         upto = STAGES[:[s.name for s in STAGES].index("stitch") + 1]
-        if any(s.runs_beside or (s.prefetch and s.name != "stitch") for s in upto):
+        if any(s.runs_beside or getattr(s, "ahead", None) or (s.prefetch and s.name != "stitch") for s in upto):
             return
         from .project import Project
 

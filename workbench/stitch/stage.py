@@ -96,17 +96,19 @@ def describe_ahead(photos: list[Path], *, match: bool, options: StitchOptions = 
     pool.shutdown(wait=False)
     with _PREFETCH_LOCK:
         _PREFETCH.clear()
-        _PREFETCH.update(stamps=stamps, options=options, match=match, futures=futures, matched=matched)
+        _PREFETCH.update(stamps=stamps, options=options, match=match, futures=futures, matched=matched, pool=pool)
 
 
-def _take_prefetch(photos: list[Path], options: StitchOptions) -> tuple[dict, dict] | None:
+def _take_prefetch(photos: list[Path], options: StitchOptions, pools: list) -> tuple[dict, dict] | None:
     """The prefetched descriptions of ``photos`` (index -> future) and matches (pair -> future), if they are of
-    these photos as they are now."""
+    these photos as they are now; their threads' pool appended to ``pools`` (used or not), for the stage to wait for
+    its threads' end."""
     with _PREFETCH_LOCK:
         pre = dict(_PREFETCH)
         _PREFETCH.clear()
     if not pre:
         return None
+    pools.append(pre["pool"])
     if pre["options"] != options or pre["stamps"] != _stamps(photos):
         log.info("stitch: the photos changed since they were described ahead of the stage; described again")
         return None
@@ -118,14 +120,24 @@ def _take_prefetch(photos: list[Path], options: StitchOptions) -> tuple[dict, di
 def stitch_project(project: Project, progress: Progress = lambda f, m="": None,
                    options: StitchOptions = StitchOptions()) -> StitchResult:
     """Stitch the project's photo set along its intrinsics route (no files written)."""
+    photos = project.photo_paths()
+    pools: list[ThreadPoolExecutor] = []
+    try:
+        return _stitch_project(project, photos, options, progress, _take_prefetch(photos, options, pools))
+    finally:  # no prefetch thread outlives the stage (a later stage may fork: threads only after forks)
+        for pool in pools:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _stitch_project(project: Project, photos: list[Path], options: StitchOptions, progress: Progress,
+                    pre: tuple[dict, dict] | None) -> StitchResult:
     # (imported here, not with the module: the prefetch starts describing the photos without them)
     from ..files.exif import read_focal_px
     from ..files.intrinsics import photo_size
     from .stitcher import stitch_photos
 
     cam = project.settings.camera
-    photos = project.photo_paths()
-    described, matched = _take_prefetch(photos, options) or (None, None)
+    described, matched = pre or (None, None)
     names = [p.name for p in photos]
     calibrated = None
     priors = None
