@@ -63,32 +63,3 @@ def test_toml_syntax_error_names_file(tmp_path: Path):
         load_settings(f)
     with pytest.raises(SettingsError, match="settings file not found"):
         load_settings(tmp_path / "nope" / "project.toml")
-
-
-def test_crs_checked_ahead_gives_the_same_verdicts_without_pyproj_here():
-    """A CRS checked in a forked process (core.crs.check_ahead, `workbench stitch`'s start) gives the settings'
-    validation the verdict, and the error message, of the check here; the process never loads pyproj."""
-    import subprocess
-    import sys
-
-    code = (
-        "import sys\nfrom workbench.core import crs\nfrom workbench.core.settings import parse_settings\n"
-        "from workbench.errors import SettingsError\n"
-        "base = {'incident': {'name': 'x', 'date': '2024-01-01'}, 'consist': [{'number': '1', 'type': 't'}]}\n"
-        "values = ['EPSG:32618', 'EPSG:4326', 'EPSG:2263', 'no such crs']\n"
-        "for v in values:\n    assert crs.check_ahead(v)\n"
-        "for v in values:\n"
-        "    try:\n        parse_settings({**base, 'location': {'lat': 1.0, 'lon': 2.0, 'crs': v}}, 'p.toml')\n"
-        "        print('VERDICT', v, 'ok')\n"
-        "    except SettingsError as exc:\n        print('VERDICT', v, exc)\n"
-        "print('AHEAD', sorted(crs._VERDICTS) == sorted((v, 'location.crs') for v in values), "
-        "'PYPROJ', 'pyproj' in sys.modules)\n")
-    ahead = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    here = subprocess.run([sys.executable, "-c", code.replace("    assert crs.check_ahead(v)\n", "    pass\n")],
-                          capture_output=True, text=True, timeout=120)
-    assert "AHEAD True PYPROJ False" in ahead.stdout, (ahead.stdout, ahead.stderr[-2000:])
-    assert "AHEAD False PYPROJ True" in here.stdout, (here.stdout, here.stderr[-2000:])
-    verdicts = [ln for ln in ahead.stdout.splitlines() if ln.startswith("VERDICT")]
-    assert verdicts == [ln for ln in here.stdout.splitlines() if ln.startswith("VERDICT")] and len(verdicts) == 4
-    assert verdicts[0] == "VERDICT EPSG:32618 ok" and "not a projected CRS" in verdicts[1]
-    assert "not a CRS pyproj knows" in verdicts[3]

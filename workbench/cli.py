@@ -620,9 +620,7 @@ def _head_start(args: list[str]) -> None:
     """``workbench [-v] stitch PATH [--force]``: the panorama's photos described (and matched) on two threads from
     the process's start (:func:`workbench.stitch.stage.head_start`, from the photo folder and camera source as
     written in ``project.toml``), while this thread parses the arguments, loads the settings' models and validates
-    the settings (pydantic: about 0.1 s); OpenCV releases the interpreter. The CRS as written is checked in a
-    process forked first (:func:`workbench.core.crs.check_ahead`), whose verdict the validation takes: this
-    process does not load pyproj, which no stage of the command uses. The stage takes the work only
+    the settings (pydantic, pyproj: about 0.15 s); OpenCV releases the interpreter. The stage takes the work only
     where the validated settings give the same photos and options (else it is dropped, and any error is the
     command's to report, as without the head start). Nothing for any other command line, where a stage up to the
     stitch may run in a forked process (beside another, or ahead) or start other early work (threads only after
@@ -645,11 +643,6 @@ def _head_start(args: list[str]) -> None:
         project = Project(paths[0])
         if not force and project.recorded_status("stitch") == "done":
             return
-        crs = project.written_setting("location", "crs")
-        if isinstance(crs, str):  # checked beside this process (forked before the photos' threads start)
-            from .core.crs import check_ahead
-
-            check_ahead(crs)
         single_threaded_blas()  # (before NumPy is loaded)
         from .stitch.stage import head_start
 
