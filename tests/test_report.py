@@ -364,3 +364,14 @@ def test_renders_read_ahead_are_the_same(incident, tmp_path):
         a = np.asarray(Image.open(incident.stage_dir("render") / name))
         b = np.asarray(Image.open(project.stage_dir("render") / name))
         assert a.shape == b.shape and np.array_equal(a, b), name
+
+
+def test_figures_beside_come_back_in_order():
+    """The report's figures drawn in two processes beside the stage: the results in the jobs' order, and a job's error
+    raised once both processes have ended."""
+    from workbench.report.beside import run_beside
+
+    assert run_beside([(pow, (i, 2)) for i in range(7)])() == [i * i for i in range(7)]
+    assert run_beside([(pow, (3, 2))], processes=4)() == [9]
+    with pytest.raises(ZeroDivisionError):
+        run_beside([(pow, (2, 2)), (divmod, (1, 0)), (pow, (3, 2))])()

@@ -492,7 +492,7 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
     cars = solution.get("carriages", [])
 
     progress(0.1, "figures")
-    # the figures of the solution (points, residuals) are drawn in a process beside this one, which meanwhile copies
+    # the figures of the solution (points, residuals) are drawn in two processes beside this one, which meanwhile copies
     # the renders and loads the PDF engine; the same figures, drawn by the same code
     sigma = solution.get("sigma_px")
     jobs, pj, with_pano = _figure_jobs(project, cams, cars, figs, sigma)
