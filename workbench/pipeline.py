@@ -390,7 +390,9 @@ STAGES: list[StageSpec] = [
     StageSpec("report", "incident report (HTML and PDF) from the stages' statistics and renders",
               "workbench.report.report_stage:run_report", inputs=_report_inputs,
               settings_sections=("incident", "location", "consist", "terrain.railways"), depends_on=("render",),
-              ahead="workbench.report.report_stage:ahead", ahead_from="correspond"),  # WeasyPrint, matplotlib
+              # WeasyPrint and matplotlib imported on the cores the solve, the export and the render leave idle (the
+              # end of the correspond stage is the render's work ahead)
+              ahead="workbench.report.report_stage:ahead", ahead_from="solve"),
 ]
 STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES)
 

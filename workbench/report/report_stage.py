@@ -649,9 +649,9 @@ def write_pdf(html: str, base_dir: Path, path: Path) -> int:
 
 
 def ahead(project: Project) -> Iterator[None]:
-    """``StageSpec.ahead``: the stage's imports, one step each, done in its process while the correspond stage runs
-    (``runner``): the PDF engine (WeasyPrint, about a second) and matplotlib, which the figures' process (forked from
-    this one) then has loaded."""
+    """``StageSpec.ahead``: the stage's imports, one step each, done in its process from the solve stage on, on the
+    cores the stages then leave idle (``runner``): the PDF engine (WeasyPrint, about a second) and matplotlib, which
+    the figures' processes (forked from this one) then have loaded."""
     load_pdf_engine()
     yield
     _plt()
