@@ -68,7 +68,7 @@ class StageSpec:
     # "module:function" ``(project) -> iterator``: work of this stage that reads none of its dependencies' outputs (a
     # generator, one step of the work per item), started when the stage ``ahead_from`` (an earlier one) starts, in
     # this stage's own forked process, a step whenever a core is idle (``_early_process``); when this stage's turn
-    # comes its process does the steps left and runs the stage (``Runner``)
+    # comes its process runs the stage, which does what was not done ahead (``Runner``)
     ahead: str | None = None
     ahead_from: str | None = None
 
@@ -563,10 +563,11 @@ def _stage_process(spec: StageSpec, project: Project, conn) -> None:
 def _early_process(spec: StageSpec, project: Project, conn) -> None:
     """In the process forked ahead of a stage's turn: the steps of its work ahead (``StageSpec.ahead``, a generator)
     on a thread, each one when a core has been idle (:func:`_idle_cores`: the stages running then come first, and so
-    does work at a lower priority, such as the correspond prefetch), until the runner says "go" (then the steps
-    left here, and the stage as :func:`_stage_process` runs it) or "stop" (the stage will not run). The thread runs
-    at the stage's priority: a step it is in when the stage's turn comes (one model, one layer; under a second) is
-    waited for, never left to a starved thread. Work ahead that fails is left to the stage (logged)."""
+    does work at a lower priority, such as the correspond prefetch), until the runner says "go" (then the stage runs
+    as :func:`_stage_process` runs it, and does itself what was not done ahead) or "stop" (the stage will not run).
+    The thread runs at the stage's priority: the step it is in when the stage's turn comes (one model, one layer;
+    under a second) is finished first, never left to a starved thread. Work ahead that fails is left to the stage
+    (logged)."""
     go = threading.Event()
     lock = threading.Lock()
     state: dict = {"steps": None, "over": False}
@@ -602,11 +603,11 @@ def _early_process(spec: StageSpec, project: Project, conn) -> None:
     except (EOFError, OSError):
         msg = ("stop",)
     go.set()
+    with lock:  # the step the thread is in is finished; the steps not begun are left to the stage, which does what it
+        state["over"] = True  # needs (the render: only the carriages the solution poses)
     if msg[0] != "go":
         conn.close()
         return
-    while step():  # what the thread had not done (the step it is in, it finishes)
-        pass
     _stage_process(spec, project, conn)
 
 

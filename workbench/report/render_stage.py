@@ -609,8 +609,8 @@ def ahead(project: Project) -> Iterator[None]:
     while the correspond stage runs (``runner``): Open3D and matplotlib imported, each carriage's textured model built (the
     carriage type keeps it: the scene's carriages are copies of it), the terrain, buildings and track read
     (:func:`scene_layers`) and their shading data computed (``render.ahead``). :func:`run_render` takes
-    the layers; every picture is the same as without. The consist's carriages are all built: which ones the
-    solution poses is not known yet."""
+    what was done (the runner stops the steps at the stage's turn); every picture is the same as without. The
+    consist's carriages are built in its order: which ones the solution poses is not known yet."""
     _require_open3d()
     from ..render.ahead import remember
     from ..render.offscreen import SceneMesh, shading_data
@@ -628,7 +628,9 @@ def ahead(project: Project) -> Iterator[None]:
     for car in project.settings.consist:
         types[car.number].mesh(car.number, textured=True)
         yield
-    layers = {}
+    layers: dict = {}
+    _AHEAD.clear()
+    _AHEAD.update(root=project.root, layers=layers)  # each layer there once read (the stage reads those not there)
     for name, mesh in scene_layers(project, textured=True):
         layers[name] = mesh
         yield
@@ -636,8 +638,6 @@ def ahead(project: Project) -> Iterator[None]:
         if mesh is not None and len(mesh.faces):
             remember(mesh, shading_data(SceneMesh(name, mesh)))
             yield
-    _AHEAD.clear()
-    _AHEAD.update(root=project.root, layers=layers)
 
 
 def run_render(project: Project, progress: Progress) -> StageResult:
