@@ -21,6 +21,7 @@ import logging
 import math
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 from typing import Any, Iterator
@@ -496,7 +497,8 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
     # the renders and loads the PDF engine; the same figures, drawn by the same code
     sigma = solution.get("sigma_px")
     jobs, pj, with_pano = _figure_jobs(project, cams, cars, figs, sigma)
-    drawn = run_beside(jobs)
+    # two processes where matplotlib is loaded here already (the stage's work ahead): each would import it otherwise
+    drawn = run_beside(jobs, processes=2 if "matplotlib.pyplot" in sys.modules else 1)
 
     try:
         by_kind: dict[str, list] = {}
