@@ -471,10 +471,14 @@ class Runner:
             if s.ahead_from != spec.name or s.name in self._early or not self._will_run(s, state, force, deps=False):
                 continue
             ctx = multiprocessing.get_context("fork")
-            ours, theirs = ctx.Pipe(duplex=True)
-            proc = ctx.Process(target=_early_process, args=(s, self.project, theirs), name=f"stage {s.name}",
-                               daemon=False)
-            proc.start()
+            try:
+                ours, theirs = ctx.Pipe(duplex=True)
+                proc = ctx.Process(target=_early_process, args=(s, self.project, theirs, ours),
+                                   name=f"stage {s.name}", daemon=False)
+                proc.start()
+            except OSError as exc:  # (no memory for a fork, too many processes): the stage runs in its turn as before
+                log.info("stage %s: no work ahead (%s)", s.name, exc)
+                continue
             theirs.close()
             self._early[s.name] = _EarlyStage(s, proc, ours)
             log.info("stage %s: its work ahead started beside stage %s (process %d)", s.name, spec.name, proc.pid)
@@ -560,7 +564,7 @@ def _stage_process(spec: StageSpec, project: Project, conn) -> None:
         conn.close()
 
 
-def _early_process(spec: StageSpec, project: Project, conn) -> None:
+def _early_process(spec: StageSpec, project: Project, conn, parent_end=None) -> None:
     """In the process forked ahead of a stage's turn: the steps of its work ahead (``StageSpec.ahead``, a generator)
     on a thread, each one when a core has been idle (:func:`_idle_cores`: the stages running then come first, and so
     does work at a lower priority, such as the correspond prefetch), until the runner says "go" (then the stage runs
@@ -568,6 +572,8 @@ def _early_process(spec: StageSpec, project: Project, conn) -> None:
     The thread runs at the stage's priority: the step it is in when the stage's turn comes (one model, one layer;
     under a second) is finished first, never left to a starved thread. Work ahead that fails is left to the stage
     (logged)."""
+    if parent_end is not None:  # the runner's end of the pipe: closed here, so that a runner killed is an end of file
+        parent_end.close()
     go = threading.Event()
     lock = threading.Lock()
     state: dict = {"steps": None, "over": False}

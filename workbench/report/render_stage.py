@@ -606,11 +606,11 @@ _AHEAD: dict = {}  # what ahead() read in this process: {"root": the incident's 
 
 def ahead(project: Project) -> Iterator[None]:
     """``StageSpec.ahead``: the stage's work that needs no solution, one step per item, done in the stage's process
-    while the correspond stage runs (``runner``): Open3D and matplotlib imported, each carriage's textured model built (the
-    carriage type keeps it: the scene's carriages are copies of it), the terrain, buildings and track read
-    (:func:`scene_layers`) and their shading data computed (``render.ahead``). :func:`run_render` takes
-    what was done (the runner stops the steps at the stage's turn); every picture is the same as without. The
-    consist's carriages are built in its order: which ones the solution poses is not known yet."""
+    while the correspond stage runs (``runner``): Open3D and matplotlib imported, each carriage's textured model
+    built (the carriage type keeps it: the scene's carriages are copies of it), the terrain, buildings and track
+    read (:func:`scene_layers`) and their shading data computed (``render.ahead``). :func:`run_render` takes what
+    was done (the runner stops the steps at the stage's turn); every picture is the same as without. The consist's
+    carriages are built in its order: which ones the solution poses is not known yet."""
     _require_open3d()
     from ..render.ahead import remember
     from ..render.offscreen import SceneMesh, shading_data
