@@ -14,7 +14,8 @@ worktree made under the system temp folder, run with PYTHONPATH pointing at it) 
                compared: solution.json (every number but the timings) and the render stage's pictures
   stitch       `workbench stitch` on a fresh incident holding one real photo set of ../shared/data/stitching,
                against cv2.Stitcher (PANORAMA defaults) in a fresh process (imread to the written JPEG): per set,
-               --repeat rounds of cv2, the old and the new code back to back; the ratio of the medians
+               --repeat rounds of cv2, the old and the new code back to back; the ratio of the medians, and
+               whether the versions wrote the same panorama.jpg, panorama.json and inputs.json (to the byte)
 
 The same sample incident (``--incident``, default projects/spuyten-duyvil; generate it with scripts/demo.sh or
 `workbench synth`) is copied for each version, with its terrain layers. Results: printed, and saved as JSON
@@ -164,6 +165,11 @@ def _stitch_rounds(versions: list[dict], work: Path, repeat: int, results: dict)
                 times.setdefault(v["name"], []).append(t)
                 cpu.setdefault(v["name"], []).append(c)
             loads.append(os.getloadavg()[0])
+        if len(versions) == 2:  # the same outputs to the byte (each version's first round)
+            a, b = (work / "stitch" / f"{v['name'].replace(' ', '_')}_{set_name}_0" for v in versions)
+            results.setdefault("stitch_same_outputs", {})[set_name] = {
+                f: (a / f).read_bytes() == (b / f).read_bytes()
+                for f in ("out/stitch/panorama.jpg", "out/stitch/panorama.json", "out/inputs/inputs.json")}
         results["cv2"][set_name] = round(statistics.median(times["cv2"]), 2)
         results.setdefault("cv2_cpu", {})[set_name] = round(statistics.median(cpu["cv2"]), 2)
         for v in versions:
@@ -177,7 +183,9 @@ def _stitch_rounds(versions: list[dict], work: Path, repeat: int, results: dict)
               f"{results['cv2'][set_name]} s (CPU {results['cv2_cpu'][set_name]} s), "
               + ", ".join(f"{v['name']} {results[v['name']]['stitch'][set_name]['ours_s']} s (CPU "
                           f"{results[v['name']]['stitch'][set_name]['cpu_s']} s; each round / cv2's: "
-                          f"{results[v['name']]['stitch'][set_name]['ratios']})" for v in versions), flush=True)
+                          f"{results[v['name']]['stitch'][set_name]['ratios']})" for v in versions)
+              + (f"; the same outputs: {results['stitch_same_outputs'][set_name]}" if len(versions) == 2 else ""),
+              flush=True)
 
 
 def _run_sample(v: dict, args, work: Path, res: dict, round_: int = 0) -> Path:

@@ -175,8 +175,9 @@ def test_collection_paused_while_a_command_starts_and_resumed(tmp_path):
             "print('PAUSED', paused, 'CHILD', child, 'RESUMED', gc.isenabled(), gc.get_freeze_count() > 0)\n")
     r = subprocess.run([sys.executable, "-c", fork], capture_output=True, text=True, timeout=120)
     assert "PAUSED True CHILD 0 RESUMED True True" in r.stdout, (r.stdout, r.stderr[-2000:])
-    code = ("import gc, sys\nfrom workbench.cli import main\nsys.argv = ['workbench', *sys.argv[1:]]\n"
-            "try:\n    main()\nexcept SystemExit:\n    pass\nprint('COLLECTING', gc.isenabled())\n")
+    # (the process's own command ends the process: the check runs among its exit handlers)
+    code = ("import atexit, gc, sys\nfrom workbench.cli import main\nsys.argv = ['workbench', *sys.argv[1:]]\n"
+            "atexit.register(lambda: print('COLLECTING', gc.isenabled()))\nmain()\n")
     for args in (["types"], ["run", str(root), *FIRST]):
         r = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=300)
         assert "COLLECTING True" in r.stdout, (args, r.stdout[-500:], r.stderr[-2000:])
@@ -189,7 +190,7 @@ def test_pydantic_plugins_looked_for_only_when_the_user_says(tmp_path):
     code = ("import sys\nimport pydantic.plugin._loader as loader\ncalls = []\nscan = loader.entry_points\n"
             "loader.entry_points = lambda **kw: calls.append(kw) or scan(**kw)\n"
             "from workbench.cli import main\nsys.argv = ['workbench', 'status', sys.argv[1]]\n"
-            "try:\n    main()\nexcept SystemExit:\n    pass\nprint('SCANS', len(calls))\n")
+            "import atexit\natexit.register(lambda: print('SCANS', len(calls)))\nmain()\n")
     env = {k: v for k, v in os.environ.items() if k != "PYDANTIC_DISABLE_PLUGINS"}
     for value, want in ((None, "SCANS 0"), ("", "SCANS 1")):
         e = env if value is None else {**env, "PYDANTIC_DISABLE_PLUGINS": value}
@@ -276,6 +277,85 @@ def test_help_and_status_load_no_stage_code(tmp_path):
     for args in (["--help"], ["status", str(root)], ["types"]):
         r = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=120)
         assert "HEAVY []" in r.stdout, (args, r.stdout[-500:], r.stderr[-2000:])
+
+
+def test_the_process_ends_with_the_command_its_exit_handlers_run(tmp_path):
+    """The process's own command ends the process (cli._end_process): the exit status is the command's, what it
+    printed and what its exit handlers print is flushed, and a thread still running (early work a failed command
+    did not take) is not waited for."""
+    code = ("import atexit, sys, threading, time\nfrom workbench.cli import main\n"
+            "threading.Thread(target=time.sleep, args=(60,)).start()\n"
+            "atexit.register(lambda: print('HANDLER', flush=False))\nsys.argv = ['workbench', *sys.argv[1:]]\n"
+            "main()\nprint('NOT REACHED')\n")
+    for args, status in ((["types"], 0), (["status", str(tmp_path / "none")], 2), (["bogus"], 2)):
+        r = subprocess.run([sys.executable, "-c", code, *args], capture_output=True, text=True, timeout=30)
+        assert r.returncode == status, (args, r.returncode, r.stderr[-2000:])
+        assert r.stdout.rstrip().endswith("HANDLER") and "NOT REACHED" not in r.stdout, (args, r.stdout[-300:])
+        assert ("shoreliner" in r.stdout) == (args == ["types"]), r.stdout[-300:]
+
+
+def test_stage_commands_start_early_work_only_through_the_runner(tmp_path, monkeypatch):
+    """A stage command's early work (the panorama's descriptions on threads) is started by a ``Runner.run``, which
+    forks what it forks first: never by the CLI before the runner's forks (threads only after forks). With
+    ``--force`` on a done stage, by the stage's own step (the runner passes a done stage's by unless forced)."""
+    from types import SimpleNamespace
+
+    from workbench import cli
+
+    names = ["inputs", "terrain", "stitch", "correspond", "solve"]
+
+    class Runner:
+        stages = [SimpleNamespace(name=n) for n in names]
+
+        def __init__(self, done):
+            self.done, self.runs = done, []
+
+        def status(self):
+            return [SimpleNamespace(name=n, status="done" if n in self.done else "not run", record=None, reason="")
+                    for n in names]
+
+        def prefetch(self, *a, **k):
+            raise AssertionError("early work started outside a run, before its forks")
+
+        def run(self, **kw):
+            self.runs.append((kw["prefetch"], kw.get("only"), kw.get("until"), kw.get("force", False)))
+            return self.status()
+
+    forced = [{"until": "terrain"}, {"only": ["stitch"], "force": True}]
+    plain = [{"until": "terrain"}, {"only": ["stitch"], "force": False}]
+    for steps, done, expect in (
+            (forced, {"inputs", "stitch"}, [["inputs", "terrain"], ["stitch"]]),  # stitched: its own step
+            (forced, {"inputs"}, [["inputs", "terrain", "stitch"], False]),  # not yet: with the first, as unforced
+            (plain, {"inputs", "stitch"}, [["inputs", "terrain", "stitch"], False]),
+            ([{"force": True}], set(names), [None])):  # `workbench run --force`: one step, every stage's
+        runner = Runner(done)
+        monkeypatch.setattr(cli, "_runner", lambda path, jobs=None, r=runner: (SimpleNamespace(root=tmp_path), r))
+        cli._execute(tmp_path, steps=[dict(st) for st in steps])
+        assert [p for p, *_ in runner.runs] == expect, (steps, done, runner.runs)
+        assert [(o, u, f) for _, o, u, f in runner.runs] == [(st.get("only"), st.get("until"), st.get("force", False))
+                                                            for st in steps]
+
+
+def test_the_stitch_head_start_only_for_a_stitch_to_do(tmp_path, monkeypatch):
+    """`workbench [-v] stitch PATH [--force]` starts describing the photos before it parses its arguments
+    (cli._head_start): for exactly that command line, and not where the stitch is recorded done unless forced."""
+    from workbench import cli
+    from workbench.stitch import stage
+
+    root = tmp_path / "inc"
+    assert wb("init", root).returncode == 0
+    started = []
+    monkeypatch.setattr(stage, "head_start", lambda project: started.append(project.root) or True)
+    cases = [(["stitch", str(root)], True), (["-v", "stitch", str(root), "--force"], True),
+             (["--verbose", "stitch", "--force", str(root)], True), (["stitch"], False),
+             (["stitch", str(root), "--help"], False), (["stitch", str(root), str(root)], False),
+             (["run", str(root)], False), (["correspond", str(root)], False), (["stitch", str(tmp_path / "no")], False)]
+    for force_only in (False, True):
+        for args, expect in cases:
+            started.clear()
+            cli._head_start(args)
+            assert started == ([root.resolve()] if expect and (not force_only or "--force" in args) else []), args
+        (root / "out" / "state.json").write_text(json.dumps({"stitch": {"status": "done"}}))  # recorded done
 
 
 def test_a_library_warning_is_one_line(tmp_path):

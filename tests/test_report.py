@@ -338,3 +338,45 @@ def test_the_report_names_the_georegistrations_priors():
     assert "the photos' EXIF GPS (±3.5 m, 1σ)" in t and "p1.jpg's compass 123° (±15°)" in t
     assert "Not used: p2.jpg: GPSImgDirection 80.0 deg is magnetic" in t
     assert priors_text({}) is None and priors_text({"priors": {"used": [], "notes": []}}) is None
+
+
+def test_renders_read_ahead_are_the_same(incident, tmp_path):
+    """The render stage's work ahead (the runner does it while the correspond stage runs, and stops it at the stage's
+    turn): with all of it done (the carriages' models, the terrain layers and their shading), or only up to the
+    terrain layer, the stage draws every picture the same, to the pixel."""
+    from workbench.render.ahead import shaded_ahead
+
+    pictures = sorted(p.name for p in incident.stage_dir("render").glob("*.png"))
+    assert len(pictures) >= 8
+    for how in ("all", "up to the terrain"):
+        work = tmp_path / how.replace(" ", "_")
+        shutil.copytree(incident.root, work)
+        project = Project(work)
+        with pytest.MonkeyPatch.context() as mp:
+            for k, v in SMALL.items():
+                mp.setattr(render_stage, k, v)
+            steps = render_stage.ahead(project)
+            for _ in steps:
+                if how != "all" and "terrain" in render_stage._AHEAD.get("layers", {}):
+                    break
+            layers = dict(render_stage._AHEAD["layers"])
+            assert render_stage._AHEAD["root"] == project.root and layers["terrain"] is not None
+            assert (len(layers) == 3) == (how == "all")
+            assert (shaded_ahead(layers["terrain"]) is not None) == (how == "all")
+            render_stage.run_render(project, lambda f, m="": None)
+        assert not render_stage._AHEAD  # taken by the stage
+        for name in pictures:
+            a = np.asarray(Image.open(incident.stage_dir("render") / name))
+            b = np.asarray(Image.open(project.stage_dir("render") / name))
+            assert a.shape == b.shape and np.array_equal(a, b), (how, name)
+
+
+def test_figures_beside_come_back_in_order():
+    """The report's figures drawn in two processes beside the stage: the results in the jobs' order, and a job's error
+    raised once both processes have ended."""
+    from workbench.report.beside import run_beside
+
+    assert run_beside([(pow, (i, 2)) for i in range(7)])() == [i * i for i in range(7)]
+    assert run_beside([(pow, (3, 2))], processes=4)() == [9]
+    with pytest.raises(ZeroDivisionError):
+        run_beside([(pow, (2, 2)), (divmod, (1, 0)), (pow, (3, 2))])()

@@ -392,3 +392,97 @@ def test_no_stage_is_forked_beside_one_that_does_not_apply(tmp_path):
     r.run(until="early")
     assert p.read_json(p.stage_dir("first") / "a.json")["pid"] == os.getpid()
     assert [s.status for s in r.status()] == ["done", "skipped", "not run"]
+
+
+_AHEAD_DONE: list = []  # what the work ahead did in the process that runs its stage
+
+
+def _ahead_steps(project):
+    """The work ahead of stage 'late' in the test below: two steps, each leaving a marker."""
+    import os
+
+    d = project.stage_dir("late")
+    d.mkdir(parents=True, exist_ok=True)
+    (d / "ahead_1").write_text(str(os.getpid()))
+    _AHEAD_DONE.append(1)
+    yield
+    (d / "ahead_2").write_text(str(os.getpid()))
+    _AHEAD_DONE.append(2)
+
+
+def test_a_stage_starts_its_work_ahead_in_its_own_process(tmp_path, monkeypatch):
+    """A stage with work ahead (the render's models while the correspond stage runs): its process is forked when the
+    declared earlier stage starts, does that work while that stage runs where a core is idle (the stage waits for its
+    marker: it passes only so), and runs the stage itself once its dependencies are done; where no core is idle,
+    nothing is done ahead (the stage does it); where the stage will not run, the process ends; with one job nothing
+    is forked."""
+    import os
+    import time
+
+    import workbench.runner as runner_module
+
+    monkeypatch.setattr(runner_module, "AHEAD_IDLE_CORES", 0.0)  # this test's machine may be busy: any is idle
+    p = make_project(tmp_path)
+    seen: dict = {"wait": True}
+
+    def first(project, progress):
+        d = project.stage_dir("first")
+        t_end = time.monotonic() + seen.get("wait_s", 10.0)
+        while seen["wait"] and not (project.stage_dir("late") / "ahead_2").is_file():  # the work ahead meanwhile
+            if time.monotonic() > t_end:
+                raise StageError("the work ahead did not run beside the first stage")
+            time.sleep(0.01)
+        return StageResult(outputs={"a": project.write_json(d / "a.json", {"x": 1})})
+
+    def middle(project, progress):
+        if seen.get("fail"):
+            raise InputError("middle: bad")
+        return StageResult(outputs={"m": project.write_json(project.stage_dir("middle") / "m.json", {
+            "x": project.read_json(project.stage_dir("first") / "a.json")["x"] + 1})})
+
+    def late(project, progress):
+        progress(0.5, "late half way")
+        return StageResult(outputs={"l": project.write_json(project.stage_dir("late") / "l.json", {
+            "pid": os.getpid(), "ahead": list(_AHEAD_DONE),
+            "m": project.read_json(project.stage_dir("middle") / "m.json")["x"]})})
+
+    def spec_list():
+        return [StageSpec("first", "", first), StageSpec("middle", "", middle, depends_on=("first",)),
+                StageSpec("late", "", late, depends_on=("middle",), ahead=f"{__name__}:_ahead_steps",
+                          ahead_from="first")]
+
+    events, progress = [], []
+    r = Runner(p, spec_list(), jobs=2)
+    r.run(progress_factory=lambda spec: lambda f, m="": progress.append((spec.name, m)),
+          on_event=lambda kind, spec, rec: events.append((kind, spec.name)))
+    assert [s.status for s in r.status()] == ["done"] * 3
+    out = p.read_json(p.stage_dir("late") / "l.json")
+    assert out["pid"] != os.getpid() and out["ahead"] == [1, 2] and out["m"] == 2  # its process, after the ahead
+    assert int((p.stage_dir("late") / "ahead_1").read_text()) == out["pid"]
+    assert ("late", "late half way") in progress and events[-2:] == [("start", "late"), ("done", "late")]
+    assert _AHEAD_DONE == [] and not r._early  # not in the runner's process; nothing left behind
+    # the middle stage fails: the process started ahead is stopped (the run does not hang), the late stage not run
+    for f in p.stage_dir("late").iterdir():
+        f.unlink()
+    seen["fail"] = True
+    with pytest.raises(InputError, match="middle: bad"):
+        r.run(force=True)
+    assert [s.status for s in r.status()] == ["done", "failed", "stale"] and not r._early
+    assert not (p.stage_dir("late") / "l.json").exists()
+    # no core idle: nothing is done ahead; the stage runs in its process at its turn and does the work itself
+    monkeypatch.setattr(runner_module, "AHEAD_IDLE_CORES", 1e9)
+    seen.update(wait=False, fail=False)
+    for f in p.stage_dir("late").iterdir():
+        f.unlink()
+    r.run(force=True)
+    out = p.read_json(p.stage_dir("late") / "l.json")
+    assert out["pid"] != os.getpid() and out["ahead"] == [] and out["m"] == 2 and not r._early
+    assert not (p.stage_dir("late") / "ahead_1").exists()
+    # one job: nothing ahead (the first stage waits for the work ahead in vain)
+    seen.update(wait=True, wait_s=0.5)
+    for f in p.stage_dir("late").iterdir():
+        f.unlink()
+    with pytest.raises(StageError, match="did not run beside"):
+        Runner(p, spec_list(), jobs=1).run(force=True)
+    with pytest.raises(ValueError, match="go together"):
+        Runner(p, [StageSpec("first", "", first), StageSpec("late", "", late, ahead="x:y")])

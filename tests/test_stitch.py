@@ -480,6 +480,20 @@ def test_cli_runs_the_stitch_stage(sample_small, tmp_path):
     assert set(state["stitch"]["outputs"]) >= {"panorama_image", "panorama_model", "stats"}
     model = PanoramaModel.from_dict(json.loads((root / "out" / "stitch" / "panorama.json").read_text()))
     assert len(model.sources) == len(sample_small["paths"])
+    # `workbench stitch`: no head start where the stitch is done (the stage is skipped); forced, the photos are
+    # described from the process's start (cli._head_start), the runner's prefetch leaves them be, and the stage
+    # takes them: the same panorama to the byte
+    first = {f: (root / "out" / "stitch" / f).read_bytes() for f in ("panorama.jpg", "panorama.json")}
+    toml = root / "project.toml"  # (no terrain: the copy does not have the sample's DEM)
+    toml.write_text(re.sub(r'(?m)^dem = .*$', "", toml.read_text()))
+    r = subprocess.run([str(exe), "-v", "stitch", str(root)], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0 and "stitch: up to date, skipped" in r.stderr, r.stdout + r.stderr
+    assert "described" not in r.stderr, r.stderr
+    r = subprocess.run([str(exe), "-v", "stitch", str(root), "--force"], capture_output=True, text=True, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "being described already (the command's head start)" in r.stderr, r.stderr
+    assert "photos described ahead of the stage" in r.stderr, r.stderr
+    assert {f: (root / "out" / "stitch" / f).read_bytes() for f in first} == first
 
 
 def test_minpack_called_as_scipy_calls_it():
@@ -507,12 +521,32 @@ def test_minpack_called_as_scipy_calls_it():
         assert np.array_equal(ours.x, ref.x) and ours.cost == ref.cost and ours.nfev == ref.nfev
 
 
+def test_exif_tags_read_once_per_unchanged_photo(tmp_path, monkeypatch):
+    """The stitch's EXIF focal priors (read_focal_px) reuse the tags the inputs stage read from the same unchanged
+    file (files.exif.read_exif_tags); a photo rewritten since is read again."""
+    from workbench.files import exif
+
+    p = tmp_path / "a.jpg"
+    img = np.full((60, 80, 3), 128, np.uint8)
+    exif.write_jpeg(p, img, focal_length_mm=20.0, sensor_width_mm=23.5)
+    reads = []
+    real = exif._read_exif_tags
+    monkeypatch.setattr(exif, "_read_exif_tags", lambda path: reads.append(path) or real(path))
+    f0 = exif.read_focal_px(p)
+    assert exif.exif_focal_prior(p).focal_px == f0 and len(reads) == 1
+    exif.read_exif_tags(p)[2].clear()  # (each caller gets its own copy)
+    assert exif.read_focal_px(p) == f0 and len(reads) == 1
+    exif.write_jpeg(p, img, focal_length_mm=40.0, sensor_width_mm=23.5)
+    assert exif.read_focal_px(p) == pytest.approx(2 * f0) and len(reads) == 2
+
+
 @needs_data
 def test_prefetched_photos_give_the_same_panorama(sample_small, tmp_path, caplog):
     """The photos described ahead of the stage (stage.prefetch, while the inputs stage runs) give the panorama of
     the stage's own description, and are dropped when a photo changed since."""
     import logging
     import os
+    import threading
 
     from workbench.project import Project
     from workbench.stitch import stage
@@ -534,6 +568,8 @@ def test_prefetched_photos_give_the_same_panorama(sample_small, tmp_path, caplog
                 os.utime(p, ns=(p.stat().st_atime_ns, p.stat().st_mtime_ns + 1_000_000))
             runs.append(stage.stitch_project(project))
             assert not stage._PREFETCH
+            # (no prefetch thread outlives the stage: a later stage may fork)
+            assert not [t for t in threading.enumerate() if t.name.startswith("stitch prefetch")]
         n = len(project.photo_paths())
         pairs = 0 if source == "calibrated" else n * (n - 1) // 2
         assert f"{n} photos described ahead of the stage (and {pairs} pairs matched)" in caplog.text

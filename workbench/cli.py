@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import atexit
 import datetime as _dt
 import gc
 import logging
@@ -22,8 +23,9 @@ app = typer.Typer(add_completion=False, no_args_is_help=True, rich_markup_mode=N
 
 class _Console:
     """A rich ``Console`` made on first use (:attr:`real`; any other attribute is the console's): rich's console
-    (about 20 ms of imports) is loaded once a command prints, not before a stage command has started its stages'
-    early work (the panorama's descriptions, :meth:`Runner.prefetch`)."""
+    (about 20 ms of imports) is loaded once a command prints something that is not a plain line to a file that is
+    not a terminal (:meth:`print`), not before a stage command has started its stages' early work (the panorama's
+    descriptions, :meth:`Runner.prefetch`)."""
 
     def __init__(self, **options) -> None:
         self._options = options
@@ -41,6 +43,36 @@ class _Console:
 
     def __getattr__(self, name: str):
         return getattr(self.real, name)
+
+    def _plain_file(self):
+        """This console's file where rich would write plain text to it (not a tty, neither ``TTY_COMPATIBLE`` nor
+        ``FORCE_COLOR`` set, no IPython, rich's console not made yet); else None (rich decides and writes)."""
+        if self._console is not None or "TTY_COMPATIBLE" in os.environ or "FORCE_COLOR" in os.environ \
+                or "IPython" in sys.modules:
+            return None
+        file = sys.stderr if self._options.get("stderr") else sys.stdout
+        try:
+            return None if file is None or file.isatty() else file
+        except (AttributeError, ValueError):  # no isatty, or closed: rich's business
+            return None
+
+    @property
+    def is_terminal(self) -> bool:
+        return False if self._plain_file() is not None else self.real.is_terminal
+
+    def print(self, *objects, **options) -> None:
+        """rich's ``Console.print``; plain strings to a file that is not a terminal (:meth:`_plain_file`) are written
+        as rich writes them (the control characters rich takes out taken out, tabs expanded) but not folded at 80
+        columns (a log line stays one line), without loading rich (15-20 ms of a `workbench stitch`)."""
+        file = self._plain_file()
+        if file is None or not all(isinstance(o, str) for o in objects) or set(options) - {"highlight"}:
+            self.real.print(*objects, **options)
+            return
+        file.write(" ".join(objects).translate(_CONTROL_CODES).expandtabs(8) + "\n")
+        file.flush()
+
+
+_CONTROL_CODES = dict.fromkeys((7, 8, 11, 12, 13))  # what rich's Text takes out of a string (BEL, BS, VT, FF, CR)
 
 
 # markup and emoji codes off: a photo or folder named like "[red]x" or ":fire:" is printed as it is, never parsed
@@ -266,16 +298,28 @@ def _execute(path: Path, **kw) -> None:
                 console.print(f"{spec.name}: done in {rec['duration_s']:.1f} s")
 
         steps = kw.pop("steps", None) or [kw]
-        # the early work of the stages that will run (the panorama's features while inputs and terrain run),
-        # started by the first step once it has forked the stages that start at once (the terrain)
-        ahead = _stages_of(runner, steps)
-        if any(st.get("force") for st in steps) and not steps[0].get("force"):
-            runner.prefetch(ahead, force=True)  # (a stage command: its stage forced after the steps before it)
-            ahead = False
-        for k, step in enumerate(steps):
-            statuses = runner.run(progress_factory=factory, on_event=event, prefetch=ahead if k == 0 else False,
-                                  **step)
+        for step, prefetch in zip(steps, _prefetches(runner, steps)):
+            statuses = runner.run(progress_factory=factory, on_event=event, prefetch=prefetch, **step)
     _print_outputs(project, statuses)
+
+
+def _prefetches(runner, steps: list[dict]) -> list[list[str] | None | bool]:
+    """The early work (``Runner.run``'s ``prefetch``) of each of the runner's ``steps``, always started by a step's
+    run, which forks its processes first, so that no thread runs when a process is forked. The first step starts
+    that of every stage the steps may run, but that of a stage which a later step forces and which is done now
+    (the runner passes a done stage by unless forced): that step starts it (``workbench stitch --force``)."""
+    ahead = _stages_of(runner, steps)
+    forced = {k: _stages_of(runner, [st]) for k, st in enumerate(steps) if k and st.get("force")}
+    out: list[list[str] | None | bool] = [ahead] + [False] * (len(steps) - 1)
+    if forced:
+        every = [s.name for s in runner.stages]
+        done = {st.name for st in runner.status() if st.status == "done"}
+        own = {k: [n for n in (names if names is not None else every) if n in done] for k, names in forced.items()}
+        later = {n for names in own.values() for n in names}
+        out[0] = [n for n in (ahead if ahead is not None else every) if n not in later]
+        for k, names in own.items():
+            out[k] = names or False
+    return out
 
 
 def _stages_of(runner, steps: list[dict]) -> list[str] | None:
@@ -535,11 +579,76 @@ def main(argv: list[str] | None = None) -> None:
     if argv is None:
         _freed_memory_kept()
         _pause_collection()
+        _head_start(sys.argv[1:])
     try:
         _run_command(argv)
+    except SystemExit as exc:
+        if argv is None:
+            _end_process(exc.code)
+        raise
     finally:
         if argv is None:
             _no_collection_at_exit()
+    if argv is None:
+        _end_process(0)
+
+
+def _end_process(code) -> None:
+    """End the process with the command's exit status (``code`` as ``SystemExit``'s), as the interpreter does but
+    for its teardown of every module and object (15-30 ms after a `workbench stitch`: docs/performance.md, ninth
+    pass): the exit handlers run (``atexit``), the standard streams are flushed, ``os._exit``. Threads still running
+    (early work a failed command did not take) are not waited for. Without ``atexit._run_exitfuncs``: nothing."""
+    run_handlers = getattr(atexit, "_run_exitfuncs", None)
+    if run_handlers is None:
+        return
+    status = 0 if code is None else code if isinstance(code, int) else 1
+    if not isinstance(code, (int, type(None))):  # (as the interpreter: the message on stderr, status 1)
+        print(code, file=sys.stderr)
+    run_handlers()
+    for stream in (sys.stdout, sys.stderr):
+        try:
+            stream.flush()
+        except (AttributeError, ValueError, OSError):
+            pass
+    os._exit(status & 0xFF)
+
+
+_VERBOSE = ("-v", "-vv", "-vvv", "--verbose")
+
+
+def _head_start(args: list[str]) -> None:
+    """``workbench [-v] stitch PATH [--force]``: the panorama's photos described (and matched) on two threads from
+    the process's start (:func:`workbench.stitch.stage.head_start`, from the photo folder and camera source as
+    written in ``project.toml``), while this thread parses the arguments, loads the settings' models and validates
+    the settings (pydantic, pyproj: about 0.15 s); OpenCV releases the interpreter. The stage takes the work only
+    where the validated settings give the same photos and options (else it is dropped, and any error is the
+    command's to report, as without the head start). Nothing for any other command line, where a stage up to the
+    stitch may run in a forked process (beside another, or ahead) or start other early work (threads only after
+    forks), or where the stitch is recorded done and not forced (the runner decides whether it runs)."""
+    words = [a for a in args if a not in _VERBOSE]
+    if words[:1] != ["stitch"] or any(w.startswith("-") and w != "--force" for w in words[1:]):
+        return
+    paths = [w for w in words[1:] if w != "--force"]
+    if len(paths) != 1 or len(words) > 3:
+        return
+    force = "--force" in words
+    try:
+        from .pipeline import STAGES
+
+        upto = STAGES[:[s.name for s in STAGES].index("stitch") + 1]
+        if any(s.runs_beside or getattr(s, "ahead", None) or (s.prefetch and s.name != "stitch") for s in upto):
+            return
+        from .project import Project
+
+        project = Project(paths[0])
+        if not force and project.recorded_status("stitch") == "done":
+            return
+        single_threaded_blas()  # (before NumPy is loaded)
+        from .stitch.stage import head_start
+
+        head_start(project)
+    except Exception as exc:  # noqa: BLE001 - only a head start: the command does the work and reports its errors
+        logging.getLogger(__name__).debug("no head start: %s: %s", type(exc).__name__, exc)
 
 
 def _run_command(argv: list[str] | None) -> None:

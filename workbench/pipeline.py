@@ -384,10 +384,15 @@ STAGES: list[StageSpec] = [
     StageSpec("render", "off-screen renders of the reconstructed scene (overview, map, photo overlays, close-ups, "
               "orbit)", "workbench.report.render_stage:run_render", inputs=scene_input_files,
               settings_sections=("incident", "location", "terrain", "consist"), depends_on=("solve",),
-              runs_beside=("export",)),  # the export's files are read by neither (the report waits for both)
+              runs_beside=("export",),  # the export's files are read by neither (the report waits for both)
+              # Open3D, the carriages' models, the terrain and its shading: read while the correspond stage runs
+              ahead="workbench.report.render_stage:ahead", ahead_from="correspond"),
     StageSpec("report", "incident report (HTML and PDF) from the stages' statistics and renders",
               "workbench.report.report_stage:run_report", inputs=_report_inputs,
-              settings_sections=("incident", "location", "consist", "terrain.railways"), depends_on=("render",)),
+              settings_sections=("incident", "location", "consist", "terrain.railways"), depends_on=("render",),
+              # WeasyPrint and matplotlib imported on the cores the solve, the export and the render leave idle (the
+              # end of the correspond stage is the render's work ahead)
+              ahead="workbench.report.report_stage:ahead", ahead_from="solve"),
 ]
 STAGE_NAMES: tuple[str, ...] = tuple(s.name for s in STAGES)
 

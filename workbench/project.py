@@ -27,12 +27,15 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from .core.io import atomic_write, atomic_write_json, atomic_write_text, read_json, resolve_dem_sources
-from .core.layout import CAMERAS_FILE, CONTROL_POINTS_FILE, CORRESPONDENCES_FILE
-from .core.settings import SETTINGS_FILE, TEMPLATE, ProjectSettings, load_settings, parse_settings
+from .core.layout import CAMERAS_FILE, CONTROL_POINTS_FILE, CORRESPONDENCES_FILE, SETTINGS_FILE
 from .errors import InputError, SettingsError, StageError, UnknownModelType
 
 if TYPE_CHECKING:  # numpy and the frame are loaded on use: `workbench status` needs neither
     import numpy as np
+
+    # (the settings' models, pydantic and pyproj, on the first read of the settings: a folder's paths, photos and
+    # records need none of them, and `workbench stitch` starts describing its photos before they are loaded)
+    from .core.settings import ProjectSettings
 
     from .core.frames import SceneFrame
     from .files.cameras import Cameras
@@ -67,6 +70,8 @@ class Project:
     def create(cls, root: str | Path, *, name: str | None = None, lat: float = 0.0, lon: float = 0.0,
                crs: str = "EPSG:32618", date: _dt.date | None = None) -> "Project":
         """Create an incident folder with a documented ``project.toml``; refuses to overwrite one."""
+        from .core.settings import TEMPLATE, parse_settings
+
         root = Path(root)
         settings = root / SETTINGS_FILE
         if settings.exists():
@@ -266,7 +271,20 @@ class Project:
     # -- settings -------------------------------------------------------------------------------------
     @cached_property
     def settings(self) -> ProjectSettings:
+        from .core.settings import load_settings
+
         return load_settings(self.settings_path)
+
+    def written_setting(self, section: str, key: str) -> Any:
+        """``[section] key`` as written in ``project.toml``, not validated; None where the file, the table or the key
+        is missing or the file is not TOML. Only for work started while the settings are being validated (the
+        panorama's head start, :func:`workbench.stitch.stage.head_start`), which the stages take only if
+        :attr:`settings` gives what it used."""
+        try:
+            table = tomllib.loads(self.settings_path.read_text(encoding="utf-8")).get(section)
+        except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError):
+            return None
+        return table.get(key) if isinstance(table, dict) else None
 
     def reload(self) -> None:
         self.__dict__.pop("settings", None)
@@ -363,6 +381,12 @@ class Project:
                         "%s when a stage next runs", self.state_path, self.state_path.name + ".corrupt")
             return {}
         return state
+
+    def recorded_status(self, stage: str) -> str | None:
+        """The status that ``out/state.json`` records for ``stage`` (``"done"``, ``"failed"``), not checked against its
+        inputs (:class:`workbench.runner.Runner` does that); None where there is none or the file is corrupt."""
+        rec = (self._read_state_file() or {}).get(stage)
+        return rec.get("status") if isinstance(rec, dict) else None
 
     def _read_state_file(self) -> dict | None:
         """The state file's object; {} when there is none; None when it is corrupt."""

@@ -8,9 +8,12 @@ it failed. A stage is *done* when that record matches the current inputs, *stale
 *failed* when its last run raised, and *not run* otherwise. Running skips done stages unless forced.
 
 With ``jobs`` > 1 a stage runs in a forked process beside the stage after it when that one declares it may
-(``StageSpec.runs_beside``: it reads none of the earlier stage's outputs), e.g. the export beside the render. The
-runner's process alone writes ``out/state.json``; each stage's record is written as soon as it ends, and a stage
-that needs one still running waits for it.
+(``StageSpec.runs_beside``: it reads none of the earlier stage's outputs), e.g. the export beside the render; and a
+stage with work that needs none of its dependencies' outputs (``StageSpec.ahead``) gets its own process when an
+earlier stage starts (``ahead_from``), which does that work on the cores left idle meanwhile and then runs the
+stage in its turn (the render: its models read while the correspond stage runs). The runner's process alone writes
+``out/state.json``; each stage's record is written as soon as it ends, and a stage that needs one still running
+waits for it.
 
 The stages are declared in ``workbench/pipeline.py``.
 """
@@ -62,6 +65,12 @@ class StageSpec:
     # earlier stages that may still be running while this one runs, in another process (this stage reads none of
     # their outputs, nor they this one's); such a stage must declare no prefetch (it is forked)
     runs_beside: tuple[str, ...] = ()
+    # "module:function" ``(project) -> iterator``: work of this stage that reads none of its dependencies' outputs (a
+    # generator, one step of the work per item), started when the stage ``ahead_from`` (an earlier one) starts, in
+    # this stage's own forked process, a step whenever a core is idle (``_early_process``); when this stage's turn
+    # comes its process runs the stage, which does what was not done ahead (``Runner``)
+    ahead: str | None = None
+    ahead_from: str | None = None
 
     def function(self) -> Callable[[Project, Progress], StageResult]:
         """The stage's code, imported on first use when ``run`` names it."""
@@ -122,6 +131,11 @@ class Runner:
                     raise ValueError(f"stage {d!r} has a prefetch: it cannot run in another process beside {s.name!r}")
                 ok.append(d)
             self._beside[s.name] = tuple(ok)
+            if (s.ahead is None) != (s.ahead_from is None):
+                raise ValueError(f"stage {s.name!r}: ahead and ahead_from go together")
+            if s.ahead is not None and s.prefetch:
+                raise ValueError(f"stage {s.name!r} has a prefetch: it cannot run in a process of its own")
+        self._early: dict[str, _EarlyStage] = {}  # the stages whose process was forked ahead of their turn
 
     # -- fingerprints -------------------------------------------------------------------------------------
     def _hash(self, path: Path) -> str:
@@ -240,9 +254,11 @@ class Runner:
         except BaseException:
             # a stage failed here, or an interrupt: the stages running beside end (an interrupt reaches them too,
             # as part of the same process group) and their records are kept; this error is the one raised
+            self._stop_ahead()
             for side in beside.values():
                 side.thread.join()
             raise
+        self._stop_ahead()  # (stages whose turn did not come: not run, e.g. with --until)
         for side in beside.values():  # the last ones, in order: the first error is raised, after every record
             side.thread.join()
         for side in beside.values():
@@ -263,6 +279,8 @@ class Runner:
                 self._join(beside.pop(name))
             state = self.project.read_state()
             st = self._status_of(spec, state)
+            if st.status == "skipped" or (st.status == "done" and not force):
+                self._stop_ahead(spec.name)
             if st.status == "skipped":
                 on_event and on_event("not-applicable", spec, {})
                 continue
@@ -276,6 +294,13 @@ class Runner:
                     raise StageError(f"stage {spec.name!r} needs stage {d!r}, which is {dst.status}"
                                      f"{': ' + dst.reason if dst.reason else ''}; run `workbench run "
                                      f"{self.project.root}` (or with --only {d})")
+            self._start_ahead(spec, selected[k + 1:], state, force)
+            early = self._early.pop(spec.name, None)
+            if early is not None:  # its process did the work it could do ahead: it runs the stage now
+                side = self._go(early, spec, state, progress_factory, on_event)
+                if side is not None:
+                    beside[spec.name] = side
+                    continue
             if (nxt is not None and spec.name in self._beside[nxt.name] and len(beside) + 1 < self.jobs
                     and hasattr(os, "fork") and self._will_run(nxt, state, force)):
                 beside[spec.name] = self._start_beside(spec, state, progress_factory, on_event)
@@ -388,6 +413,12 @@ class Runner:
         t0 = time.perf_counter()
         proc.start()
         theirs.close()
+        return self._watch(spec, proc, ours, fp, state, started, t0, progress, on_event)
+
+    def _watch(self, spec: StageSpec, proc, ours, fp: dict, state: dict, started, t0: float, progress,
+               on_event) -> "_SideStage":
+        """A thread that forwards the progress of ``spec`` running in process ``proc`` (its messages on ``ours``) and
+        records its end."""
         side = _SideStage(spec, proc)
 
         def watch() -> None:
@@ -428,11 +459,74 @@ class Runner:
         side.thread.start()
         return side
 
+    # -- a stage's work ahead of its turn -----------------------------------------------------------------
+    def _start_ahead(self, spec: StageSpec, later: list[StageSpec], state: dict, force: bool) -> None:
+        """``spec`` is about to run: fork the process of each later stage that starts its work ahead when ``spec``
+        starts (``StageSpec.ahead_from``) and will run (applies, not done or ``force``)."""
+        if self.jobs < 2 or not hasattr(os, "fork"):
+            return
+        import multiprocessing
+
+        for s in later:
+            if s.ahead_from != spec.name or s.name in self._early or not self._will_run(s, state, force, deps=False):
+                continue
+            ctx = multiprocessing.get_context("fork")
+            try:
+                ours, theirs = ctx.Pipe(duplex=True)
+                proc = ctx.Process(target=_early_process, args=(s, self.project, theirs, ours),
+                                   name=f"stage {s.name}", daemon=False)
+                proc.start()
+            except OSError as exc:  # (no memory for a fork, too many processes): the stage runs in its turn as before
+                log.info("stage %s: no work ahead (%s)", s.name, exc)
+                continue
+            theirs.close()
+            self._early[s.name] = _EarlyStage(s, proc, ours)
+            log.info("stage %s: its work ahead started beside stage %s (process %d)", s.name, spec.name, proc.pid)
+
+    def _go(self, early: "_EarlyStage", spec: StageSpec, state: dict, progress_factory,
+            on_event) -> "_SideStage | None":
+        """The turn of a stage whose process was forked ahead: it runs the stage now (a stage running beside the ones
+        after it, :meth:`_watch`). None where that process is gone (the stage then runs here)."""
+        fp = self._fingerprint(spec, state)
+        started = _dt.datetime.now(_dt.timezone.utc)
+        t0 = time.perf_counter()
+        try:
+            early.conn.send(("go",))
+        except OSError:
+            log.info("stage %s: its process ahead ended (exit code %s); run here", spec.name, early.process.exitcode)
+            early.conn.close()
+            early.process.join()
+            return None
+        progress = progress_factory(spec) if progress_factory else _no_progress
+        on_event and on_event("start", spec, {})
+        log.info("stage %s: running (in its process, started ahead)", spec.name)
+        return self._watch(spec, early.process, early.conn, fp, state, started, t0, progress, on_event)
+
+    def _stop_ahead(self, name: str | None = None) -> None:
+        """End the processes started ahead whose stage will not run (``name``, or every one left)."""
+        for n in [name] if name is not None else list(self._early):
+            early = self._early.pop(n, None)
+            if early is None:
+                continue
+            try:
+                early.conn.send(("stop",))
+            except OSError:
+                pass
+            early.conn.close()
+            early.process.join()
+
     def _join(self, side: "_SideStage") -> None:
         """Wait for a stage running beside; raise its error (its record is written by then)."""
         side.thread.join()
         if side.error is not None:
             raise side.error
+
+
+@dataclass
+class _EarlyStage:
+    spec: StageSpec
+    process: object
+    conn: object
 
 
 @dataclass
@@ -468,3 +562,79 @@ def _stage_process(spec: StageSpec, project: Project, conn) -> None:
             conn.send(("failed", None, msg, tb, time.perf_counter() - t0))
     finally:
         conn.close()
+
+
+def _early_process(spec: StageSpec, project: Project, conn, parent_end=None) -> None:
+    """In the process forked ahead of a stage's turn: the steps of its work ahead (``StageSpec.ahead``, a generator)
+    on a thread, each one when a core has been idle (:func:`_idle_cores`: the stages running then come first, and so
+    does work at a lower priority, such as the correspond prefetch), until the runner says "go" (then the stage runs
+    as :func:`_stage_process` runs it, and does itself what was not done ahead) or "stop" (the stage will not run).
+    The thread runs at the stage's priority: the step it is in when the stage's turn comes (one model, one layer;
+    under a second) is finished first, never left to a starved thread. Work ahead that fails is left to the stage
+    (logged)."""
+    if parent_end is not None:  # the runner's end of the pipe: closed here, so that a runner killed is an end of file
+        parent_end.close()
+    go = threading.Event()
+    lock = threading.Lock()
+    state: dict = {"steps": None, "over": False}
+
+    def step() -> bool:
+        with lock:
+            if state["over"]:
+                return False
+            try:
+                if state["steps"] is None:
+                    module, _, attr = spec.ahead.partition(":")
+                    state["steps"] = iter(getattr(importlib.import_module(module), attr)(project))
+                next(state["steps"])
+                return True
+            except StopIteration:
+                pass
+            except Exception as exc:  # noqa: BLE001 - only a head start: the stage does the work, and reports errors
+                log.info("stage %s: work ahead stopped (%s: %s)", spec.name, type(exc).__name__, exc)
+            state["over"] = True
+            return False
+
+    def background() -> None:
+        while not go.is_set():
+            if _idle_cores(AHEAD_SAMPLE_S) < AHEAD_IDLE_CORES:
+                continue
+            if go.is_set() or not step():
+                break
+
+    thread = threading.Thread(target=background, name=f"stage {spec.name} ahead", daemon=True)
+    thread.start()
+    try:
+        msg = conn.recv()
+    except (EOFError, OSError):
+        msg = ("stop",)
+    go.set()
+    with lock:  # the step the thread is in is finished; the steps not begun are left to the stage, which does what it
+        state["over"] = True  # needs (the render: only the carriages the solution poses)
+    if msg[0] != "go":
+        conn.close()
+        return
+    _stage_process(spec, project, conn)
+
+
+AHEAD_SAMPLE_S = 0.2  # the work ahead takes a step when, over this long, ...
+AHEAD_IDLE_CORES = 0.5  # ... at least this much of a core was idle
+
+
+def _idle_cores(interval_s: float) -> float:
+    """How many cores were idle (the kernel's idle and I/O-wait time, ``/proc/stat``) over the next ``interval_s``;
+    where that cannot be read, as many as there are."""
+    def read() -> tuple[int, int] | None:
+        try:
+            with open("/proc/stat") as f:
+                fields = [int(x) for x in f.readline().split()[1:]]
+        except (OSError, ValueError):
+            return None
+        return fields[3] + fields[4], sum(fields[:8])
+
+    a = read()
+    time.sleep(interval_s)
+    b = read()
+    if a is None or b is None or b[1] <= a[1]:
+        return float(os.cpu_count() or 1)
+    return (b[0] - a[0]) / (b[1] - a[1]) * (os.cpu_count() or 1)

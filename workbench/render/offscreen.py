@@ -34,6 +34,7 @@ import numpy as np
 import trimesh
 
 from ..errors import RenderError
+from .ahead import shaded_ahead
 
 _MAX_CANVAS = 16384
 PASS_THREADS = 2  # threads for the sub-pixel passes of a supersampled ray-traced render
@@ -339,7 +340,7 @@ class OffscreenScene:
             raise ValueError(f"{item.name!r}: instance_id={item.instance_id} must be >= 0, or -1 for none")
         m, mat = to_open3d(item) if self.engine == "filament" else (None, None)
         self._items[item.name] = (item, m, mat)
-        self._shading[item.name] = _ShadingData.of(item)
+        self._shading[item.name] = shaded_ahead(item.mesh) or _ShadingData.of(item)  # (computed ahead: the same)
         self._version += 1
 
     def remove(self, name: str) -> None:
@@ -395,8 +396,7 @@ class OffscreenScene:
         """Cast rays through undistorted normalised coordinates ``xy`` (..., 2) of a camera.
 
         Returns (depth along camera z in metres, ``inf`` on a miss; instance id, -1 on a miss or for
-        non-instance objects), both shaped like ``xy[..., 0]``. Triangles are hit from either side.
-        """
+        non-instance objects), both shaped like ``xy[..., 0]``. Triangles are hit from either side."""
         return self.tracer()(cam_from_world, xy)
 
     def tracer(self):
@@ -460,8 +460,7 @@ class OffscreenScene:
         """Render the pinhole view ``K`` (no skew, no distortion) from ``cam_from_world`` (4, 4).
 
         ``size``: (width, height) of this render if not the scene's own. ``supersample``: colour is rendered
-        this many times larger and area-averaged down (default: the scene's).
-        """
+        this many times larger and area-averaged down (default: the scene's)."""
         K = np.asarray(K, dtype=float)
         M = np.asarray(cam_from_world, dtype=float)
         if K.shape != (3, 3) or M.shape != (4, 4):
@@ -552,6 +551,9 @@ class _ShadingData:
         if colors is None:
             colors = np.full((len(Fa), 3, 3), 0.7)
         return cls(normals, None, None, _linear_from_srgb(colors).astype(np.float32))
+
+
+shading_data = _ShadingData.of  # (public: what a scene computes of a mesh added to it; render.ahead keeps some)
 
 
 def _sample_bilinear(img: np.ndarray, uv: np.ndarray) -> np.ndarray:

@@ -1,5 +1,5 @@
-"""The report's work beside itself: its figures drawn in a forked process while the stage copies the renders and
-loads the PDF engine."""
+"""The report's work beside itself: its figures drawn in forked processes (two: they are most of the stage's first
+part) while the stage copies the renders and loads the PDF engine."""
 
 from __future__ import annotations
 
@@ -9,34 +9,46 @@ from typing import Callable
 from ..errors import StageError
 
 
-def run_beside(jobs: list[tuple]) -> Callable[[], list]:
-    """Start ``jobs`` ([(function, args)]) one after another in a forked process; returns a function that waits for
-    them and returns their results in order (or raises the first one's error). Without ``fork``: run here."""
+def run_beside(jobs: list[tuple], processes: int = 2) -> Callable[[], list]:
+    """Start ``jobs`` ([(function, args)]) in up to ``processes`` forked processes (the jobs dealt in turn, each
+    process doing its share one after another); returns a function that waits for them and returns their results in
+    the jobs' order (or raises the first error, once every process has ended). Without ``fork``: run here."""
     if not hasattr(os, "fork"):
         results = [fn(*args) for fn, args in jobs]
         return lambda: results
     import multiprocessing
 
     ctx = multiprocessing.get_context("fork")
-    ours, theirs = ctx.Pipe(duplex=False)
-    proc = ctx.Process(target=_run_jobs, args=(jobs, theirs), name="report figures", daemon=True)
-    proc.start()
-    theirs.close()
+    n = max(1, min(int(processes), len(jobs)))
+    started = []
+    for k in range(n):
+        ours, theirs = ctx.Pipe(duplex=False)
+        proc = ctx.Process(target=_run_jobs, args=(jobs[k::n], theirs), name=f"report figures {k + 1}", daemon=True)
+        proc.start()
+        theirs.close()
+        started.append((ours, proc))
 
     def wait() -> list:
-        try:
-            msg = ours.recv()
-        except EOFError:
-            msg = None
-        finally:
-            proc.join()
-            ours.close()
-        if msg is None:
-            raise StageError(f"report: the process drawing the figures ended without them (exit code "
-                             f"{proc.exitcode}); run the report again (`workbench run PATH --only report --force`)")
-        if msg[0] == "error":
-            raise msg[1]
-        return msg[1]
+        shares, error = [], None
+        for ours, proc in started:
+            try:
+                msg = ours.recv()
+            except EOFError:
+                msg = None
+            finally:
+                proc.join()
+                ours.close()
+            if msg is None:
+                msg = ("error", StageError(f"report: the process drawing the figures ended without them (exit code "
+                                           f"{proc.exitcode}); run the report again (`workbench run PATH --only "
+                                           f"report --force`)"))
+            if msg[0] == "error":
+                error = error or msg[1]
+            else:
+                shares.append(msg[1])
+        if error is not None:
+            raise error
+        return [shares[i % n][i // n] for i in range(len(jobs))]
     return wait
 
 

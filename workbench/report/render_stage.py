@@ -25,7 +25,7 @@ import os
 import time
 import warnings
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 
@@ -35,7 +35,7 @@ from ..core.track import RailwayLine
 from ..errors import RenderError, WorkbenchWarning
 from ..project import Project
 from ..files.scene import SceneCarriage
-from .scene import IncidentScene, camera_glyph, car_color, load_scene
+from .scene import IncidentScene, camera_glyph, car_color, load_scene, scene_layers
 
 log = logging.getLogger(__name__)
 
@@ -601,11 +601,52 @@ class _RenderRun:
         return gif, sp, sheet_az
 
 
+_AHEAD: dict = {}  # what ahead() read in this process: {"root": the incident's folder, "layers": scene_layers}
+
+
+def ahead(project: Project) -> Iterator[None]:
+    """``StageSpec.ahead``: the stage's work that needs no solution, one step per item, done in the stage's process
+    while the correspond stage runs (``runner``): Open3D and matplotlib imported, each carriage's textured model
+    built (the carriage type keeps it: the scene's carriages are copies of it), the terrain, buildings and track
+    read (:func:`scene_layers`) and their shading data computed (``render.ahead``). :func:`run_render` takes what
+    was done (the runner stops the steps at the stage's turn); every picture is the same as without. The consist's
+    carriages are built in its order: which ones the solution poses is not known yet."""
+    _require_open3d()
+    from ..render.ahead import remember
+    from ..render.offscreen import SceneMesh, shading_data
+
+    yield
+    import matplotlib  # the map's figure (draw_map), drawn while the other pictures render
+
+    matplotlib.use("Agg")
+    import matplotlib.patheffects  # noqa: F401
+    import matplotlib.pyplot  # noqa: F401
+
+    _font(12)  # (matplotlib's font list, read once)
+    yield
+    types = project.carriage_types()
+    for car in project.settings.consist:
+        types[car.number].mesh(car.number, textured=True)
+        yield
+    layers: dict = {}
+    _AHEAD.clear()
+    _AHEAD.update(root=project.root, layers=layers)  # each layer there once read (the stage reads those not there)
+    for name, mesh in scene_layers(project, textured=True):
+        layers[name] = mesh
+        yield
+    for name, mesh in layers.items():
+        if mesh is not None and len(mesh.faces):
+            remember(mesh, shading_data(SceneMesh(name, mesh)))
+            yield
+
+
 def run_render(project: Project, progress: Progress) -> StageResult:
     t_all = time.perf_counter()
     out = project.stage_dir("render")
     progress(0.0, "reading the scene")
-    sc = load_scene(project)
+    layers = _AHEAD.pop("layers", None) if _AHEAD.pop("root", None) == project.root else None
+    _AHEAD.clear()
+    sc = load_scene(project, layers=layers)
     sr = SceneRenderer(sc)
     run = _RenderRun(project, progress, out, sc, sr)
     run.overview()

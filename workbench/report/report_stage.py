@@ -21,9 +21,10 @@ import logging
 import math
 import os
 import platform
+import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Iterator
 
 import numpy as np
 
@@ -493,11 +494,12 @@ def build_context(project: Project, progress: Progress) -> tuple[dict, dict]:
     cars = solution.get("carriages", [])
 
     progress(0.1, "figures")
-    # the figures of the solution (points, residuals) are drawn in a process beside this one, which meanwhile copies
+    # the figures of the solution (points, residuals) are drawn in two processes beside this one, which meanwhile copies
     # the renders and loads the PDF engine; the same figures, drawn by the same code
     sigma = solution.get("sigma_px")
     jobs, pj, with_pano = _figure_jobs(project, cams, cars, figs, sigma)
-    drawn = run_beside(jobs)
+    # two processes where matplotlib is loaded here already (the stage's work ahead): each would import it otherwise
+    drawn = run_beside(jobs, processes=2 if "matplotlib.pyplot" in sys.modules else 1)
 
     try:
         by_kind: dict[str, list] = {}
@@ -647,6 +649,16 @@ def write_pdf(html: str, base_dir: Path, path: Path) -> int:
     doc = weasyprint.HTML(string=html, base_url=str(base_dir)).render()
     atomic_write(path, lambda p: doc.write_pdf(p))
     return len(doc.pages)
+
+
+def ahead(project: Project) -> Iterator[None]:
+    """``StageSpec.ahead``: the stage's imports, one step each, done in its process from the solve stage on, on the
+    cores the stages then leave idle (``runner``): the PDF engine (WeasyPrint, about a second) and matplotlib, which
+    the figures' processes (forked from this one) then have loaded."""
+    load_pdf_engine()
+    yield
+    _plt()
+    yield
 
 
 def run_report(project: Project, progress: Progress) -> StageResult:

@@ -12,7 +12,7 @@ import logging
 import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import numpy as np
 import trimesh
@@ -193,20 +193,40 @@ def _track(project: Project) -> trimesh.Trimesh | None:
     return track_mesh(layer.lines, top_of_rail=layer.heights == "file")
 
 
-def load_scene(project: Project, *, textured: bool = True, with_terrain: bool = True) -> IncidentScene:
-    """Read the reconstructed scene of ``project``. :class:`InputError` naming the 'solve' stage if it has not run."""
+LAYERS = ("terrain", "buildings", "track")
+
+
+def scene_layers(project: Project, *, textured: bool = True,
+                 skip: Sequence[str] = ()) -> Iterator[tuple[str, trimesh.Trimesh | None]]:
+    """The scene's layers that do not depend on the solution (:data:`LAYERS` but those in ``skip``), one by one:
+    (name, mesh), None where the incident has none (read from the DEM, the orthophoto, the terrain stage's meshes
+    and the railway layer)."""
+    read = {"terrain": lambda: _terrain_mesh(project, textured=textured), "buildings": lambda: _buildings_mesh(project),
+            "track": lambda: _track(project)}
+    for name in LAYERS:
+        if name not in skip:
+            yield name, read[name]()
+
+
+def load_scene(project: Project, *, textured: bool = True, with_terrain: bool = True,
+               layers: dict[str, trimesh.Trimesh | None] | None = None) -> IncidentScene:
+    """Read the reconstructed scene of ``project``. :class:`InputError` naming the 'solve' stage if it has not run.
+    ``layers``: those of the :func:`scene_layers` read before (with the same ``textured``); the others are read here."""
     sol = project.solution("scene")
     cars, _ = scene_carriages(sol, project.carriage_types())
     cam_data, cams = load_cameras(project)
     cams = [SceneCamera(c.name, c.image, c.intrinsics, sol.cam_from_world(c.cam_from_world)) for c in cams]
     cams = with_solved_focal(cams, sol.focal_px)
     with_terrain = with_terrain and not sol.relative  # a relative scene is not in the DEM's frame
-    terrain = _terrain_mesh(project, textured=textured) if with_terrain else None
-    buildings = _buildings_mesh(project) if with_terrain else None
+    if with_terrain:
+        layers = dict(layers or {})
+        layers.update(scene_layers(project, textured=textured, skip=tuple(layers)))
+    terrain = layers["terrain"] if with_terrain else None
+    buildings = layers["buildings"] if with_terrain else None
     files = {"solution": sol.path}
     if project.cameras_path():
         files["cameras"] = project.cameras_path()
-    track = _track(project) if with_terrain else None
+    track = layers["track"] if with_terrain else None
     return IncidentScene(terrain, buildings, cars, cams, sol.doc, cam_data, files, textured, track)
 
 

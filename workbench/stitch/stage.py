@@ -19,14 +19,17 @@ import logging
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 
 from ..errors import InputError
-from ..project import Project
 from ..core.stage_api import Progress, StageResult
 from .options import StitchOptions, StitchResult
 from .photo_matching import describe_photo, match_described
+
+if TYPE_CHECKING:  # (the project's settings are validated while the head start describes the photos)
+    from ..project import Project
 
 log = logging.getLogger(__name__)
 
@@ -47,29 +50,65 @@ def prefetch(project: Project, options: StitchOptions = StitchOptions()) -> None
     releases the interpreter, so the second core works. Unless the lens is calibrated (its keypoints are matched
     undistorted), every pair is then matched there too (``photo_matching.match_described``), each once its two
     photos are described. The stage takes the results when its photos are unchanged since (paths, sizes,
-    modification times) and its options the same; else they are dropped."""
-    photos = project.photo_paths()
+    modification times) and its options the same; else they are dropped. Nothing new where the same photos are
+    being described already (:func:`head_start`)."""
+    describe_ahead(project.photo_paths(), match=project.settings.camera.source.value != "calibrated",
+                   options=options)
+
+
+def head_start(project: Project) -> bool:
+    """:func:`prefetch` from the photo folder and camera source as written in ``project.toml`` (not yet validated),
+    for a command that starts describing the photos before it has loaded the settings' models and validated them
+    (``workbench stitch``: docs/performance.md, ninth pass). The stage takes the work only where the validated
+    settings give the same photos, stamps and options, and the same matching (:func:`prefetch` then starts nothing
+    new). Nothing is started (False) where ``camera.photos`` or ``camera.source`` is not written as a string, the
+    source is ``sfm`` (no panorama), or the folder holds fewer than two photos."""
+    folder, source = project.written_setting("camera", "photos"), project.written_setting("camera", "source")
+    if not isinstance(folder, str) or not isinstance(source, str) or source == "sfm":
+        return False
+    try:
+        photos = project.photo_paths(folder)
+    except InputError:
+        return False
+    if len(photos) < 2:
+        return False
+    describe_ahead(photos, match=source != "calibrated")
+    return True
+
+
+def describe_ahead(photos: list[Path], *, match: bool, options: StitchOptions = StitchOptions()) -> None:
+    """Describe ``photos`` on two threads and (``match``) match every pair, for the stage to take
+    (:func:`_take_prefetch`); nothing new where the same photos (paths, sizes, modification times) are being
+    described already with these options and this matching."""
     stamps = _stamps(photos)  # before reading: a photo changed meanwhile is described again by the stage
+    with _PREFETCH_LOCK:
+        if (_PREFETCH and _PREFETCH["stamps"] == stamps and _PREFETCH["options"] == options
+                and _PREFETCH["match"] == match):
+            log.info("stitch: the photos are being described already (the command's head start)")
+            return
     pool = ThreadPoolExecutor(max_workers=2, thread_name_prefix="stitch prefetch")
     futures = {k: pool.submit(describe_photo, p, p.name, k, options) for k, p in enumerate(photos)}
     matched = {}
-    if project.settings.camera.source.value != "calibrated":
+    if match:
         # (queued after every description: a match waiting for its photos never holds up one of them)
         matched = {(i, j): pool.submit(match_described, (i, j), futures, options)
                    for j in range(len(photos)) for i in range(j)}
     pool.shutdown(wait=False)
     with _PREFETCH_LOCK:
-        _PREFETCH.update(stamps=stamps, options=options, futures=futures, matched=matched)
+        _PREFETCH.clear()
+        _PREFETCH.update(stamps=stamps, options=options, match=match, futures=futures, matched=matched, pool=pool)
 
 
-def _take_prefetch(photos: list[Path], options: StitchOptions) -> tuple[dict, dict] | None:
+def _take_prefetch(photos: list[Path], options: StitchOptions, pools: list) -> tuple[dict, dict] | None:
     """The prefetched descriptions of ``photos`` (index -> future) and matches (pair -> future), if they are of
-    these photos as they are now."""
+    these photos as they are now; their threads' pool appended to ``pools`` (used or not), for the stage to wait for
+    its threads' end."""
     with _PREFETCH_LOCK:
         pre = dict(_PREFETCH)
         _PREFETCH.clear()
     if not pre:
         return None
+    pools.append(pre["pool"])
     if pre["options"] != options or pre["stamps"] != _stamps(photos):
         log.info("stitch: the photos changed since they were described ahead of the stage; described again")
         return None
@@ -81,14 +120,24 @@ def _take_prefetch(photos: list[Path], options: StitchOptions) -> tuple[dict, di
 def stitch_project(project: Project, progress: Progress = lambda f, m="": None,
                    options: StitchOptions = StitchOptions()) -> StitchResult:
     """Stitch the project's photo set along its intrinsics route (no files written)."""
+    photos = project.photo_paths()
+    pools: list[ThreadPoolExecutor] = []
+    try:
+        return _stitch_project(project, photos, options, progress, _take_prefetch(photos, options, pools))
+    finally:  # no prefetch thread outlives the stage (a later stage may fork: threads only after forks)
+        for pool in pools:
+            pool.shutdown(wait=True, cancel_futures=True)
+
+
+def _stitch_project(project: Project, photos: list[Path], options: StitchOptions, progress: Progress,
+                    pre: tuple[dict, dict] | None) -> StitchResult:
     # (imported here, not with the module: the prefetch starts describing the photos without them)
     from ..files.exif import read_focal_px
     from ..files.intrinsics import photo_size
     from .stitcher import stitch_photos
 
     cam = project.settings.camera
-    photos = project.photo_paths()
-    described, matched = _take_prefetch(photos, options) or (None, None)
+    described, matched = pre or (None, None)
     names = [p.name for p in photos]
     calibrated = None
     priors = None
