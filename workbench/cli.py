@@ -608,7 +608,7 @@ def _end_process(code) -> None:
     for stream in (sys.stdout, sys.stderr):
         try:
             stream.flush()
-        except (AttributeError, ValueError, OSError):
+        except (AttributeError, ValueError, OSError):  # a stream replaced, closed or gone: nothing left to flush
             pass
     os._exit(status & 0xFF)
 

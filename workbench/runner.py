@@ -510,7 +510,7 @@ class Runner:
                 continue
             try:
                 early.conn.send(("stop",))
-            except OSError:
+            except OSError:  # it has ended already (its end of the pipe closed): nothing to stop, only to join
                 pass
             early.conn.close()
             early.process.join()
@@ -588,7 +588,7 @@ def _early_process(spec: StageSpec, project: Project, conn, parent_end=None) -> 
                     state["steps"] = iter(getattr(importlib.import_module(module), attr)(project))
                 next(state["steps"])
                 return True
-            except StopIteration:
+            except StopIteration:  # every step of the work ahead done: over, as after a failure
                 pass
             except Exception as exc:  # noqa: BLE001 - only a head start: the stage does the work, and reports errors
                 log.info("stage %s: work ahead stopped (%s: %s)", spec.name, type(exc).__name__, exc)
