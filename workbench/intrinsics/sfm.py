@@ -407,7 +407,8 @@ def _main_focal(rec) -> float:
 
 
 def _map_focal_held(db: Path, image_dir: Path, tmp: Path, opts: SfmOptions, rec, f_initial: float,
-                    progress: Callable[[float, str], None], warnings: list[str]) -> tuple | None:
+                    progress: Callable[[float, str], None], warnings: list[str],
+                    focal_sd: float | None = None) -> tuple | None:
     """Where ``rec``'s refined focal ran off ``f_initial`` (:data:`FOCAL_RUN_OFF`): the model mapped again with
     the focal held at the initial one, if kept (``SfmOptions.focal_hold_retry``): (main model, other models, the
     options, a record of the check); ``(None, None, None, record)`` where the held model is not kept; None where the
@@ -430,8 +431,11 @@ def _map_focal_held(db: Path, image_dir: Path, tmp: Path, opts: SfmOptions, rec,
         warnings.append(f"the SfM focal ran off to {f_free:.0f} px from the initial {f_initial:.0f} px (a model its "
                         f"photos do not determine: narrow baselines, few photos); mapped again with the focal held at "
                         f"{f_initial:.0f} px: {n2} photos registered (free: {n_free}), mean reprojection error "
-                        f"{e2:.2f} px (free: {e_free:.2f} px). The poses' covariance is given that focal: its own "
-                        f"error is not in it")
+                        f"{e2:.2f} px (free: {e_free:.2f} px). "
+                        + (f"The poses' covariance carries that focal's own error (1-sigma {focal_sd:.0f} px, the "
+                           f"initial camera's)" if focal_sd else
+                           "The poses' covariance is given that focal: its own error is not in it (the initial "
+                           "camera states none: a camera profile is taken as exact)"))
         return rec2, others2, held, record
     return None, None, None, record
 
@@ -459,13 +463,15 @@ def _map_or_retry(db: Path, image_dir: Path, tmp: Path, opts: SfmOptions, prior_
 
 
 def run_sfm(images: list[Path], *, options: SfmOptions | None = None, prior: CameraIntrinsics | None = None,
-            prior_fixed: bool = False, work_dir: Path | None = None,
+            prior_fixed: bool = False, prior_focal_sigma_px: float | None = None, work_dir: Path | None = None,
             progress: Callable[[float, str], None] | None = None) -> SfmResult:
     """Structure from motion on ``images`` (paths in one folder, at least 2).
 
     ``prior``: initial intrinsics (a camera profile, or an EXIF focal with the principal point at the centre),
     for the photos' size (scaled if the photos have the same aspect but another size); ``prior_fixed``: keep
-    it fixed (a trusted calibration) instead of refining it. ``work_dir``: where COLMAP's database goes
+    it fixed (a trusted calibration) instead of refining it; ``prior_focal_sigma_px``: the prior focal's 1-sigma
+    (an EXIF focal's), carried into the poses' covariance where the focal is held at it (not refined:
+    ``SfmOptions.refine_focal`` false, or the focal-hold retry); None: a held focal is taken as exact. ``work_dir``: where COLMAP's database goes
     (default: a temporary folder, removed afterwards).
     Raises :class:`InputError` for bad inputs and :class:`StageError` when no model could be built.
     """
@@ -492,6 +498,9 @@ def run_sfm(images: list[Path], *, options: SfmOptions | None = None, prior: Cam
         reader, prior_used = _reader_options(opts, prior, distinct, warnings)
         if prior_fixed and prior_used is None:
             prior_fixed = False
+        focal_sd = None  # the held focal's 1-sigma (px), scaled with the prior to the photos' size
+        if prior_used is not None and not prior_fixed and prior_focal_sigma_px:
+            focal_sd = float(prior_focal_sigma_px) / prior.fx * prior_used.fx
         t0 = time.perf_counter()
         progress(0.05, "features")
         log.info("sfm: extracting features from %d photos", len(names))
@@ -517,13 +526,13 @@ def run_sfm(images: list[Path], *, options: SfmOptions | None = None, prior: Cam
                              f"scene in 3 or more photos, 60-80 % overlap), or use another camera.source")
         focal_check = None
         if opts.focal_hold_retry and prior_used is not None and not prior_fixed and used_opts.refine_focal:
-            held = _map_focal_held(db, image_dir, tmp, used_opts, rec, prior_used.fx, progress, warnings)
+            held = _map_focal_held(db, image_dir, tmp, used_opts, rec, prior_used.fx, progress, warnings, focal_sd)
             if held is not None:
                 focal_check = held[3]
                 if held[0] is not None:
                     rec, others, used_opts = held[0], held[1], held[2]
             timings["mapping_s"] = time.perf_counter() - t0
-        result = _convert(rec, others, db, images, used_opts, prior_fixed)
+        result = _convert(rec, others, db, images, used_opts, prior_fixed, focal_sd)
 
     n_reg = len(result.views)
     if prior_used is not None and not prior_fixed and used_opts.refine_focal:
@@ -538,7 +547,7 @@ def run_sfm(images: list[Path], *, options: SfmOptions | None = None, prior: Cam
         "single_camera": single, "retried_forward_motion": retried,
         "options": asdict(used_opts), "timings_s": {k: round(v, 3) for k, v in timings.items()},
         "time_s": round(sum(timings.values()), 3),
-        "prior": None if prior_used is None else {**prior_used.to_dict(), "fixed": bool(prior_fixed)},
+        "prior": None if prior_used is None else {**prior_used.to_dict(), "fixed": bool(prior_fixed), "focal_sigma_px": focal_sd},
         "focal_held": focal_check,
         "warnings": warnings,
     })
@@ -549,18 +558,26 @@ def run_sfm(images: list[Path], *, options: SfmOptions | None = None, prior: Cam
     return result
 
 
-def _pose_covariance(rec, views: list[SfmView], opts: SfmOptions, intrinsics_fixed: bool) -> dict | None:
+def _pose_covariance(rec, views: list[SfmView], opts: SfmOptions, intrinsics_fixed: bool,
+                     focal_sd: float | None = None) -> dict | None:
     """Each view's ``pose_factor`` set from the model's pose covariance (:mod:`.sfm_covariance`, in place); its
-    statistics, or None (not asked for, or not determined: logged, the views keep no factor)."""
+    statistics, or None (not asked for, or not determined: logged, the views keep no factor). A focal held at
+    a prior of 1-sigma ``focal_sd`` (px) is an unknown of the covariance with that prior's information."""
     if not opts.pose_covariance:
         return None
     cam = rec.camera(rec.image(next(iter(rec.reg_image_ids()))).camera_id)
-    params = [] if intrinsics_fixed or not opts.pose_covariance_intrinsics else intrinsic_parameters(cam.model.name, opts.refine_focal,
-                                                               opts.refine_principal_point, opts.refine_distortion)
+    held: dict[str, float] = {}
+    if intrinsics_fixed or not opts.pose_covariance_intrinsics:
+        params = []
+    else:
+        params = intrinsic_parameters(cam.model.name, opts.refine_focal, opts.refine_principal_point,
+                                      opts.refine_distortion)
+        if not opts.refine_focal and focal_sd:
+            params, held = ["f"] + params, {"f": float(focal_sd)}
     try:
         pc = reconstruction_pose_covariance(
             rec, {i: rec.image(i).name for i in rec.reg_image_ids()},
-            lambda c: intrinsics_from_colmap(c.model.name, c.width, c.height, c.params), params)
+            lambda c: intrinsics_from_colmap(c.model.name, c.width, c.height, c.params), params, prior_sd=held)
     except (ValueError, np.linalg.LinAlgError) as exc:
         log.warning("sfm: no pose covariance for a model of %d photos: %s", len(views), exc)
         return {"error": str(exc)}
@@ -571,7 +588,8 @@ def _pose_covariance(rec, views: list[SfmView], opts: SfmOptions, intrinsics_fix
     return pc.stats
 
 
-def _model_parts(rec, by_name: dict[str, Path], opts: SfmOptions, intrinsics_fixed: bool = False):
+def _model_parts(rec, by_name: dict[str, Path], opts: SfmOptions, intrinsics_fixed: bool = False,
+                 focal_sd: float | None = None):
     """Views (sorted by name), points (a fixed-seed subsample of at most ``opts.max_points``), their total and
     the model's statistics (with its pose covariance's: :func:`_pose_covariance`), of one COLMAP
     reconstruction."""
@@ -601,19 +619,19 @@ def _model_parts(rec, by_name: dict[str, Path], opts: SfmOptions, intrinsics_fix
         "median_point_error_px": float(np.median(err)) if n_total else 0.0,
         "mean_track_length": float(track.mean()) if n_total else 0.0,
         "mean_observations_per_image": float(rec.compute_mean_observations_per_reg_image()),
-        "pose_covariance": _pose_covariance(rec, views, opts, intrinsics_fixed),
+        "pose_covariance": _pose_covariance(rec, views, opts, intrinsics_fixed, focal_sd),
     }
     return views, xyz, rgb, n_total, stats
 
 
 def _convert(rec, others, db_path: Path, images: list[Path], opts: SfmOptions,
-             intrinsics_fixed: bool = False) -> SfmResult:
+             intrinsics_fixed: bool = False, focal_sd: float | None = None) -> SfmResult:
     """The main model ``rec`` and the separate ``others`` (largest first) as an :class:`SfmResult`, with the
     reason every photo is not in the main model."""
     import pycolmap
 
     by_name = {p.name: p for p in images}
-    views, xyz, rgb, n_total, model_stats = _model_parts(rec, by_name, opts, intrinsics_fixed)
+    views, xyz, rgb, n_total, model_stats = _model_parts(rec, by_name, opts, intrinsics_fixed, focal_sd)
     registered = {v.name for v in views}
     models = []
     covered = set(registered)
@@ -624,7 +642,7 @@ def _convert(rec, others, db_path: Path, images: list[Path], opts: SfmOptions,
             n_dropped += 1
             continue
         covered |= names_r
-        v2, xyz2, rgb2, n2, st2 = _model_parts(r, by_name, opts, intrinsics_fixed)
+        v2, xyz2, rgb2, n2, st2 = _model_parts(r, by_name, opts, intrinsics_fixed, focal_sd)
         models.append(SfmModel(views=v2, points_xyz=xyz2, points_rgb=rgb2, n_points_total=n2, stats=st2))
 
     # why were the others left out?

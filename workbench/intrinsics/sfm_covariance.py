@@ -162,16 +162,50 @@ def _gauge(centres: np.ndarray, D: int) -> tuple[np.ndarray, np.ndarray]:
     return G, W
 
 
+def _held_variances(params: list[str], prior_sd: dict[str, float], n_img: int, n_cam: int) -> dict[int, float]:
+    """The held parameters' indices in the (poses, intrinsics) vector and their priors' variances."""
+    return {6 * n_img + len(params) * k + j: prior_sd[name] ** 2
+            for j, name in enumerate(params) if name in prior_sd for k in range(n_cam)}
+
+
+def _generalised_inverse(S: np.ndarray, G: np.ndarray, held: dict[int, float]) -> np.ndarray:
+    """A generalised inverse of the reduced information ``S`` (D, D; its null space the gauge ``G``), with the
+    ``held`` parameters (index -> variance) as *consider* parameters: the adjustment did not estimate them (they
+    were held at a prior), so the data do not narrow them; their error ``d`` moves the estimated rest by
+    ``B d``, ``B = -S_aa^+ S_ah`` (the estimate's response), and the covariance is ``[[C_aa + B V B^T, B V],
+    [V B^T, V]]`` with ``C_aa = S_aa^+`` (the rest's, the held ones exact) and ``V`` the priors' variances."""
+    D = len(S)
+    h = np.array(sorted(held), dtype=int)
+    a = np.setdiff1d(np.arange(D), h)
+    Ga = G[a]
+    alpha = float(np.trace(S[np.ix_(a, a)])) / len(a) / max(float(np.mean(np.sum(Ga * Ga, axis=0))), 1e-300)
+    Xa = np.linalg.inv(S[np.ix_(a, a)] + alpha * Ga @ Ga.T)  # S_aa's null space is the gauge (G's rows of h are 0)
+    if not len(h):
+        return Xa
+    V = np.diag([held[i] for i in h])
+    B = -Xa @ S[np.ix_(a, h)]
+    X = np.zeros((D, D))
+    X[np.ix_(a, a)] = Xa + B @ V @ B.T
+    X[np.ix_(a, h)] = B @ V
+    X[np.ix_(h, a)] = (B @ V).T
+    X[np.ix_(h, h)] = V
+    return X
+
+
 def pose_covariance(names: list[str], cam_from_model: np.ndarray, camera_index: np.ndarray,
                     intrinsics: list[CameraIntrinsics], obs_image: np.ndarray, obs_point: np.ndarray,
-                    obs_uv: np.ndarray, points: np.ndarray, params: list[str], max_rank: int = 96
-                    ) -> SfmPoseCovariance:
+                    obs_uv: np.ndarray, points: np.ndarray, params: list[str], max_rank: int = 96,
+                    prior_sd: dict[str, float] | None = None) -> SfmPoseCovariance:
     """The covariance of an SfM model's poses (module docstring).
 
     ``names`` (N,) and ``cam_from_model`` (N, 4, 4) of its views, ``camera_index`` (N,): each view's camera in
     ``intrinsics`` (pixel convention of docs/conventions.md); observations: view index ``obs_image`` (n,), point
     index ``obs_point`` (n,), pixel ``obs_uv`` (n, 2); ``points`` (P, 3) model frame; ``params``: the intrinsics
-    the adjustment refined (:func:`intrinsic_parameters`), taken as unknowns too (their error moves the poses).
+    the adjustment refined (:func:`intrinsic_parameters`), taken as unknowns too (their error moves the poses);
+    ``prior_sd``: those of ``params`` the adjustment held at a prior value that is itself uncertain (a focal held
+    at the EXIF's, ``{"f": sigma_px}``), each with that prior's 1-sigma, taken as *consider* parameters
+    (:func:`_generalised_inverse`): the held value's error, and the pose error it causes, are in the covariance (a
+    held parameter with no stated sigma is left out of ``params``: taken as exact).
     Raises ValueError when the observations cannot fix the poses."""
     t0 = time.perf_counter()
     M = np.asarray(cam_from_model, float)
@@ -187,14 +221,16 @@ def pose_covariance(names: list[str], cam_from_model: np.ndarray, camera_index: 
     r = (_project(R, c, X, cam_of, intrinsics) - np.asarray(obs_uv, float)).reshape(-1)
     Jc, Jp, Jk = _jacobians(R, c, X, cam_of, intrinsics, params, scale)
     D = 6 * n_img + n_cam * len(params)
-    dof = len(r) - (3 * n_pt + D - 7)
+    prior_sd = {k: float(v) for k, v in (prior_sd or {}).items() if k in params}
+    if any(not (np.isfinite(v) and v > 0) for v in prior_sd.values()):
+        raise ValueError(f"a prior's sigma must be finite and positive: {prior_sd}")
+    dof = len(r) - (3 * n_pt + D - len(prior_sd) * n_cam - 7)  # a held parameter was not fitted
     if dof <= 0 or not np.all(np.isfinite(r)):
-        raise ValueError(f"{len(r)} residuals for {3 * n_pt + D - 7} free parameters: no pose covariance")
+        raise ValueError(f"{len(r)} residuals for {len(r) - dof} free parameters: no pose covariance")
     sigma = float(np.sqrt(np.sum(r * r) / dof))
     S = _reduced_information(Jc, Jp, Jk, img, pt, cam_of, n_img, n_pt, n_cam) / sigma ** 2
     G, W = _gauge(centres, D)
-    alpha = float(np.trace(S)) / D / max(float(np.mean(np.sum(G * G, axis=0))), 1e-300)
-    X_g = np.linalg.inv(S + alpha * G @ G.T)  # a generalised inverse of S (its null space is the gauge)
+    X_g = _generalised_inverse(S, G, _held_variances(params, prior_sd, n_img, n_cam))
     P = np.eye(D) - G @ np.linalg.solve(G.T @ (W[:, None] * G), (G * W[:, None]).T)
     C = P @ X_g @ P.T
     C = 0.5 * (C + C.T)
@@ -223,7 +259,8 @@ def pose_covariance(names: list[str], cam_from_model: np.ndarray, camera_index: 
     stats = {"parametrisation": PARAMETRISATION, "rank": keep,
              "trace_share_kept": float(np.sum(ev[:keep]) / max(float(np.sum(ev)), 1e-300)),
              "sigma_px": sigma, "n_observations": int(len(img)), "n_points": int(n_pt), "dof": int(dof),
-             "intrinsics_refined": list(params),
+             "intrinsics_refined": [p for p in params if p not in prior_sd],
+             "intrinsics_held_uncertain": prior_sd,
              "sigma_intrinsics": {f"{p}[{k}]" if n_cam > 1 else p: float(k_sd[k * len(params) + j])
                                   for k in range(n_cam) for j, p in enumerate(params)},
              "max_sigma_rotation_deg": float(np.degrees(sd[:, :3].max())),
@@ -234,7 +271,8 @@ def pose_covariance(names: list[str], cam_from_model: np.ndarray, camera_index: 
 
 
 def reconstruction_pose_covariance(rec, names_by_id: dict[int, str], intrinsics_of, params: list[str],
-                                   max_rank: int = 96) -> SfmPoseCovariance:
+                                   max_rank: int = 96, prior_sd: dict[str, float] | None = None
+                                   ) -> SfmPoseCovariance:
     """:func:`pose_covariance` of a pycolmap ``Reconstruction``'s registered images (``names_by_id``: image id ->
     view name), every observation of a 3-D point (COLMAP's pixels moved to docs/conventions.md's by -0.5), the
     cameras' intrinsics from ``intrinsics_of(camera)``."""
@@ -260,4 +298,4 @@ def reconstruction_pose_covariance(rec, names_by_id: dict[int, str], intrinsics_
     return pose_covariance([names_by_id[i] for i in ids], M,
                            np.array([cam_index[rec.image(i).camera_id] for i in ids]),
                            [intrinsics_of(rec.camera(c)) for c in cam_ids], np.asarray(img), np.asarray(pt),
-                           np.asarray(uv).reshape(-1, 2), X, params, max_rank)
+                           np.asarray(uv).reshape(-1, 2), X, params, max_rank, prior_sd)

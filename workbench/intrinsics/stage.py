@@ -72,7 +72,9 @@ def run_sfm_stage(project: Project, progress: Progress) -> StageResult:
     prior, prior_info = _initial_camera(project, photos)
     if prior_info is not None and prior_info.get("used") is False:
         prior = None
-    result = run_sfm(photos, options=options, prior=prior, progress=lambda f, m="": progress(0.02 + 0.95 * f, m))
+    focal_sd = (prior_info or {}).get("sigma_px") if prior is not None else None  # the EXIF's; a profile: exact
+    result = run_sfm(photos, options=options, prior=prior, prior_focal_sigma_px=focal_sd,
+                     progress=lambda f, m="": progress(0.02 + 0.95 * f, m))
     data = result.to_json(project.relative, prior=prior_info)
     path = project.write_json(project.stage_dir("sfm") / "reconstruction.json", data)
     v0 = result.views[0].intrinsics
