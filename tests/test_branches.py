@@ -50,6 +50,24 @@ def test_a_carried_car_whose_other_branch_fits_as_well_is_marked_and_the_rival_i
     assert set(doubts_of({"warnings": marks, "carriages": [], "links": []})) == {car.number}
 
 
+@pytest.mark.parametrize("seed", [34, 98])
+def test_a_carried_car_whose_better_fit_is_inside_its_neighbour_is_marked(seed):
+    """Seeds 34 and 98 (jack-knives of 10-60 deg; the simulation folds the truth 0.5 m or more into the
+    neighbour's body): the pose that fits the carried car's two points, couplings and terrain (chi-square about 27)
+    puts its body inside car 102, so the branch check keeps the carried pose, 116-122 deg off the truth with a
+    chi-square over 1000. That pose used to go out unmarked with an interval of a few degrees; the car is now
+    marked ``ambiguous`` and the message names the carriage the better pose enters."""
+    sim, res = _solve(seed, (10.0, 60.0))
+    car = res.carriages[3]
+    assert car.status == "carried" and _off_deg(sim, res, 3) > 100.0
+    (rival,) = next(st for st in res.steps if st.name == "4_all").facts["ambiguous"]
+    assert rival["inside"] == res.carriages[2].number and rival["delta_chi2"] < -AMBIGUOUS_CHI2
+    rival_off = rotation_angle_deg(np.asarray(rival["world_from_carriage"])[:3, :3], sim.truth[3][:3, :3])
+    assert rival_off < 5.0
+    (mark,) = [w for w in res.warnings if w["kind"] == "ambiguous"]
+    assert mark["car"] == car.number and f"inside car {res.carriages[2].number}" in mark["message"]
+
+
 def test_carried_cars_without_a_rival_are_not_marked():
     """Seeds 0-9 (jack-knives of 10-60 deg): the carried car ends within 6 deg of the truth, and no other branch
     fits within the limit outside the neighbour's body (seed 3's restart found one 169 deg away, folded into the

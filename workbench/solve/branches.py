@@ -212,8 +212,10 @@ def _rival(cp: ChainedProblem, k: int, every: list[tuple[Poses, str]], sol: Pose
     :data:`RIVAL_MIN_DEG` or more from ``sol``'s pose, converged, at most :data:`AMBIGUOUS_CHI2` above ``sol``'s
     chi-square (or below it: a carried carriage's restart better by less than that is not taken),
     beyond a ridge of the cost (one unit of chi-square or more: another valley, not the far end of the solution's
-    own), its body not inside another carriage's (:func:`body_inside`); None if none. At most ``max_tries``
-    restarts are converged, each ending elsewhere than the others and outside other bodies."""
+    own), its body not inside another carriage's (:func:`body_inside`) unless it fits better than the solution by
+    more than :data:`AMBIGUOUS_CHI2` (then ``inside`` names that carriage: the solution's own fit is what the mark
+    doubts; the pose that fits puts the body inside another, which only telescoped bodies or mismatched points
+    explain); None if none. At most ``max_tries`` restarts are converged, each ending elsewhere than the others."""
     chi_sol = chi2_of(cp, sol)
     cands = sorted(((chi2_of(cp, P), P, how) for P, how in every
                     if rotation_angle_deg(P.R[k], sol.R[k]) >= RIVAL_MIN_DEG), key=lambda x: x[0])
@@ -221,14 +223,17 @@ def _rival(cp: ChainedProblem, k: int, every: list[tuple[Poses, str]], sol: Pose
     for chi, P, how in cands:
         if chi - chi_sol > 2.0 * AMBIGUOUS_CHI2 or len(seen) >= max_tries:  # capped fits: their minima may be
             break  # lower, but not by that much
-        if body_inside(cp, P, k) is not None or any(rotation_angle_deg(P.R[k], R) < RIVAL_MIN_DEG for R in seen):
+        folded_ok = chi - chi_sol < -AMBIGUOUS_CHI2  # far better than the solution: named even inside another body
+        if (body_inside(cp, P, k) is not None and not folded_ok) or \
+                any(rotation_angle_deg(P.R[k], R) < RIVAL_MIN_DEG for R in seen):
             continue  # folded into another carriage, or a restart that ended where one already examined did
         seen.append(P.R[k])
         fit = cp.solve(P)
         nfev += fit.nfev
         angle = rotation_angle_deg(fit.poses.R[k], sol.R[k])
         d = chi2_of(cp, fit.poses) - chi_sol
-        if angle < RIVAL_MIN_DEG or d > AMBIGUOUS_CHI2 or body_inside(cp, fit.poses, k) is not None:
+        inside = body_inside(cp, fit.poses, k)
+        if angle < RIVAL_MIN_DEG or d > AMBIGUOUS_CHI2 or (inside is not None and d >= -AMBIGUOUS_CHI2):
             continue
         ridge = ridge_between(cp, sol, fit.poses)
         if ridge < 1.0:
@@ -238,7 +243,7 @@ def _rival(cp: ChainedProblem, k: int, every: list[tuple[Poses, str]], sol: Pose
         M = np.eye(4)
         M[:3, :3], M[:3, 3] = fit.poses.R[k], fit.poses.t[k]
         return {"car": k, "number": car.number, "angle_deg": angle, "shift_m": shift, "delta_chi2": d,
-                "ridge_chi2": ridge, "from": how, "world_from_carriage": M.tolist()}, nfev
+                "ridge_chi2": ridge, "from": how, "inside": inside, "world_from_carriage": M.tolist()}, nfev
     return None, nfev
 
 

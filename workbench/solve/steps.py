@@ -317,11 +317,16 @@ def step_all(s: SolveContext, fit3: ChainedFit, start3: Poses, profile: FocalPro
     if retry.notes:
         note += "; " + "; ".join(retry.notes)
     for a in retry.ambiguous:
+        where = f"{a['angle_deg']:.0f} deg and {a['shift_m']:.1f} m from the solution's"
         record_warning(s.warnings, s.cars[a["car"]], "ambiguous",
-                       f"car {a['number']}: another pose, {a['angle_deg']:.0f} deg and {a['shift_m']:.1f} m from the "
-                       f"solution's, fits its points about as well (chi-square {a['delta_chi2']:+.1f}; restarted "
-                       f"from {a['from']}): too few points tell them apart; its pose and its interval are doubtful "
-                       f"(a measured point on another face would settle it)")
+                       f"car {a['number']}: another pose, {where}, fits its points about as well (chi-square "
+                       f"{a['delta_chi2']:+.1f}; restarted from {a['from']}): too few points tell them apart; its pose "
+                       f"and its interval are doubtful (a measured point on another face would settle it)"
+                       if a.get("inside") is None else
+                       f"car {a['number']}: another pose, {where}, fits its points, couplings and the terrain far "
+                       f"better (chi-square {a['delta_chi2']:+.1f}; restarted from {a['from']}), but puts its body "
+                       f"inside car {a['inside']}'s: telescoped bodies, or mismatched points; its pose and its "
+                       f"interval are doubtful (check its points; a measured point on another face would settle it)")
     terrain_contact = s.contact.terrain_contact if isinstance(s.contact, SoftRows) else s.contact
     note += (f"; soft terrain contact (sigma_z = {options.terrain_sigma_m} m; {len(wheels)} car(s) on all their "
              f"wheels: their wheels' mean clearance ({len(level) - len(dropped)} of them level to within their "
