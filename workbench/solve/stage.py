@@ -513,7 +513,8 @@ def _multiview_record(camera_unc: dict) -> dict:
             "and the couplings (first order: a common motion of the cameras moves it rigidly, the scale by its "
             "cameras' weighted shifts; the terrain contact and the track prior hold it in the world); "
             "sigma_*_fit_* give the fit's alone. The SfM model's own error (its poses "
-            "relative to one another, its refined intrinsics where stated, and the similarity's response to "
+            "relative to one another, its refined intrinsics where stated (and a focal held at the EXIF's with that "
+            "prior's error), and the similarity's response to "
             "both through the control points) is carried for a model whose reconstruction states it "
             "(sfm_rank > 0). Not included: the SfM error where the reconstruction states none")
     if camera_unc["not_modelled"]:
