@@ -160,7 +160,9 @@ def finish() -> None:
     if proc is not None:
         if BUSY in _STATE["status"][:] and proc.is_alive():
             log.info("correspond: the prefetch still computing a photo the stage computed itself is ended")
-            proc.terminate()
+            # SIGKILL, not SIGTERM: the fork carries pycolmap's (glog's) failure handler, which on SIGTERM writes a
+            # symbolised stack trace first, seconds on a loaded machine; the entry is written atomically
+            proc.kill()
         proc.join(timeout=60)
     _STATE.clear()
 
