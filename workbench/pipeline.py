@@ -58,7 +58,12 @@ def read_photo_info(path: Path) -> dict:
                 w, h = im.size
                 if w * h > MAX_PIXELS:
                     raise InputError(f"{too_big}: {w}x{h} pixels")
-                im.load()  # decodes fully: a truncated file fails here
+                if im.format in ("JPEG", "MPO"):
+                    # libjpeg's 1/8 scale: every entropy-coded segment is still decoded (only the inverse DCT
+                    # is cut to one coefficient a block), so a truncated or corrupt stream fails as in a full
+                    # decode, at about 40 % of its CPU (tests/test_pipeline_photos.py)
+                    im.draft(im.mode, (max(1, w // 8), max(1, h // 8)))
+                im.load()  # decodes the whole stream: a truncated file fails here
     except InputError:
         raise
     except Image.DecompressionBombError:  # more than twice the limit: PIL refuses before reading the size to us

@@ -36,7 +36,10 @@ def predicted_homography(cam_from_carriage: np.ndarray, ref: FaceReference, K: C
     ``R (origin + u axis_u + v axis_v) + t = [R axis_u | R axis_v | R origin + t] (u, v, 1)``.
     """
     R, t = cam_from_carriage[:3, :3], cam_from_carriage[:3, 3]
-    A = np.column_stack([R @ ref.axis_u_m, R @ ref.axis_v_m, R @ ref.origin_m + t])
+    A = np.empty((3, 3))  # (np.column_stack's columns, without its overhead: this runs for every hypothesis)
+    A[:, 0] = R @ ref.axis_u_m
+    A[:, 1] = R @ ref.axis_v_m
+    A[:, 2] = R @ ref.origin_m + t
     H = K.K @ A  # the pinhole matrix (K.without_distortion().K: the same numbers)
     return H / H[2, 2]
 

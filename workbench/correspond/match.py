@@ -166,28 +166,33 @@ def _corners_h(ref: FaceReference) -> np.ndarray:
 
 def plausible_homography(H: np.ndarray, ref: FaceReference, size: tuple[int, int]) -> bool:
     """A homography that keeps orientation, maps the face to a convex quad of sane size, mostly in the image."""
-    if H is None or not np.all(np.isfinite(H)):
+    if H is None:
         return False
-    # (the same arithmetic as apply_h and np.roll, without their overhead: this runs for every hypothesis)
-    c = _corners_h(ref) @ np.asarray(H, float).T
-    with np.errstate(divide="ignore", invalid="ignore"):
-        poly = c[:, :2] / c[:, 2:]
-    if not np.all(np.isfinite(poly)):
+    H = np.asarray(H, float)
+    if not np.isfinite(H).all():
         return False
-    # the face must not cross the vanishing line: the homogeneous scale keeps its sign over the corners
-    if not (np.all(c[:, 2] > 0) or np.all(c[:, 2] < 0)):
+    # (the same arithmetic as apply_h, np.roll and np.linalg.norm, without their overhead: this runs for every
+    # hypothesis of the pose search)
+    c = _corners_h(ref) @ H.T
+    # the face must not cross the vanishing line: the homogeneous scale keeps its sign over the corners (tested
+    # first: then no corner's scale is 0 or NaN, and the division below needs no guard)
+    z = c[:, 2]
+    if not ((z > 0).all() or (z < 0).all()):
+        return False
+    poly = c[:, :2] / c[:, 2:]
+    if not np.isfinite(poly).all():
         return False
     e = poly[_NEXT] - poly
     en = e[_NEXT]
     cross = e[:, 0] * en[:, 1] - e[:, 1] * en[:, 0]
-    if not np.all(cross > 0):  # convex and clockwise in image coordinates (v down), like the reference
+    if not (cross > 0).all():  # convex and clockwise in image coordinates (v down), like the reference
         return False
     area = 0.5 * abs(np.sum(poly[:, 0] * poly[_NEXT, 1] - poly[_NEXT, 0] * poly[:, 1]))
     w, h = size
     if area < 100 or area > 4 * w * h:
         return False
     # sides of the quad: the shortest at least 3 px, the ratio of opposite sides bounded (no extreme perspective)
-    lens = np.linalg.norm(e, axis=1)
+    lens = np.sqrt(np.add.reduce(e * e, axis=1))  # np.linalg.norm(e, axis=1), as it computes it
     if lens.min() < 3 or max(lens[0] / lens[2], lens[2] / lens[0], lens[1] / lens[3], lens[3] / lens[1]) > 8:
         return False
     # a long face (a side: 25 m by 2.5 m) foreshortens along its length, hardly across it: its top and bottom

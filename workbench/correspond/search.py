@@ -47,6 +47,7 @@ homography (``sigma_px`` 0.5 after ECC), the car's other points projected from t
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -186,7 +187,8 @@ class _Renderer:
         for f, r in self.refs.items():
             c, nrm = self.centre_normal[f]  # complete.facing_cosine, without recomputing the face's centre
             Xc = R @ c + t
-            if -float((R @ nrm) @ Xc) / max(float(np.linalg.norm(Xc)), 1e-9) < min_cos:
+            # |Xc| as np.linalg.norm computes it (the square root of Xc.dot(Xc)), without its overhead
+            if -float((R @ nrm) @ Xc) / max(math.sqrt(float(Xc.dot(Xc))), 1e-9) < min_cos:
                 continue
             H = predicted_homography(cam_from_carriage, r, self.K)
             if not plausible_homography(H, r, (self.K.width, self.K.height)):
