@@ -21,6 +21,16 @@ from workbench.errors import InputError
 from workbench.pipeline import read_photo_info
 
 
+@pytest.fixture(autouse=True)
+def _strict_pil(monkeypatch):
+    """The reference full decode (:func:`_full_decode_refuses`) refuses a truncated file only while PIL's
+    process-wide ``LOAD_TRUNCATED_IMAGES`` is off, and WeasyPrint turns it on when imported (by another test in
+    the same process): off for these tests, as the inputs stage holds it for its own decode."""
+    from PIL import ImageFile
+
+    monkeypatch.setattr(ImageFile, "LOAD_TRUNCATED_IMAGES", False)
+
+
 def _picture(w: int = 321, h: int = 243) -> Image.Image:
     """A textured RGB picture (noise and gradients: every block has AC coefficients), seeded."""
     rng = np.random.default_rng(7)
@@ -130,3 +140,19 @@ def test_the_eighth_scale_decode_refuses_what_a_full_decode_refuses(tmp_path):
             assert _refused(p) == full, (name, k)
             refused += full
     assert refused >= 50  # the mutations do reach the check (each file's ten cuts at least)
+
+
+def test_a_truncated_photo_is_refused_after_weasyprint_is_imported(tmp_path, monkeypatch):
+    """WeasyPrint (the report's PDF) sets PIL's ``ImageFile.LOAD_TRUNCATED_IMAGES`` when imported, for the whole
+    process: a truncated photo then decoded silently, and in a process that had built a report the inputs stage let
+    it through (found by this file's tests in the full suite). The check holds the flag off for its own decode and
+    gives it back."""
+    from PIL import ImageFile
+
+    monkeypatch.setattr(ImageFile, "LOAD_TRUNCATED_IMAGES", True)  # what `import weasyprint` does
+    data = _encodings(tmp_path)["baseline.jpg"]
+    path = tmp_path / "cut.jpg"
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(InputError, match="cut.jpg"):
+        read_photo_info(path)
+    assert ImageFile.LOAD_TRUNCATED_IMAGES is True

@@ -41,7 +41,7 @@ def _inputs_files(project: Project) -> dict[str, Path]:
 
 def read_photo_info(path: Path) -> dict:
     """Size and EXIF focal of a photo; :class:`InputError` naming the file if it is corrupt or too large."""
-    from PIL import Image, UnidentifiedImageError
+    from PIL import Image, ImageFile, UnidentifiedImageError
 
     too_big = (f"{path}: larger than the {MAX_PIXELS // 1_000_000} MP limit (a decompression bomb, or a photo "
                f"to downscale first)")
@@ -63,7 +63,13 @@ def read_photo_info(path: Path) -> dict:
                     # is cut to one coefficient a block), so a truncated or corrupt stream fails as in a full
                     # decode, at about 40 % of its CPU (tests/test_pipeline_photos.py)
                     im.draft(im.mode, (max(1, w // 8), max(1, h // 8)))
-                im.load()  # decodes the whole stream: a truncated file fails here
+                # a truncated file fails in load() unless some library has told PIL to accept one, process-wide
+                # (WeasyPrint does when it is imported: the report's), so the flag is held off for this decode
+                lenient, ImageFile.LOAD_TRUNCATED_IMAGES = ImageFile.LOAD_TRUNCATED_IMAGES, False
+                try:
+                    im.load()  # decodes the whole stream: a truncated file fails here
+                finally:
+                    ImageFile.LOAD_TRUNCATED_IMAGES = lenient
     except InputError:
         raise
     except Image.DecompressionBombError:  # more than twice the limit: PIL refuses before reading the size to us
