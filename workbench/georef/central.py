@@ -27,7 +27,8 @@ from ..files.control_points import ControlPoint
 from .fitting import point_line_distance, rotation_kabsch
 from ..files.panorama import RigView
 from .options import GeorefOptions, HeadingPrior
-from .picks import Pick, pick_sigma, picks_in_views, summarize_residuals, warn_residuals
+from .picks import (Pick, pick_sigma, picks_in_views, shared_point_information, summarize_residuals, variance_factor,
+                    warn_residuals)
 from .track_picks import TrackTerm, track_fit_stats, track_inliers, track_rotation_candidates
 
 __all__ = ["CentralResult", "solve_central", "refine_resection_focal"]
@@ -319,6 +320,13 @@ def _refine_central(views: Sequence[RigView], obs: list[Pick], X: np.ndarray, cp
         pass
     if info_out is not None:
         info_out["cost"] = float(sol.cost)
+        # the rows that measure something (an infinite prior sigma leaves its row at 0)
+        free_rows = 0 if sig_prior is None else int(np.sum(~np.isfinite(np.broadcast_to(sig_prior, (3,)))))
+        dof = len(sol.fun) - free_rows - 6
+        chi2 = float(np.sum(sol.fun ** 2) / dof) if dof > 0 else float("nan")
+        # widened where the picks miss by more than they state, never narrowed: a survey's or a map's stated error
+        # is partly common to all its points (its datum, its transformation), which no residual shows
+        info_out.update(dof=dof, chi2_red=chi2, variance_factor=max(1.0, variance_factor(sol.cost, chi2, dof, opts)))
         n2 = 2 * len(sel)
         info_out["J_track"] = sol.jac[n2:n2 + (t_rows[0] if t_rows else 0)]
     return R, sol.x[3:].copy(), cov
@@ -339,19 +347,13 @@ def _shared_point_covariance(J: np.ndarray, points: list[int], sig: np.ndarray, 
     t = track_rows[0] if track_rows is not None else 0
     Jp, Jt, Jq = J[:2 * n], J[2 * n:2 * n + t], J[2 * n + t:]
     H = J.T @ J
-    w_own = np.repeat((sigma_px / sig) ** 2, 2)
-    G = Jq.T @ Jq + (Jp * w_own[:, None]).T @ Jp
+    G = Jq.T @ Jq + shared_point_information(Jp, np.asarray(points), np.tile([3, 4, 5], (n, 1)),
+                                             (sigma_px / sig) ** 2, sigma_m)
     if t:
         G += (Jt * track_rows[1][:, None]).T @ Jt
         for rows, s in track_rows[2]:
             A = Jt[rows].T @ (-Jt[rows, 3:6] * s[None, :])
             G += A @ A.T
-    pts = np.asarray(points)
-    for p in np.unique(pts):
-        rows = np.stack([2 * np.nonzero(pts == p)[0], 2 * np.nonzero(pts == p)[0] + 1], axis=1).ravel()
-        s = float(sigma_m[pts == p][0])
-        A = Jp[rows].T @ (-Jp[rows, 3:6] * s)  # (6, 3): the gradient's response to the point's error
-        G += A @ A.T
     Hi = np.linalg.inv(H)
     C = Hi @ G @ Hi
     return 0.5 * (C + C.T)
@@ -578,6 +580,9 @@ def solve_central(views: Sequence[RigView], cps: Sequence[ControlPoint], *, prio
                 and np.all(np.isfinite(cov)) and track is None:
             cov, sample_info = _sample_covariance(views, obs, X, cps, R1, c1, inl, prior_centre, sig_prior, headings,
                                                   cov, opts)
+        if cov is not None:  # the picks' misfit beyond their stated sigma widens the interval by as much
+            cov = cov * info["variance_factor"]
+            sample_info.update({k: info[k] for k in ("dof", "chi2_red", "variance_factor")})
     else:
         cov = None
     R1 = orthonormal(R1)
@@ -642,8 +647,8 @@ def refine_resection_focal(intr: CameraIntrinsics, res: CentralResult, cps: Sequ
     except np.linalg.LinAlgError:
         return None
     dof = len(sol.fun) - 7
-    if dof > 0:
-        cov *= max(1.0, 2.0 * float(sol.cost) / dof)
+    cov *= max(1.0, variance_factor(sol.cost, float(np.sum(sol.fun ** 2) / dof) if dof > 0 else float("nan"), dof,
+                                    opts))  # as the fixed-focal fit's: widened, never narrowed
     if not np.all(np.isfinite(cov)):
         return None
     R = orthonormal(exp_so3(sol.x[:3]) @ R0)

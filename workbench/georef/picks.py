@@ -18,7 +18,7 @@ from .options import GeorefOptions, GeorefResidualsLarge
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Pick", "picks_in_views", "pick_sigma", "summarize_residuals", "warn_residuals"]
+__all__ = ["Pick", "picks_in_views", "pick_sigma", "shared_point_information", "variance_factor", "summarize_residuals", "warn_residuals"]
 
 
 @dataclass
@@ -60,6 +60,45 @@ def pick_sigma(intr: CameraIntrinsics, sigma_px: float, sigma_m: float, depth_m:
     """1-sigma (px) of a pick: the pick's noise and the point's position error seen at ``depth_m``."""
     f = 0.5 * (intr.fx + intr.fy)
     return math.sqrt(sigma_px ** 2 + (f * sigma_m / max(depth_m, 1e-3)) ** 2)
+
+
+def shared_point_information(J_picks: np.ndarray, point_ids: np.ndarray, centre_cols: np.ndarray,
+                             own_weight: np.ndarray, sigma_m: np.ndarray) -> np.ndarray:
+    """The picks' part (P, P) of ``G`` in a fit's sandwich covariance ``H^-1 G H^-1``, in which a control point's
+    position error is one error shared by all its picks (a landmark picked in three photos is off by the same
+    metres in each), the pick's own noise independent.
+
+    ``J_picks`` (2 n, P): the picks' whitened rows (pick k's at 2 k, 2 k + 1), each divided by the pick's whole
+    sigma (:func:`pick_sigma`); ``own_weight`` (n,): the share of that variance that is the pick's own noise
+    (``(sigma_px / sigma)^2``); ``point_ids`` (n,): the control point of each pick; ``sigma_m`` (n,): that
+    point's position error (m, isotropic); ``centre_cols`` (n, 3): the parameter columns of the centre of the
+    camera the pick is in (a pick's residual depends on the point less that centre, so its Jacobian with respect
+    to the point is minus the centre's)."""
+    G = (J_picks * np.repeat(own_weight, 2)[:, None]).T @ J_picks
+    point_ids = np.asarray(point_ids)
+    for p in np.unique(point_ids):
+        k = np.nonzero(point_ids == p)[0]
+        rows = np.stack([2 * k, 2 * k + 1], axis=1).ravel()
+        cols = np.repeat(np.asarray(centre_cols)[k], 2, axis=0)  # (2 m, 3)
+        J_point = -np.take_along_axis(J_picks[rows], cols, axis=1) * np.repeat(np.asarray(sigma_m, float)[k], 2)[:, None]
+        A = J_picks[rows].T @ J_point  # (P, 3): the gradient's response to the point's error
+        G += A @ A.T
+    return G
+
+
+def variance_factor(cost: float, chi2_red: float, dof: int, opts: GeorefOptions) -> float:
+    """The factor a fit's covariance is scaled by (the a posteriori variance of unit weight): the reduced chi-square
+    of its whitened rows when above 1 (``2 cost / dof`` of the robust loss, or the plain ``chi2_red`` where that is
+    larger with ``opts.variance_factor_min_dof`` degrees of freedom), so that picks which miss by more than their
+    stated sigma (a lens the camera model cannot hold, a sloppy pick, a landmark off the map) widen the pose's
+    interval by as much; with that many degrees of freedom also below 1 (well determined there: relative 1-sigma
+    sqrt(2 / dof)), so that a pessimistic ``sigma_px`` does not inflate it. 1 with no degree of freedom."""
+    vf = 1.0
+    if dof > 0:
+        vf = max(1.0, 2.0 * float(cost) / dof)
+        if dof >= opts.variance_factor_min_dof and np.isfinite(chi2_red):
+            vf = max(vf, chi2_red) if chi2_red >= 1.0 else chi2_red
+    return vf
 
 
 def summarize_residuals(residuals: list[dict], opts: GeorefOptions) -> dict:

@@ -253,10 +253,12 @@ def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncer
                                 "factor": np.asarray(sv.intrinsics_factor, float).tolist()},
                                "covariance_rotation_centre": None if C is None else C.tolist()}
                 continue
-            u = uncertainty.get(name) or {}
-            if u.get("joint") is not None:  # the shared camera's adjustment: its photos' poses and intrinsics
-                _group_view(models, views, name, u["joint"], "camera_adjustment")
-                continue
+        u = uncertainty.get(name) or {}
+        if u.get("joint") is not None:  # the shared camera's adjustment replaced its pose and intrinsics (a photo
+            # placed by its model or on its own): their joint error, not the pose's it replaced
+            _group_view(models, views, name, u["joint"], "camera_adjustment")
+            continue
+        if name in placed and name not in resected:
             if u.get("cov_centre_enu_m2") is not None and u.get("sigma_rotation_deg") is not None:
                 C = np.zeros((6, 6))
                 C[:3, :3] = np.radians(float(u["sigma_rotation_deg"])) ** 2 * np.eye(3)

@@ -15,7 +15,7 @@ from ..core.geometry import exp_so3
 from ..files.control_points import ControlPoint
 from .fitting import orthonormal
 from .options import GeorefOptions
-from .picks import pick_sigma
+from .picks import pick_sigma, shared_point_information, variance_factor
 
 __all__ = ["INTRINSIC_SETS", "adjust_shared_camera", "held_out_errors", "held_out_picks", "held_out_rms",
            "robust_rms"]
@@ -41,19 +41,19 @@ def _with_intr(intr: CameraIntrinsics, free: Sequence[str], d: np.ndarray) -> Ca
 
 def _adjusted_picks(intr: CameraIntrinsics, poses: dict[str, np.ndarray], names: list[str],
                     cps: Sequence[ControlPoint], opts: GeorefOptions, use: set[tuple[str, str]] | None):
-    """The picks to fit as arrays: photo index (n,), point (n, 3), pixel (n, 2), 1-sigma px (n,)."""
-    obs = []  # (photo index, X, uv, sigma)
-    for cp in cps:
+    """The picks to fit as arrays: photo index (n,), point (n, 3), pixel (n, 2), 1-sigma px (n,), the point's
+    index among ``cps`` (n,) and its position error (n,) m."""
+    obs = []  # (photo index, X, uv, sigma, point index, sigma_m)
+    for j, cp in enumerate(cps):
         for ph, uv in cp.pixels.items():
             if ph in poses and (use is None or (cp.name, ph) in use):
                 M = np.asarray(poses[ph], float)
                 depth = float((M[:3, :3] @ cp.enu + M[:3, 3])[2])
                 obs.append((names.index(ph), np.asarray(cp.enu, float), np.asarray(uv, float),
-                            pick_sigma(intr, opts.sigma_px, cp.sigma_m, abs(depth))))
+                            pick_sigma(intr, opts.sigma_px, cp.sigma_m, abs(depth)), j, float(cp.sigma_m)))
     if not obs:
         raise ValueError("no picks to adjust")
-    return (np.array([o[0] for o in obs]), np.array([o[1] for o in obs]), np.array([o[2] for o in obs]),
-            np.array([o[3] for o in obs]))
+    return tuple(np.array([o[i] for o in obs]) for i in range(6))
 
 
 def _project(it: CameraIntrinsics, Rs: list[np.ndarray], cs: list[np.ndarray], idx: np.ndarray,
@@ -62,18 +62,6 @@ def _project(it: CameraIntrinsics, Rs: list[np.ndarray], cs: list[np.ndarray], i
     q = np.einsum("nij,nj->ni", np.array(Rs)[idx], X - np.array(cs)[idx])
     z = np.maximum(q[:, 2], 1e-6)
     return it.pixels_from_normalized(it.distort(q[:, :2] / z[:, None]))
-
-
-def _variance_factor(cost: float, chi2: float, dof: int, opts: GeorefOptions) -> float:
-    """The reduced chi-square when above 1; with many degrees of freedom (``opts.variance_factor_min_dof``) also
-    when below (the a posteriori variance of unit weight, well determined there: relative 1-sigma sqrt(2/dof)),
-    so that a pessimistic sigma_px does not inflate the sigmas."""
-    vf = 1.0
-    if dof > 0:
-        vf = max(1.0, 2.0 * float(cost) / dof)
-        if dof >= opts.variance_factor_min_dof and np.isfinite(chi2):
-            vf = max(vf, chi2) if chi2 >= 1.0 else chi2
-    return vf
 
 
 def adjust_shared_camera(intr: CameraIntrinsics, poses: dict[str, np.ndarray], cps: Sequence[ControlPoint],
@@ -85,7 +73,9 @@ def adjust_shared_camera(intr: CameraIntrinsics, poses: dict[str, np.ndarray], c
     ``poses``: photo -> starting ``cam_from_world`` (4, 4). ``use``: the (point, photo) picks to fit (default
     every pick of those photos). Each pick's residual is divided by ``sqrt(sigma_px^2 + (f sigma_m/depth)^2)``;
     the intrinsics have a loose prior at SfM's values (:func:`_intr_prior_sigmas`); soft-L1 loss. The
-    covariance is ``(J^T J)^-1`` times the variance factor (:func:`_variance_factor`).
+    covariance is the sandwich ``H^-1 G H^-1`` in which a control point's position error is one error shared by
+    its picks in every photo (:func:`~.picks.shared_point_information`), times the variance factor
+    (:func:`~.picks.variance_factor`).
 
     Returns ``{"intrinsics", "poses" (photo -> (4, 4)), "cov_centre" (photo -> (3, 3) m^2), "sigma_rot_deg"
     (photo -> float), "sigma_intrinsics" (name -> 1-sigma; f in px), "values", "condition" (of the
@@ -93,7 +83,7 @@ def adjust_shared_camera(intr: CameraIntrinsics, poses: dict[str, np.ndarray], c
     names -> pixel errors for any picks, held-out ones included)}``."""
     free = tuple(free)
     names = sorted(poses)
-    vi, Xa, UV, SG = _adjusted_picks(intr, poses, names, cps, opts, use)
+    vi, Xa, UV, SG, pid, SM = _adjusted_picks(intr, poses, names, cps, opts, use)
     R0 = [np.asarray(poses[n], float)[:3, :3] for n in names]
     c0 = [-R0[i].T @ np.asarray(poses[n], float)[:3, 3] for i, n in enumerate(names)]
     psig = _intr_prior_sigmas(intr)
@@ -132,10 +122,16 @@ def adjust_shared_camera(intr: CameraIntrinsics, poses: dict[str, np.ndarray], c
     norms[norms == 0] = 1.0
     cond = float(np.linalg.cond(J / norms))
     try:
-        cov = np.linalg.inv(J.T @ J)
+        Hi = np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
-        cov = np.linalg.pinv(J.T @ J)
-    vf = _variance_factor(sol.cost, chi2, dof, opts)
+        Hi = np.linalg.pinv(J.T @ J)
+    # the sandwich: a control point's position error is one error shared by its picks in every photo
+    centre_cols = ni + 6 * vi[:, None] + np.array([3, 4, 5])[None, :]
+    G = J[n_data:].T @ J[n_data:] + shared_point_information(J[:n_data], pid, centre_cols,
+                                                             (opts.sigma_px / SG) ** 2, SM)
+    cov = Hi @ G @ Hi
+    cov = 0.5 * (cov + cov.T)
+    vf = variance_factor(sol.cost, chi2, dof, opts)
     if dof > 0:
         cov *= vf
     err = np.hypot(*(_project(it, Rs, cs, vi, Xa) - UV).T)
