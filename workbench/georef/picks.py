@@ -18,7 +18,8 @@ from .options import GeorefOptions, GeorefResidualsLarge
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Pick", "picks_in_views", "pick_sigma", "shared_point_information", "variance_factor", "summarize_residuals", "warn_residuals"]
+__all__ = ["Pick", "picks_in_views", "pick_sigma", "shared_point_information", "variance_factor", "summarize_residuals",
+           "warn_residuals"]
 
 
 @dataclass
@@ -80,7 +81,8 @@ def shared_point_information(J_picks: np.ndarray, point_ids: np.ndarray, centre_
         k = np.nonzero(point_ids == p)[0]
         rows = np.stack([2 * k, 2 * k + 1], axis=1).ravel()
         cols = np.repeat(np.asarray(centre_cols)[k], 2, axis=0)  # (2 m, 3)
-        J_point = -np.take_along_axis(J_picks[rows], cols, axis=1) * np.repeat(np.asarray(sigma_m, float)[k], 2)[:, None]
+        s_m = np.repeat(np.asarray(sigma_m, float)[k], 2)[:, None]
+        J_point = -np.take_along_axis(J_picks[rows], cols, axis=1) * s_m
         A = J_picks[rows].T @ J_point  # (P, 3): the gradient's response to the point's error
         G += A @ A.T
     return G

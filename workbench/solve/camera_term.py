@@ -59,14 +59,36 @@ def pose_determined(C: np.ndarray, rtol: float = 1e-9) -> bool:
     return bool(ev[0] >= -rtol * max(ev[-1], 0.0))
 
 
+def swing_second_moment(S_rot: np.ndarray, lever: np.ndarray) -> np.ndarray:
+    """(3, 3) second moment (m^2) of the second-order term of a point ``lever`` (3,) (m, scene frame) from a pivot
+    the data hold, turned about that pivot by a rotation error ``d ~ N(0, S_rot)`` (rad^2, scene rotation vector):
+    ``Exp(d) l = l + d x l + s``, ``s = (d x (d x l)) / 2`` (the arc's sagitta, towards the pivot), which the
+    first-order covariance leaves out (it draws the arc straight). ``E[s s^T]`` by Isserlis' theorem, with
+    ``m = S l`` and ``t = tr S``: ``(S (l.m) + 2 m m^T - (t m + 2 S m) l^T - l (t m + 2 S m)^T
+    + (t^2 + 2 tr(S^2)) l l^T) / 4``; for a turn about one axis normal to ``l`` (sigma rad), ``3 sigma^4 l l^T / 4``.
+    The second moment, not the covariance: the interval stays centred on the estimate, which the sagitta's mean
+    lies off."""
+    S = 0.5 * (np.asarray(S_rot, dtype=float) + np.asarray(S_rot, dtype=float).T)
+    ln = np.asarray(lever, dtype=float).reshape(3)
+    m = S @ ln
+    t = float(np.trace(S))
+    a = t * m + 2.0 * S @ m
+    M = (S * float(ln @ m) + 2.0 * np.outer(m, m) - np.outer(a, ln) - np.outer(ln, a)
+         + (t * t + 2.0 * float(np.sum(S * S))) * np.outer(ln, ln)) / 4.0
+    return 0.5 * (M + M.T)
+
+
 def set_pose_covariance(cr: Any, C: np.ndarray, R: np.ndarray, lever: np.ndarray, q: float,
                         determined: bool = True) -> np.ndarray:
     """Set a carriage result's ``covariance_pose`` (6, 6: scene rotation vector, origin) and the sigmas and 95 %
     half widths (``q`` sigmas) of its origin, body centre and heading / pitch / roll that follow from it (all None,
     no interval, when the data leave the pose ``determined`` False or the covariance is not one:
     :func:`pose_determined`).
-    ``R`` (3, 3) its rotation, ``lever`` (3,) the body centre minus the origin in the scene frame (m). Returns
-    the body centre's Jacobian (3, 6)."""
+    ``R`` (3, 3) its rotation, ``lever`` (3,) the body centre minus the origin in the scene frame (m). The body
+    centre's covariance also takes, for a carriage with a ``swing_lever_m`` (a carried one: its body centre less
+    the point its held couplings hold it at, scene frame), that swing's second-order term under this rotation
+    covariance (:func:`swing_second_moment`, kept as ``centre_curvature_m2``). Returns the body centre's
+    Jacobian (3, 6)."""
     if not (determined and pose_determined(C)):
         # the measured points leave a direction of the pose undetermined (the inverse of a numerically singular
         # information): its variances are rounding noise, and negative ones clipped to 0 would read "exact"
@@ -78,7 +100,11 @@ def set_pose_covariance(cr: Any, C: np.ndarray, R: np.ndarray, lever: np.ndarray
     sp = np.sqrt(np.maximum(np.diag(C[3:, 3:]), 0))
     cr.sigma_position_m, cr.ci95_position_m = sp, q * sp
     Jb = np.hstack([-skew(lever), np.eye(3)])
-    sb = np.sqrt(np.maximum(np.diag(Jb @ C @ Jb.T), 0))
+    Cb = Jb @ C @ Jb.T
+    if getattr(cr, "swing_lever_m", None) is not None:  # a carried carriage's swing, to second order
+        cr.centre_curvature_m2 = swing_second_moment(C[:3, :3], cr.swing_lever_m)
+        Cb = Cb + cr.centre_curvature_m2
+    sb = np.sqrt(np.maximum(np.diag(Cb), 0))
     cr.sigma_body_centre_m, cr.ci95_body_centre_m = sb, q * sb
     Jh = hpr_jacobian(R)
     sh = np.sqrt(np.maximum(np.diag(Jh @ C[:3, :3] @ Jh.T), 0))

@@ -166,6 +166,11 @@ class CarriageResult:
     ci95_body_centre_m: np.ndarray | None = None
     sigma_hpr_deg: np.ndarray | None = None
     ci95_hpr_deg: np.ndarray | None = None
+    # a carried carriage: its body centre less the point its held coupling(s) hold it at (scene frame, m), and
+    # (3, 3) ENU m^2 its swing about that point to second order (the arc the first-order covariance draws
+    # straight), in the body centre's sigmas (camera_term.swing_second_moment); None: not carried
+    swing_lever_m: np.ndarray | None = None
+    centre_curvature_m2: np.ndarray | None = None
     residuals_px: dict[str, dict[str, tuple[float, float]]] = field(default_factory=dict)
     rms_px: float | None = None
     clearance_m: float | None = None

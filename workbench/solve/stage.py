@@ -620,7 +620,8 @@ def solution_document(project: Project, res: Any, views: list, cam_doc: dict, ob
                 "heading_deg": float(h), "pitch_deg": float(p), "roll_deg": float(r),
             })
         for k in ("sigma_body_centre_m", "ci95_body_centre_m", "sigma_position_m", "ci95_position_m",
-                  "sigma_hpr_deg", "ci95_hpr_deg", "covariance_pose", "residuals_px", "rms_px", "clearance_m"):
+                  "sigma_hpr_deg", "ci95_hpr_deg", "covariance_pose", "centre_curvature_m2", "residuals_px", "rms_px",
+                  "clearance_m"):
             rec[k] = e.get(k)
         rec["observations"] = {v: {p: [o.u, o.v] for p, o in pts.items()} for v, pts in obs.get(car.number, {}).items()}
         sig = {v: {p: o.sigma_px for p, o in pts.items() if o.sigma_px is not None}

@@ -364,6 +364,18 @@ def camera_responses(prob: Problem, poses: Poses, focal_views, chains: Chains, c
     return {k: (B[col[k]:col[k] + 6], Hw[col[k]:col[k] + 6, col[k]:col[k] + 6]) for k in prob.active}
 
 
+def _pivot(cars, chains: Chains, k: int) -> np.ndarray:
+    """Where carriage ``k``'s held couplings hold it (carriage frame, m): its front coupler when held to the
+    carriage ahead, its rear one when held to the one behind, their midpoint when both."""
+    for ch in chains.members:
+        if k in ch:
+            j = ch.index(k)
+            ends = ([cars[k].c_front] if j > 0 else []) + ([cars[k].c_rear] if j < len(ch) - 1 else [])
+            if ends:
+                return np.mean(ends, axis=0)
+    return np.asarray(cars[k].c_body, dtype=float)  # not held: no swing about a coupler
+
+
 def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Chains, contact, options: SolveOptions,
                       model: CovarianceModel | None = None) -> None:
     """Fill the covariance fields of a :class:`SolveResult` in place. ``model``: a :func:`solution_model` already
@@ -393,6 +405,8 @@ def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Cha
         cr = res.carriages[k]
         c = col[k]
         determined = model.undetermined is None or not model.undetermined[c:c + 6].any()
+        if cr.status == "carried":
+            cr.swing_lever_m = R[k] @ (prob.cars[k].c_body - _pivot(prob.cars, chains, k))
         Jbs[k] = set_pose_covariance(cr, cov[c:c + 6, c:c + 6], R[k], R[k] @ prob.cars[k].c_body, q, determined)
         if k in misfit and cr.covariance_pose is not None:
             record_warning(res.warnings, prob.cars[k], "misfit",
