@@ -716,6 +716,10 @@ def test_multiview_shared_camera_adjusted_and_uncertainty_honest(sample, tmp_pat
         m2.append(float(d @ np.linalg.solve((F @ F.T)[3:, 3:], d)))
     print("adjusted photos' centre Mahalanobis^2 (3 dof):", np.round(m2, 2))
     assert sum(x < 7.81 for x in m2) >= 0.85 * len(m2) and 0.2 < float(np.mean(m2)) < 6.0, m2
+    # the photo SfM left out, resected with SfM's camera and then re-posed by the adjustment, carries the
+    # adjustment's error with the others, not the replaced resection's (until session 19 it did: on draw 992002
+    # of the calibration benchmark four such photos stated a Mahalanobis^2 / 6 of 124-388)
+    assert lone in adjusted, (lone, pu["views"].get(lone))
 
 
 def test_multiview_main_model_is_checked(sample, tmp_path):
