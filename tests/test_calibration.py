@@ -128,6 +128,11 @@ def test_report_states_what_the_intervals_include():
                correspondences={"by_source": {"manual": 40}})
     s = interval_scope(sol, solver, 0.25)
     assert any("focal" in x and "120 px" in x for x in s["included"])
+    assert not any("swing" in x for x in s["included"])
+    # a carried carriage's swing about its coupling, to second order (docs/solver.md), said where one has it
+    sol["carriages"] = [{"number": "6100", "centre_curvature_m2": [[0.01, 0, 0], [0, 0.05, 0], [0, 0, 0.0]]}, {}]
+    assert any("1 carriage(s) carried" in x and "0.24 m" in x for x in interval_scope(sol, solver, 0.25)["included"])
+    del sol["carriages"]
     # the automatic points' noise and faces' misfit estimated from the residuals: said so, with their values
     sol.update(noise_estimated=True, face_sigma_px=0.21, sigma_px=0.11, dof=180,
                correspondences={"by_source": {"sift": 60}})

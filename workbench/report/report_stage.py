@@ -278,6 +278,11 @@ def interval_scope(solution: dict, solver: Any, dem_accuracy_m: float | None) ->
                    f"({_f(face, 2)} px, " + ("estimated from the residuals)" if estimated else "configured)"))
     if solution.get("links"):
         inc.append(f"the couplers' play ({_f(100 * float(solver.slack_held_m), 0)} cm)")
+    swung = [c for c in solution.get("carriages", []) if c.get("centre_curvature_m2") is not None]
+    if swung:  # docs/solver.md: a carried carriage's swing about its held coupling, to second order
+        big = max(math.sqrt(max(float(np.trace(np.asarray(c["centre_curvature_m2"], float))), 0.0)) for c in swung)
+        inc.append(f"for the {len(swung)} carriage(s) carried by their couplings, the curve of their swing about "
+                   f"the coupling (up to {_f(big, 2)} m)")
     if any((st.get("facts") or {}).get("terrain_contact") for st in solution.get("steps", [])) \
             and dem_accuracy_m is not None:
         inc.append(f"the contact with the terrain model (±{_f(dem_accuracy_m, 2)} m, carriage by carriage)")
