@@ -25,7 +25,6 @@ def built_once(tmp_path_factory, name: str, build) -> Path:
     the first to come builds while the others wait on a lock (fcntl), then read what it built. A build that
     failed half-way is started again from an empty folder. Read-only for the tests."""
     import fcntl
-    import os
     import shutil
 
     base = tmp_path_factory.getbasetemp()
