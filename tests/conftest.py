@@ -11,6 +11,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the CLI runs (workbench
 # write into the incident copy it first.
 # --------------------------------------------------------------------------------------------------------------
 import json as _json  # noqa: E402
+from pathlib import Path  # noqa: E402
 
 import pytest as _pytest  # noqa: E402
 
@@ -18,16 +19,67 @@ SMALL_INCIDENT_OPTIONS = dict(scenario="spuyten-duyvil", seed=1, n_cars=4, photo
                               n_panorama=4, n_multiview=8, supersample=1, layers_dir="../../terrain/bronx")
 
 
+def built_once(tmp_path_factory, name: str, build) -> Path:
+    """The folder ``name`` that ``build(folder)`` fills, built once for the whole test run: with pytest-xdist every
+    worker is its own session, so the workers share the run's temporary folder (the parent of each worker's), and
+    the first to come builds while the others wait on a lock (fcntl), then read what it built. A build that
+    failed half-way is started again from an empty folder. Read-only for the tests."""
+    import fcntl
+    import shutil
+
+    base = tmp_path_factory.getbasetemp()
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        base = base.parent  # the run's folder, shared by its workers
+    folder, done = base / f"shared-{name}", base / f"shared-{name}.done"
+    with open(base / f"shared-{name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        if not done.exists():
+            shutil.rmtree(folder, ignore_errors=True)
+            folder.mkdir()
+            build(folder)
+            done.touch()
+    return folder
+
+
 @_pytest.fixture(scope="session")
 def small_incident(tmp_path_factory):
     """(root, truth) of a small Spuyten Duyvil incident (4 cars, 4 panorama and 8 multi-view photos of 800x600,
-    its DEM and buildings in ``root/../../terrain/bronx``) with synthetic control points; about 40 s, once.
+    its DEM and buildings in ``root/../../terrain/bronx``) with synthetic control points; about 40 s, once per
+    test run (:func:`built_once`: shared by the pytest-xdist workers).
     Read-only for the tests: copy it (with ``root.parent.parent``) before writing into it."""
-    from workbench.synth.control_points import write_control_points
-    from workbench.synth.generate import SynthOptions, generate_incident
 
-    base = tmp_path_factory.mktemp("small_incident")
-    root = base / "projects" / "spuyten-duyvil"
-    generate_incident(root, SynthOptions(**SMALL_INCIDENT_OPTIONS))
-    write_control_points(root)
+    def build(base):
+        from workbench.synth.control_points import write_control_points
+        from workbench.synth.generate import SynthOptions, generate_incident
+
+        root = base / "projects" / "spuyten-duyvil"
+        generate_incident(root, SynthOptions(**SMALL_INCIDENT_OPTIONS))
+        write_control_points(root)
+
+    root = built_once(tmp_path_factory, "small_incident", build) / "projects" / "spuyten-duyvil"
     return root, _json.loads((root / "truth" / "ground_truth.json").read_text())
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The order of the test files. `scripts/test.sh` runs them on one pytest-xdist worker per CPU, a file's tests on one
+# worker (`--dist loadfile`), and hands out the files in the collection's order (`--no-loadscope-reorder`; xdist's
+# own order is by number of tests, which put the one-test end-to-end file, about 150 s, last: the other worker
+# waited for it). Longest first, so the workers finish together (greedy scheduling, longest processing time
+# first). The seconds are what each file took in a full run on the 2-core machine under load (session 19,
+# `--junitxml`, a file's test times summed; docs/performance.md, the eleventh pass); files not listed (each under
+# 20 s) follow in their usual order. Re-measure when a file's cost changes much: a wrong order costs time, never a
+# test.
+# --------------------------------------------------------------------------------------------------------------
+SLOW_FILES_SECONDS = {
+    "test_georef.py": 245, "test_solve_stage.py": 234, "test_correspond.py": 207, "test_georef_covariance.py": 182,
+    "test_report.py": 161, "test_cli_end_to_end.py": 152, "test_sfm.py": 110, "test_solve.py": 105,
+    "test_cli.py": 98, "test_viewer.py": 82, "test_picker_map.py": 82, "test_export.py": 70, "test_synth.py": 66,
+    "test_georef_gps.py": 63, "test_picker.py": 60, "test_relative.py": 55, "test_mesh_type_incident.py": 42,
+    "test_multiview_uncertainty.py": 38, "test_stitch.py": 36, "test_georef_track.py": 28, "test_railways.py": 23,
+    "test_rolling_stock.py": 22, "test_branches.py": 20,
+}
+
+
+def pytest_collection_modifyitems(items):
+    """The slow files' tests first, longest file first (a stable sort: each file's tests keep their order)."""
+    items.sort(key=lambda item: -SLOW_FILES_SECONDS.get(item.path.name, 0))

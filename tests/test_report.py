@@ -14,6 +14,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from conftest import built_once
+
 from workbench import pipeline
 from workbench.errors import InputError, RenderError, StageError
 from workbench.project import Project
@@ -25,17 +27,20 @@ SMALL = {"OVERVIEW_SIZE": (480, 300), "MAP_SIZE": (360, 360), "CLOSEUP_SIZE": (3
          "ORBIT_FRAMES": 6}
 
 
-def synth_incident(base: Path) -> Path:
-    """A 3-carriage synthetic incident with known cameras and true picks (1 px noise), generated once per session."""
-    from workbench.synth.generate import SynthOptions, generate_incident
-    from workbench.synth.handpicks import write_known_cameras, write_true_correspondences
+def synth_incident(tmp_path_factory) -> Path:
+    """A 3-carriage synthetic incident with known cameras and true picks (1 px noise), generated once per test run
+    (``conftest.built_once``: shared by the pytest-xdist workers). Read-only: copy it before running stages."""
 
-    root = base / "report_incident"
-    generate_incident(root, SynthOptions(**SYNTH))  # a no-op when already generated with these options
-    if not (root / "cameras.json").is_file():
+    def build(base: Path) -> None:
+        from workbench.synth.generate import SynthOptions, generate_incident
+        from workbench.synth.handpicks import write_known_cameras, write_true_correspondences
+
+        root = base / "report_incident"
+        generate_incident(root, SynthOptions(**SYNTH))
         write_known_cameras(root)
         write_true_correspondences(root, sigma_px=1.0, seed=0)
-    return root
+
+    return built_once(tmp_path_factory, "report_incident", build) / "report_incident"
 
 
 def stages() -> list:
@@ -45,7 +50,7 @@ def stages() -> list:
 
 @pytest.fixture(scope="module")
 def incident(tmp_path_factory):
-    root = synth_incident(tmp_path_factory.getbasetemp())
+    root = synth_incident(tmp_path_factory)
     work = tmp_path_factory.mktemp("report") / "inc"
     shutil.copytree(root, work, ignore=shutil.ignore_patterns("out"))
     project = Project(work)
@@ -126,7 +131,7 @@ def test_overlays_draw_with_the_solved_focal(incident, tmp_path):
     from workbench.report.scene import load_scene
 
     work = tmp_path / "inc"
-    shutil.copytree(incident.root, work, ignore=shutil.ignore_patterns("out"))
+    shutil.copytree(incident.root, work)  # with its outputs: the stages the new cameras make stale run again
     doc = json.loads((work / "cameras.json").read_text())
     true_fx = {}
     for v in doc["views"]:

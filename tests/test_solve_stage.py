@@ -85,9 +85,12 @@ def test_second_run_is_skipped(incident):
     assert (incident / "out" / "solve" / "solution.json").read_bytes() == before
 
 
-def _copy_with_corr(incident: Path, tmp_path: Path, edit) -> Path:
+def _copy_with_corr(incident: Path, tmp_path: Path, edit, with_out: bool = False) -> Path:
+    """A copy of the incident with its correspondences.json edited; ``with_out``: with the fixture's outputs, so
+    that a run redoes only the stages the edit makes stale (the correspond stage and those after it), as a user's
+    run would (the stages' fingerprints are of the files' contents: a copied incident's done stages stay done)."""
     root = tmp_path / "inc"
-    shutil.copytree(incident, root, ignore=shutil.ignore_patterns("out"))
+    shutil.copytree(incident, root, ignore=None if with_out else shutil.ignore_patterns("out"))
     doc = json.loads((root / "correspondences.json").read_text())
     edit(doc["observations"])
     (root / "correspondences.json").write_text(json.dumps(doc))
@@ -107,7 +110,7 @@ BAD = [
 @pytest.mark.parametrize("edit, words", BAD)
 def test_bad_correspondences_are_named(incident, tmp_path, edit, words):
     """Through the pipeline (the correspond stage checks the hand-written file first)."""
-    root = _copy_with_corr(incident, tmp_path, edit)
+    root = _copy_with_corr(incident, tmp_path, edit, with_out=True)
     with pytest.raises(InputError) as exc:
         Runner(Project(root), STAGES).run()
     msg = str(exc.value)
@@ -142,7 +145,7 @@ def test_missing_cameras_says_what_to_do(incident, tmp_path):
 
 
 def test_not_converged_keeps_the_previous_solution(incident, tmp_path, monkeypatch):
-    root = _copy_with_corr(incident, tmp_path, lambda o: None)
+    root = _copy_with_corr(incident, tmp_path, lambda o: None, with_out=True)
     Runner(Project(root), STAGES).run(until="solve")
     good = (root / "out" / "solve" / "solution.json").read_bytes()
     text = (root / "project.toml").read_text().replace("[camera]", "[solver]\nmax_iterations = 1\n\n[camera]", 1)
@@ -158,7 +161,7 @@ def test_a_wrong_point_is_rejected(incident, tmp_path):
     def edit(o):
         o[0]["uv"] = [min(o[0]["uv"][0] + 30.0, 470.0), o[0]["uv"][1]]
 
-    root = _copy_with_corr(incident, tmp_path, edit)
+    root = _copy_with_corr(incident, tmp_path, edit, with_out=True)
     first = json.loads((root / "correspondences.json").read_text())["observations"][0]
     Runner(Project(root), STAGES).run(until="solve")
     sol = json.loads((root / "out" / "solve" / "solution.json").read_text())
@@ -217,7 +220,7 @@ def test_solution_records_the_bias_correction(incident, tmp_path):
     assert max(moved.values()) == pytest.approx(bc["max_shift_m"], abs=1e-12)
 
     root = tmp_path / "inc"
-    shutil.copytree(incident, root, ignore=shutil.ignore_patterns("out"))
+    shutil.copytree(incident, root)  # with its outputs: the setting makes the solve alone stale
     text = (root / "project.toml").read_text()
     assert "[solver]" not in text
     (root / "project.toml").write_text(text.replace("[camera]", "[solver]\nbias_correction = false\n\n[camera]", 1))

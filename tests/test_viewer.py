@@ -70,7 +70,8 @@ def _run_viewer(args: list[str], out_dir, attempt: int) -> tuple[int, str]:
 
 @pytest.fixture(scope="module")
 def solved(tmp_path_factory):
-    root = synth_incident(tmp_path_factory.getbasetemp())
+    root = tmp_path_factory.mktemp("viewer") / "inc"
+    shutil.copytree(synth_incident(tmp_path_factory), root)
     project = Project(root)
     Runner(project, stages()).run(until="solve")
     return project
