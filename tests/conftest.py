@@ -76,7 +76,7 @@ SLOW_FILES_SECONDS = {
     "test_cli.py": 98, "test_viewer.py": 82, "test_picker_map.py": 82, "test_export.py": 70, "test_synth.py": 66,
     "test_georef_gps.py": 63, "test_picker.py": 60, "test_relative.py": 55, "test_mesh_type_incident.py": 42,
     "test_multiview_uncertainty.py": 38, "test_stitch.py": 36, "test_georef_track.py": 28, "test_railways.py": 23,
-    "test_rolling_stock.py": 22, "test_branches.py": 20,
+    "test_rolling_stock.py": 22, "test_branches.py": 20, "test_georef_variance_factor.py": 30,
 }
 
 
