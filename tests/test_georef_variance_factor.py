@@ -61,6 +61,7 @@ def test_variance_factor_rules():
     assert variance_factor(10.0, 2.0, 10, opts) == 2.0  # 2 cost / dof
     assert variance_factor(2.0, 0.4, 10, opts) == 1.0  # few degrees of freedom: not narrowed
     assert variance_factor(20.0, 0.5, 80, opts) == 0.5  # many: the plain chi-square, below 1 too
+    assert variance_factor(20.0, 0.5, 80, opts, narrow=False) == 1.0  # the central fits: never below 1
     assert variance_factor(50.0, 1.6, 80, opts) == 1.6  # the plain chi-square where above the robust cost's
 
 

@@ -324,9 +324,9 @@ def _refine_central(views: Sequence[RigView], obs: list[Pick], X: np.ndarray, cp
         free_rows = 0 if sig_prior is None else int(np.sum(~np.isfinite(np.broadcast_to(sig_prior, (3,)))))
         dof = len(sol.fun) - free_rows - 6
         chi2 = float(np.sum(sol.fun ** 2) / dof) if dof > 0 else float("nan")
-        # widened where the picks miss by more than they state, never narrowed: a survey's or a map's stated error
-        # is partly common to all its points (its datum, its transformation), which no residual shows
-        info_out.update(dof=dof, chi2_red=chi2, variance_factor=max(1.0, variance_factor(sol.cost, chi2, dof, opts)))
+        # widened where the picks miss by more than they state, never narrowed
+        info_out.update(dof=dof, chi2_red=chi2,
+                        variance_factor=variance_factor(sol.cost, chi2, dof, opts, narrow=False))
         n2 = 2 * len(sel)
         info_out["J_track"] = sol.jac[n2:n2 + (t_rows[0] if t_rows else 0)]
     return R, sol.x[3:].copy(), cov
@@ -647,8 +647,8 @@ def refine_resection_focal(intr: CameraIntrinsics, res: CentralResult, cps: Sequ
     except np.linalg.LinAlgError:
         return None
     dof = len(sol.fun) - 7
-    cov *= max(1.0, variance_factor(sol.cost, float(np.sum(sol.fun ** 2) / dof) if dof > 0 else float("nan"), dof,
-                                    opts))  # as the fixed-focal fit's: widened, never narrowed
+    cov *= variance_factor(sol.cost, float(np.sum(sol.fun ** 2) / dof) if dof > 0 else float("nan"), dof, opts,
+                           narrow=False)  # as the fixed-focal fit's
     if not np.all(np.isfinite(cov)):
         return None
     R = orthonormal(exp_so3(sol.x[:3]) @ R0)

@@ -88,18 +88,20 @@ def shared_point_information(J_picks: np.ndarray, point_ids: np.ndarray, centre_
     return G
 
 
-def variance_factor(cost: float, chi2_red: float, dof: int, opts: GeorefOptions) -> float:
+def variance_factor(cost: float, chi2_red: float, dof: int, opts: GeorefOptions, narrow: bool = True) -> float:
     """The factor a fit's covariance is scaled by (the a posteriori variance of unit weight): the reduced chi-square
     of its whitened rows when above 1 (``2 cost / dof`` of the robust loss, or the plain ``chi2_red`` where that is
     larger with ``opts.variance_factor_min_dof`` degrees of freedom), so that picks which miss by more than their
     stated sigma (a lens the camera model cannot hold, a sloppy pick, a landmark off the map) widen the pose's
     interval by as much; with that many degrees of freedom also below 1 (well determined there: relative 1-sigma
-    sqrt(2 / dof)), so that a pessimistic ``sigma_px`` does not inflate it. 1 with no degree of freedom."""
+    sqrt(2 / dof)), so that a pessimistic ``sigma_px`` does not inflate it, unless ``narrow`` is False (the central
+    fits: a survey's or a map's stated error is partly common to all its points, which no residual shows). 1 with
+    no degree of freedom."""
     vf = 1.0
     if dof > 0:
         vf = max(1.0, 2.0 * float(cost) / dof)
         if dof >= opts.variance_factor_min_dof and np.isfinite(chi2_red):
-            vf = max(vf, chi2_red) if chi2_red >= 1.0 else chi2_red
+            vf = max(vf, chi2_red) if chi2_red >= 1.0 or not narrow else chi2_red
     return vf
 
 
