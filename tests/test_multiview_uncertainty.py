@@ -266,7 +266,7 @@ def test_cameras_file_states_each_views_share_of_the_similarity(multiview_incide
 def test_solution_includes_the_cameras_and_keeps_the_poses(multiview_incident, tmp_path):
     """``camera_uncertainty.included`` true with the model's figures; every carriage with an interval widened
     (the fit's sigmas kept apart, ci95 = t sigma); the same cameras without the block give the fit's intervals
-    and the same poses to 1e-9."""
+    (at the pixel sigma with the cameras' disagreement left in) and the same poses (to 1e-5 m)."""
     from workbench.project import Project
     from workbench.solve.stage import run_solve
 
@@ -294,12 +294,16 @@ def test_solution_includes_the_cameras_and_keeps_the_poses(multiview_incident, t
         run_solve(Project(other), lambda *a: None)
     sol0 = json.loads((other / "out" / "solve" / "solution.json").read_text())
     assert sol0["camera_uncertainty"]["included"] is False
+    # the fit's pixel sigma leaves out what the photos' stated errors fill (solve.camera_residual): the fit's
+    # sigmas follow that sigma, and the poses its second-order bias correction (well under a millimetre)
+    k = sol["sigma_px"] / sol0["sigma_px"]
+    assert sol0["sigma_px_camera"] is None and sol["sigma_px_camera"] is not None and 0.5 < k <= 1.05, k
     for a, b in zip(sol0["carriages"], sol["carriages"]):
         if b.get("sigma_body_centre_m") is None:
             continue
-        assert np.allclose(a["world_from_carriage"], b["world_from_carriage"], rtol=0, atol=1e-9)
-        assert np.allclose(a["sigma_body_centre_m"], b["sigma_body_centre_fit_m"], rtol=1e-9)
-        assert np.allclose(a["sigma_hpr_deg"], b["sigma_hpr_fit_deg"], rtol=1e-9)
+        assert np.allclose(a["world_from_carriage"], b["world_from_carriage"], rtol=0, atol=1e-5)
+        assert np.allclose(k * np.asarray(a["sigma_body_centre_m"]), b["sigma_body_centre_fit_m"], rtol=0.05)
+        assert np.allclose(k * np.asarray(a["sigma_hpr_deg"]), b["sigma_hpr_fit_deg"], rtol=0.05)
 
 
 def test_bad_pose_uncertainty_is_named(multiview_incident):
@@ -427,7 +431,8 @@ def test_georef_carries_the_sfm_pose_covariance(multiview_incident, tmp_path):
     """A reconstruction whose images state a pose_factor (6 x r in the model frame): the georef writes each view's
     ``sfm_factor`` (the factor turned into the scene by the similarity: R on the rotation, s R on the centre) and
     the model's ``sfm_rank``, the view's covariance with it added; parse_pose_uncertainty extends the model to
-    7 + r; the solve's intervals widen and the poses stay (1e-9)."""
+    7 + r; the solve's intervals widen and the poses stay (to their bias correction's change, under 1e-5 m: the
+    fit's pixel sigma leaves out the residual directions the photos' stated errors fill)."""
     from workbench.files.cameras import parse_pose_uncertainty
     from workbench.georef.stage import run_georef
     from workbench.project import Project
@@ -471,9 +476,11 @@ def test_georef_carries_the_sfm_pose_covariance(multiview_incident, tmp_path):
     for a, b in zip(sol0["carriages"], sol["carriages"]):
         if b.get("sigma_body_centre_m") is None:
             continue
-        assert np.allclose(a["world_from_carriage"], b["world_from_carriage"], rtol=0, atol=1e-9)
-        assert np.allclose(a["sigma_body_centre_fit_m"], b["sigma_body_centre_fit_m"], rtol=1e-9)
-        assert np.all(np.asarray(b["sigma_body_centre_m"]) >= np.asarray(a["sigma_body_centre_m"]) - 1e-12)
+        assert np.allclose(a["world_from_carriage"], b["world_from_carriage"], rtol=0, atol=1e-5)
+        # the SfM poses' stated error fills more residual directions: the fit's pixel sigma leaves them out
+        k = sol["sigma_px"] / sol0["sigma_px"]
+        assert np.allclose(k * np.asarray(a["sigma_body_centre_fit_m"]), b["sigma_body_centre_fit_m"], rtol=0.05)
+        assert np.all(np.asarray(b["sigma_body_centre_m"]) >= k * np.asarray(a["sigma_body_centre_m"]) - 1e-12)
         n_wider += bool(np.any(np.asarray(b["sigma_body_centre_m"]) > 1.01 * np.asarray(a["sigma_body_centre_m"])))
     assert n_wider >= 2, n_wider
 

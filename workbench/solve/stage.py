@@ -31,6 +31,7 @@ from .principal_point import guessed_principal_point_term
 from .model import CarriageInput, ChainLink, Observation, SolveOptions, SolveWarning, View
 from .problem import AlignedObservation
 from .solver import solve_consist
+from .camera_residual import view_camera_errors
 from .camera_term import add_camera_uncertainty, add_view_camera_uncertainty
 
 log = logging.getLogger(__name__)
@@ -188,7 +189,8 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
                         bias_correction=bool(s.solver.bias_correction),
                         prediction_release=float(s.solver.prediction_release),
                         hfov_range_deg=tuple(float(x) for x in s.solver.hfov_range_deg),
-                        track_sigma_m=float(s.solver.track_sigma_m))
+                        track_sigma_m=float(s.solver.track_sigma_m),
+                        camera_errors=_camera_errors(cam_doc, cam_path))
     relative = cam_doc.get("frame") == "relative"
     terrain = None
     if s.terrain.dem and not relative:
@@ -475,6 +477,12 @@ def camera_uncertainty(cam_doc: dict) -> dict | None:
     return {"cov": C, "centre_enu": centres[0]}
 
 
+def _camera_errors(cam_doc: dict, cam_path: Path) -> Any:
+    """The multi-view photos' stated errors for the fit's pixel sigma (:mod:`.camera_residual`), or None."""
+    pu = parse_pose_uncertainty(cam_doc, cam_path) if cam_doc.get("frame") != "relative" else None
+    return view_camera_errors(pu) if pu is not None else None
+
+
 def multiview_camera_uncertainty(res: Any, carriages: list, links: list, views: list, cam_doc: dict, cam_path: Path,
                                  opts: SolveOptions) -> dict | None:
     """The multi-view route's camera uncertainty (``georegistration.pose_uncertainty``, docs/formats.md) added
@@ -658,7 +666,8 @@ def solution_document(project: Project, res: Any, views: list, cam_doc: dict, ob
         "route": cam_doc.get("route"), "intrinsics_source": cam_doc.get("intrinsics_source"),
         "georegistration": cam_doc.get("georegistration"),
         "views": [v.name for v in views], "focal_px": d.get("focal_px"), "sigma_focal_px": d.get("sigma_focal_px"),
-        "sigma_px": d.get("sigma_px"), "sigma_px_estimated": d.get("sigma_px_estimated"), "dof": d.get("dof"),
+        "sigma_px": d.get("sigma_px"), "sigma_px_estimated": d.get("sigma_px_estimated"),
+        "sigma_px_camera": d.get("sigma_px_camera"), "dof": d.get("dof"),
         "face_sigma_px": d.get("face_sigma_px"), "noise_estimated": d.get("noise_estimated"),
         "ci95_factor": d.get("ci95_factor"), "iterations": d.get("iterations"), "time_s": d.get("time_s"),
         "final_cost": d.get("final_cost"), "cost_at_minimum": d.get("cost_at_minimum"),

@@ -24,6 +24,7 @@ from .problem import (Chains, Poses, Problem, carriage_weights, focal_groups, he
 from .camera_term import inverse_psd, set_camera_response, set_pose_covariance
 from .alignment_covariance import alignment_term, views_per_face
 from .pose_covariance import pose_rows
+from .camera_residual import ViewCameraErrors, camera_directions, camera_shift_rows
 from .variance_components import (FALLBACK_FACE_SIGMA_PX, VarianceComponents, estimate_variance_components,
                                   face_modes)
 
@@ -132,6 +133,7 @@ class CovarianceModel:
     undetermined: np.ndarray | None = None
     face_sigma: float = 0.0  # the faces' shared misfit used (px per affine mode)
     components: VarianceComponents | None = None  # when both were estimated from the residuals
+    camera_px: float = math.nan  # the residuals' RMS (px) the multi-view cameras' stated errors explain
 
 
 def undetermined_parameters(H: np.ndarray) -> np.ndarray | None:
@@ -154,15 +156,18 @@ def undetermined_parameters(H: np.ndarray) -> np.ndarray | None:
 def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_cfg: float,
                      loss: str = "linear", loss_scale: float = 1.0, prior_dof: float = 5.0,
                      sigma_fixed: float | None = None, face_sigma: float | None = 0.0,
-                     use_alignments: bool = True, views_shared: bool = True, count_pose: bool = True
-                     ) -> CovarianceModel:
+                     use_alignments: bool = True, views_shared: bool = True, count_pose: bool = True,
+                     camera_errors: ViewCameraErrors | None = None) -> CovarianceModel:
     """Covariance in free-pose parameters at ``R, t, f`` (see the module doc). ``sigma_fixed``: use that pixel
     sigma (CRB); ``face_sigma``: pixels of the misfit shared by each group of points; ``use_alignments``: the
     points with a face alignment's loading (``Problem.loading``) take their error from it (:func:`alignment_term`)
     in place of the pixel sigma and the fixed misfit (docs/correspondences.md, "What a face's alignment
     measures"); ``views_shared``: a face's error is shared by the photos it is aligned in (:func:`views_per_face`),
-    not independent from photo to photo; ``count_pose``: the pose predictions too (:mod:`.pose_covariance`)."""
+    not independent from photo to photo; ``count_pose``: the pose predictions too (:mod:`.pose_covariance`);
+    ``camera_errors``: the multi-view photos' stated errors, whose expected share of the residuals the pixel
+    sigma's estimate leaves out (:mod:`.camera_residual`)."""
     J, r, col, P = pixel_rows(prob, R, t, f, focal_views)
+    D = camera_shift_rows(prob, R, t, J, col, camera_errors) if camera_errors is not None else None
     groups = getattr(prob, "group", None)
     if groups is None or len(groups) != len(prob.P):
         groups = np.full(len(prob.P), -1)
@@ -180,6 +185,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     if meas is not None and len(meas) == len(prob.P) and not meas.all():
         keep = np.repeat(meas, 2)
         J, r = J[keep], r[keep]
+        D = D[keep] if D is not None else None
         groups, uv_obs, w_row, views = groups[meas], uv_obs[meas], w_row[meas], views[meas]
         block, loading = block[meas], loading[meas]
         w2 = np.repeat(prob.w_noise[meas] ** 2, 2)
@@ -201,6 +207,9 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         Hi = inverse_psd(H)
         return H, Hi
 
+    cam_dirs = None if D is None else camera_directions(D * np.sqrt(rho)[:, None], J * np.sqrt(rho)[:, None],
+                                                        camera_errors.covariance, sigma_cfg**2 * w2, assemble,
+                                                        sigma_cfg)
     vc = None
     if face_sigma is None and sigma_fixed is None:  # the automatic points' noise and faces' misfit from the data
         modes = face_modes(groups, views, uv_obs, w_row)
@@ -216,10 +225,10 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     elif aligned.all() and len(aligned):
         # every measured point's error is its alignment's, known from its matches (2 N - 8 residual degrees of
         # freedom each, N >= 8): the pixel sigma only weights the pixels against the priors in the information
-        sigma, sigma_hat, dof, q = _pooled_sigma(r, w2, M, Hp_unit, Hprior, sigma_cfg, prior_dof, assemble) \
-            + (1.959963984540054,)
+        sigma, sigma_hat, dof, q = _pooled_sigma(r, w2, M, Hp_unit, Hprior, sigma_cfg, prior_dof, assemble,
+                                                 cam_dirs) + (1.959963984540054,)
     else:
-        sigma, sigma_hat, dof = _pooled_sigma(r, w2, M, Hp_unit, Hprior, sigma_cfg, prior_dof, assemble)
+        sigma, sigma_hat, dof = _pooled_sigma(r, w2, M, Hp_unit, Hprior, sigma_cfg, prior_dof, assemble, cam_dirs)
         q = float(stdtrit(dof + prior_dof, 0.975)) if dof + prior_dof > 0 else 1.959963984540054
     Hp_unit = Hp_unit + (pose.info if pose is not None else 0.0)  # the fit's weights on the counted predictions
     H, Hi = assemble(sigma)
@@ -234,19 +243,28 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         G = G + alignment_term(J * rho[:, None], block, loading, w_row, pose and pose.contrib) / sigma**4
     cov = Hi @ G @ Hi
     cov = 0.5 * (cov + cov.T)
-    return CovarianceModel(cov, col, sigma, sigma_hat, dof, q, P, Hi, undetermined_parameters(H), face_sigma, vc)
+    camera_px = math.nan if cam_dirs is None or not cam_dirs.shape[1] else \
+        math.sqrt(float(np.sum((cam_dirs.T @ r) ** 2)) / (float(np.sum(w2)) * cam_dirs.shape[1] / (2.0 * M)))
+    return CovarianceModel(cov, col, sigma, sigma_hat, dof, q, P, Hi, undetermined_parameters(H), face_sigma, vc,
+                           camera_px)
 
 
-def _pooled_sigma(r, w2, M, Hp_unit, Hprior, sigma_cfg, prior_dof, assemble) -> tuple[float, float, float]:
+def _pooled_sigma(r, w2, M, Hp_unit, Hprior, sigma_cfg, prior_dof, assemble, camera_dirs=None
+                  ) -> tuple[float, float, float]:
     """(pixel sigma pooled with the configured one at ``prior_dof``, the residuals' own, their degrees of
-    freedom)."""
+    freedom). ``camera_dirs`` (2M, m): orthonormal directions of the residuals that the multi-view cameras' stated
+    errors fill more than the pixel noise (:func:`.camera_residual.camera_directions`); the residuals' own sigma
+    is estimated from the rest (m degrees of freedom fewer), so the cameras' disagreement is not taken for pixel
+    noise while the camera term adds their error to the intervals."""
     sig = sigma_cfg
+    m = 0 if camera_dirs is None else camera_dirs.shape[1]
+    r_own = r if not m else r - camera_dirs @ (camera_dirs.T @ r)
     for _ in range(2):
         H, Hi = assemble(sig)
         p_eff = float(np.trace(Hi @ (Hp_unit / sig**2)))
-        dof = max(2.0 * M - p_eff, 0.0)
+        dof = max(2.0 * M - p_eff - m, 0.0)
         if dof > 1e-6:
-            sigma_hat = math.sqrt(float(np.sum(r**2)) / (float(np.sum(w2)) * dof / (2.0 * M)))
+            sigma_hat = math.sqrt(float(np.sum(r_own**2)) / (float(np.sum(w2)) * dof / (2.0 * M)))
         else:
             sigma_hat = float("nan")
         nu0 = prior_dof
@@ -304,7 +322,7 @@ def solution_model(prob: Problem, poses: Poses, focal_views, chains: Chains, con
     return covariance_model(prob, poses.R, poses.t, poses.f, focal_views, chains.members, chains.slacks, contact,
                             options.pixel_sigma_px,
                             options.robust_loss, options.loss_scale_px, options.prior_dof,
-                            face_sigma=options.face_sigma_px)
+                            face_sigma=options.face_sigma_px, camera_errors=options.camera_errors)
 
 
 def misfit_carriages(prob: Problem, poses: Poses, sigma: float, p_value: float = 1e-4,
@@ -388,6 +406,7 @@ def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Cha
     cov, col, q = model.cov, model.col, model.q
     res.sigma_px = model.sigma
     res.sigma_px_estimated = model.sigma_hat
+    res.sigma_px_camera = model.camera_px
     res.face_sigma_px = model.face_sigma
     res.noise_estimated = model.components is not None
     res.dof = model.dof
