@@ -129,6 +129,11 @@ def test_report_states_what_the_intervals_include():
     s = interval_scope(sol, solver, 0.25)
     assert any("focal" in x and "120 px" in x for x in s["included"])
     assert not any("swing" in x for x in s["included"])
+    assert not any("disagreement" in x for x in s["included"])
+    # the multi-view photos' disagreement their stated errors account for, left out of the pixel noise: said so
+    sol["sigma_px_camera"] = 1.37
+    assert any("disagreement" in x and "1.37 px" in x for x in interval_scope(sol, solver, 0.25)["included"])
+    del sol["sigma_px_camera"]
     # a carried carriage's swing about its coupling, to second order (docs/solver.md), said where one has it
     sol["carriages"] = [{"number": "6100", "centre_curvature_m2": [[0.01, 0, 0], [0, 0.05, 0], [0, 0, 0.0]]}, {}]
     assert any("1 carriage(s) carried" in x and "0.24 m" in x for x in interval_scope(sol, solver, 0.25)["included"])

@@ -263,6 +263,8 @@ def interval_scope(solution: dict, solver: Any, dem_accuracy_m: float | None) ->
         fit += f" (pixel noise {_f(sig, 2)} px" + (
             f": the residuals' {_f(est, 2)} px ({_f(dof, 0)} degrees of freedom) pooled with the configured "
             f"{_f(solver.pixel_sigma_px, 2)} px" if est is not None and dof else "") + (
+            f"; the photos' disagreement that their stated camera errors account for "
+            f"({_f(solution['sigma_px_camera'], 2)} px RMS) set aside" if solution.get("sigma_px_camera") else "") + (
             f"; ± = {_f(q, 2)} σ" if q is not None else "") + ")"
     inc.append(fit)
     by_source = (solution.get("correspondences") or {}).get("by_source") or {}
