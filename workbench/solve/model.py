@@ -107,8 +107,8 @@ class SolveOptions:
     prediction_release: float = 30.0  # step 4b's factor on the predictions' sigmas (1: no check)
     track_sigma_m: float = 1.0  # horizontal 1-sigma of an on-track carriage's bogie pivot about the railway line
     track_gate_m: float = 5.0  # a pivot farther than this from the line at step 4's start: no prior (warned)
-    # the multi-view photos' stated errors (.camera_residual.ViewCameraErrors): their expected share of the
-    # residuals is left out of the pixel sigma's estimate (the camera term adds their error to the intervals)
+    # the multi-view photos' stated errors (.camera_residual.ViewCameraErrors): the residual directions they fill
+    # are set aside when the pixel sigma is estimated (the camera term adds their error to the intervals)
     camera_errors: Any = None
 
     def __post_init__(self) -> None:
@@ -206,8 +206,8 @@ class SolveResult:
     focal_px: dict[str, float]
     sigma_focal_px: dict[str, float]
     sigma_px: float = float("nan")  # pixel sigma used for the covariance
-    sigma_px_estimated: float = float("nan")  # the residuals' own, less what the multi-view cameras explain
-    sigma_px_camera: float = float("nan")  # the residuals' RMS (px) the multi-view cameras' stated errors explain
+    sigma_px_estimated: float = float("nan")  # the residuals' own (multi-view: where the cameras' errors do not act)
+    sigma_px_camera: float = float("nan")  # the residuals' RMS (px) along the directions the cameras' errors fill
     face_sigma_px: float = 0.0  # the shared face misfit in the covariance (px)
     noise_estimated: bool = False  # sigma_px and face_sigma_px both estimated from the residuals
     dof: float = 0.0

@@ -133,7 +133,7 @@ class CovarianceModel:
     undetermined: np.ndarray | None = None
     face_sigma: float = 0.0  # the faces' shared misfit used (px per affine mode)
     components: VarianceComponents | None = None  # when both were estimated from the residuals
-    camera_px: float = math.nan  # the residuals' RMS (px) the multi-view cameras' stated errors explain
+    camera_px: float = math.nan  # the residuals' RMS (px) along the directions the multi-view cameras' errors fill
 
 
 def undetermined_parameters(H: np.ndarray) -> np.ndarray | None:
@@ -164,8 +164,9 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     in place of the pixel sigma and the fixed misfit (docs/correspondences.md, "What a face's alignment
     measures"); ``views_shared``: a face's error is shared by the photos it is aligned in (:func:`views_per_face`),
     not independent from photo to photo; ``count_pose``: the pose predictions too (:mod:`.pose_covariance`);
-    ``camera_errors``: the multi-view photos' stated errors, whose expected share of the residuals the pixel
-    sigma's estimate leaves out (:mod:`.camera_residual`)."""
+    ``camera_errors``: the multi-view photos' stated errors; the residual directions they fill are set aside when
+    the pixel sigma is pooled (:mod:`.camera_residual`; not in the variance-component split of automatic points'
+    noise and faces' misfit, ``face_sigma`` None)."""
     J, r, col, P = pixel_rows(prob, R, t, f, focal_views)
     D = camera_shift_rows(prob, R, t, J, col, camera_errors) if camera_errors is not None else None
     groups = getattr(prob, "group", None)
