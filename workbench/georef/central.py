@@ -20,7 +20,7 @@ from typing import Sequence
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..core.camera import CameraIntrinsics
+from ..core.camera import CameraIntrinsics, brown_distortion
 from ..core.geometry import exp_so3, log_so3, orthonormal
 from ..errors import InputError
 from ..files.control_points import ControlPoint
@@ -113,21 +113,26 @@ def _refine_central(views: Sequence[RigView], obs: list[Pick], X: np.ndarray, cp
                     for o, d in zip(sel, depths)])
     h_sig = np.radians([h.sigma_deg for h in headings])
     vi = np.array([o.view for o in sel], int)
-    groups = [(np.nonzero(vi == i)[0], views[i]) for i in np.unique(vi)]  # the picks of each photo, batched
+    # the picks of each photo, batched: (rows, cam_from_rig^T, intrinsics); one photo's rows are all, in order
+    groups = [(np.nonzero(vi == i)[0], np.asarray(views[i].cam_from_rig, float).T, views[i].intrinsics)
+              for i in np.unique(vi)]
+    whole = len(groups) == 1
     Xs = X[[o.point for o in sel]].reshape(-1, 3)
     UV = np.array([o.uv for o in sel], float).reshape(-1, 2)
     prior = None if prior_centre is None else np.asarray(prior_centre, float)
+    sig_col = sig[:, None]
 
     def fun(p, segments=None):
         R = exp_so3(p[:3]) @ R_init
         c = p[3:]
         P = (Xs - c) @ R.T
         res = np.empty((len(sel), 2))
-        for k, v in groups:
-            q = P[k] @ np.asarray(v.cam_from_rig, float).T
+        for k, C_t, intr in groups:  # intr.project with the depth clipped, without its (n, 2) round trips
+            q = (P if whole else P[k]) @ C_t
             z = np.maximum(q[:, 2], 1e-6)
-            res[k] = v.intrinsics.pixels_from_normalized(v.intrinsics.distort(q[:, :2] / z[:, None]))
-        out = [((res - UV) / sig[:, None]).ravel()]
+            _, _, xd, yd = brown_distortion(q[:, 0] / z, q[:, 1] / z, intr)
+            res[k, 0], res[k, 1] = intr.pixel_coords(xd, yd)
+        out = [((res - UV) / sig_col).ravel()]
         if track is not None:
             out.append(track.whitened(R, c, views, t_use, t_sig, segments))
         if sig_prior is not None:

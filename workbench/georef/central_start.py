@@ -22,53 +22,49 @@ from .options import GeorefOptions, HeadingPrior
 from .picks import Pick
 from .track_picks import TrackTerm
 
-__all__ = ["central_errors", "candidate_errors", "heading_errors", "p3p_candidates", "compass_candidates",
+__all__ = ["central_errors", "candidate_errors", "heading_errors", "p3p_candidates", "p3p_candidates_batch", "compass_candidates",
            "start_candidates", "prior_grid", "best_candidate"]
 
 _EYE3 = np.eye(3)
 _CHUNK_VALUES = 1 << 16  # candidates x picks scored at once (memory, not results: each candidate's row is alone)
 
 
-def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``np.cross`` of two (3,) vectors, the same products and differences in the same order, without its
-    overhead (moveaxis, broadcasting: 0.1 ms a call)."""
-    a0, a1, a2 = float(a[0]), float(a[1]), float(a[2])
-    b0, b1, b2 = float(b[0]), float(b[1]), float(b[2])
-    return np.array([a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0])
-
-
-def _norm(v: np.ndarray) -> float:
-    """``np.linalg.norm`` of a (3,) vector, as it computes it (``sqrt(v.dot(v))``)."""
-    return math.sqrt(float(v.dot(v)))
-
-
 def p3p_candidates(bearings: np.ndarray, X: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
     """``(rig_from_world R, centre)`` candidates from 3 bearings (3, 3) in the rig frame and 3 world points."""
-    m = bearings.sum(axis=0)
-    nm = _norm(m)
-    if nm < 1e-6:
-        return []
-    z = m / nm
-    x = _cross(np.array([0.0, 1.0, 0.0]) if abs(z[1]) < 0.9 else np.array([1.0, 0.0, 0.0]), z)
-    x /= _norm(x)
-    y = _cross(z, x)
-    Q = np.array([x, y, z])  # virtual_from_rig
-    b = bearings @ Q.T
-    if (b[:, 2] <= 1e-3).any():
-        return []
-    img = np.ascontiguousarray(b[:, :2] / b[:, 2:3])
-    try:
-        n, rvecs, tvecs = cv2.solveP3P(np.ascontiguousarray(X, dtype=np.float64), img, _EYE3, None,
-                                       flags=cv2.SOLVEPNP_P3P)
-    except cv2.error:
-        return []
+    return p3p_candidates_batch(np.asarray(bearings, float)[None], np.asarray(X, float)[None])
+
+
+def p3p_candidates_batch(bearings: np.ndarray, X: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The candidates of T triples (bearings (T, 3, 3) in the rig frame, world points (T, 3, 3)), in the triples'
+    order: each triple seen through a virtual pinhole looking along the mean of its rays, P3P (OpenCV) there.
+    The virtual frames of all triples are computed at once, each with the arithmetic of one (the same sums,
+    products and norms, ``np.linalg.norm``'s ``sqrt(v.dot(v))`` as the plain sum of squares it equals)."""
+    m = bearings.sum(axis=1)
+    nm = np.sqrt((m * m).sum(axis=1))
+    ok = nm >= 1e-6
+    with np.errstate(invalid="ignore", divide="ignore"):
+        z = m / nm[:, None]
+        e = np.where((np.abs(z[:, 1]) < 0.9)[:, None], [0.0, 1.0, 0.0], [1.0, 0.0, 0.0])
+        x = np.cross(e, z)
+        x /= np.sqrt((x * x).sum(axis=1))[:, None]
+        y = np.cross(z, x)
+        Q = np.stack([x, y, z], axis=1)  # (T, 3, 3) virtual_from_rig
+        b = np.matmul(bearings, Q.transpose(0, 2, 1))
+        ok &= ~(b[:, :, 2] <= 1e-3).any(axis=1)
+        img = b[:, :, :2] / b[:, :, 2:3]
     out = []
-    Qt = Q.T
-    for rv, tv in zip(rvecs or [], tvecs or []):
-        Rv = cv2.Rodrigues(np.asarray(rv, float))[0]
-        R = Qt @ Rv
-        t = Qt @ np.asarray(tv, float).reshape(3)
-        out.append((R, -R.T @ t))
+    for t in np.nonzero(ok)[0]:
+        try:
+            n, rvecs, tvecs = cv2.solveP3P(np.ascontiguousarray(X[t], dtype=np.float64), np.ascontiguousarray(img[t]),
+                                           _EYE3, None, flags=cv2.SOLVEPNP_P3P)
+        except cv2.error:
+            continue
+        Qt = Q[t].T
+        for rv, tv in zip(rvecs or [], tvecs or []):
+            Rv = cv2.Rodrigues(np.asarray(rv, float))[0]
+            R = Qt @ Rv
+            tt = Qt @ np.asarray(tv, float).reshape(3)
+            out.append((R, -R.T @ tt))
     return out
 
 
@@ -183,10 +179,12 @@ def start_candidates(bear: np.ndarray, pts: np.ndarray, X: np.ndarray, n_pts: in
         for k, p in enumerate(pts):
             by_point.setdefault(int(p), []).append(k)
         keys = sorted(by_point)
+        trips = []  # the draws first (the same calls in the same order), then the triples' P3P together
         for _ in range(opts.ransac_iterations):
             trip = rng.choice(len(keys), 3, replace=False)
-            ks = [by_point[keys[t]][rng.integers(len(by_point[keys[t]]))] for t in trip]
-            candidates.extend(p3p_candidates(bear[ks], X[pts[ks]]))
+            trips.append([by_point[keys[t]][rng.integers(len(by_point[keys[t]]))] for t in trip])
+        ks = np.array(trips, int).reshape(-1, 3)
+        candidates.extend(p3p_candidates_batch(bear[ks], X[pts[ks]]))
     return candidates
 
 
