@@ -65,18 +65,19 @@ def small_incident(tmp_path_factory):
 # worker (`--dist loadfile`), and hands out the files in the collection's order (`--no-loadscope-reorder`; xdist's
 # own order is by number of tests, which put the one-test end-to-end file, about 150 s, last: the other worker
 # waited for it). Longest first, so the workers finish together (greedy scheduling, longest processing time
-# first). The seconds are what each file took in a full run on the 2-core machine under load (session 19,
-# `--junitxml`, a file's test times summed; docs/performance.md, the eleventh pass); files not listed (each under
-# 20 s) follow in their usual order. Re-measure when a file's cost changes much: a wrong order costs time, never a
-# test.
+# first). The seconds are what each file took in a full run on the 2-core machine under load (session 20,
+# `--junitxml`, a file's test times summed, after the georef start was made fast; docs/performance.md, the twelfth
+# pass); files not listed (each under 20 s) follow in their usual order. Re-measure when a file's cost changes
+# much: a wrong order costs time, never a test.
 # --------------------------------------------------------------------------------------------------------------
 SLOW_FILES_SECONDS = {
-    "test_georef.py": 245, "test_solve_stage.py": 234, "test_correspond.py": 207, "test_georef_covariance.py": 182,
-    "test_report.py": 161, "test_cli_end_to_end.py": 152, "test_sfm.py": 110, "test_solve.py": 105,
-    "test_cli.py": 98, "test_viewer.py": 82, "test_picker_map.py": 82, "test_export.py": 70, "test_synth.py": 66,
-    "test_georef_gps.py": 63, "test_picker.py": 60, "test_relative.py": 55, "test_mesh_type_incident.py": 42,
-    "test_multiview_uncertainty.py": 38, "test_stitch.py": 36, "test_georef_track.py": 28, "test_railways.py": 23,
-    "test_rolling_stock.py": 22, "test_branches.py": 20, "test_georef_variance_factor.py": 30,
+    "test_cli_end_to_end.py": 247, "test_report.py": 161, "test_georef.py": 131, "test_solve.py": 122,
+    "test_sfm.py": 112, "test_correspond.py": 91, "test_synth.py": 79, "test_solve_stage.py": 75, "test_cli.py": 72,
+    "test_georef_gps.py": 68, "test_stitch.py": 67, "test_picker.py": 59, "test_viewer.py": 52,
+    "test_picker_map.py": 50, "test_relative.py": 47, "test_georef_track.py": 43, "test_export.py": 42,
+    "test_mesh_type_incident.py": 42, "test_railways.py": 40, "test_multiview_uncertainty.py": 37,
+    "test_georef_covariance.py": 36, "test_rolling_stock.py": 32, "test_branches.py": 31,
+    "test_georef_variance_factor.py": 28, "test_buildings.py": 26, "test_architecture.py": 21,
 }
 
 

@@ -104,9 +104,13 @@ class CameraIntrinsics:
         return xy
 
     def pixels_from_normalized(self, xy_d: np.ndarray) -> np.ndarray:
-        u = self.fx * xy_d[:, 0] + self.skew * xy_d[:, 1] + self.cx
-        v = self.fy * xy_d[:, 1] + self.cy
+        u, v = self.pixel_coords(xy_d[:, 0], xy_d[:, 1])
         return np.column_stack([u, v])
+
+    def pixel_coords(self, xd: np.ndarray, yd: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Distorted normalised coordinates x (n,), y (n,) -> pixel coordinates u (n,), v (n,) (for inner loops
+        that keep the two apart)."""
+        return self.fx * xd + self.skew * yd + self.cx, self.fy * yd + self.cy
 
     def normalized_from_pixels(self, uv: np.ndarray) -> np.ndarray:
         y = (uv[:, 1] - self.cy) / self.fy

@@ -5,9 +5,10 @@ Unknowns: ``rig_from_world`` (rotation) and the centre (3). Start: P3P (OpenCV) 
 rig frame, each triple seen through a virtual pinhole looking along their mean direction; with a centre prior
 (``camera.position_enu`` or EXIF GPS) also the rotation that best aligns the rays with the directions to the
 points (Kabsch), and with a heading prior (EXIF ``GPSImgDirection``) the rotations that put a photo's optical axis
-on that heading and one pick on its ray. Refinement: reprojection error in every source photo (its own intrinsics
-and distortion), each residual divided by ``sqrt(sigma_px^2 + (f sigma_m / depth)^2)``, plus the priors (centre,
-per axis; heading: the azimuth of a photo's optical axis); robust loss (docs/gis.md).
+on that heading and one pick on its ray (the candidates and their scoring: :mod:`.central_start`). Refinement:
+reprojection error in every source photo (its own intrinsics and distortion), each residual divided by
+``sqrt(sigma_px^2 + (f sigma_m / depth)^2)``, plus the priors (centre, per axis; heading: the azimuth of a photo's
+optical axis); robust loss (docs/gis.md).
 """
 
 from __future__ import annotations
@@ -16,16 +17,16 @@ import math
 from dataclasses import dataclass
 from typing import Sequence
 
-import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from ..core.camera import CameraIntrinsics
+from ..core.camera import CameraIntrinsics, brown_distortion
 from ..core.geometry import exp_so3, log_so3, orthonormal
 from ..errors import InputError
 from ..files.control_points import ControlPoint
-from .fitting import point_line_distance, rotation_kabsch
 from ..files.panorama import RigView
+from .central_start import best_candidate, central_errors, heading_errors, prior_grid, start_candidates
+from .fitting import point_line_distance
 from .options import GeorefOptions, HeadingPrior
 from .picks import (Pick, pick_sigma, picks_in_views, shared_point_information, summarize_residuals, variance_factor,
                     warn_residuals)
@@ -61,136 +62,6 @@ class CentralResult:
         return M
 
 
-def _p3p_candidates(bearings: np.ndarray, X: np.ndarray) -> list[tuple[np.ndarray, np.ndarray]]:
-    """``(rig_from_world R, centre)`` candidates from 3 bearings (3, 3) in the rig frame and 3 world points."""
-    m = bearings.sum(axis=0)
-    if np.linalg.norm(m) < 1e-6:
-        return []
-    z = m / np.linalg.norm(m)
-    x = np.cross([0.0, 1.0, 0.0] if abs(z[1]) < 0.9 else [1.0, 0.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    Q = np.vstack([x, y, z])  # virtual_from_rig
-    b = bearings @ Q.T
-    if np.any(b[:, 2] <= 1e-3):
-        return []
-    img = np.ascontiguousarray(b[:, :2] / b[:, 2:3])
-    try:
-        n, rvecs, tvecs = cv2.solveP3P(np.ascontiguousarray(X, dtype=np.float64), img, np.eye(3), None,
-                                       flags=cv2.SOLVEPNP_P3P)
-    except cv2.error:
-        return []
-    out = []
-    for rv, tv in zip(rvecs or [], tvecs or []):
-        Rv = cv2.Rodrigues(np.asarray(rv, float))[0]
-        R = Q.T @ Rv
-        t = Q.T @ np.asarray(tv, float).reshape(3)
-        out.append((R, -R.T @ t))
-    return out
-
-
-def _wrap(a: float) -> float:
-    """An angle (rad) wrapped to [-pi, pi)."""
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
-def _heading_errors(R: np.ndarray, views: Sequence[RigView], headings: Sequence[HeadingPrior]) -> np.ndarray:
-    """Each heading prior's residual (rad, wrapped): the azimuth of its photo's optical axis (clockwise from north,
-    +y) with ``rig_from_world`` R, less the prior's."""
-    out = []
-    for h in headings:
-        a = (np.asarray(views[h.view].cam_from_rig, float) @ R)[2]  # the optical axis in the scene frame
-        out.append(_wrap(math.atan2(a[0], a[1]) - math.radians(h.azimuth_deg)))
-    return np.asarray(out, float)
-
-
-def _compass_candidates(bear: np.ndarray, pts: np.ndarray, X: np.ndarray, c0: np.ndarray,
-                        views: Sequence[RigView], headings: Sequence[HeadingPrior],
-                        rng: np.random.Generator) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Starts at the centre prior ``c0`` from a heading prior: the optical axis on the heading at a pitch from
-    -60 to 60 deg, and one pick's bearing on its point's direction (Kabsch on the two pairs)."""
-    out = []
-    ks = np.arange(len(pts)) if len(pts) <= 8 else rng.choice(len(pts), 8, replace=False)
-    for h in headings[:3]:
-        z_rig = np.asarray(views[h.view].cam_from_rig, float)[2]  # the photo's optical axis in the rig frame
-        az = math.radians(h.azimuth_deg)
-        for k in ks:
-            u = X[pts[k]] - c0
-            if np.linalg.norm(u) < 1e-3:
-                continue
-            u = u / np.linalg.norm(u)
-            for pitch in np.radians(np.arange(-60.0, 61.0, 5.0)):
-                a = np.array([math.sin(az) * math.cos(pitch), math.cos(az) * math.cos(pitch), math.sin(pitch)])
-                out.append((rotation_kabsch(np.array([u, a]), np.array([bear[k], z_rig])), c0))
-    return out
-
-
-def _central_errors(R: np.ndarray, c: np.ndarray, views: Sequence[RigView], obs: list[Pick],
-                    X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Reprojection errors (n,) px (inf when behind) and the residual vectors (n, 2) of every observation."""
-    err = np.full(len(obs), np.inf)
-    vec = np.full((len(obs), 2), np.nan)
-    vi = np.array([o.view for o in obs])
-    P = (X[[o.point for o in obs]] - c) @ R.T  # rig frame
-    UV = np.array([o.uv for o in obs]).reshape(-1, 2)
-    for i in np.unique(vi):
-        k = np.nonzero(vi == i)[0]
-        v = views[i]
-        q = P[k] @ np.asarray(v.cam_from_rig, float).T
-        front = q[:, 2] > 1e-6
-        if not front.any():
-            continue
-        kk = k[front]
-        vec[kk] = v.intrinsics.project(q[front]) - UV[kk]
-        err[kk] = np.hypot(vec[kk, 0], vec[kk, 1])
-    return err, vec
-
-
-def _start_candidates(bear: np.ndarray, pts: np.ndarray, X: np.ndarray, n_pts: int, prior_centre: np.ndarray | None,
-                      opts: GeorefOptions, rng: np.random.Generator, views: Sequence[RigView] = (),
-                      headings: Sequence[HeadingPrior] = (), n_pairs: int = 100,
-                      track: TrackTerm | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
-    """``(rig_from_world, centre)`` starts: with a centre prior, Kabsch on all picks and on random pairs, with
-    a heading prior too the compass starts (:func:`_compass_candidates`), and with track picks the rotations that
-    fit them best there (:func:`~workbench.georef.track_picks.track_rotation_candidates`); with 3 or more points,
-    P3P on random triples of distinct points."""
-    candidates: list[tuple[np.ndarray, np.ndarray]] = []
-    if prior_centre is not None:
-        c0 = np.asarray(prior_centre, float)
-        if headings:
-            candidates.extend(_compass_candidates(bear, pts, X, c0, views, headings, rng))
-        u = X[pts] - c0
-        ok = np.linalg.norm(u, axis=1) > 1e-3
-        u[ok] /= np.linalg.norm(u[ok], axis=1, keepdims=True)
-        if ok.sum() >= 2:
-            candidates.append((rotation_kabsch(u[ok], bear[ok]), c0))  # rig_from_world maps world dirs to bearings
-            for _ in range(min(opts.ransac_iterations, n_pairs)):
-                i, j = rng.choice(np.nonzero(ok)[0], 2, replace=False)
-                if pts[i] != pts[j]:
-                    candidates.append((rotation_kabsch(u[[i, j]], bear[[i, j]]), c0))
-    if n_pts >= 3:
-        by_point: dict[int, list[int]] = {}
-        for k, p in enumerate(pts):
-            by_point.setdefault(int(p), []).append(k)
-        keys = sorted(by_point)
-        for _ in range(opts.ransac_iterations):
-            trip = rng.choice(len(keys), 3, replace=False)
-            ks = [by_point[keys[t]][rng.integers(len(by_point[keys[t]]))] for t in trip]
-            candidates.extend(_p3p_candidates(bear[ks], X[pts[ks]]))
-    return candidates
-
-
-def _prior_grid(prior_centre: np.ndarray, sig_prior: np.ndarray) -> list[np.ndarray]:
-    """Centres spread over the prior: 0, +-1, +-2 sigma up (+-10, 20, 40 m when the height is free), and +-1
-    sigma east and north."""
-    c0 = np.asarray(prior_centre, float)
-    sh = [float(x) if np.isfinite(x) else 0.0 for x in sig_prior[:2]]
-    dz = [k * float(sig_prior[2]) for k in (0, -1, 1, -2, 2)] if np.isfinite(sig_prior[2]) \
-        else [0.0, -10.0, 10.0, -20.0, 20.0, -40.0, 40.0]
-    return [c0 + np.array([0.0, 0.0, z]) for z in dz] + [c0 + np.array([i * sh[0], j * sh[1], 0.0])
-                                                         for i, j in ((1, 0), (-1, 0), (0, 1), (0, -1))]
-
-
 def _multi_start(bear: np.ndarray, pts: np.ndarray, X: np.ndarray, views: Sequence[RigView], obs: list[Pick],
                  cps: Sequence[ControlPoint], prior_centre: np.ndarray, sig_prior: np.ndarray,
                  headings: Sequence[HeadingPrior], opts: GeorefOptions, rng: np.random.Generator,
@@ -198,51 +69,25 @@ def _multi_start(bear: np.ndarray, pts: np.ndarray, X: np.ndarray, views: Sequen
                  ) -> tuple[tuple[np.ndarray, np.ndarray] | None, int]:
     """With few points the cost has several minima (with 2 map points the camera fits them above or below its
     true height, tens of metres apart): the RANSAC start ``first`` and a start at each centre of
-    :func:`_prior_grid` (Kabsch on the picks, and the compass starts), each refined, the lowest cost kept.
+    :func:`~workbench.georef.central_start.prior_grid` (Kabsch on the picks, and the compass starts), each
+    refined, the lowest cost kept.
     Returns ((rig_from_world, centre) or None, the number of starts)."""
     best, best_cost, n = None, np.inf, 0
-    for c in [None, *_prior_grid(prior_centre, sig_prior)]:
+    for c in [None, *prior_grid(prior_centre, sig_prior)]:
         if c is None:
             R0, c0 = first
         else:
-            cands = _start_candidates(bear, pts, X, 0, c, opts, rng, views, headings, n_pairs=0, track=track)
+            cands = start_candidates(bear, pts, X, 0, c, opts, rng, views, headings, n_pairs=0)
             if not cands:
                 continue
             n += len(cands)
-            R0, c0 = _best_candidate(cands, views, obs, X, prior_centre, sig_prior, opts, headings, track)
+            R0, c0 = best_candidate(cands, views, obs, X, prior_centre, sig_prior, opts, headings, track)
         info: dict = {}
         R1, c1, _ = _refine_central(views, obs, X, cps, R0, c0, np.ones(len(obs), bool), prior_centre, sig_prior,
                                     opts, headings, info_out=info, track=track)
         if info["cost"] < best_cost:
             best, best_cost = (R1, c1), info["cost"]
     return best, n
-
-
-def _best_candidate(candidates: list[tuple[np.ndarray, np.ndarray]], views: Sequence[RigView], obs: list[Pick],
-                    X: np.ndarray, prior_centre: np.ndarray | None, prior_sigma_m: np.ndarray | float | None,
-                    opts: GeorefOptions, headings: Sequence[HeadingPrior] = (),
-                    track: TrackTerm | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """The candidate with the best bounded (MSAC-like) score over the control-point and track picks, less a small
-    penalty for leaving the priors."""
-    best, best_score = None, -np.inf
-    thr = opts.ransac_threshold_px
-    coarse = track.coarse() if track is not None else None
-    for R, c in candidates:
-        err, _ = _central_errors(R, c, views, obs, X)
-        score = float(np.sum(np.maximum(0.0, 1.0 - (np.minimum(err, thr) / thr) ** 2)))  # MSAC-like, bounded
-        if coarse is not None:
-            e_t = np.abs(np.nan_to_num(coarse.errors(R, c, views)[0], nan=np.inf))
-            score += float(np.sum(np.maximum(0.0, 1.0 - (np.minimum(e_t, thr) / thr) ** 2)))
-        if prior_centre is not None:
-            sig = np.broadcast_to(np.asarray(prior_sigma_m if prior_sigma_m is not None else opts.prior_sigma_m,
-                                             float), (3,))
-            score -= 0.01 * float(np.sum(((c - np.asarray(prior_centre, float)) / sig) ** 2)) / max(len(obs), 1)
-        if headings:
-            hs = np.radians([h.sigma_deg for h in headings])
-            score -= 0.01 * float(np.sum((_heading_errors(R, views, headings) / hs) ** 2)) / max(len(obs), 1)
-        if score > best_score:
-            best, best_score = (R, c), score
-    return best
 
 
 def _refine_central(views: Sequence[RigView], obs: list[Pick], X: np.ndarray, cps: Sequence[ControlPoint],
@@ -268,27 +113,32 @@ def _refine_central(views: Sequence[RigView], obs: list[Pick], X: np.ndarray, cp
                     for o, d in zip(sel, depths)])
     h_sig = np.radians([h.sigma_deg for h in headings])
     vi = np.array([o.view for o in sel], int)
-    groups = [(np.nonzero(vi == i)[0], views[i]) for i in np.unique(vi)]  # the picks of each photo, batched
+    # the picks of each photo, batched: (rows, cam_from_rig^T, intrinsics); one photo's rows are all, in order
+    groups = [(np.nonzero(vi == i)[0], np.asarray(views[i].cam_from_rig, float).T, views[i].intrinsics)
+              for i in np.unique(vi)]
+    whole = len(groups) == 1
     Xs = X[[o.point for o in sel]].reshape(-1, 3)
     UV = np.array([o.uv for o in sel], float).reshape(-1, 2)
     prior = None if prior_centre is None else np.asarray(prior_centre, float)
+    sig_col = sig[:, None]
 
     def fun(p, segments=None):
         R = exp_so3(p[:3]) @ R_init
         c = p[3:]
         P = (Xs - c) @ R.T
         res = np.empty((len(sel), 2))
-        for k, v in groups:
-            q = P[k] @ np.asarray(v.cam_from_rig, float).T
+        for k, C_t, intr in groups:  # intr.project with the depth clipped, without its (n, 2) round trips
+            q = (P if whole else P[k]) @ C_t
             z = np.maximum(q[:, 2], 1e-6)
-            res[k] = v.intrinsics.pixels_from_normalized(v.intrinsics.distort(q[:, :2] / z[:, None]))
-        out = [((res - UV) / sig[:, None]).ravel()]
+            _, _, xd, yd = brown_distortion(q[:, 0] / z, q[:, 1] / z, intr)
+            res[k, 0], res[k, 1] = intr.pixel_coords(xd, yd)
+        out = [((res - UV) / sig_col).ravel()]
         if track is not None:
             out.append(track.whitened(R, c, views, t_use, t_sig, segments))
         if sig_prior is not None:
             out.append((c - prior) / sig_prior)
         if headings:
-            out.append(_heading_errors(R, views, headings) / h_sig)
+            out.append(heading_errors(R, views, headings) / h_sig)
         return np.concatenate(out)
 
     def jac(p):  # forward differences; the track picks each against the segment nearest at p
@@ -425,7 +275,7 @@ def _central_residuals(R: np.ndarray, c: np.ndarray, views: Sequence[RigView], o
                        bear: np.ndarray, cps: Sequence[ControlPoint], opts: GeorefOptions) -> list[dict]:
     """Every pick's residual (px, and the point's distance from its ray in metres) and whether it is an inlier
     (:func:`inlier_limits`)."""
-    err, vec = _central_errors(R, c, views, obs, X)
+    err, vec = central_errors(R, c, views, obs, X)
     lim = inlier_limits(R, c, views, obs, X, cps, opts)
     residuals = []
     for k, o in enumerate(obs):
@@ -466,7 +316,7 @@ def _too_few_points(where: str, n_pts: int, views: Sequence[RigView]) -> InputEr
 
 def _heading_stats(R: np.ndarray, views: Sequence[RigView], headings: Sequence[HeadingPrior]) -> list[dict]:
     """Each heading prior with the fitted azimuth and the residual (degrees)."""
-    err = np.degrees(_heading_errors(R, views, headings))
+    err = np.degrees(heading_errors(R, views, headings))
     return [{"view": h.view, "photo": h.photo or views[h.view].name, "prior_deg": float(h.azimuth_deg),
              "fitted_deg": float((h.azimuth_deg + e) % 360.0), "residual_deg": float(e),
              "sigma_deg": float(h.sigma_deg)} for h, e in zip(headings, err)]
@@ -484,13 +334,13 @@ def _track_start(bear, pts, X, views, obs, cps, prior_centre, sig_prior, heading
     """With track picks, a centre prior and fewer than 3 points: at the prior's centre and 1 and 2 sigma above and
     below it, the rotations that fit the track picks best (and, with points, Kabsch on them), each refined briefly
     (40 evaluations); the lowest cost. Returns (R, centre, number of candidates)."""
-    centres = _prior_grid(prior_centre, sig_prior)[:5]
+    centres = prior_grid(prior_centre, sig_prior)[:5]
     cands = track_rotation_candidates(track, views, centres, keep=4)
     if len(pts):
         for c in centres:
-            kab = _start_candidates(bear, pts, X, 0, c, opts, rng, views, headings, n_pairs=0)
+            kab = start_candidates(bear, pts, X, 0, c, opts, rng, views, headings, n_pairs=0)
             if kab:
-                cands.append(_best_candidate(kab, views, obs, X, prior_centre, sig_prior, opts, headings, track))
+                cands.append(best_candidate(kab, views, obs, X, prior_centre, sig_prior, opts, headings, track))
     best, best_cost = cands[0], np.inf
     for R0, c0 in cands:
         info: dict = {}
@@ -506,11 +356,11 @@ def _start(bear, pts, X, n_pts, views, obs, cps, prior_centre, sig_prior, headin
     points, the multi-start over the prior; with track picks and fewer than 3 points, :func:`_track_start`)."""
     if track is not None and prior_centre is not None and n_pts < 3:
         return _track_start(bear, pts, X, views, obs, cps, prior_centre, sig_prior, headings, opts, rng, track)
-    candidates = _start_candidates(bear, pts, X, n_pts, prior_centre, opts, rng, views, headings, track=track)
+    candidates = start_candidates(bear, pts, X, n_pts, prior_centre, opts, rng, views, headings)
     if not candidates:
         raise InputError(f"{where}: the control points give no camera pose (degenerate geometry: are the points "
                          f"on one line, or all picked at the same place?); add points spread over the view")
-    R0, c0 = _best_candidate(candidates, views, obs, X, prior_centre, sig_prior, opts, headings, track)
+    R0, c0 = best_candidate(candidates, views, obs, X, prior_centre, sig_prior, opts, headings, track)
     n_multi = 0
     if prior_centre is not None and n_pts <= opts.sample_max_points:
         grid_best, n_multi = _multi_start(bear, pts, X, views, obs, cps, prior_centre, sig_prior, headings, opts, rng,
@@ -559,14 +409,14 @@ def solve_central(views: Sequence[RigView], cps: Sequence[ControlPoint], *, prio
     thr = opts.ransac_threshold_px
     R0, c0_est, n_cand = _start(bear, pts, X, n_pts, views, obs, cps, prior_centre, sig_prior, headings, opts, rng,
                                 track, where)
-    err0, _ = _central_errors(R0, c0_est, views, obs, X)
+    err0, _ = central_errors(R0, c0_est, views, obs, X)
     inl = err0 < thr
     if inl.sum() < min(3, len(obs)) and not has_prior:
         raise InputError(f"{where}: no camera pose agrees with more than {int(inl.sum())} of the {len(obs)} picks "
                          f"(threshold {thr} px); check the point names, coordinates and pixels")
     R1, c1, _ = _refine_central(views, obs, X, cps, R0, c0_est, np.ones(len(obs), bool), prior_centre, sig_prior,
                                 opts, headings, track=track)
-    err1, _ = _central_errors(R1, c1, views, obs, X)
+    err1, _ = central_errors(R1, c1, views, obs, X)
     inl = err1 < inlier_limits(R1, c1, views, obs, X, cps, opts)
     t_inl = None if track is None else track_inliers(track, R1, c1, views, opts)
     sample_info: dict = {}
