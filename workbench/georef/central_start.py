@@ -22,8 +22,8 @@ from .options import GeorefOptions, HeadingPrior
 from .picks import Pick
 from .track_picks import TrackTerm
 
-__all__ = ["central_errors", "candidate_errors", "heading_errors", "p3p_candidates", "p3p_candidates_batch", "compass_candidates",
-           "start_candidates", "prior_grid", "best_candidate"]
+__all__ = ["central_errors", "candidate_errors", "heading_errors", "p3p_candidates", "p3p_candidates_batch",
+           "compass_candidates", "start_candidates", "prior_grid", "best_candidate"]
 
 _EYE3 = np.eye(3)
 _CHUNK_VALUES = 1 << 16  # candidates x picks scored at once (memory, not results: each candidate's row is alone)
