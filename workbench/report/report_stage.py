@@ -252,8 +252,7 @@ def interval_scope(solution: dict, solver: Any, dem_accuracy_m: float | None) ->
     """What the carriages' 95 % intervals include and leave out, from ``solution.json`` and the solver settings:
     ``{"included": [...], "excluded": [...], "text": a sentence or two}`` (docs/calibration.md)."""
     inc, exc = [], []
-    sig, est, dof = solution.get("sigma_px"), solution.get("sigma_px_estimated"), solution.get("dof")
-    q = solution.get("ci95_factor")
+    sig, est, dof, q = (solution.get(k) for k in ("sigma_px", "sigma_px_estimated", "dof", "ci95_factor"))
     fit = "the fit of the marked points"
     estimated = bool(solution.get("noise_estimated"))
     if sig is not None and estimated:
