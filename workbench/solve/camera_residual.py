@@ -27,8 +27,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from .camera_term import camera_pose_jacobian
-from .projection import project_with_jacobians
+from .camera_term import camera_pose_jacobian, intrinsics_pixel_jacobian
 
 
 @dataclass(frozen=True, eq=False)
@@ -95,8 +94,7 @@ def camera_shift_rows(prob: Any, R: np.ndarray, t: np.ndarray, J: np.ndarray, co
     n = len(errors.covariance)
     D = np.zeros((J.shape[0], n))
     names = [v.name for v in prob.views]
-    centres = [-np.asarray(v.cam_from_world, float)[:3, :3].T @ np.asarray(v.cam_from_world, float)[:3, 3]
-               for v in prob.views]
+    centres = [v.camera_centre for v in prob.views]
     for k in prob.active:
         idx = prob.by_car[k]
         M = np.eye(4)
@@ -113,16 +111,8 @@ def camera_shift_rows(prob: Any, R: np.ndarray, t: np.ndarray, J: np.ndarray, co
             if ki is None:
                 continue
             params, Kt = ki
-            intr, cam = prob.views[v].intrinsics, prob.views[v].cam_from_world
-            Kpx = np.zeros((len(rows), 2, len(params)))
-            for j, name in enumerate(params):
-                h = rel_step * (abs(intr.fx) if name in ("f", "fx", "fy", "cx", "cy") else 1.0)
-                d = np.zeros(len(params))
-                d[j] = h
-                up, _, _ = project_with_jacobians(prob.P[rows], R[k], t[k], cam, intr.moved(params, d), ())
-                dn, _, _ = project_with_jacobians(prob.P[rows], R[k], t[k], cam, intr.moved(params, -d), ())
-                Kpx[:, :, j] = (up - dn) / (2 * h)
-            wK = Kpx * prob.w[rows, None, None]
+            wK = intrinsics_pixel_jacobian(prob.P[rows], R[k], t[k], prob.views[v].cam_from_world,
+                                           prob.views[v].intrinsics, params, rel_step) * prob.w[rows, None, None]
             D[2 * rows] -= wK[:, 0, :] @ Kt
             D[2 * rows + 1] -= wK[:, 1, :] @ Kt
     return D

@@ -227,6 +227,22 @@ def view_information(world_from_carriage: np.ndarray, rows: dict[int, tuple[np.n
     return out
 
 
+def intrinsics_pixel_jacobian(P: np.ndarray, R: np.ndarray, t: np.ndarray, cam_from_world: np.ndarray, intr: Any,
+                              names: Sequence[str], rel_step: float = 1e-6) -> np.ndarray:
+    """(n, 2, k) derivative of the pixels of carriage-frame points ``P`` (n, 3), the carriage at ``(R, t)``, in the
+    view's intrinsics ``names`` (``CameraIntrinsics.moved``'s): central differences, steps of ``rel_step`` times
+    the focal for pixel quantities, ``rel_step`` for the others."""
+    K = np.zeros((len(P), 2, len(names)))
+    for j, name in enumerate(names):
+        h = rel_step * (abs(intr.fx) if name in ("f", "fx", "fy", "cx", "cy") else 1.0)
+        d = np.zeros(len(names))
+        d[j] = h
+        up, _, _ = project_with_jacobians(P, R, t, cam_from_world, intr.moved(names, d), ())
+        dn, _, _ = project_with_jacobians(P, R, t, cam_from_world, intr.moved(names, -d), ())
+        K[:, :, j] = (up - dn) / (2 * h)
+    return K
+
+
 def view_intrinsics_cross(world_from_carriage: np.ndarray, rows: dict[int, tuple[np.ndarray, np.ndarray]],
                           views: Sequence[Any], params: dict[int, tuple[str, ...]], rel_step: float = 1e-6
                           ) -> dict[int, np.ndarray]:
@@ -243,14 +259,7 @@ def view_intrinsics_cross(world_from_carriage: np.ndarray, rows: dict[int, tuple
             continue
         intr, cam = views[v].intrinsics, views[v].cam_from_world
         _, J, _ = project_with_jacobians(P, M[:3, :3], M[:3, 3], cam, intr, ())
-        K = np.zeros((len(P), 2, len(names)))
-        for j, name in enumerate(names):
-            h = rel_step * (abs(intr.fx) if name in ("f", "fx", "fy", "cx", "cy") else 1.0)
-            d = np.zeros(len(names))
-            d[j] = h
-            up, _, _ = project_with_jacobians(P, M[:3, :3], M[:3, 3], cam, intr.moved(names, d), ())
-            dn, _, _ = project_with_jacobians(P, M[:3, :3], M[:3, 3], cam, intr.moved(names, -d), ())
-            K[:, :, j] = (up - dn) / (2 * h)
+        K = intrinsics_pixel_jacobian(P, M[:3, :3], M[:3, 3], cam, intr, names, rel_step)
         out[v] = np.einsum("nai,n,naj->ij", J, np.asarray(w, float), K)
     return out
 
