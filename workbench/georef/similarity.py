@@ -21,7 +21,8 @@ from ..files.control_points import ControlPoint
 from .fitting import orthonormal, point_line_distance, triangulate_rays, umeyama
 from ..files.reconstruction import SfmView
 from .options import GeorefOptions
-from .picks import Pick, pick_sigma, picks_in_views, summarize_residuals, warn_residuals
+from .picks import (Pick, pick_sigma, picks_in_views, shared_point_information, summarize_residuals,
+                    warn_residuals)
 
 log = logging.getLogger(__name__)
 
@@ -38,8 +39,9 @@ class SimilarityResult:
     residuals: list[dict]
     stats: dict
     warnings: list[str]
-    # (7, 7) covariance of (log scale, rotation vector applied on the left in the scene frame, translation),
-    # scaled by the reduced chi-square when above 1; None when the fit leaves it undetermined
+    # (7, 7) covariance of (log scale, rotation vector applied on the left in the scene frame, translation): the
+    # sandwich in which a control point's survey error is shared by its picks in every photo, scaled by the reduced
+    # chi-square when above 1; None when the fit leaves it undetermined
     covariance: np.ndarray | None = None
     triangulated: dict[str, np.ndarray] = field(default_factory=dict)  # control point -> (3,) model frame
     # (7, r) the fit's response (the order of ``covariance``) to the SfM poses' own error ``z`` (each view's
@@ -192,7 +194,10 @@ def _robust_start(src_a: np.ndarray, dst_a: np.ndarray, sig_a: np.ndarray,
 def _refine_similarity(start: tuple[float, np.ndarray, np.ndarray], obs: list[Pick], views: Sequence[SfmView],
                        X: np.ndarray, cps: Sequence[ControlPoint], gps_items: list[tuple[SfmView, np.ndarray]],
                        opts: GeorefOptions):
-    """(s, R, t, covariance (7, 7) or None) refined on every pick's pixels and the GPS centres (metres)."""
+    """(s, R, t, covariance (7, 7) or None) refined on every pick's pixels and the GPS centres (metres). Each pick
+    is weighted by its own noise and its point's survey error seen at its depth (:func:`pick_sigma`); the
+    covariance counts that survey error once per point, however many photos the point is picked in (the sandwich
+    ``H^-1 G H^-1``, :func:`shared_point_information`), the GPS centres' errors independent."""
     s0, R0, t0 = start
     gsig = np.asarray(opts.gps_sigma_m, float)
 
@@ -216,7 +221,15 @@ def _refine_similarity(start: tuple[float, np.ndarray, np.ndarray], obs: list[Pi
     dof = len(sol.fun) - 7
     try:
         J = np.asarray(sol.jac, float)
-        cov = np.linalg.inv(J.T @ J)
+        n = len(obs)  # the sandwich H^-1 G H^-1: a control point's survey error is one error shared by its picks
+        sig = np.asarray(obs_sig, float)
+        # a pick's residual depends on the point less the translation, so its Jacobian in the point is minus t's
+        G = J[2 * n:].T @ J[2 * n:] + shared_point_information(
+            J[:2 * n], np.array([o.point for o in obs], int), np.tile([4, 5, 6], (n, 1)),
+            (opts.sigma_px / sig) ** 2, np.array([cps[o.point].sigma_m for o in obs], float))
+        Hi = np.linalg.inv(J.T @ J)
+        cov = Hi @ G @ Hi
+        cov = 0.5 * (cov + cov.T)
         if dof > 0:
             cov *= max(1.0, 2.0 * float(sol.cost) / dof)
         if not np.all(np.isfinite(cov)):
@@ -234,17 +247,23 @@ def _weighted_residuals(sim: tuple[float, np.ndarray, np.ndarray], obs: list[Pic
     """The refinement's residuals at the similarity ``sim`` = (s, R, t): every pick's pixel error over its sigma
     (2 per pick), then every GPS centre's error over its sigma (3 per centre)."""
     s, R, t = sim
-    res = []
-    for o, sg in zip(obs, obs_sig):
-        v = views[o.view]
-        M = np.asarray(v.cam_from_model, float)
-        q = M[:3, :3] @ (R.T @ (X[o.point] - t) / s) + M[:3, 3]
-        z = q[2] if q[2] > 1e-9 else 1e-9
-        uv = v.intrinsics.pixels_from_normalized(v.intrinsics.distort(np.array([[q[0] / z, q[1] / z]])))[0]
-        res.extend((uv - o.uv) / sg)
+    res = np.zeros((len(obs), 2))
+    if obs:
+        pts = np.array([o.point for o in obs], int)
+        in_view = np.array([o.view for o in obs], int)
+        Xm = (X[pts] - t) @ R / s  # R^T (X - t) / s per row: the points in the model frame
+        for i in np.unique(in_view):  # each photo's picks projected at once
+            k = np.nonzero(in_view == i)[0]
+            v = views[i]
+            M = np.asarray(v.cam_from_model, float)
+            q = Xm[k] @ M[:3, :3].T + M[:3, 3]
+            z = np.where(q[:, 2] > 1e-9, q[:, 2], 1e-9)
+            uv = v.intrinsics.pixel_coords(*v.intrinsics.distort(q[:, :2] / z[:, None]).T)
+            res[k] = (np.column_stack(uv) - np.array([obs[j].uv for j in k])) / np.asarray(obs_sig)[k, None]
+    out = [res.ravel()]
     for v, g in gps_items:
-        res.extend((s * R @ model_centre(v.cam_from_model) + t - g) / gsig)
-    return np.asarray(res)
+        out.append((s * R @ model_centre(v.cam_from_model) + t - g) / gsig)
+    return np.concatenate(out)
 
 
 def _moved_view(v: SfmView, z: np.ndarray) -> SfmView:
