@@ -18,8 +18,8 @@ from .options import GeorefOptions, GeorefResidualsLarge
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Pick", "picks_in_views", "pick_sigma", "shared_point_information", "variance_factor", "summarize_residuals",
-           "warn_residuals"]
+__all__ = ["Pick", "picks_in_views", "pick_sigma", "shared_point_information", "influence_weights", "variance_factor",
+           "summarize_residuals", "warn_residuals"]
 
 
 @dataclass
@@ -86,6 +86,24 @@ def shared_point_information(J_picks: np.ndarray, point_ids: np.ndarray, centre_
         A = J_picks[rows].T @ J_point  # (P, 3): the gradient's response to the point's error
         G += A @ A.T
     return G
+
+
+_INFLUENCE = {  # rho'(z) + 2 z rho''(z) of scipy's losses (z = (r / loss_scale)^2)
+    "linear": lambda z: np.ones_like(z),
+    "huber": lambda z: np.where(z <= 1.0, 1.0, 0.0),
+    "soft_l1": lambda z: (1.0 + z) ** -1.5,
+    "cauchy": lambda z: (1.0 - z) / (1.0 + z) ** 2,
+    "arctan": lambda z: (1.0 - 3.0 * z ** 2) / (1.0 + z ** 2) ** 2,
+}
+
+
+def influence_weights(r: np.ndarray, opts: GeorefOptions) -> np.ndarray:
+    """Per whitened residual ``r`` at a robust fit's solution, the slope of its influence (``d psi / d r``,
+    ``rho'(z) + 2 z rho''(z)`` with ``z = (r / loss_scale)^2``, clipped at 1e-10 as scipy's ``least_squares``
+    clips the factor it scales its Jacobian by): a fit's first-order response to a shift ``dr`` of its rows is
+    ``-(J^T W J)^-1 J^T W dr`` with ``W`` these weights, so a pick far out on the loss moves it less."""
+    z = (np.asarray(r, float) / opts.loss_scale) ** 2
+    return np.maximum(_INFLUENCE.get(opts.loss, _INFLUENCE["linear"])(z), 1e-10)
 
 
 def variance_factor(cost: float, chi2_red: float, dof: int, opts: GeorefOptions, narrow: bool = True) -> float:

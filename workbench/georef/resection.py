@@ -4,6 +4,7 @@ of a separate model (docs/gis.md)."""
 
 from __future__ import annotations
 
+import logging
 import warnings
 from dataclasses import dataclass
 from typing import Callable
@@ -20,9 +21,11 @@ from ..files.control_points import ControlPoint
 from .documents import view_entry
 from ..files.panorama import RigView
 from .options import GeorefOptions, GeorefResidualsLarge
-from .picks import pick_sigma
+from .picks import influence_weights, pick_sigma
 
-__all__ = ["IncidentPhotos", "resect_unplaced"]
+log = logging.getLogger(__name__)
+
+__all__ = ["IncidentPhotos", "resect_unplaced", "intrinsics_response", "survey_response"]
 
 
 @dataclass(frozen=True)
@@ -135,72 +138,148 @@ def _sfm_camera_errors(models) -> dict[str, tuple[tuple[str, ...], np.ndarray]]:
     return out
 
 
+def _pose_rows(intr: CameraIntrinsics, cam_from_world: np.ndarray, cps: list[ControlPoint], name: str,
+               residuals: list[dict], opts: GeorefOptions):
+    """A resected photo's inlier picks as its refinement weighs them: (their control points' indices (n,), the
+    whitened residuals' function ``r(p, dk, params)`` of a pose step ``p`` (rotation vector on the left of
+    ``cam_from_world``, centre shift m) and an intrinsics step ``dk``, its Jacobian in the pose (2 n, 6: central
+    differences), and ``T`` (6, 6): that pose step in ``pose_uncertainty``'s order); None with fewer than 4 picks.
+    Rows and Jacobian are scaled by the square root of the robust loss's influence weights at the solution
+    (:func:`influence_weights`), so that least squares on them gives the robust fit's first-order response."""
+    inl = {(r["point"], r["view"]) for r in residuals if r.get("inlier")}
+    idx = [k for k, cp in enumerate(cps) if name in cp.pixels and (cp.name, name) in inl]
+    if len(idx) < 4:
+        return None
+    X = np.array([cps[k].enu for k in idx], float)
+    UV = np.array([np.asarray(cps[k].pixels[name], float) for k in idx])
+    R0 = np.asarray(cam_from_world, float)[:3, :3]
+    c0 = -R0.T @ np.asarray(cam_from_world, float)[:3, 3]
+    depth = ((X - c0) @ R0.T)[:, 2]
+    sig = np.array([pick_sigma(intr, opts.sigma_px, cps[k].sigma_m, abs(d)) for k, d in zip(idx, depth)])
+
+    def r(p: np.ndarray, dk: np.ndarray | None = None, params: tuple[str, ...] = ()) -> np.ndarray:
+        q = (X - c0 - p[3:]) @ (exp_so3(p[:3]) @ R0).T  # cam_from_world' = Exp(p) R, centre c + dc
+        it = intr if dk is None else intr.moved(params, dk)
+        return ((it.project(q) - UV) / sig[:, None]).ravel()
+
+    sw = np.sqrt(influence_weights(r(np.zeros(6)), opts))  # the robust loss's weights at the solution
+
+    def rw(p: np.ndarray, dk: np.ndarray | None = None, params: tuple[str, ...] = ()) -> np.ndarray:
+        return sw * r(p, dk, params)
+
+    Jp = np.zeros((2 * len(X), 6))
+    for j in range(6):
+        e = np.zeros(6)
+        e[j] = 1e-6 if j < 3 else 1e-4
+        Jp[:, j] = (rw(e) - rw(-e)) / (2 * e[j])
+    T = np.eye(6)
+    T[:3, :3] = -R0.T  # cam_from_world' = Exp(q) R: world_from_cam' = Exp(-R^T q) R^T
+    return np.asarray(idx, int), rw, Jp, T
+
+
 def intrinsics_response(intr: CameraIntrinsics, cam_from_world: np.ndarray, cps: list[ControlPoint], name: str,
                         residuals: list[dict], params: tuple[str, ...], opts: GeorefOptions) -> np.ndarray | None:
     """(6, k) the first-order response of a photo's resected pose (the rotation vector of ``world_from_cam`` in
     the scene frame, the centre in m: ``pose_uncertainty``'s order) to an error of the intrinsics it was resected
     with (``params``, ``CameraIntrinsics.moved``'s names): ``-(J_p^T W J_p)^-1 J_p^T W J_k`` over its inlier picks
-    (central differences); None with fewer than 4 of them."""
-    inl = {(r["point"], r["view"]) for r in residuals if r.get("inlier")}
-    obs = [(cp, np.asarray(cp.pixels[name], float)) for cp in cps if name in cp.pixels and (cp.name, name) in inl]
-    if len(obs) < 4:
+    (central differences; ``W`` the robust loss's influence weights); None with fewer than 4 of them."""
+    rows = _pose_rows(intr, cam_from_world, cps, name, residuals, opts)
+    if rows is None:
         return None
-    X = np.array([cp.enu for cp, _ in obs])
-    UV = np.array([uv for _, uv in obs])
-    R0 = np.asarray(cam_from_world, float)[:3, :3]
-    c0 = -R0.T @ np.asarray(cam_from_world, float)[:3, 3]
-    depth = ((X - c0) @ R0.T)[:, 2]
-    sig = np.array([pick_sigma(intr, opts.sigma_px, cp.sigma_m, abs(d)) for (cp, _), d in zip(obs, depth)])
-
-    def r(p: np.ndarray, dk: np.ndarray) -> np.ndarray:
-        q = (X - c0 - p[3:]) @ (exp_so3(p[:3]) @ R0).T  # cam_from_world' = Exp(p) R, centre c + dc
-        return ((intr.moved(params, dk).project(q) - UV) / sig[:, None]).ravel()
-
-    Jp, Jk = np.zeros((2 * len(X), 6)), np.zeros((2 * len(X), len(params)))
-    for j in range(6):
-        e = np.zeros(6)
-        e[j] = 1e-6 if j < 3 else 1e-4
-        Jp[:, j] = (r(e, np.zeros(len(params))) - r(-e, np.zeros(len(params)))) / (2 * e[j])
+    _, r, Jp, T = rows
+    Jk = np.zeros((len(Jp), len(params)))
     for j, k in enumerate(params):
         d = np.zeros(len(params))
         d[j] = 1e-6 * (abs(intr.fx) if k in ("f", "fx", "fy", "cx", "cy") else 1.0)
-        Jk[:, j] = (r(np.zeros(6), d) - r(np.zeros(6), -d)) / (2 * d[j])
-    D = -np.linalg.lstsq(Jp, Jk, rcond=None)[0]
-    T = np.eye(6)
-    T[:3, :3] = -R0.T  # cam_from_world' = Exp(q) R: world_from_cam' = Exp(-R^T q) R^T
-    return T @ D
+        Jk[:, j] = (r(np.zeros(6), d, params) - r(np.zeros(6), -d, params)) / (2 * d[j])
+    return T @ -np.linalg.lstsq(Jp, Jk, rcond=None)[0]
 
 
-def _camera_groups(out: dict[str, dict], models, cps: list[ControlPoint], opts: GeorefOptions) -> None:
-    """The photos resected with an SfM camera's intrinsics as SfM gave them (not refined), grouped by camera: each
-    photo's pose error is its own fit's plus its response to that camera's stated error (:func:`intrinsics_response`),
-    which the photos of one camera share with the intrinsics the solve projects them with; written as one factor
-    per camera into each photo's ``joint`` (in place). Photos of a camera without a stated error keep their own."""
+def survey_response(intr: CameraIntrinsics, cam_from_world: np.ndarray, cps: list[ControlPoint], name: str,
+                    residuals: list[dict], opts: GeorefOptions) -> np.ndarray | None:
+    """(6, 3 K) the first-order response of a photo's resected pose (``pose_uncertainty``'s order) to the survey
+    errors of the K control points, each column per unit of one point's error along east, north or up in its
+    1-sigma (``sigma_m``): ``(J^T J)^-1 J_n^T J_n,c sigma_n`` for point n picked in the photo (``J_n`` its whitened
+    rows, ``J_n,c`` their centre columns: a pick depends on the point less the centre), zero for points it does not
+    use. Photos resected from the same points move together by as much (the same survey error in each); the
+    sandwich covariance of the fit (``central``) is ``U U^T`` plus the picks' own noise. None with fewer than 4
+    inlier picks."""
+    rows = _pose_rows(intr, cam_from_world, cps, name, residuals, opts)
+    if rows is None:
+        return None
+    idx, _, Jp, T = rows
+    Hi = np.linalg.pinv(Jp.T @ Jp)
+    U = np.zeros((6, 3 * len(cps)))
+    for i, k in enumerate(idx):
+        Jn = Jp[2 * i:2 * i + 2]
+        U[:, 3 * k:3 * k + 3] = T @ Hi @ Jn.T @ Jn[:, 3:6] * float(cps[k].sigma_m)
+    return U
+
+
+def _resection_groups(out: dict[str, dict], models, cps: list[ControlPoint], opts: GeorefOptions) -> None:
+    """The photos placed on their own, as one group whose errors are shared where their causes are (in place: each
+    photo's ``joint``): every resected photo's pose error is its picks' own noise (independent), plus its response
+    to the control points' survey errors (:func:`survey_response`; the same points' errors move every photo
+    resected from them), plus, for a photo resected with an SfM camera's intrinsics as SfM gave them, its response
+    to that camera's stated error (:func:`intrinsics_response`; shared with the intrinsics the solve projects the
+    camera's photos with). The shares are the stated errors' (the survey's ``sigma_m``, the camera's factor); the
+    photo's own noise is what its stated covariance leaves, its variance factor's widening included (so each
+    photo's marginal stays its fit's, and a widening no residual attributes to a shared cause stays its own). A photo whose focal its resection refined
+    (a group of its own) stays out; so does the lone photo with nothing to share."""
     cams = _sfm_camera_errors(models)
-    groups: dict[str, list[tuple[str, np.ndarray, np.ndarray]]] = {}
+    members = []
     for name, r in sorted(out.items()):
-        intr = CameraIntrinsics.from_dict(r["entry"]["intrinsics"])
-        key = intrinsics_key(intr)
-        if r.get("joint") is not None or r.get("covariance") is None or key not in cams \
-                or not r["report"]["intrinsics_from"].startswith(("sfm", "main model")):
+        if r.get("joint") is not None or r.get("covariance") is None:
             continue
-        D = intrinsics_response(intr, np.asarray(r["entry"]["cam_from_world"], float), cps, name,
-                                r["report"]["residuals"], cams[key][0], opts)
-        if D is not None:
-            groups.setdefault(key, []).append((name, covariance_factor(np.asarray(r["covariance"], float)), D))
-    for key, members in sorted(groups.items()):
-        params, Lk = cams[key]
-        rank = sum(L.shape[1] for _, L, _ in members) + Lk.shape[1]
-        K = np.zeros((len(params), rank))
-        K[:, rank - Lk.shape[1]:] = Lk
-        col = 0
-        for name, L, D in members:
-            F = np.zeros((6, rank))
-            F[:, col:col + L.shape[1]] = L
-            F[:, rank - Lk.shape[1]:] = D @ Lk
-            col += L.shape[1]
-            out[name]["joint"] = {"group": f"resection[camera of {members[0][0]}]", "pose_factor": F,
-                                  "params": list(params), "intrinsics_factor": K}
+        intr = CameraIntrinsics.from_dict(r["entry"]["intrinsics"])
+        M = np.asarray(r["entry"]["cam_from_world"], float)
+        C = np.asarray(r["covariance"], float)
+        U = survey_response(intr, M, cps, name, r["report"]["residuals"], opts)
+        key = intrinsics_key(intr)
+        D = None
+        if key in cams and r["report"]["intrinsics_from"].startswith(("sfm", "main model")):
+            D = intrinsics_response(intr, M, cps, name, r["report"]["residuals"], cams[key][0], opts)
+        members.append((name, C, U, key if D is not None else None, D))
+    shared = [m for m in members if m[2] is not None]
+    if not any(m[3] is not None for m in members) and len(shared) < 2:
+        return
+    used = np.zeros(3 * len(cps), bool)
+    for m in shared:
+        used |= np.any(m[2] != 0.0, axis=0)
+    keys = sorted({m[3] for m in members if m[3] is not None})
+    owns = []
+    for name, C, U, key, D in members:  # the photo's own noise: what its stated covariance leaves
+        rest = C if U is None else C - U @ U.T
+        ev, V = np.linalg.eigh(0.5 * (rest + rest.T))
+        if ev[0] < -1e-6 * max(ev[-1], 1e-300):
+            log.info("resection of %s: its stated covariance is smaller than its survey share along %d direction(s) "
+                     "(least eigenvalue %.3g); that part of its own noise is taken as zero", name,
+                     int(np.sum(ev < 0)), ev[0])
+        owns.append(covariance_factor(V @ np.diag(np.maximum(ev, 0.0)) @ V.T))
+    n_own = sum(L.shape[1] for L in owns)
+    n_srv = int(used.sum())
+    cam_cols = {}
+    col = n_own + n_srv
+    for key in keys:
+        cam_cols[key] = col
+        col += cams[key][1].shape[1]
+    rank = col
+    col = 0
+    for (name, C, U, key, D), L in zip(members, owns):
+        F = np.zeros((6, rank))
+        F[:, col:col + L.shape[1]] = L
+        col += L.shape[1]
+        if U is not None:
+            F[:, n_own:n_own + n_srv] = U[:, used]
+        K = None
+        if key is not None:
+            params, Lk = cams[key]
+            c0 = cam_cols[key]
+            F[:, c0:c0 + Lk.shape[1]] = D @ Lk
+            K = np.zeros((len(params), rank))
+            K[:, c0:c0 + Lk.shape[1]] = Lk
+        out[name]["joint"] = {"group": "resection[control points and cameras]", "pose_factor": F,
+                              "params": list(cams[key][0]) if key is not None else [], "intrinsics_factor": K}
 
 
 def resect_unplaced(photos: IncidentPhotos, models, placed: dict, cps: list[ControlPoint], gps: dict,
@@ -250,5 +329,5 @@ def resect_unplaced(photos: IncidentPhotos, models, placed: dict, cps: list[Cont
         joint = report.pop("joint", None)  # the pose and the refined focal together, where it was refined
         out[name] = {"entry": view_entry(name, photos.image_of(name), intr, cam_from_world, True), "report": report,
                      "covariance": cov, "joint": joint}
-    _camera_groups(out, models, cps, opts)
+    _resection_groups(out, models, cps, opts)
     return out, why

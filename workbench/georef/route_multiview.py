@@ -205,17 +205,20 @@ def _for_reading(uncertainty: dict) -> dict:
 
 def _group_view(models: dict, views: dict, name: str, joint: dict, source: str) -> None:
     """A photo whose error is shared by a group of photos placed without a similarity (one shared camera's
-    adjustment, the photos resected with one SfM camera, a resection with its focal refined): the group written as
-    a model with no similarity error (its ``covariance`` zero) whose ``z`` moves the photos' poses (``sfm_factor``)
-    and the intrinsics they are projected with (``sfm_intrinsics_factor``). ``joint``: {"group", "pose_factor"
-    (6, r), "params", "intrinsics_factor" (k, r)} (camera_adjustment.py, resection.py)."""
-    F, K = np.asarray(joint["pose_factor"], float), np.asarray(joint["intrinsics_factor"], float)
+    adjustment, the photos resected on their own from shared control points and SfM cameras, a resection with its
+    focal refined): the group written as a model with no similarity error (its ``covariance`` zero) whose ``z``
+    moves the photos' poses (``sfm_factor``) and the intrinsics they are projected with (``sfm_intrinsics_factor``).
+    ``joint``: {"group", "pose_factor" (6, r), "params", "intrinsics_factor" (k, r) or None (the photo's
+    intrinsics taken as exact)} (camera_adjustment.py, resection.py)."""
+    F = np.asarray(joint["pose_factor"], float)
+    K = None if joint.get("intrinsics_factor") is None else np.asarray(joint["intrinsics_factor"], float)
     models.setdefault(joint["group"], {"covariance": np.zeros((7, 7)).tolist(), "translation_enu": [0.0] * 3,
                                        "scale": 1.0, "sfm_rank": int(F.shape[1]), "sfm_response": None,
                                        "kind": source})
     views[name] = {"source": source, "model": joint["group"], "jacobian": np.zeros((6, 7)).tolist(),
-                   "sfm_factor": F.tolist(), "sfm_intrinsics_factor": {"params": list(joint["params"]),
-                                                                       "factor": K.tolist()},
+                   "sfm_factor": F.tolist(),
+                   "sfm_intrinsics_factor": None if K is None else {"params": list(joint["params"]),
+                                                                    "factor": K.tolist()},
                    "covariance_rotation_centre": (F @ F.T).tolist()}
 
 
@@ -279,9 +282,9 @@ def _pose_uncertainty(placed: dict, resected: dict, out_views: list[dict], uncer
                              "the SfM intrinsics' error beyond its first-order effect on the poses"
                              if any(v.get("model") and v.get("sfm_intrinsics_factor") is None for v in views.values())
                              else "the SfM error beyond first order")
-            + "; a photo placed on its own (resection): the correlation of its error with the models' through the "
-              "control points and the SfM camera they share (its camera's stated error is carried with the other "
-              "photos resected with that camera)",
+            + "; a photo placed on its own (resection): the correlation of its error with the placed models' and "
+              "the camera adjustment's through the control points and the SfM camera they share (with the other "
+              "photos placed on their own it is carried: the same points' survey errors, the same camera's error)",
             "models": models, "views": views}
 
 
