@@ -19,6 +19,7 @@ from workbench.core.camera import CameraIntrinsics
 from workbench.core.geometry import exp_so3, log_so3
 from workbench.files.control_points import ControlPoint
 from workbench.files.reconstruction import SfmView
+from workbench.georef.model_checks import model_verdict
 from workbench.georef.options import GeorefOptions
 from workbench.georef.resection import IncidentPhotos, resect_unplaced
 from workbench.georef.similarity import model_centre, solve_similarity
@@ -128,7 +129,7 @@ def test_photos_placed_on_their_own_share_their_points_errors():
         cps = _draw_points(intr, views, cams, X, rng, 0.03)
         out, why = resect_unplaced(photos, [("main", views)], {}, cps, {}, opts, "test")
         assert sorted(out) == names, why
-        assert {out[n]["joint"]["group"] for n in names} == {"resection[control points and cameras]"}
+        assert {out[n]["joint"]["group"] for n in names} == {f"resection[shared errors of {', '.join(names)}]"}
         F = np.vstack([np.asarray(out[n]["joint"]["pose_factor"], float) for n in names])  # (24, r)
         C = F @ F.T
         own = np.zeros((24, 24))
@@ -151,3 +152,39 @@ def test_photos_placed_on_their_own_share_their_points_errors():
     assert 0.6 < r24 < 1.3
     assert 0.6 < r3 < 1.5
     assert r3own > 2.0
+
+
+def test_a_model_placed_by_points_from_a_map_is_kept_and_a_wrong_one_refused():
+    """Points read off an orthophoto and a DEM (0.15 m) miss an SfM model by 5-10 px at 40 m: a right model is
+    kept and its photos placed within what the points allow (a fixed 3 px RMS limit refused it, and every photo
+    resected from the same points too); a model whose focal is 15 % off is still refused by points surveyed to
+    1 cm. (At 0.3 m the cameras are fixed to 0.7 m only, which ``model_max_sigma_centre_m`` refuses, saying so.)"""
+    rng = np.random.default_rng(24)
+    intr, cams, X, _, views = _scene(rng)
+    opts = GeorefOptions(sigma_px=SIGMA_PX, ransac_iterations=30)
+    cps = _draw_points(intr, views, cams, X, rng, 0.15)
+    res = solve_similarity(views, cps, opts=opts, where="test")
+    verdict, figures = model_verdict(res, views, opts)
+    assert res.stats["rms_px"] > 1.5 * GeorefOptions().warn_rms_px, res.stats["rms_px"]  # over the fixed limit
+    assert verdict is None, verdict
+    assert figures["n_outliers"] == 0
+    for v, M in zip(views, cams):  # the photos within 3 sigma of their stated centre error
+        d = res.apply(model_centre(v.cam_from_model)) - (-M[:3, :3].T @ M[:3, 3])
+        C = res.view_covariance(v.cam_from_model)[3:, 3:]
+        assert float(d @ np.linalg.solve(C, d)) < 14.2  # chi-square 3 dof, 0.997
+    photos = IncidentPhotos(frozenset(v.name for v in views), True, lambda n: (intr.width, intr.height),
+                            lambda n: n)
+    out, why = resect_unplaced(photos, [("main", views)], {}, cps, {}, opts, "test")
+    assert len(out) == len(views), why
+    # a second pass (the georef's, with the refined camera) over the photos a first one left makes a group of its
+    # own: one name for both would give their photos one shared error of two ranks
+    first = {n: out[n] for n in sorted(out)[:3]}
+    again, _ = resect_unplaced(photos, [("main", views)], first, cps, {}, opts, "test")
+    assert sorted(again) == sorted(out)[3:]
+    assert {r["joint"]["group"] for r in again.values()}.isdisjoint({r["joint"]["group"] for r in out.values()})
+    # SfM's focal 15 % long: the model's cameras see the scene narrower; surveyed points refuse it
+    wrong_intr = CameraIntrinsics(width=1600, height=1200, fx=1725.0, fy=1725.0, cx=799.5, cy=599.5)
+    wrong = [SfmView(v.name, wrong_intr, v.cam_from_model) for v in views]
+    fine = _draw_points(intr, views, cams, X, rng, 0.01)
+    verdict, _ = model_verdict(solve_similarity(wrong, fine, opts=opts, where="test"), wrong, opts)
+    assert verdict is not None and ("the model or a point is wrong" in verdict or "disagrees" in verdict), verdict

@@ -28,8 +28,8 @@ from ..files.panorama import RigView
 from .central_start import best_candidate, central_errors, heading_errors, prior_grid, start_candidates
 from .fitting import point_line_distance
 from .options import GeorefOptions, HeadingPrior
-from .picks import (Pick, pick_sigma, picks_in_views, shared_point_information, summarize_residuals, variance_factor,
-                    warn_residuals)
+from .picks import (Pick, inlier_limit_px, pick_sigma, picks_in_views, shared_point_information, summarize_residuals,
+                    variance_factor, warn_residuals)
 from .track_picks import TrackTerm, track_fit_stats, track_inliers, track_rotation_candidates
 
 __all__ = ["CentralResult", "solve_central", "refine_resection_focal"]
@@ -258,25 +258,32 @@ def _sample_covariance(views: Sequence[RigView], obs: list[Pick], X: np.ndarray,
                                                         "widening_sigma_factors": np.sqrt(lam_c)[::-1].tolist()}}
 
 
-def inlier_limits(R: np.ndarray, c: np.ndarray, views: Sequence[RigView], obs: list[Pick], X: np.ndarray,
-                  cps: Sequence[ControlPoint], opts: GeorefOptions) -> np.ndarray:
-    """Each pick's inlier limit (px): ``opts.ransac_threshold_px``, or 4 times the pick's own sigma where that is
-    larger (:func:`pick_sigma`: a landmark placed on a map to 0.5 m and seen 50 m away is 11 px uncertain, and
-    a 12 px limit would throw out a good pick of it)."""
-    lim = np.full(len(obs), float(opts.ransac_threshold_px))
+def pick_sigmas(R: np.ndarray, c: np.ndarray, views: Sequence[RigView], obs: list[Pick], X: np.ndarray,
+                cps: Sequence[ControlPoint], opts: GeorefOptions) -> np.ndarray:
+    """Each pick's stated sigma (px, :func:`pick_sigma` at its point's depth in the camera ``(R, c)``); NaN for a
+    point behind the camera."""
+    out = np.full(len(obs), np.nan)
     for k, o in enumerate(obs):
         d = float((views[o.view].cam_from_rig @ (R @ (X[o.point] - c)))[2])
         if d > 1e-3:
-            lim[k] = max(lim[k], 4.0 * pick_sigma(views[o.view].intrinsics, opts.sigma_px, cps[o.point].sigma_m, d))
-    return lim
+            out[k] = pick_sigma(views[o.view].intrinsics, opts.sigma_px, cps[o.point].sigma_m, d)
+    return out
+
+
+def inlier_limits(R: np.ndarray, c: np.ndarray, views: Sequence[RigView], obs: list[Pick], X: np.ndarray,
+                  cps: Sequence[ControlPoint], opts: GeorefOptions) -> np.ndarray:
+    """Each pick's inlier limit (px, :func:`~workbench.georef.picks.inlier_limit_px` of its stated sigma;
+    ``opts.ransac_threshold_px`` for a point behind the camera)."""
+    return np.array([float(opts.ransac_threshold_px) if not np.isfinite(s) else inlier_limit_px(s, opts)
+                     for s in pick_sigmas(R, c, views, obs, X, cps, opts)])
 
 
 def _central_residuals(R: np.ndarray, c: np.ndarray, views: Sequence[RigView], obs: list[Pick], X: np.ndarray,
                        bear: np.ndarray, cps: Sequence[ControlPoint], opts: GeorefOptions) -> list[dict]:
-    """Every pick's residual (px, and the point's distance from its ray in metres) and whether it is an inlier
-    (:func:`inlier_limits`)."""
+    """Every pick's residual (px, and the point's distance from its ray in metres), its stated sigma (px) and
+    whether it is an inlier (:func:`inlier_limits`)."""
     err, vec = central_errors(R, c, views, obs, X)
-    lim = inlier_limits(R, c, views, obs, X, cps, opts)
+    sig = pick_sigmas(R, c, views, obs, X, cps, opts)
     residuals = []
     for k, o in enumerate(obs):
         v = views[o.view]
@@ -285,7 +292,9 @@ def _central_residuals(R: np.ndarray, c: np.ndarray, views: Sequence[RigView], o
                           "residual_px": vec[k].tolist() if np.isfinite(err[k]) else None,
                           "error_px": float(err[k]) if np.isfinite(err[k]) else None,
                           "error_m": point_line_distance(X[o.point], c, d_world),
-                          "inlier": bool(err[k] < lim[k])})
+                          "sigma_px": float(sig[k]) if np.isfinite(sig[k]) else None,
+                          "inlier": bool(err[k] < (inlier_limit_px(sig[k], opts) if np.isfinite(sig[k])
+                                                   else opts.ransac_threshold_px))})
     return residuals
 
 

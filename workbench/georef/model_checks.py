@@ -6,6 +6,7 @@ import numpy as np
 
 from ..files.reconstruction import SfmView
 from .options import GeorefOptions
+from .picks import misfit_doubt
 from .similarity import SimilarityResult
 
 __all__ = ["model_verdict"]
@@ -35,7 +36,8 @@ def model_verdict(res: SimilarityResult, views: list[SfmView], opts: GeorefOptio
     """Why an SfM model's similarity cannot be trusted (None: it can), and the figures checked.
 
     Enough of the model's own control points triangulated in it and fitting, spread out (not on a line), small
-    residuals, and the fit fixing every camera centre to ``model_max_sigma_centre_m``."""
+    residuals (:func:`~workbench.georef.picks.misfit_doubt`: the points' stated survey error counted), and the fit
+    fixing every camera centre to ``model_max_sigma_centre_m``."""
     good, figures = _model_figures(res, views)
     n_obs, n_out, spread = figures["n_observations"], figures["n_outliers"], figures["spread_m"]
     rms_all, sig_max = figures["rms_all_px"], figures["sigma_centre_max_m"]
@@ -55,9 +57,11 @@ def model_verdict(res: SimilarityResult, views: list[SfmView], opts: GeorefOptio
     if spread < opts.model_min_spread_m:
         return (f"its {len(good)} fitting control points lie {spread:.2f} m (RMS) from one line; "
                 f"{opts.model_min_spread_m:g} m is needed to fix the rotation: add a point off that line"), figures
-    if res.stats.get("rms_px") is None or res.stats["rms_px"] > opts.warn_rms_px:
-        return (f"control-point RMS residual {res.stats.get('rms_px')} px exceeds {opts.warn_rms_px:g} px: the "
-                f"model or a point is wrong"), figures
+    if res.stats.get("rms_px") is None:
+        return "no control-point pick fits the model: the model or the points are wrong", figures
+    doubt = misfit_doubt(res.residuals, res.stats["rms_px"], opts, 7)
+    if doubt is not None:
+        return f"{doubt}: the model or a point is wrong", figures
     if n_out > opts.model_max_outlier_fraction * n_obs:
         return (f"{n_out} of {n_obs} control-point picks are outliers (more than "
                 f"{100 * opts.model_max_outlier_fraction:.0f} %): the model or the points disagree"), figures

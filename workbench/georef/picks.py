@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
+from scipy.special import chdtrc
 
 from ..core.camera import CameraIntrinsics
 from ..errors import InputError
@@ -18,8 +19,8 @@ from .options import GeorefOptions, GeorefResidualsLarge
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Pick", "picks_in_views", "pick_sigma", "shared_point_information", "influence_weights", "variance_factor",
-           "summarize_residuals", "warn_residuals"]
+__all__ = ["Pick", "picks_in_views", "pick_sigma", "inlier_limit_px", "misfit_doubt", "MISFIT_ALPHA", "shared_point_information",
+           "influence_weights", "variance_factor", "summarize_residuals", "warn_residuals"]
 
 
 @dataclass
@@ -61,6 +62,40 @@ def pick_sigma(intr: CameraIntrinsics, sigma_px: float, sigma_m: float, depth_m:
     """1-sigma (px) of a pick: the pick's noise and the point's position error seen at ``depth_m``."""
     f = 0.5 * (intr.fx + intr.fy)
     return math.sqrt(sigma_px ** 2 + (f * sigma_m / max(depth_m, 1e-3)) ** 2)
+
+
+def inlier_limit_px(sigma_px: float, opts: GeorefOptions) -> float:
+    """A pick's inlier limit (px): ``opts.ransac_threshold_px``, or 4 times the pick's stated sigma
+    (:func:`pick_sigma`) where that is larger: a landmark placed on a map to 0.5 m and seen 50 m away is 11 px
+    uncertain, and a 12 px limit would throw out a good pick of it."""
+    return max(float(opts.ransac_threshold_px), 4.0 * float(sigma_px))
+
+
+MISFIT_ALPHA = 1e-3  # a fit's picks miss by more than their stated errors explain beyond this chi-square tail
+
+
+def misfit_doubt(residuals: list[dict], rms_px: float | None, opts: GeorefOptions, n_params: int) -> str | None:
+    """Why a fit's inlier residuals are doubted (None: they are not): their RMS (``rms_px``, 2-d pick errors) over
+    ``opts.warn_rms_px`` *and* more than the picks' stated errors explain: the chi-square of their residuals over
+    their stated sigma (each residual's ``sigma_px``: :func:`pick_sigma`, the point's survey error seen at its depth
+    included) beyond its ``1 - MISFIT_ALPHA`` point on ``2 n - n_params`` degrees of freedom. Points surveyed to
+    5 cm seen 30 m away by a 1700 px camera are about 3 px uncertain, so a right model of them has an RMS of 4-5 px,
+    which the 3 px limit alone refused; SfM's focal 8 % off leaves 2-3 times the stated errors, which the
+    chi-square refuses. Without stated sigmas the RMS limit alone decides."""
+    if rms_px is None or rms_px <= opts.warn_rms_px:
+        return None
+    rows = [(float(r["error_px"]), float(r["sigma_px"])) for r in residuals
+            if r.get("inlier", True) and r.get("error_px") is not None and r.get("sigma_px")]
+    head = f"control-point RMS residual {rms_px:.2f} px exceeds {opts.warn_rms_px:g} px"
+    dof = 2 * len(rows) - int(n_params)
+    if dof < 1:
+        return head
+    chi2 = float(sum((e / sg) ** 2 for e, sg in rows))
+    p = float(chdtrc(dof, chi2))
+    if p >= MISFIT_ALPHA:
+        return None
+    return (f"{head} and more than the picks' stated errors explain (their points' survey error included: "
+            f"chi-square {chi2:.0f} on {dof} degrees of freedom, p = {p:.1g})")
 
 
 def shared_point_information(J_picks: np.ndarray, point_ids: np.ndarray, centre_cols: np.ndarray,
@@ -145,15 +180,18 @@ def summarize_residuals(residuals: list[dict], opts: GeorefOptions) -> dict:
             "points": pts}
 
 
-def warn_residuals(residuals: list[dict], stats: dict, opts: GeorefOptions, where: str) -> list[str]:
-    """Messages for a large RMS and for every large or rejected pick, logged and warned as
+def warn_residuals(residuals: list[dict], stats: dict, opts: GeorefOptions, where: str, n_params: int = 6) -> list[str]:
+    """Messages for a large RMS (:func:`misfit_doubt`, ``n_params`` the fit's parameters) and for every large or
+    rejected pick (beyond ``opts.warn_point_px`` and 4 times its stated sigma), logged and warned as
     :class:`GeorefResidualsLarge` (attributed to the caller of the solver that calls this)."""
     out = []
-    if stats.get("rms_px") is not None and stats["rms_px"] > opts.warn_rms_px:
-        out.append(f"{where}: control-point RMS residual {stats['rms_px']:.2f} px exceeds {opts.warn_rms_px} px; "
-                   f"check the picks and the coordinates of the points listed in out/georef/stats.json")
-    for r in residuals:
-        bad_px = r.get("error_px") is None or r["error_px"] > opts.warn_point_px
+    doubt = misfit_doubt(residuals, stats.get("rms_px"), opts, n_params)
+    if doubt is not None:
+        out.append(f"{where}: {doubt}; check the picks and the coordinates of the points listed in "
+                   f"out/georef/stats.json")
+    for r in residuals:  # beyond the fixed limit and 4 stated sigmas (a 1 in 3000 miss of a 2-d pick)
+        point_lim = max(opts.warn_point_px, 4.0 * float(r.get("sigma_px") or 0.0))
+        bad_px = r.get("error_px") is None or r["error_px"] > point_lim
         bad_m = r.get("error_m") is not None and r["error_m"] > opts.warn_point_m
         if bad_px or bad_m or not r.get("inlier", True):
             e_px = "behind the camera" if r.get("error_px") is None else f"{r['error_px']:.1f} px"

@@ -21,7 +21,7 @@ from ..files.control_points import ControlPoint
 from .documents import view_entry
 from ..files.panorama import RigView
 from .options import GeorefOptions, GeorefResidualsLarge
-from .picks import influence_weights, pick_sigma
+from .picks import influence_weights, misfit_doubt, pick_sigma
 
 log = logging.getLogger(__name__)
 
@@ -77,8 +77,11 @@ def _failed_check(res: CentralResult, report: dict, focal_checked: bool, camera_
         n_fit = sum(1 for r in res.residuals if r.get("inlier"))
         return (f"its camera (SfM's) is checked by no placed SfM model, and {n_fit} of its "
                 f"{len(res.residuals)} picks fit with it: too few to check the focal (6 are needed)")
-    if rms is None or rms > opts.warn_rms_px:
-        return f"control-point RMS residual {rms} px exceeds {opts.warn_rms_px:g} px"
+    if rms is None:
+        return "no control-point pick fits it"
+    doubt = misfit_doubt(res.residuals, rms, opts, 6)
+    if doubt is not None:
+        return doubt
     if int(s.get("n_points") or 0) - n_out < opts.resect_min_points:
         return f"only {int(s.get('n_points') or 0) - n_out} of its control points fit"
     if n_out > opts.model_max_outlier_fraction * max(int(s.get("n_observations") or 0), 1):
@@ -265,6 +268,8 @@ def _resection_groups(out: dict[str, dict], models, cps: list[ControlPoint], opt
         col += cams[key][1].shape[1]
     rank = col
     col = 0
+    # named by its photos: a second pass (with the refined camera) makes a group of its own
+    group = f"resection[shared errors of {', '.join(m[0] for m in members)}]"
     for (name, C, U, key, D), L in zip(members, owns):
         F = np.zeros((6, rank))
         F[:, col:col + L.shape[1]] = L
@@ -278,7 +283,7 @@ def _resection_groups(out: dict[str, dict], models, cps: list[ControlPoint], opt
             F[:, c0:c0 + Lk.shape[1]] = D @ Lk
             K = np.zeros((len(params), rank))
             K[:, c0:c0 + Lk.shape[1]] = Lk
-        out[name]["joint"] = {"group": "resection[control points and cameras]", "pose_factor": F,
+        out[name]["joint"] = {"group": group, "pose_factor": F,
                               "params": list(cams[key][0]) if key is not None else [], "intrinsics_factor": K}
 
 

@@ -212,9 +212,12 @@ def _group_view(models: dict, views: dict, name: str, joint: dict, source: str) 
     intrinsics taken as exact)} (camera_adjustment.py, resection.py)."""
     F = np.asarray(joint["pose_factor"], float)
     K = None if joint.get("intrinsics_factor") is None else np.asarray(joint["intrinsics_factor"], float)
-    models.setdefault(joint["group"], {"covariance": np.zeros((7, 7)).tolist(), "translation_enu": [0.0] * 3,
-                                       "scale": 1.0, "sfm_rank": int(F.shape[1]), "sfm_response": None,
-                                       "kind": source})
+    m = models.setdefault(joint["group"], {"covariance": np.zeros((7, 7)).tolist(), "translation_enu": [0.0] * 3,
+                                           "scale": 1.0, "sfm_rank": int(F.shape[1]), "sfm_response": None,
+                                           "kind": source})
+    if m["sfm_rank"] != F.shape[1]:  # two groups under one name would share a z they do not share
+        raise RuntimeError(f"pose_uncertainty: group {joint['group']!r} has factors of rank {m['sfm_rank']} and "
+                           f"{F.shape[1]} (photo {name})")
     views[name] = {"source": source, "model": joint["group"], "jacobian": np.zeros((6, 7)).tolist(),
                    "sfm_factor": F.tolist(),
                    "sfm_intrinsics_factor": None if K is None else {"params": list(joint["params"]),

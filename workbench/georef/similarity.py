@@ -21,8 +21,8 @@ from ..files.control_points import ControlPoint
 from .fitting import orthonormal, point_line_distance, triangulate_rays, umeyama
 from ..files.reconstruction import SfmView
 from .options import GeorefOptions
-from .picks import (Pick, pick_sigma, picks_in_views, shared_point_information, summarize_residuals,
-                    warn_residuals)
+from .picks import (Pick, inlier_limit_px, pick_sigma, picks_in_views, shared_point_information,
+                    summarize_residuals, warn_residuals)
 
 log = logging.getLogger(__name__)
 
@@ -351,7 +351,8 @@ def _similarity_residuals(result: SimilarityResult, obs: list[Pick], views: Sequ
                           cps: Sequence[ControlPoint], tri_model: dict[int, np.ndarray],
                           opts: GeorefOptions) -> list[dict]:
     """Every pick's residual (px; the known point's distance from the observed ray, m; the triangulated point's
-    distance from the known one, m) and whether it is an inlier."""
+    distance from the known one, m), its stated sigma (px: :func:`pick_sigma` at its depth) and whether it is an
+    inlier (:func:`inlier_limit_px`)."""
     residuals = []
     for o in obs:
         v = views[o.view]
@@ -360,16 +361,17 @@ def _similarity_residuals(result: SimilarityResult, obs: list[Pick], views: Sequ
         if q[2] > 1e-6:
             vec = v.intrinsics.project(q[None])[0] - o.uv
             e_px = float(np.hypot(*vec))
+            sig = pick_sigma(v.intrinsics, opts.sigma_px, cps[o.point].sigma_m, float(q[2]))
         else:
-            vec, e_px = None, None
+            vec, e_px, sig = None, None, None
         c_w = -Mw[:3, :3].T @ Mw[:3, 3]
         d_w = Mw[:3, :3].T @ v.intrinsics.rays(o.uv[None])[0]
         e_m = point_line_distance(X[o.point], c_w, d_w)  # the known point's distance from the observed ray
         tri_m = float(np.linalg.norm(result.apply(tri_model[o.point]) - X[o.point])) if o.point in tri_model else None
         residuals.append({"point": cps[o.point].name, "view": v.name, "uv": o.uv.tolist(),
                           "residual_px": None if vec is None else vec.tolist(), "error_px": e_px, "error_m": e_m,
-                          "triangulated_error_m": tri_m,
-                          "inlier": e_px is not None and e_px < opts.ransac_threshold_px})
+                          "triangulated_error_m": tri_m, "sigma_px": sig,
+                          "inlier": e_px is not None and e_px < inlier_limit_px(sig, opts)})
     return residuals
 
 
@@ -416,6 +418,6 @@ def solve_similarity(views: Sequence[SfmView], cps: Sequence[ControlPoint], *,
                   "n_gps_centres": len(gps_items), "scale": s, "gps_residuals_m": gps_res,
                   "gps_rms_m": float(np.sqrt(np.mean([np.sum(np.square(r)) for r in gps_res.values()])))
                   if gps_res else None})
-    warns = warn_residuals(residuals, stats, opts, where) if residuals else []
+    warns = warn_residuals(residuals, stats, opts, where, n_params=7) if residuals else []
     result.residuals, result.stats, result.warnings = residuals, stats, warns
     return result
