@@ -19,8 +19,8 @@ from .options import GeorefOptions, GeorefResidualsLarge
 
 log = logging.getLogger(__name__)
 
-__all__ = ["Pick", "picks_in_views", "pick_sigma", "inlier_limit_px", "misfit_doubt", "MISFIT_ALPHA", "shared_point_information",
-           "influence_weights", "variance_factor", "summarize_residuals", "warn_residuals"]
+__all__ = ["Pick", "picks_in_views", "pick_sigma", "inlier_limit_px", "misfit_doubt", "MISFIT_ALPHA",
+           "shared_point_information", "influence_weights", "variance_factor", "summarize_residuals", "warn_residuals"]
 
 
 @dataclass
@@ -180,7 +180,8 @@ def summarize_residuals(residuals: list[dict], opts: GeorefOptions) -> dict:
             "points": pts}
 
 
-def warn_residuals(residuals: list[dict], stats: dict, opts: GeorefOptions, where: str, n_params: int = 6) -> list[str]:
+def warn_residuals(residuals: list[dict], stats: dict, opts: GeorefOptions, where: str,
+                   n_params: int = 6) -> list[str]:
     """Messages for a large RMS (:func:`misfit_doubt`, ``n_params`` the fit's parameters) and for every large or
     rejected pick (beyond ``opts.warn_point_px`` and 4 times its stated sigma), logged and warned as
     :class:`GeorefResidualsLarge` (attributed to the caller of the solver that calls this)."""

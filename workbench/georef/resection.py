@@ -203,10 +203,10 @@ def survey_response(intr: CameraIntrinsics, cam_from_world: np.ndarray, cps: lis
     """(6, 3 K) the first-order response of a photo's resected pose (``pose_uncertainty``'s order) to the survey
     errors of the K control points, each column per unit of one point's error along east, north or up in its
     1-sigma (``sigma_m``): ``(J^T J)^-1 J_n^T J_n,c sigma_n`` for point n picked in the photo (``J_n`` its whitened
-    rows, ``J_n,c`` their centre columns: a pick depends on the point less the centre), zero for points it does not
-    use. Photos resected from the same points move together by as much (the same survey error in each); the
-    sandwich covariance of the fit (``central``) is ``U U^T`` plus the picks' own noise. None with fewer than 4
-    inlier picks."""
+    rows weighted as :func:`_pose_rows` weighs them, ``J_n,c`` their centre columns: a pick depends on the point
+    less the centre), zero for points it does not use. Photos resected from the same points move together by as
+    much (the same survey error in each); the sandwich covariance of the fit (``central``) is ``U U^T`` plus the
+    picks' own noise. None with fewer than 4 inlier picks."""
     rows = _pose_rows(intr, cam_from_world, cps, name, residuals, opts)
     if rows is None:
         return None
@@ -227,8 +227,9 @@ def _resection_groups(out: dict[str, dict], models, cps: list[ControlPoint], opt
     to that camera's stated error (:func:`intrinsics_response`; shared with the intrinsics the solve projects the
     camera's photos with). The shares are the stated errors' (the survey's ``sigma_m``, the camera's factor); the
     photo's own noise is what its stated covariance leaves, its variance factor's widening included (so each
-    photo's marginal stays its fit's, and a widening no residual attributes to a shared cause stays its own). A photo whose focal its resection refined
-    (a group of its own) stays out; so does the lone photo with nothing to share."""
+    photo's marginal stays its fit's, and a widening no residual attributes to a shared cause stays its own). A
+    photo whose focal its resection refined (a group of its own) stays out; so does the lone photo with nothing to
+    share."""
     cams = _sfm_camera_errors(models)
     members = []
     for name, r in sorted(out.items()):

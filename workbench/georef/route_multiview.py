@@ -63,8 +63,9 @@ def _disagreeing_views(res: SimilarityResult, views: list[SfmView], opts: Georef
         if opts.reject_disagreeing_views and len(bad) >= 2 and 2 * len(bad) > len(mine):
             med = np.median([r["error_px"] if r["error_px"] is not None else np.inf for r in mine])
             rejected[v.name] = (f"{len(bad)} of its {len(mine)} control-point picks are more than "
-                                f"{opts.ransac_threshold_px:g} px from where SfM's pose puts them (median "
-                                f"{med:.0f} px): its SfM pose disagrees with the control points")
+                                f"{opts.ransac_threshold_px:g} px (or 4 times their stated sigma) from where SfM's "
+                                f"pose puts them (median {med:.0f} px): its SfM pose disagrees with the control "
+                                f"points")
     return rejected
 
 
