@@ -60,6 +60,31 @@ def small_incident(tmp_path_factory):
     return root, _json.loads((root / "truth" / "ground_truth.json").read_text())
 
 
+HAND_PICKED_OPTIONS = dict(scenario="spuyten-duyvil", seed=2, n_cars=3, photo_width=480, photo_height=360,
+                           n_panorama=3, n_multiview=0, supersample=1, terrain_size_m=200.0)
+
+
+def hand_picked_incident(tmp_path_factory) -> Path:
+    """A small Spuyten Duyvil incident (3 cars, 3 panorama photos of 480x360, on 200 m of terrain) with its true
+    cameras (``cameras.json``) and true picks with 1 px of noise (``correspondences.json``, seed 5), the automatic
+    finder off, built once per test run (:func:`built_once`) for the files that solve hand-written incidents
+    (tests/test_solve_stage.py, test_mesh_type_incident.py). Read-only: copy it before running stages."""
+
+    def build(base):
+        from workbench.synth.generate import SynthOptions, generate_incident
+        from workbench.synth.handpicks import write_known_cameras, write_true_correspondences
+
+        root = base / "inc"
+        generate_incident(root, SynthOptions(**HAND_PICKED_OPTIONS))
+        write_known_cameras(root, "panorama")
+        write_true_correspondences(root, "panorama", sigma_px=1.0, seed=5)
+        toml = root / "project.toml"  # the hand picks only (the tests solve what a user picked by hand)
+        assert "[correspond]" not in toml.read_text()
+        toml.write_text(toml.read_text() + '\n[correspond]\nfinder = "off"\n')
+
+    return built_once(tmp_path_factory, "hand_picked_incident", build) / "inc"
+
+
 # --------------------------------------------------------------------------------------------------------------
 # The order of the test files. `scripts/test.sh` runs them on one pytest-xdist worker per CPU, a file's tests on one
 # worker (`--dist loadfile`), and hands out the files in the collection's order (`--no-loadscope-reorder`; xdist's
