@@ -91,7 +91,7 @@ def hand_picked_incident(tmp_path_factory) -> Path:
 # own order is by number of tests, which put the one-test end-to-end file, about 150 s, last: the other worker
 # waited for it). Longest first, so the workers finish together (greedy scheduling, longest processing time
 # first). The seconds are what each file took in a full run on the 2-core machine under load (session 21,
-# `--junitxml`, a file's test times summed, load 3.4-6.4, after the fixtures' needless finder runs and duplicate
+# `--junitxml`, a file's test times summed, load 1.7-7.8, after the fixtures' needless finder runs and duplicate
 # incidents went; docs/performance.md, the thirteenth pass); files not listed (each under 20 s) follow in their
 # usual order. Re-measure when a file's cost changes much: a wrong order costs time, never a test.
 # --------------------------------------------------------------------------------------------------------------
