@@ -18,10 +18,11 @@ Scenarios (SfM stand-ins made from the truth, as in tests/test_georef.py, in a m
   real         (--reconstruction FILE or --sfm) a real pycolmap reconstruction of the incident's multi-view
                photos: photos placed, their errors, the stated sigmas (no band: the figures are reported)
 
-Prints a table, writes JSON (--out) and exits 1 when a band is missed.
+Prints a table, writes JSON (--out) and exits 1 when a band is missed. --scenarios runs some of them (default all;
+tests/test_georef.py runs the two its own tests do not already solve on the small incident).
 
   OMP_NUM_THREADS=1 .venv/bin/python scripts/bench_georef_multiview.py [--incident projects/spuyten-duyvil]
-      [--reconstruction out/sfm/reconstruction.json | --sfm]
+      [--reconstruction out/sfm/reconstruction.json | --sfm] [--scenarios exact,two_models,...]
 """
 
 from __future__ import annotations
@@ -102,13 +103,21 @@ def _max(errs: dict, key: str) -> float:
     return max((e[key] for e in errs.values()), default=float("nan"))
 
 
+SCENARIOS = ("exact", "two_models", "shared_cam", "wrong_focal", "main_bad")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--incident", default=str(ROOT / "projects" / "spuyten-duyvil"))
     ap.add_argument("--reconstruction", help="a real reconstruction.json of the incident's multi-view photos")
     ap.add_argument("--sfm", action="store_true", help="run pycolmap on the multi-view photos first (minutes)")
     ap.add_argument("--out", default=str(ROOT / "bench_out" / "georef_multiview.json"))
+    ap.add_argument("--scenarios", default=",".join(SCENARIOS),
+                    help=f"comma-separated, of {', '.join(SCENARIOS)} (default all)")
     a = ap.parse_args(argv)
+    run = [x.strip() for x in a.scenarios.split(",") if x.strip()]
+    if not run or set(run) - set(SCENARIOS):
+        ap.error(f"--scenarios {a.scenarios!r}: give some of {', '.join(SCENARIOS)}")
     src = Path(a.incident).resolve()
     tp = src / "truth" / "ground_truth.json"
     if not tp.is_file() or not (src / "photos" / "multiview").is_dir():
@@ -131,69 +140,75 @@ def main(argv=None) -> int:
         lone = max(names, key=lambda n: (picks[n], n))
         t0 = time.perf_counter()
 
-        doc = _run(dst, true_reconstruction(dst, FRAMES[0]))
-        e = _errors(doc, truth_by)
-        adj = doc["georegistration"].get("camera_adjustment") or [{}]
-        rows["exact"] = {"placed": len(e), "max_centre_m": _max(e, "centre_m"),
-                         "max_rotation_deg": _max(e, "rotation_deg"), "chosen": adj[0].get("chosen"),
-                         "held_out_rms_px": adj[0].get("held_out_rms_px"), "errors": e}
-        check("exact", len(e) == len(names), "every photo placed")
-        check("exact", _max(e, "centre_m") < 0.10, "centre errors < 0.10 m")
-        check("exact", _max(e, "rotation_deg") < 0.10, "rotation errors < 0.10 deg")
-
-        half = len(names) // 2
-        doc = _run(dst, split_reconstruction(dst, [names[:half], names[half:]], FRAMES))
-        e = _errors(doc, truth_by)
-        rows["two_models"] = {"placed": len(e), "max_centre_m": _max(e, "centre_m"),
-                              "max_rotation_deg": _max(e, "rotation_deg"),
-                              "models": [m["status"] for m in doc["georegistration"]["models"]], "errors": e}
-        check("two_models", len(e) == len(names), "every photo placed")
-        check("two_models", _max(e, "centre_m") < 0.15 and _max(e, "rotation_deg") < 0.15,
-              "centre errors < 0.15 m, rotation errors < 0.15 deg")
-
-        rec = wrong_camera_reconstruction(dst, names, lone, FRAMES[0], f_scale=0.97, dcx=-20.0, dcy=13.0)
-        off = _errors(_run(dst, rec, GeorefOptions(adjust_camera=False)), truth_by)
-        doc = _run(dst, rec)
-        on = _errors(doc, truth_by)
-        adj = doc["georegistration"].get("camera_adjustment") or [{}]
-        m2 = [x["mahalanobis2"] for x in on.values() if x["mahalanobis2"] is not None]
-        worst_off = max(off.values(), key=lambda x: x["centre_m"])
-        rows["shared_cam"] = {
-            "placed": len(on), "max_centre_m": _max(on, "centre_m"), "max_rotation_deg": _max(on, "rotation_deg"),
-            "chosen": adj[0].get("chosen"), "refined_focal_px": (adj[0].get("refined_intrinsics") or {}).get("fx"),
-            "true_focal_px": truth_by[lone]["intrinsics"]["fx"], "inside_95": sum(x < 7.81 for x in m2),
-            "mean_mahalanobis2": float(np.mean(m2)) if m2 else None, "off_max_centre_m": worst_off["centre_m"],
-            "off_worst_over_sigma": (worst_off["centre_m"] / worst_off["sigma_centre_m"]
-                                     if worst_off["sigma_centre_m"] else None), "errors": on}
-        check("shared_cam", _max(on, "centre_m") < 0.25, "centre errors < 0.25 m with the adjustment")
-        check("shared_cam", len(m2) == len(on) and sum(x < 7.81 for x in m2) >= 0.85 * len(m2),
-              "truth inside the stated 95 % ellipsoid for 85 % of the photos")
-
-        rec = wrong_camera_reconstruction(dst, names, lone, FRAMES[0], f_scale=0.92, dcx=0.0, dcy=0.0)
-        try:
-            doc = _run(dst, rec, GeorefOptions(adjust_camera=False))
+        if "exact" in run:
+            doc = _run(dst, true_reconstruction(dst, FRAMES[0]))
             e = _errors(doc, truth_by)
-            why = next((u["reason"] for u in doc["georegistration"]["unregistered"] if u["name"] == lone), None)
-        except InputError as exc:
-            e, why = {}, str(exc)
-        rows["wrong_focal"] = {"lone": lone, "lone_picks": picks[lone], "lone_placed": lone in e,
-                               "lone_centre_m": e.get(lone, {}).get("centre_m"), "lone_reason": why,
-                               "max_centre_m": _max(e, "centre_m"), "placed": len(e)}
-        check("wrong_focal", lone not in e or e[lone]["centre_m"] < 0.5, "the lone photo within 0.5 m or left out")
-        check("wrong_focal", all(x["centre_m"] < 0.5 for x in e.values()), "no photo 0.5 m or more off")
+            adj = doc["georegistration"].get("camera_adjustment") or [{}]
+            rows["exact"] = {"placed": len(e), "max_centre_m": _max(e, "centre_m"),
+                             "max_rotation_deg": _max(e, "rotation_deg"), "chosen": adj[0].get("chosen"),
+                             "held_out_rms_px": adj[0].get("held_out_rms_px"), "errors": e}
+            check("exact", len(e) == len(names), "every photo placed")
+            check("exact", _max(e, "centre_m") < 0.10, "centre errors < 0.10 m")
+            check("exact", _max(e, "rotation_deg") < 0.10, "rotation errors < 0.10 deg")
 
-        rec = wrong_camera_reconstruction(dst, names, lone, FRAMES[0], f_scale=0.85, dcx=0.0, dcy=0.0)
-        try:
+        if "two_models" in run:
+            half = len(names) // 2
+            doc = _run(dst, split_reconstruction(dst, [names[:half], names[half:]], FRAMES))
+            e = _errors(doc, truth_by)
+            rows["two_models"] = {"placed": len(e), "max_centre_m": _max(e, "centre_m"),
+                                  "max_rotation_deg": _max(e, "rotation_deg"),
+                                  "models": [m["status"] for m in doc["georegistration"]["models"]], "errors": e}
+            check("two_models", len(e) == len(names), "every photo placed")
+            check("two_models", _max(e, "centre_m") < 0.15 and _max(e, "rotation_deg") < 0.15,
+                  "centre errors < 0.15 m, rotation errors < 0.15 deg")
+
+        if "shared_cam" in run:
+            rec = wrong_camera_reconstruction(dst, names, lone, FRAMES[0], f_scale=0.97, dcx=-20.0, dcy=13.0)
+            off = _errors(_run(dst, rec, GeorefOptions(adjust_camera=False)), truth_by)
             doc = _run(dst, rec)
-            e = _errors(doc, truth_by)
-            main = doc["georegistration"]["models"][0]
-            reason = main.get("reason")
-            status = main["status"]
-        except InputError as exc:
-            e, reason, status = {}, str(exc), "error"
-        rows["main_bad"] = {"status": status, "reason": reason, "placed": len(e), "max_centre_m": _max(e, "centre_m")}
-        check("main_bad", status != "georegistered", "the main model refused")
-        check("main_bad", all(x["centre_m"] < 0.5 for x in e.values()), "no photo 0.5 m or more off")
+            on = _errors(doc, truth_by)
+            adj = doc["georegistration"].get("camera_adjustment") or [{}]
+            m2 = [x["mahalanobis2"] for x in on.values() if x["mahalanobis2"] is not None]
+            worst_off = max(off.values(), key=lambda x: x["centre_m"])
+            rows["shared_cam"] = {
+                "placed": len(on), "max_centre_m": _max(on, "centre_m"), "max_rotation_deg": _max(on, "rotation_deg"),
+                "chosen": adj[0].get("chosen"), "refined_focal_px": (adj[0].get("refined_intrinsics") or {}).get("fx"),
+                "true_focal_px": truth_by[lone]["intrinsics"]["fx"], "inside_95": sum(x < 7.81 for x in m2),
+                "mean_mahalanobis2": float(np.mean(m2)) if m2 else None, "off_max_centre_m": worst_off["centre_m"],
+                "off_worst_over_sigma": (worst_off["centre_m"] / worst_off["sigma_centre_m"]
+                                         if worst_off["sigma_centre_m"] else None), "errors": on}
+            check("shared_cam", _max(on, "centre_m") < 0.25, "centre errors < 0.25 m with the adjustment")
+            check("shared_cam", len(m2) == len(on) and sum(x < 7.81 for x in m2) >= 0.85 * len(m2),
+                  "truth inside the stated 95 % ellipsoid for 85 % of the photos")
+
+        if "wrong_focal" in run:
+            rec = wrong_camera_reconstruction(dst, names, lone, FRAMES[0], f_scale=0.92, dcx=0.0, dcy=0.0)
+            try:
+                doc = _run(dst, rec, GeorefOptions(adjust_camera=False))
+                e = _errors(doc, truth_by)
+                why = next((u["reason"] for u in doc["georegistration"]["unregistered"] if u["name"] == lone), None)
+            except InputError as exc:
+                e, why = {}, str(exc)
+            rows["wrong_focal"] = {"lone": lone, "lone_picks": picks[lone], "lone_placed": lone in e,
+                                   "lone_centre_m": e.get(lone, {}).get("centre_m"), "lone_reason": why,
+                                   "max_centre_m": _max(e, "centre_m"), "placed": len(e)}
+            check("wrong_focal", lone not in e or e[lone]["centre_m"] < 0.5, "the lone photo within 0.5 m or left out")
+            check("wrong_focal", all(x["centre_m"] < 0.5 for x in e.values()), "no photo 0.5 m or more off")
+
+        if "main_bad" in run:
+            rec = wrong_camera_reconstruction(dst, names, lone, FRAMES[0], f_scale=0.85, dcx=0.0, dcy=0.0)
+            try:
+                doc = _run(dst, rec)
+                e = _errors(doc, truth_by)
+                main = doc["georegistration"]["models"][0]
+                reason = main.get("reason")
+                status = main["status"]
+            except InputError as exc:
+                e, reason, status = {}, str(exc), "error"
+            rows["main_bad"] = {"status": status, "reason": reason, "placed": len(e),
+                                "max_centre_m": _max(e, "centre_m")}
+            check("main_bad", status != "georegistered", "the main model refused")
+            check("main_bad", all(x["centre_m"] < 0.5 for x in e.values()), "no photo 0.5 m or more off")
         rows["time_s"] = time.perf_counter() - t0
 
         rec_path = Path(a.reconstruction) if a.reconstruction else None

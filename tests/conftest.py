@@ -60,24 +60,47 @@ def small_incident(tmp_path_factory):
     return root, _json.loads((root / "truth" / "ground_truth.json").read_text())
 
 
+HAND_PICKED_OPTIONS = dict(scenario="spuyten-duyvil", seed=2, n_cars=3, photo_width=480, photo_height=360,
+                           n_panorama=3, n_multiview=0, supersample=1, terrain_size_m=200.0)
+
+
+def hand_picked_incident(tmp_path_factory) -> Path:
+    """A small Spuyten Duyvil incident (3 cars, 3 panorama photos of 480x360, on 200 m of terrain) with its true
+    cameras (``cameras.json``) and true picks with 1 px of noise (``correspondences.json``, seed 5), the automatic
+    finder off, built once per test run (:func:`built_once`) for the files that solve hand-written incidents
+    (tests/test_solve_stage.py, test_mesh_type_incident.py). Read-only: copy it before running stages."""
+
+    def build(base):
+        from workbench.synth.generate import SynthOptions, generate_incident
+        from workbench.synth.handpicks import write_known_cameras, write_true_correspondences
+
+        root = base / "inc"
+        generate_incident(root, SynthOptions(**HAND_PICKED_OPTIONS))
+        write_known_cameras(root, "panorama")
+        write_true_correspondences(root, "panorama", sigma_px=1.0, seed=5)
+        toml = root / "project.toml"  # the hand picks only (the tests solve what a user picked by hand)
+        assert "[correspond]" not in toml.read_text()
+        toml.write_text(toml.read_text() + '\n[correspond]\nfinder = "off"\n')
+
+    return built_once(tmp_path_factory, "hand_picked_incident", build) / "inc"
+
+
 # --------------------------------------------------------------------------------------------------------------
 # The order of the test files. `scripts/test.sh` runs them on one pytest-xdist worker per CPU, a file's tests on one
 # worker (`--dist loadfile`), and hands out the files in the collection's order (`--no-loadscope-reorder`; xdist's
 # own order is by number of tests, which put the one-test end-to-end file, about 150 s, last: the other worker
 # waited for it). Longest first, so the workers finish together (greedy scheduling, longest processing time
-# first). The seconds are what each file took in a full run on the 2-core machine under load (session 20,
-# `--junitxml`, a file's test times summed, after the georef start was made fast; docs/performance.md, the twelfth
-# pass); files not listed (each under 20 s) follow in their usual order. Re-measure when a file's cost changes
-# much: a wrong order costs time, never a test.
+# first). The seconds are what each file took in a full run on the 2-core machine under load (session 21,
+# `--junitxml`, a file's test times summed, load 1.7-7.8, after the fixtures' needless finder runs and duplicate
+# incidents went; docs/performance.md, the thirteenth pass); files not listed (each under 20 s) follow in their
+# usual order. Re-measure when a file's cost changes much: a wrong order costs time, never a test.
 # --------------------------------------------------------------------------------------------------------------
 SLOW_FILES_SECONDS = {
-    "test_cli_end_to_end.py": 247, "test_report.py": 161, "test_georef.py": 131, "test_solve.py": 122,
-    "test_sfm.py": 112, "test_correspond.py": 91, "test_synth.py": 79, "test_solve_stage.py": 75, "test_cli.py": 72,
-    "test_georef_gps.py": 68, "test_stitch.py": 67, "test_picker.py": 59, "test_viewer.py": 52,
-    "test_picker_map.py": 50, "test_relative.py": 47, "test_georef_track.py": 43, "test_export.py": 42,
-    "test_mesh_type_incident.py": 42, "test_railways.py": 40, "test_multiview_uncertainty.py": 37,
-    "test_georef_covariance.py": 36, "test_rolling_stock.py": 32, "test_branches.py": 31,
-    "test_georef_variance_factor.py": 28, "test_buildings.py": 26, "test_architecture.py": 21,
+    "test_cli_end_to_end.py": 264, "test_correspond.py": 182, "test_solve.py": 147, "test_georef.py": 145,
+    "test_report.py": 134, "test_sfm.py": 93, "test_cli.py": 90, "test_georef_gps.py": 63, "test_synth.py": 58,
+    "test_picker.py": 47, "test_stitch.py": 44, "test_relative.py": 41, "test_picker_map.py": 39,
+    "test_multiview_uncertainty.py": 34, "test_viewer.py": 34, "test_georef_covariance.py": 32,
+    "test_export.py": 26, "test_georef_track.py": 23, "test_solve_stage.py": 21,
 }
 
 

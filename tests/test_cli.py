@@ -129,6 +129,7 @@ def test_types_lists_the_library(tmp_path):
 def test_synth_bad_options(tmp_path):
     one_line_error(wb("synth", tmp_path / "x", "--scenario", "nowhere"), "unknown scenario 'nowhere'", "spuyten-duyvil")
     one_line_error(wb("synth", tmp_path / "x", "--cars", "0"), "--cars 0")
+    one_line_error(wb("synth", tmp_path / "x", "--terrain-size", "20"), "--terrain-size 20", "100 to 5000 m")
 
 
 # -- usage errors, console markup, the state file, the folder lock, umask, start-up -------------------------

@@ -20,8 +20,10 @@ def _wb(*args, timeout: int = 600) -> subprocess.CompletedProcess:
 
 def test_synth_control_points_run_status(tmp_path: Path):
     root = tmp_path / "projects" / "inc"
+    # on 200 m of terrain (the default 500 m: a larger orthophoto and DEM mesh to make, render and read, around the
+    # same carriages and cameras)
     r = _wb("synth", root, "--cars", 4, "--width", 800, "--height", 600, "--panorama", 4, "--multiview", 0,
-            "--seed", 3, "--layers-dir", "../../terrain/e2e")
+            "--seed", 3, "--terrain-size", 200, "--layers-dir", "../../terrain/e2e")
     assert r.returncode == 0, r.stderr[-2000:]
     r = _wb("control-points", root)
     assert r.returncode == 0, r.stderr[-2000:]

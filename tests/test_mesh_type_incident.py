@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 import trimesh
 
+from conftest import hand_picked_incident
+
 from workbench.pipeline import STAGES
 from workbench.project import Project
 from workbench.rolling_stock import get_type
 from workbench.runner import Runner
-from workbench.synth.generate import SynthOptions, generate_incident
-from workbench.synth.handpicks import write_known_cameras, write_true_correspondences
 
 
 def _cad_type(folder: Path) -> None:
@@ -43,12 +43,12 @@ def _cad_type(folder: Path) -> None:
 
 @pytest.fixture(scope="module")
 def incident(tmp_path_factory) -> Path:
-    gen = tmp_path_factory.mktemp("mesh_type") / "gen"
-    generate_incident(gen, SynthOptions(scenario="spuyten-duyvil", seed=2, n_cars=3, photo_width=480,
-                                        photo_height=360, n_panorama=3, n_multiview=0, supersample=1))
-    write_known_cameras(gen, "panorama")
-    write_true_correspondences(gen, "panorama", sigma_px=1.0, seed=5)
-    root = gen.parent / "inc"
+    """The hand-written incident (conftest's hand-picked one: known cameras, true picks with 1 px of noise) without
+    its photos, of the CAD type; ``gen`` beside it is the generated incident, with its photos (read-only)."""
+    work = tmp_path_factory.mktemp("mesh_type")
+    gen = work / "gen"
+    gen.symlink_to(hand_picked_incident(tmp_path_factory), target_is_directory=True)
+    root = work / "inc"
     shutil.copytree(gen, root, ignore=shutil.ignore_patterns("out", "photos", "masks"))
     _cad_type(root / "rolling_stock")
     return root

@@ -9,21 +9,20 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from conftest import hand_picked_incident
+
 from workbench.errors import InputError, WorkbenchError
 from workbench.pipeline import STAGES
 from workbench.project import Project
 from workbench.runner import Runner
-from workbench.synth.generate import SynthOptions, generate_incident
-from workbench.synth.handpicks import write_known_cameras, write_true_correspondences
 
 
 @pytest.fixture(scope="module")
 def incident(tmp_path_factory) -> Path:
+    """A copy of conftest's hand-picked incident (3 cars, 3 panorama photos of 480x360, known cameras, true picks
+    with 1 px of noise), solved."""
     root = tmp_path_factory.mktemp("solve_stage") / "inc"
-    generate_incident(root, SynthOptions(scenario="spuyten-duyvil", seed=2, n_cars=3, photo_width=480,
-                                         photo_height=360, n_panorama=3, n_multiview=0, supersample=1))
-    write_known_cameras(root, "panorama")
-    write_true_correspondences(root, "panorama", sigma_px=1.0, seed=5)
+    shutil.copytree(hand_picked_incident(tmp_path_factory), root)
     Runner(Project(root), STAGES).run(until="solve")  # what these tests read (the stages after: test_report's)
     return root
 

@@ -218,13 +218,15 @@ def synth(path: Path = typer.Argument(..., help="incident folder to generate (cr
           height: int = typer.Option(1200, help="photo height, px"),
           panorama: Optional[int] = typer.Option(None, help="photos in the panorama set (default 5-8, automatic)"),
           multiview: int = typer.Option(12, help="photos in the multi-position set (0: none)"),
+          terrain_size: float = typer.Option(500.0, help="side of the generated DEM and orthophoto, metres"),
           layers_dir: str = typer.Option("layers", help="where the DEM and buildings go, relative to the folder"),
           force: bool = typer.Option(False, "--force", help="regenerate even if already generated")) -> None:
     """Generate a synthetic incident with ground truth (DEM, buildings, derailed consist, photos)."""
     from .synth.generate import SynthOptions, generate_incident
 
     opts = SynthOptions(scenario=scenario, seed=seed, n_cars=cars, photo_width=width, photo_height=height,
-                        n_panorama=panorama, n_multiview=multiview, layers_dir=layers_dir)
+                        n_panorama=panorama, n_multiview=multiview, terrain_size_m=terrain_size,
+                        layers_dir=layers_dir)
     path.mkdir(parents=True, exist_ok=True)
     with _progress() as prog:
         task = prog.add_task("synth", total=1.0, msg="")

@@ -80,6 +80,9 @@ class SynthOptions:
             raise WorkbenchError(f"--panorama {self.n_panorama}: give 2 to 12 photos")
         if not (0 <= self.n_multiview <= 40):
             raise WorkbenchError(f"--multiview {self.n_multiview}: give 0 to 40 photos")
+        if not (100.0 <= self.terrain_size_m <= 5000.0):
+            raise WorkbenchError(f"--terrain-size {self.terrain_size_m:g}: give 100 to 5000 m (the cameras stand up to "
+                                 f"the ground's edge less 40 m)")
 
     def spec_hash(self) -> str:
         blob = json.dumps({**asdict(self), "version": GENERATOR_VERSION}, sort_keys=True).encode()
