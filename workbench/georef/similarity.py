@@ -191,6 +191,20 @@ def _robust_start(src_a: np.ndarray, dst_a: np.ndarray, sig_a: np.ndarray,
     return best
 
 
+def _pick_sigmas(sim: tuple[float, np.ndarray, np.ndarray], obs: list[Pick], views: Sequence[SfmView],
+                 X: np.ndarray, cps: Sequence[ControlPoint], opts: GeorefOptions) -> list[float]:
+    """Each pick's stated sigma (px, :func:`pick_sigma`) at its point's depth in its camera placed by ``sim`` =
+    (s, R, t): the weights the refinement and its sensitivity share."""
+    s0, R0, t0 = sim
+    out = []
+    for o in obs:
+        v = views[o.view]
+        Mv = np.asarray(v.cam_from_model, float)
+        depth = float((Mv[:3, :3] @ (R0.T @ (X[o.point] - t0) / s0) + Mv[:3, 3])[2]) * s0
+        out.append(pick_sigma(v.intrinsics, opts.sigma_px, cps[o.point].sigma_m, abs(depth)))
+    return out
+
+
 def _refine_similarity(start: tuple[float, np.ndarray, np.ndarray], obs: list[Pick], views: Sequence[SfmView],
                        X: np.ndarray, cps: Sequence[ControlPoint], gps_items: list[tuple[SfmView, np.ndarray]],
                        opts: GeorefOptions):
@@ -204,12 +218,7 @@ def _refine_similarity(start: tuple[float, np.ndarray, np.ndarray], obs: list[Pi
     def sim_from(p):
         return s0 * math.exp(p[0]), exp_so3(p[1:4]) @ R0, t0 + p[4:7]
 
-    obs_sig = []
-    for o in obs:
-        v = views[o.view]
-        Xm = R0.T @ (X[o.point] - t0) / s0
-        depth = float((np.asarray(v.cam_from_model)[:3, :3] @ Xm + np.asarray(v.cam_from_model)[:3, 3])[2]) * s0
-        obs_sig.append(pick_sigma(v.intrinsics, opts.sigma_px, cps[o.point].sigma_m, abs(depth)))
+    obs_sig = _pick_sigmas(start, obs, views, X, cps, opts)
 
     def fun(p):
         return _weighted_residuals(sim_from(p), obs, obs_sig, views, X, gps_items, gsig)
@@ -316,12 +325,7 @@ def sfm_sensitivity(sim: tuple[float, np.ndarray, np.ndarray], obs: list[Pick], 
     gsig = np.asarray(opts.gps_sigma_m, float)
     by_name = {v.name: i for i, v in enumerate(views)}
     gps_idx = [(by_name[n], np.asarray(g, float)) for n, g in sorted(gps_centres.items()) if n in by_name]
-    obs_sig = []
-    for o in obs:
-        v = views[o.view]
-        Mv = np.asarray(v.cam_from_model, float)
-        depth = float((Mv[:3, :3] @ (R0.T @ (X[o.point] - t0) / s0) + Mv[:3, 3])[2]) * s0
-        obs_sig.append(pick_sigma(v.intrinsics, opts.sigma_px, cps[o.point].sigma_m, abs(depth)))
+    obs_sig = _pick_sigmas(sim, obs, views, X, cps, opts)
 
     def resid(p: np.ndarray, vs: Sequence[SfmView]) -> np.ndarray:
         sim_p = (s0 * math.exp(p[0]), exp_so3(p[1:4]) @ R0, t0 + p[4:7])
