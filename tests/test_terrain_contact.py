@@ -174,3 +174,42 @@ def test_wheel_contact_kinds():
     side = exp_so3(np.array([np.pi / 2, 0.0, 0.0]))
     assert wheel_contact(S, side, np.array([0.0, 0.0, 2.0]), PlaneTerrain(), C, np.inf) == "lowest"
     assert wheel_contact(S, R0, t0, terrain, np.full((3, 3), np.nan), 0.10) == "lowest"
+
+
+def test_a_rolled_carriage_is_not_level_though_each_wheel_passes():
+    """A carriage rolled 13 deg on flat ground, its pitch uncertain by 2 deg and its roll by 2 deg (seed 708003's
+    6100 of the multi-view benchmark): every wheel's clearance lies within 4 of its own sd (the pitch's 8 m lever
+    makes each sd large), but the roll is 6.5 sd off level, so its wheels' row is refused ("lowest"). Level
+    carriages whose rotation errs as that covariance says (2000 draws, fixed seed) keep it: the joint test's tail
+    is a normal's beyond 4 sd (6e-5), and a roll 3 sd off level passes."""
+    from workbench.solve.terrain import tilt_explained, wheel_gradients
+
+    ct = get_type("shoreliner")
+    S = surface_samples(ct, 400)
+    W = wheel_points(S)
+    flat = PlaneTerrain()
+    R0, t0 = _upright(flat, yaw=0.9)
+    C = np.diag(np.deg2rad([2.1, 1.8, 2.1]) ** 2)  # carriage x (roll), y (pitch), z (heading), rotated below
+    Cw = R0 @ C @ R0.T  # the scene-frame rotation vector's covariance
+    rolled = R0 @ exp_so3(np.array([np.deg2rad(13.0), 0.0, 0.0]))
+    t_r = t0 + [0.0, 0.0, 0.2]
+    g = wheel_gradients(W, rolled, t_r, flat)
+    Xw = W @ rolled.T + t_r
+    d = Xw[:, 2] - flat.height_at(Xw[:, :2])
+    sd = np.sqrt(np.einsum("ni,ij,nj->n", g, Cw, g))
+    assert np.all(np.abs(d - d.mean()) <= 4.0 * sd + 0.01)  # the per-wheel test alone would call it level
+    assert not tilt_explained(d - d.mean(), g, Cw, W[:, :2])
+    assert wheel_contact(S, rolled, t_r, flat, Cw, np.inf, tilt_test=True) == "lowest"
+    assert wheel_contact(S, rolled, t_r, flat, Cw, np.inf) == "wheels"  # step 3's test: the wheels one by one
+    rng = np.random.default_rng(7)
+    refused = 0
+    for w in rng.multivariate_normal(np.zeros(3), Cw, size=2000):
+        Rk = exp_so3(w) @ R0
+        Xk = W @ Rk.T + t0
+        dk = Xk[:, 2] - flat.height_at(Xk[:, :2])
+        refused += not tilt_explained(dk - dk.mean(), wheel_gradients(W, Rk, t0, flat), Cw, W[:, :2])
+    assert refused <= 2
+    three = R0 @ exp_so3(np.array([3.0 * np.deg2rad(2.1), 0.0, 0.0]))
+    Xk = W @ three.T + t0
+    dk = Xk[:, 2] - flat.height_at(Xk[:, :2])
+    assert tilt_explained(dk - dk.mean(), wheel_gradients(W, three, t0, flat), Cw, W[:, :2])

@@ -15,6 +15,8 @@ with its rotation's covariance there (the chain's and the contact's information 
 
 from __future__ import annotations
 
+import functools
+import math
 from typing import Any, Sequence
 
 import numpy as np
@@ -64,8 +66,32 @@ def wheel_gradients(W: np.ndarray, R: np.ndarray, t: np.ndarray, terrain: Any) -
     return g - g.mean(axis=0)
 
 
+@functools.lru_cache(maxsize=8)
+def chi2_quantile(p: float, dof: int) -> float:
+    """The chi-square distribution's ``p`` quantile with ``dof`` degrees of freedom."""
+    from scipy.special import gammaincinv  # as scipy.stats computes it, without importing scipy.stats
+
+    return 2.0 * float(gammaincinv(dof / 2.0, p))
+
+
+def tilt_explained(dev: np.ndarray, g: np.ndarray, C: np.ndarray, xy: np.ndarray) -> bool:
+    """Whether the wheels' clearances off their mean, ``dev`` (n,) m, show a tilt the rotation's uncertainty
+    explains, taken together: the plane fitted to them over the wheel points' carriage-frame ``xy`` (n, 2) m (its
+    slope along the carriage, a pitch against the ground, and across it, a roll) against that slope's covariance
+    from the rotation's, ``C`` (3, 3) rad^2, through ``g`` (n, 3) (:func:`wheel_gradients`), plus
+    :data:`WHEEL_PLANE_TOL_M` of height per wheel (the wheel points' own spread, the ground's shape under them); a
+    chi-square with 2 degrees of freedom, within the tail :data:`WHEEL_SPREAD_SD` standard deviations leave a normal
+    (both sides). What the plane leaves (a twist, the ground's bumps) is the per-wheel test's."""
+    A = np.column_stack([np.ones(len(dev)), np.asarray(xy, float) - np.mean(xy, axis=0)])
+    B = np.linalg.pinv(A)[1:]  # (2, n): the plane's two slopes from the clearances
+    b = B @ dev
+    Sb = B @ (g @ C @ g.T + WHEEL_PLANE_TOL_M ** 2 * np.eye(len(dev))) @ B.T
+    chi2 = float(b @ np.linalg.solve(Sb, b))
+    return chi2 <= float(chi2_quantile(math.erf(WHEEL_SPREAD_SD / math.sqrt(2.0)), 2))
+
+
 def wheel_contact(samples: np.ndarray, R: np.ndarray, t: np.ndarray, terrain: Any, cov_rot: np.ndarray,
-                  sigma_z: float) -> str:
+                  sigma_z: float, tilt_test: bool = False) -> str:
     """Which contact row a carriage (pose ``R`` (3, 3), ``t`` (3,); its surface ``samples`` (m, 3), carriage
     frame) gets, from its pose and its rotation's uncertainty ``cov_rot`` (3, 3), rad^2, of the scene-frame
     rotation vector:
@@ -73,7 +99,8 @@ def wheel_contact(samples: np.ndarray, R: np.ndarray, t: np.ndarray, terrain: An
     * ``"wheels"``: seen to stand on all its wheels (:func:`on_wheels`): the wheels' mean clearance;
     * ``"level"``: its wheels as level as its rotation's uncertainty can tell (every one of its
       :func:`wheel_points` as high over the terrain as the others to within :data:`WHEEL_SPREAD_SD` standard
-      deviations of what that uncertainty explains, plus :data:`WHEEL_PLANE_TOL_M`; its lowest sample over the
+      deviations of what that uncertainty explains, plus :data:`WHEEL_PLANE_TOL_M`, and with ``tilt_test``
+      their tilt taken together explained by it, :func:`tilt_explained`; its lowest sample over the
       plane of the terrain under its wheels a wheel point) but that tolerance over twice the terrain's stated
       accuracy ``sigma_z`` (m): not confirmed, since a carriage on one end tilted within the tolerance would pass,
       its wheels' mean half its wheels' spread off the ground. The solve gives it the wheels' row too and judges it
@@ -93,7 +120,7 @@ def wheel_contact(samples: np.ndarray, R: np.ndarray, t: np.ndarray, terrain: An
     g = wheel_gradients(W, R, t, terrain)
     sd = np.sqrt(np.maximum(np.einsum("ni,ij,nj->n", g, C, g), 0.0))
     tol = WHEEL_SPREAD_SD * sd + WHEEL_PLANE_TOL_M
-    if np.any(np.abs(d - d.mean()) > tol):
+    if np.any(np.abs(d - d.mean()) > tol) or (tilt_test and not tilt_explained(d - d.mean(), g, C, W[:, :2])):
         return "lowest"
     A = np.column_stack([np.ones(len(Xw)), Xw[:, :2] - Xw[:, :2].mean(0)])
     coef, *_ = np.linalg.lstsq(A, hw, rcond=None)  # the ground's plane under the wheels (least squares)
