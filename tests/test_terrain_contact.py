@@ -213,3 +213,9 @@ def test_a_rolled_carriage_is_not_level_though_each_wheel_passes():
     Xk = W @ three.T + t0
     dk = Xk[:, 2] - flat.height_at(Xk[:, :2])
     assert tilt_explained(dk - dk.mean(), wheel_gradients(W, three, t0, flat), Cw, W[:, :2])
+    line = W[np.abs(W[:, 1] - W[0, 1]) < 1e-9]  # wheel points in a line (one rail's): its one slope, 1 dof
+    assert len(line) >= 3
+    g1 = wheel_gradients(line, rolled, t_r, flat)
+    X1 = line @ rolled.T + t_r
+    d1 = X1[:, 2] - flat.height_at(X1[:, :2])
+    assert tilt_explained(d1 - d1.mean(), g1, Cw, line[:, :2])  # along the rail the roll does not show

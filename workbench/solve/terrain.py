@@ -80,14 +80,19 @@ def tilt_explained(dev: np.ndarray, g: np.ndarray, C: np.ndarray, xy: np.ndarray
     slope along the carriage, a pitch against the ground, and across it, a roll) against that slope's covariance
     from the rotation's, ``C`` (3, 3) rad^2, through ``g`` (n, 3) (:func:`wheel_gradients`), plus
     :data:`WHEEL_PLANE_TOL_M` of height per wheel (the wheel points' own spread, the ground's shape under them); a
-    chi-square with 2 degrees of freedom, within the tail :data:`WHEEL_SPREAD_SD` standard deviations leave a normal
+    chi-square with 2 degrees of freedom (1 for wheel points in a line), within the tail :data:`WHEEL_SPREAD_SD` standard deviations leave a normal
     (both sides). What the plane leaves (a twist, the ground's bumps) is the per-wheel test's."""
     A = np.column_stack([np.ones(len(dev)), np.asarray(xy, float) - np.mean(xy, axis=0)])
     B = np.linalg.pinv(A)[1:]  # (2, n): the plane's two slopes from the clearances
     b = B @ dev
     Sb = B @ (g @ C @ g.T + WHEEL_PLANE_TOL_M ** 2 * np.eye(len(dev))) @ B.T
-    chi2 = float(b @ np.linalg.solve(Sb, b))
-    return chi2 <= float(chi2_quantile(math.erf(WHEEL_SPREAD_SD / math.sqrt(2.0)), 2))
+    ev, V = np.linalg.eigh(0.5 * (Sb + Sb.T))
+    keep = ev > 1e-12 * max(float(ev[-1]), 1e-300)  # wheel points in a line (a mesh type's): its one slope
+    if not keep.any():
+        return True
+    y = V[:, keep].T @ b
+    chi2 = float(np.sum(y * y / ev[keep]))
+    return chi2 <= float(chi2_quantile(math.erf(WHEEL_SPREAD_SD / math.sqrt(2.0)), int(keep.sum())))
 
 
 def wheel_contact(samples: np.ndarray, R: np.ndarray, t: np.ndarray, terrain: Any, cov_rot: np.ndarray,
