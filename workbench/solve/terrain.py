@@ -80,8 +80,9 @@ def tilt_explained(dev: np.ndarray, g: np.ndarray, C: np.ndarray, xy: np.ndarray
     slope along the carriage, a pitch against the ground, and across it, a roll) against that slope's covariance
     from the rotation's, ``C`` (3, 3) rad^2, through ``g`` (n, 3) (:func:`wheel_gradients`), plus
     :data:`WHEEL_PLANE_TOL_M` of height per wheel (the wheel points' own spread, the ground's shape under them); a
-    chi-square with 2 degrees of freedom (1 for wheel points in a line), within the tail :data:`WHEEL_SPREAD_SD` standard deviations leave a normal
-    (both sides). What the plane leaves (a twist, the ground's bumps) is the per-wheel test's."""
+    chi-square with 2 degrees of freedom (1 for wheel points in a line), within the tail :data:`WHEEL_SPREAD_SD`
+    standard deviations leave a normal (both sides). What the plane leaves (a twist, the ground's bumps) is the
+    per-wheel test's."""
     A = np.column_stack([np.ones(len(dev)), np.asarray(xy, float) - np.mean(xy, axis=0)])
     B = np.linalg.pinv(A)[1:]  # (2, n): the plane's two slopes from the clearances
     b = B @ dev
