@@ -15,11 +15,11 @@ from dataclasses import dataclass, field, replace
 from typing import Sequence
 
 import numpy as np
-from scipy.special import gammaincinv  # the chi-square quantile as scipy.stats computes it, without its import
 
 from ..core.geometry import boxes_overlap, exp_so3, log_so3, rot_x, rot_z, rotation_angle_deg
 from .active_set import ChainedFit, ChainedProblem
 from .layout import ChainLayout, residuals_and_jacobian
+from .loss import chi2_quantile
 from .pnp import pnp_branches
 from .problem import Car, Poses, Problem
 from .terrain import rest_on_terrain
@@ -61,7 +61,7 @@ def misfit_cars(prob: Problem, poses: Poses, sigma: float, cands: Sequence[int],
     out = []
     for k in cands:
         x, m = c2[k]
-        if x > 2.0 * float(gammaincinv(max(m - 6, 1) / 2, 1.0 - p_value)) and x / m > relative * med:
+        if x > chi2_quantile(1.0 - p_value, max(m - 6, 1)) and x / m > relative * med:
             out.append(k)
     return sorted(out, key=lambda k: -c2[k][0] / c2[k][1])
 

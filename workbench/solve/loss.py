@@ -6,7 +6,18 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
+
+
+@functools.lru_cache(maxsize=64)
+def chi2_quantile(p: float, dof: float) -> float:
+    """The chi-square distribution's ``p`` quantile with ``dof`` degrees of freedom, as scipy.stats computes it
+    (``2 gammaincinv(dof / 2, p)``), without importing scipy.stats."""
+    from scipy.special import gammaincinv
+
+    return 2.0 * float(gammaincinv(dof / 2.0, p))
 
 
 def _rho(z: np.ndarray, loss: str, derivatives: bool) -> np.ndarray:

@@ -15,11 +15,12 @@ with its rotation's covariance there (the chain's and the contact's information 
 
 from __future__ import annotations
 
-import functools
 import math
 from typing import Any, Sequence
 
 import numpy as np
+
+from .loss import chi2_quantile
 
 _SAMPLE_CACHE: dict[tuple[str, int], np.ndarray] = {}
 WHEEL_PLANE_TOL_M = 0.01  # a sample within 1 cm of the type's lowest (carriage z) lies on its wheels' rail plane
@@ -64,14 +65,6 @@ def wheel_gradients(W: np.ndarray, R: np.ndarray, t: np.ndarray, terrain: Any) -
     a = np.column_stack([-terrain_slopes(terrain, Xw[:, :2]), np.ones(len(Xw))])
     g = np.cross(Xw - t, a)  # d clearance / d rotation per wheel point
     return g - g.mean(axis=0)
-
-
-@functools.lru_cache(maxsize=8)
-def chi2_quantile(p: float, dof: int) -> float:
-    """The chi-square distribution's ``p`` quantile with ``dof`` degrees of freedom."""
-    from scipy.special import gammaincinv  # as scipy.stats computes it, without importing scipy.stats
-
-    return 2.0 * float(gammaincinv(dof / 2.0, p))
 
 
 def tilt_explained(dev: np.ndarray, g: np.ndarray, C: np.ndarray, xy: np.ndarray) -> bool:

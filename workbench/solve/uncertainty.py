@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from typing import Any, Sequence
 
 import numpy as np
-from scipy.special import gammaincinv, stdtrit  # quantiles as scipy.stats computes them (2 s to import)
+from scipy.special import stdtrit  # the quantile as scipy.stats computes it (2 s to import)
 
 from ..core.geometry import skew
 from .model import SolveOptions
@@ -23,6 +23,7 @@ from .problem import (Chains, Poses, Problem, carriage_weights, focal_groups, he
                       record_warning)
 from .camera_term import inverse_psd, set_camera_response, set_pose_covariance
 from .alignment_covariance import alignment_term, views_per_face
+from .loss import chi2_quantile
 from .pose_covariance import pose_rows
 from .camera_residual import ViewCameraErrors, camera_directions, camera_shift_rows
 from .variance_components import (FALLBACK_FACE_SIGMA_PX, VarianceComponents, estimate_variance_components,
@@ -350,7 +351,7 @@ def misfit_carriages(prob: Problem, poses: Poses, sigma: float, p_value: float =
             chi[k] = (float(np.sum(e2[idx])), 2 * len(idx), float(np.sqrt(np.mean(r2[idx]))))
     med = float(np.median([x / m for x, m, _ in chi.values()])) if chi else 0.0
     return {k: rms for k, (x, m, rms) in chi.items()
-            if x > 2.0 * float(gammaincinv(max(m - 6, 1) / 2, 1.0 - p_value)) and x / m > relative * med}
+            if x > chi2_quantile(1.0 - p_value, max(m - 6, 1)) and x / m > relative * med}
 
 
 def camera_responses(prob: Problem, poses: Poses, focal_views, chains: Chains, contact,
