@@ -123,6 +123,8 @@ def references_to_arrays(refs: list, prefix: str = "") -> dict[str, np.ndarray]:
                     k + "point_names": np.array(names, dtype=str).reshape(-1),
                     k + "points": np.array([r.points[n] for n in names], float).reshape(-1, 2),
                     k + "frame": np.vstack([r.origin_m, r.axis_u_m, r.axis_v_m])})
+        if r.mask is not None:
+            out[k + "mask"] = r.mask
         if r.keypoints is not None:
             out.update({k + "keypoints": r.keypoints, k + "descriptors": _pack_descriptors(r.descriptors),
                         k + "frames": r.frames})
@@ -139,5 +141,6 @@ def references_from_arrays(a: dict[str, np.ndarray], type_id: str, car_number: s
             {n: p for n, p in zip(a[k + "point_names"].tolist(), a[k + "points"])},
             a[k + "frame"][0], a[k + "frame"][1], a[k + "frame"][2],
             keypoints=a.get(k + "keypoints"), descriptors=None if d is None else
-            (d.astype(np.float32) if d.dtype == np.uint8 else d), frames=a.get(k + "frames")))
+            (d.astype(np.float32) if d.dtype == np.uint8 else d), frames=a.get(k + "frames"),
+            mask=a.get(k + "mask")))
     return refs

@@ -20,6 +20,7 @@ from .undistort import undistorted_image
 
 log = logging.getLogger(__name__)
 ECC_CROP_MARGIN_PX = 32  # ECC works on the photo cropped around the face, this much (+ a quarter of its size) beyond
+ECC_MASK_MARGIN_PX = 2  # the photo's pixels this close to a reference part that is not on the car are left out too
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -375,9 +376,18 @@ def ecc_refine(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray,
     photo_from_work = np.linalg.inv(C) @ H @ np.linalg.inv(S)  # (crop px)
     warp = photo_from_work.astype(np.float32) / np.float32(photo_from_work[2, 2])
     img = np.ascontiguousarray(gray[y0:y1, x0:x1], dtype=np.float32)
+    mask = None
+    if ref.mask is not None:
+        # the photo's pixels over the reference's part that is not on the car (a side's corner cut off by a
+        # sloped nose) take no part: there the photo shows what lies behind (OpenCV masks the input image, so
+        # that part is carried to the photo by the starting warp, with a margin for the correction)
+        off = cv2.resize(255 - ref.mask, (Wk, Hk), interpolation=cv2.INTER_NEAREST)
+        off = cv2.warpPerspective(off, photo_from_work, (img.shape[1], img.shape[0]), flags=cv2.INTER_NEAREST)
+        off = cv2.dilate(off, np.ones((2 * ECC_MASK_MARGIN_PX + 1,) * 2, np.uint8))
+        mask = np.where(off > 0, 0, 255).astype(np.uint8)
     try:
         cc, warp = cv2.findTransformECC(tmpl, img, warp, cv2.MOTION_HOMOGRAPHY,
-                                        (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-5), None, 3)
+                                        (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-5), mask, 3)
     except cv2.error:
         return None
     if min_cc is not None and cc < min_cc:
@@ -388,7 +398,7 @@ def ecc_refine(photo: PhotoFeatures, ref: FaceReference, H: np.ndarray,
     # 1-3 % on a side 25 px high)
     try:
         cc2, warp2 = cv2.findTransformECC(tmpl, img, warp.copy(), cv2.MOTION_HOMOGRAPHY,
-                                          (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-5), None, 1)
+                                          (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 60, 1e-5), mask, 1)
         warp = warp2  # the correlation reported stays the blurred one (the thresholds are set on it)
     except cv2.error as exc:  # the blurred alignment stands
         log.debug("ECC without blur did not converge (%s); the blurred alignment is kept", exc)

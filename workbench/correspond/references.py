@@ -45,7 +45,9 @@ class FaceReference:
     ``image``: (h, w, 3) uint8 RGB; ``px_per_m``: reference pixels per metre; ``points``: marked point name
     -> (2,) reference pixel for the points on this face's plane; ``origin_m``, ``axis_u_m``, ``axis_v_m``:
     the carriage-frame point of reference pixel (0, 0) and the carriage-frame displacement (3,) metres of one
-    pixel step in u and in v.
+    pixel step in u and in v; ``mask``: (h, w) uint8, 255 where the pixel lies on the car's surface and 0 where
+    it does not (the corner a sloped nose cuts off a side: painted there, but not on the car), or None when every
+    pixel does.
     """
 
     type_id: str
@@ -60,6 +62,7 @@ class FaceReference:
     keypoints: np.ndarray | None = field(default=None, repr=False)  # (n, 2) reference px
     descriptors: np.ndarray | None = field(default=None, repr=False)  # (n, 128) float32
     frames: np.ndarray | None = field(default=None, repr=False)  # (n, 4) size, angle, tilt (sift_features)
+    mask: np.ndarray | None = field(default=None, repr=False)
 
     @property
     def key(self) -> tuple[str, str]:
@@ -204,6 +207,12 @@ def face_reference(ct: CarriageType, car_number: str, face: str, px_per_m: float
         xyz[ia], xyz[ib], xyz[plane_axis] = a, z, plane
         return xyz
 
+    mask = None
+    if face in ("left", "right"):  # a nose's slope cuts a corner off the side's window: not on the car
+        a, z = a_of_u(np.arange(w)), z_of_v(np.arange(h))
+        on = (a[None, :] <= np.asarray(nose_x(ct.spec, "front", z))[:, None]) & \
+            (a[None, :] >= np.asarray(nose_x(ct.spec, "rear", z))[:, None])
+        mask = None if on.all() else np.where(on, 255, 0).astype(np.uint8)
     origin = to3(a_of_u(0.0), z_of_v(0.0))
     axis_u = to3(a_of_u(1.0), z_of_v(0.0)) - origin
     axis_v = to3(a_of_u(0.0), z_of_v(1.0)) - origin
@@ -215,7 +224,7 @@ def face_reference(ct: CarriageType, car_number: str, face: str, px_per_m: float
         v = (r.y0 + (r.va * xyz[ib] + r.vb) * r.sv - iy0) * sy - 0.5
         points[name] = np.array([u, v])
     return FaceReference(ct.id, car_number, face, np.ascontiguousarray(image), float(px_per_m), points,
-                         origin, axis_u, axis_v)
+                         origin, axis_u, axis_v, mask=mask)
 
 
 Tilt = tuple[float, float]
@@ -269,6 +278,10 @@ def build_references(ct: CarriageType, car_number: str, *, px_per_m: float, tilt
         ref = face_reference(ct, car_number, face, px_per_m)
         ref.keypoints, ref.descriptors, ref.frames = sift_features(
             ref.image, tilts if face in ("left", "right", "roof") else end_tilts, frames=True)
+        if ref.mask is not None:  # no features where the painted window is not the car
+            ij = np.clip(np.round(ref.keypoints).astype(int), 0, [ref.mask.shape[1] - 1, ref.mask.shape[0] - 1])
+            on = ref.mask[ij[:, 1], ij[:, 0]] > 0
+            ref.keypoints, ref.descriptors, ref.frames = ref.keypoints[on], ref.descriptors[on], ref.frames[on]
         log.debug("reference %s %s %s: %d keypoints", ct.id, car_number, face, len(ref.keypoints))
         refs.append(ref)
     return refs

@@ -553,7 +553,8 @@ def crop_reference(ref: FaceReference, u0: float, u1: float) -> FaceReference:
     a, b = int(round(u0 * w)), int(round(u1 * w))
     pts = {n: p - [a, 0.0] for n, p in ref.points.items() if a - 0.5 <= p[0] <= b - 0.5}
     return FaceReference(ref.type_id, ref.car_number, ref.face, np.ascontiguousarray(ref.image[:, a:b]), ref.px_per_m,
-                         pts, ref.origin_m + a * ref.axis_u_m, ref.axis_u_m, ref.axis_v_m)
+                         pts, ref.origin_m + a * ref.axis_u_m, ref.axis_u_m, ref.axis_v_m,
+                         mask=None if ref.mask is None else np.ascontiguousarray(ref.mask[:, a:b]))
 
 
 def _reliable(entries: list[CarInPhoto]) -> bool:
