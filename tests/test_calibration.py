@@ -123,6 +123,11 @@ def test_report_states_what_the_intervals_include():
     s = interval_scope(sol, solver, 0.25)
     text = s["text"]
     assert "georegistration" in text and "0.30 m" in text and "face" in text and "terrain" in text
+    assert "(0.15 px, configured)" in text  # no face's ECC gave more than the floor
+    sol["face_misfit_max_px"] = 0.42  # a face whose reference matched less closely (solve.uncertainty.face_misfit_px)
+    wider = interval_scope(sol, solver, 0.25)["text"]
+    assert "(0.15 px, configured; up to 0.42 px where a face's reference matched" in wider
+    del sol["face_misfit_max_px"]
     assert any("focal" in x for x in s["excluded"]) and not any("georegistration" in x for x in s["excluded"])
     sol.update(camera_uncertainty={"included": False}, sigma_focal_px={"photo": 120.0},
                correspondences={"by_source": {"manual": 40}})

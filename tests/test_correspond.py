@@ -461,6 +461,15 @@ def test_stage_statistics_and_references(incident):
     assert set(refs) == {c.number for c in project.settings.consist}
     for car in doc["needs_manual"]:
         assert car["carriage"] in refs and car["reason"]
+    # each face's ECC correlation, as its stats give it, on the points its homography placed (the solve takes a
+    # face's misfit from it: docs/calibration.md, "Session 23")
+    ecc = {(v, f["carriage"], f["face"]): f["ecc"] for v, ph in stats["photos"].items() for f in ph["faces"]}
+    hom = [o for o in doc["observations"] if o.get("method") == "homography"]
+    for o in hom:
+        e = ecc[(o["view"], o["carriage"], o["face"])]
+        assert o.get("ecc") is None if e is None else abs(o["ecc"] - e) < 6e-4, (o, e)
+    assert any(o.get("ecc") is not None for o in hom)
+    assert not any("ecc" in o for o in doc["observations"] if o.get("method") != "homography")
 
 
 # ---------------------------------------------------------------------------------------------------------
@@ -495,6 +504,18 @@ def test_manual_file_errors_name_the_item(manual_file, bad, message):
     with pytest.raises(InputError, match=message) as exc:
         cs.load_manual(manual_file)
     assert str(path) in str(exc.value)
+
+
+def test_the_format_keeps_a_faces_ecc_on_its_homography_points_only():
+    """``ecc`` (a homography point's face alignment's ECC correlation) is written back as read, and refused on a
+    point of another method or outside [-1, 1]."""
+    o = {"carriage": "6100", "point": "body_top_front_left", "view": "pano_00.jpg", "uv": [100.0, 200.0],
+         "source": "sift", "method": "homography", "face": "left", "ecc": 0.9712}
+    assert mf.Observation(**o).to_json()["ecc"] == 0.9712
+    assert "ecc" not in mf.Observation(**{**o, "ecc": None}).to_json()
+    for bad, words in (({"method": "pose"}, "homography"), ({"ecc": 1.2}, "ecc")):
+        with pytest.raises(ValueError, match=words):
+            mf.Observation(**{**o, **bad})
 
 
 def test_manual_file_nan_and_duplicates(manual_file):

@@ -103,6 +103,7 @@ BAD = [
     (lambda o: o[0].update(uv=[float("nan"), 3.0]), ["finite"]),
     (lambda o: o.append(dict(o[0])), ["observations[0]"]),
     (lambda o: o[0].update(view="nope.jpg"), ["nope.jpg"]),
+    (lambda o: o[0].update(source="sift", method="homography", face="left", ecc=1.5), ["ecc", "1.5"]),
 ]
 
 

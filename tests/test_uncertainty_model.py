@@ -149,6 +149,70 @@ def test_intervals_cover_a_shared_affine_misfit():
     assert rms_without > 1.5 * rms_with
 
 
+def test_a_face_takes_its_misfit_from_its_ecc_correlation():
+    """A face aligned by ECC without matches of its own (no alignment loading) shares a misfit of
+    ``ECC_MISFIT_PX (1 - ecc)`` px per mode, at least ``face_sigma_px``: every face at ecc 0.95 gives the
+    intervals of ``face_sigma_px`` = 0.5 exactly; at 0.995 the floor's; a face's ecc widens its own carriage
+    most. Monte Carlo: faces with misfits of 0.15-0.66 px per mode drawn from their ecc are covered (RMS of error
+    over sigma near 1), and too narrow when the ecc is not given (the fixed 0.15 px)."""
+    from workbench.solve.uncertainty import ECC_MISFIT_PX, face_misfit_px
+
+    np.testing.assert_allclose(face_misfit_px(np.array([0.95, 0.999, np.nan]), 0.15),
+                               [ECC_MISFIT_PX * 0.05, 0.15, 0.15])
+
+    def faces(eccs):
+        sim = simulate_consist(3, seed=6, pixel_sigma_px=0.5)
+        for k, e in enumerate(eccs):
+            _with(sim, k, lambda v, obs, clean, e=e: [Observation(n, *uv, group="left", ecc=e)
+                                                      for n, uv in obs.items()])
+        return sim
+
+    sim = faces([0.95] * 3)
+    at_ecc = _sigma_position(sim, SolveOptions(pixel_sigma_px=0.5, face_sigma_px=0.15))
+    fixed = _sigma_position(sim, SolveOptions(pixel_sigma_px=0.5, face_sigma_px=0.05 * ECC_MISFIT_PX))
+    np.testing.assert_allclose(at_ecc, fixed, rtol=1e-6)
+    floor = _sigma_position(faces([0.995] * 3), SolveOptions(pixel_sigma_px=0.5, face_sigma_px=0.4))  # 0.4 > 0.05
+    one_px = 1.0 - 1.0 / ECC_MISFIT_PX  # the ecc of a face with 1 px of misfit per mode
+    mixed = _sigma_position(faces([0.995, 0.995, one_px]), SolveOptions(pixel_sigma_px=0.5, face_sigma_px=0.4))
+    ratio = mixed / floor
+    assert np.all(ratio[2] > 1.2)  # 1 px of misfit on car 2's face
+    assert np.all(ratio[1] < ratio[2]) and np.all(ratio >= 1.0 - 1e-9)  # its neighbour along the chain, less
+    np.testing.assert_allclose(mixed[0], floor[0], rtol=0.02)  # the far car hardly
+
+    sig = 0.3
+    z_with, z_without = [], []
+    for trial in range(12):
+        sim = simulate_consist(3, seed=800 + trial, pixel_sigma_px=0.0)
+        rng = np.random.default_rng(40 + trial)
+        for k in range(3):
+            ecc = float(rng.choice([0.98, 0.95, 0.92, 0.89]))
+            a = rng.normal(0.0, ECC_MISFIT_PX * (1.0 - ecc), 6)
+
+            def misfit(v, obs, clean, a=a, ecc=ecc):
+                uv = np.array([clean[n] for n in obs])
+                d = uv - uv.mean(0)
+                s = np.sqrt(np.mean(d**2, axis=0))
+                shift = a[:2] + np.column_stack([d @ (a[2:4] / s), d @ (a[4:6] / s)])
+                noisy = uv + shift + rng.normal(0.0, sig, uv.shape)
+                return [Observation(n, *p, group="side", ecc=ecc) for n, p in zip(obs, noisy)]
+
+            _with(sim, k, misfit)
+        for given, out in ((True, z_with), (False, z_without)):
+            if not given:
+                for c in sim.carriages:
+                    c.observations = {v: [Observation(o.point, o.u, o.v, group=o.group) for o in obs]
+                                      for v, obs in c.observations.items()}
+            res = solve_consist(sim.carriages, sim.links, sim.views,
+                                SolveOptions(pixel_sigma_px=sig, face_sigma_px=0.15, prior_dof=1e6), terrain=None)
+            for c, ci, M in zip(res.carriages, sim.carriages, sim.truth):
+                truth = M[:3, :3] @ [0.0, 0.0, ci.carriage_type.height_m / 2] + M[:3, 3]
+                out.extend((np.asarray(c.body_centre_m) - truth) / np.asarray(c.sigma_body_centre_m))
+    rms_with, rms_without = float(np.sqrt(np.mean(np.square(z_with)))), float(np.sqrt(np.mean(np.square(z_without))))
+    assert len(z_with) == 12 * 3 * 3
+    assert 0.7 < rms_with < 1.35, rms_with
+    assert rms_without > 1.4 * rms_with, (rms_without, rms_with)
+
+
 def test_crb_takes_the_estimators_weighting():
     """``crb(weighting=...)``: with equal point counts both weightings give the same (the bound); with unequal
     counts the per-point bound (maximum likelihood) lies below the per-carriage estimator's sandwich covariance,

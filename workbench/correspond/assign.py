@@ -55,6 +55,7 @@ class PointObservation:
     # a homography point's loading (2, 8): its share of the face alignment's error (alignment.py), px on disk
     loading: np.ndarray | None = None
     n_matches: int = 0  # the matches the face's homography rests on (with a loading)
+    ecc: float | None = None  # a "homography" point's face alignment's ECC correlation (None: not refined)
 
 
 POSE_LATTICE = (13, 5)  # a face aligned by ECC gives its pose through this lattice (along, across) of its matched part
@@ -363,7 +364,7 @@ def observations_of(found: list[CarInPhoto], photo: PhotoFeatures, types: dict[s
                 best[(c.number, n)] = PointObservation(c.number, n, photo.name, (float(p[0]), float(p[1])),
                                                        round(conf, 3), round(sigma, 2), det.ref.face, "homography",
                                                        None if cov is None else cov.loading_px[i],
-                                                       0 if cov is None else cov.n_matches)
+                                                       0 if cov is None else cov.n_matches, det.ecc)
         if not pose_points or c.cam_from_carriage is None or (hi - lo) < (0.5 + 2 * EXTRAPOLATE) * w_ref:
             continue  # a pose from a short stretch of one face is too weak to place the car's other points
         M = c.cam_from_carriage

@@ -445,7 +445,8 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
                 loading_px=[[round(float(x), 5) for x in row] for row in o.loading], n_matches=o.n_matches)
             obs.append(mf.Observation(carriage=o.carriage, point=o.point, view=o.view, uv=o.uv, source="sift",
                                       confidence=o.confidence, sigma_px=o.sigma_px, method=o.how,
-                                      face=o.face, alignment=al))
+                                      face=o.face, alignment=al,
+                                      ecc=None if o.ecc is None else round(float(o.ecc), 4)))
     needs = [{"carriage": n, "reason": "reference has no texture (too few features on every face); pick its "
                                        "points by hand"} for n in untextured]
     seen = {o.carriage for o in obs}

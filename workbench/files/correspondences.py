@@ -135,6 +135,9 @@ class Observation(BaseModel):
     construction: Construction | None = None
     # a "homography" point's share of its face alignment's error, when the face had matches of its own
     alignment: Alignment | None = None
+    # a "homography" point's face alignment's ECC correlation coefficient (the dense alignment of the face's
+    # reference to the photo): how well the face's painted reference matches what the photo shows there
+    ecc: StrictFloat | None = Field(None, ge=-1.0, le=1.0, allow_inf_nan=False)
 
     @field_validator("uv")
     @classmethod
@@ -147,6 +150,9 @@ class Observation(BaseModel):
     def _aligned(self):
         if self.alignment is not None and self.method != "homography":
             raise ValueError(f"an alignment is recorded for method 'homography' points only (method = {self.method!r})")
+        if self.ecc is not None and self.method != "homography":
+            raise ValueError(f"an ECC correlation is recorded for method 'homography' points only (method = "
+                             f"{self.method!r})")
         return self
 
     @model_validator(mode="after")
@@ -179,6 +185,8 @@ class Observation(BaseModel):
             d["construction"] = self.construction.to_json()
         if self.alignment is not None:
             d["alignment"] = self.alignment.to_json()
+        if self.ecc is not None:
+            d["ecc"] = round(float(self.ecc), 4)
         return d
 
 

@@ -275,8 +275,12 @@ def interval_scope(solution: dict, solver: Any, dem_accuracy_m: float | None) ->
         inc.append(f"each automatically matched face's alignment error, from its own matches and shared by the "
                    f"photos it is aligned in ({n_aligned} points)")
     if by_source.get("sift") and face is not None and float(face) > 0 and int(by_source["sift"]) > n_aligned:
+        big = solution.get("face_misfit_max_px")
+        wider = f"; up to {_f(big, 2)} px where a face's reference matched the photo less closely, from its " \
+                f"alignment's correlation" if big is not None and not estimated and float(big) > float(face) + 5e-3 \
+            else ""
         inc.append(f"a misfit shared by each automatically matched face without its own alignment error "
-                   f"({_f(face, 2)} px, " + ("estimated from the residuals)" if estimated else "configured)"))
+                   f"({_f(face, 2)} px, " + ("estimated from the residuals)" if estimated else f"configured{wider})"))
     if solution.get("links"):
         inc.append(f"the couplers' play ({_f(100 * float(solver.slack_held_m), 0)} cm)")
     swung = [c for c in solution.get("carriages", []) if c.get("centre_curvature_m2") is not None]

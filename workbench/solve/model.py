@@ -37,6 +37,9 @@ class Observation:
     derived: bool = False
     # points sharing one systematic misfit (one face of a carriage, in every view): see face_sigma_px
     group: str | None = None
+    # the ECC correlation of the face alignment that placed the point (automatic points; None: none): a face
+    # without matches of its own takes its shared misfit from it (uncertainty.face_misfit_px)
+    ecc: float | None = None
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -209,6 +212,7 @@ class SolveResult:
     sigma_px_estimated: float = float("nan")  # the residuals' own (multi-view: where the cameras' errors do not act)
     sigma_px_camera: float = float("nan")  # the residuals' RMS (px) along the directions the cameras' errors fill
     face_sigma_px: float = 0.0  # the shared face misfit in the covariance (px)
+    face_misfit_max_px: float | None = None  # the largest face misfit taken from a face's ECC correlation (px)
     noise_estimated: bool = False  # sigma_px and face_sigma_px both estimated from the residuals
     dof: float = 0.0
     ci95_factor: float = 1.96

@@ -60,6 +60,16 @@ def _group(o: dict, method: str | None, where: str) -> str | None:
     return face
 
 
+def _ecc(o: dict, where: str) -> float | None:
+    """A measured automatic point's face alignment's ECC correlation, or None."""
+    ecc = o.get("ecc")
+    if ecc is None:
+        return None
+    if isinstance(ecc, bool) or not isinstance(ecc, (int, float)) or not -1.0 <= float(ecc) <= 1.0:
+        raise InputError(f"{where}: ecc = {ecc!r} must be a correlation coefficient in [-1, 1] (or left out)")
+    return float(ecc)
+
+
 def read_correspondences(project: Project, path: Path, views: list, panorama: Any = None) -> tuple[dict, dict]:
     """``({car number: {view name: {point: Observation}}}, stats)``; every bad item is an :class:`InputError`
     naming it. ``view == "panorama"`` pixels are mapped into their source photo with the panorama model."""
@@ -131,13 +141,15 @@ def read_correspondences(project: Project, path: Path, views: list, panorama: An
         # claims on one face are correlated through its homography, not independent evidence)
         sig_used = None if sig is None else max(sig, float(project.settings.solver.pixel_sigma_px))
         group = _group(o, method, where)
+        ecc = _ecc(o, where) if group is not None else None
         al = o.get("alignment")  # the face alignment's share of the point's error (checked by the format)
         if isinstance(al, dict) and group is not None:
-            ob = AlignedObservation(point, float(a[0]), float(a[1]), True, sig_used, False, group,
-                                    tuple(tuple(float(x) for x in row) for row in al["loading_px"]))
+            ob = AlignedObservation(point, float(a[0]), float(a[1]), True, sig_used, False, group, ecc,
+                                    loading=tuple(tuple(float(x) for x in row) for row in al["loading_px"]))
             n_aligned += 1
         else:
-            ob = Observation(point, float(a[0]), float(a[1]), True, sig_used, method in ("pose", "carried"), group)
+            ob = Observation(point, float(a[0]), float(a[1]), True, sig_used, method in ("pose", "carried"), group,
+                             ecc)
         out.setdefault(car, {}).setdefault(view, {})[point] = ob
         s = str(o.get("source", "manual"))
         sources[s] = sources.get(s, 0) + 1
@@ -669,7 +681,8 @@ def solution_document(project: Project, res: Any, views: list, cam_doc: dict, ob
         "views": [v.name for v in views], "focal_px": d.get("focal_px"), "sigma_focal_px": d.get("sigma_focal_px"),
         "sigma_px": d.get("sigma_px"), "sigma_px_estimated": d.get("sigma_px_estimated"),
         "sigma_px_camera": d.get("sigma_px_camera"), "dof": d.get("dof"),
-        "face_sigma_px": d.get("face_sigma_px"), "noise_estimated": d.get("noise_estimated"),
+        "face_sigma_px": d.get("face_sigma_px"), "face_misfit_max_px": d.get("face_misfit_max_px"),
+        "noise_estimated": d.get("noise_estimated"),
         "ci95_factor": d.get("ci95_factor"), "iterations": d.get("iterations"), "time_s": d.get("time_s"),
         "final_cost": d.get("final_cost"), "cost_at_minimum": d.get("cost_at_minimum"),
         "bias_correction": d.get("bias_correction") or {}, "carriages": cars_out, "links": d.get("links", []),

@@ -29,6 +29,15 @@ from .camera_residual import ViewCameraErrors, camera_directions, camera_shift_r
 from .variance_components import (FALLBACK_FACE_SIGMA_PX, VarianceComponents, estimate_variance_components,
                                   face_modes)
 
+# px of shared misfit (per affine mode) of a face aligned by ECC without matches of its own, per unit of 1 - its
+# ECC correlation. Measured against the truth on 91 such faces of the automatic route (seeds 237000-237067, 800 x
+# 600 photos; docs/calibration.md, "Session 23"), the points' own noise taken out: 0.12 px at 1 - ecc = 0.014,
+# 0.25 at 0.024, 0.45 at 0.036, 0.74 at 0.058 (10 by the moments). The model shares a face's misfit across its
+# photos in full, which carries it to the poses more than that: 10 made those carriages' intervals too wide
+# (RMS of error over sigma 0.76-0.86 in east, north, up and heading), 4 too narrow in heading (1.16), 6 gave
+# 0.86-1.00 there (the same incidents)
+ECC_MISFIT_PX = 6.0
+
 
 def pixel_rows(prob, R, t, f, focal_views):
     """Weighted pixel Jacobian (2M, P) in free-pose parameters, the weighted residuals (2M,), each carriage's
@@ -133,6 +142,7 @@ class CovarianceModel:
     H_inv: np.ndarray
     undetermined: np.ndarray | None = None
     face_sigma: float = 0.0  # the faces' shared misfit used (px per affine mode)
+    face_misfit_max: float = math.nan  # the largest of the faces' own misfits from their ECC (face_misfit_px)
     components: VarianceComponents | None = None  # when both were estimated from the residuals
     camera_px: float = math.nan  # the residuals' RMS (px) along the directions the multi-view cameras' errors fill
 
@@ -236,19 +246,28 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     H, Hi = assemble(sigma)
     G = Gp_unit / sigma**2 + Hprior
     misfit_groups = np.where(block >= 0, -1, groups)  # an aligned point's face error is its alignment's
+    face_max = math.nan
     if vc is not None and vc.face_sigmas_px:  # each face its own misfit
         G = G + _shared_misfit(J * rho[:, None], groups, views, uv_obs, w_row,
                                np.square(vc.face_sigmas_px)) / sigma**4
     elif face_sigma > 0:
-        G = G + face_sigma**2 / sigma**4 * _shared_misfit(J * rho[:, None], misfit_groups, views, uv_obs, w_row)
+        ecc = getattr(prob, "ecc", None)
+        ecc = np.full(len(prob.P), np.nan) if ecc is None or len(ecc) != len(prob.P) else ecc
+        ecc = ecc[meas] if meas is not None and len(meas) == len(prob.P) and not meas.all() else ecc
+        tau = face_misfit_px(ecc, face_sigma)
+        face_max = float(tau[misfit_groups >= 0].max()) if (misfit_groups >= 0).any() else math.nan
+        scale = [float(np.mean(tau[misfit_groups == g] ** 2)) / face_sigma**2
+                 for g in np.unique(misfit_groups[misfit_groups >= 0])]
+        G = G + face_sigma**2 / sigma**4 * _shared_misfit(J * rho[:, None], misfit_groups, views, uv_obs, w_row,
+                                                          scale)
     if (block >= 0).any():
         G = G + alignment_term(J * rho[:, None], block, loading, w_row, pose and pose.contrib) / sigma**4
     cov = Hi @ G @ Hi
     cov = 0.5 * (cov + cov.T)
     camera_px = math.nan if cam_dirs is None or not cam_dirs.shape[1] else \
         math.sqrt(float(np.sum((cam_dirs.T @ r) ** 2)) / (float(np.sum(w2)) * cam_dirs.shape[1] / (2.0 * M)))
-    return CovarianceModel(cov, col, sigma, sigma_hat, dof, q, P, Hi, undetermined_parameters(H), face_sigma, vc,
-                           camera_px)
+    return CovarianceModel(cov, col, sigma, sigma_hat, dof, q, P, Hi, undetermined_parameters(H), face_sigma,
+                           face_max, vc, camera_px)
 
 
 def _pooled_sigma(r, w2, M, Hp_unit, Hprior, sigma_cfg, prior_dof, assemble, camera_dirs=None
@@ -274,6 +293,14 @@ def _pooled_sigma(r, w2, M, Hp_unit, Hprior, sigma_cfg, prior_dof, assemble, cam
             else sigma_cfg**2
         sig = max(math.sqrt(s2), 0.1 * sigma_cfg)
     return sig, sigma_hat, dof
+
+
+def face_misfit_px(ecc: np.ndarray, floor_px: float) -> np.ndarray:
+    """The misfit (px per affine mode, :func:`_shared_misfit`) shared by the points of a face aligned without
+    matches of its own (ECC from a predicted pose), from its ECC correlation ``ecc`` (NaN: unknown, the floor):
+    :data:`ECC_MISFIT_PX` times ``1 - ecc``, at least ``floor_px`` (``solver.face_sigma_px``)."""
+    ecc = np.asarray(ecc, dtype=float)
+    return np.where(np.isfinite(ecc), np.maximum(floor_px, ECC_MISFIT_PX * (1.0 - ecc)), floor_px)
 
 
 def _shared_misfit(J: np.ndarray, groups: np.ndarray, views: np.ndarray, uv: np.ndarray,
@@ -410,6 +437,7 @@ def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Cha
     res.sigma_px_estimated = model.sigma_hat
     res.sigma_px_camera = model.camera_px
     res.face_sigma_px = model.face_sigma
+    res.face_misfit_max_px = None if math.isnan(model.face_misfit_max) else model.face_misfit_max
     res.noise_estimated = model.components is not None
     res.dof = model.dof
     res.ci95_factor = q
