@@ -51,3 +51,15 @@ def calibration_note(solution: dict) -> str:
     if (solution.get("frame") or {}).get("kind") == "relative":
         return CALIBRATION["relative_focal" if solution.get("sigma_focal_px") else "relative"]
     return CALIBRATION["hand_focal" if solution.get("sigma_focal_px") else "hand_known"]
+
+
+def face_misfit_phrase(face_px: float, largest_px: float | None, estimated: bool) -> str:
+    """What the ± include for the automatic faces without an alignment error of their own: their shared misfit
+    ``face_px`` (estimated or configured), and, when a face's ECC correlation gave more, the largest
+    (``face_misfit_max_px`` of solution.json; docs/calibration.md, "Session 23")."""
+    how = "estimated from the residuals" if estimated else "configured"
+    if not estimated and largest_px is not None and float(largest_px) > face_px + 5e-3:
+        how += (f"; up to {float(largest_px):.2f} px where a face's reference matched the photo less closely, from "
+                f"its alignment's correlation")
+    return (f"a misfit shared by each automatically matched face without its own alignment error ({face_px:.2f} px, "
+            f"{how})")

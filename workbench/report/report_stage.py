@@ -35,7 +35,7 @@ from ..files.solution import doubts_of
 from ..project import Project
 from .beside import load_pdf_engine, run_beside
 from .scene import car_color
-from .calibration_notes import calibration_note
+from .calibration_notes import calibration_note, face_misfit_phrase
 from .track_table import track_table
 
 log = logging.getLogger(__name__)
@@ -275,12 +275,7 @@ def interval_scope(solution: dict, solver: Any, dem_accuracy_m: float | None) ->
         inc.append(f"each automatically matched face's alignment error, from its own matches and shared by the "
                    f"photos it is aligned in ({n_aligned} points)")
     if by_source.get("sift") and face is not None and float(face) > 0 and int(by_source["sift"]) > n_aligned:
-        big = solution.get("face_misfit_max_px")
-        wider = f"; up to {_f(big, 2)} px where a face's reference matched the photo less closely, from its " \
-                f"alignment's correlation" if big is not None and not estimated and float(big) > float(face) + 5e-3 \
-            else ""
-        inc.append(f"a misfit shared by each automatically matched face without its own alignment error "
-                   f"({_f(face, 2)} px, " + ("estimated from the residuals)" if estimated else f"configured{wider})"))
+        inc.append(face_misfit_phrase(float(face), solution.get("face_misfit_max_px"), estimated))
     if solution.get("links"):
         inc.append(f"the couplers' play ({_f(100 * float(solver.slack_held_m), 0)} cm)")
     swung = [c for c in solution.get("carriages", []) if c.get("centre_curvature_m2") is not None]
