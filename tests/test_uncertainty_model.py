@@ -17,6 +17,14 @@ def _with(sim, car: int, make) -> None:
     c.observations = {v: make(v, dict(obs), sim.clean_pixels[car]) for v, obs in c.observations.items()}
 
 
+def _affine_shift(uv: np.ndarray, a: np.ndarray) -> np.ndarray:
+    """The common affine displacement (n, 2) of the points ``uv`` (n, 2) with the coefficients ``a`` (6,) of the
+    solve's six modes (two shifts; u and v, each over its RMS spread, in u and in v)."""
+    d = uv - uv.mean(0)
+    s = np.sqrt(np.mean(d**2, axis=0))
+    return a[:2] + np.column_stack([d @ (a[2:4] / s), d @ (a[4:6] / s)])
+
+
 def _sigma_position(sim, opts: SolveOptions) -> np.ndarray:
     res = solve_consist(sim.carriages, sim.links, sim.views, opts, terrain=None)
     assert res.status == "converged"
@@ -128,9 +136,7 @@ def test_intervals_cover_a_shared_affine_misfit():
 
             def misfit(v, obs, clean, a=a):
                 uv = np.array([clean[n] for n in obs])
-                d = uv - uv.mean(0)
-                s = np.sqrt(np.mean(d**2, axis=0))
-                shift = a[:2] + np.column_stack([d @ (a[2:4] / s), d @ (a[4:6] / s)])
+                shift = _affine_shift(uv, a)
                 noisy = uv + shift + rng.normal(0.0, sig, uv.shape)
                 return [Observation(n, *p, group="side") for n, p in zip(obs, noisy)]
 
@@ -190,9 +196,7 @@ def test_a_face_takes_its_misfit_from_its_ecc_correlation():
 
             def misfit(v, obs, clean, a=a, ecc=ecc):
                 uv = np.array([clean[n] for n in obs])
-                d = uv - uv.mean(0)
-                s = np.sqrt(np.mean(d**2, axis=0))
-                shift = a[:2] + np.column_stack([d @ (a[2:4] / s), d @ (a[4:6] / s)])
+                shift = _affine_shift(uv, a)
                 noisy = uv + shift + rng.normal(0.0, sig, uv.shape)
                 return [Observation(n, *p, group="side", ecc=ecc) for n, p in zip(obs, noisy)]
 
@@ -326,9 +330,7 @@ def test_estimated_components_calibrate_a_shared_affine_misfit():
 
             def misfit(v, obs, clean, a=a, k=k):
                 uv = np.array([clean[n] for n in obs])
-                d = uv - uv.mean(0)
-                s = np.sqrt(np.mean(d**2, axis=0))
-                shift = a[:2] + np.column_stack([d @ (a[2:4] / s), d @ (a[4:6] / s)])
+                shift = _affine_shift(uv, a)
                 noisy = uv + shift + rng.normal(0.0, sig, uv.shape)
                 return [Observation(n, *p, group=f"car{k}") for n, p in zip(obs, noisy)]
 
