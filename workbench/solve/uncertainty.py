@@ -185,6 +185,9 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         groups = np.full(len(prob.P), -1)
     block = getattr(prob, "block", None)
     loading = getattr(prob, "loading", None)
+    ecc = getattr(prob, "ecc", None)  # each point's face alignment's ECC correlation (face_misfit_px), NaN: none
+    if ecc is None or len(ecc) != len(prob.P):
+        ecc = np.full(len(prob.P), np.nan)
     if not use_alignments or block is None or len(block) != len(prob.P) or sigma_fixed is not None \
             or face_sigma is None:
         block, loading = np.full(len(prob.P), -1), np.zeros((len(prob.P), 2, 8))
@@ -199,7 +202,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         J, r = J[keep], r[keep]
         D = D[keep] if D is not None else None
         groups, uv_obs, w_row, views = groups[meas], uv_obs[meas], w_row[meas], views[meas]
-        block, loading = block[meas], loading[meas]
+        block, loading, ecc = block[meas], loading[meas], ecc[meas]
         w2 = np.repeat(prob.w_noise[meas] ** 2, 2)
         M = int(meas.sum())
     else:
@@ -251,10 +254,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         G = G + _shared_misfit(J * rho[:, None], groups, views, uv_obs, w_row,
                                np.square(vc.face_sigmas_px)) / sigma**4
     elif face_sigma > 0:
-        ecc = getattr(prob, "ecc", None)
-        ecc = np.full(len(prob.P), np.nan) if ecc is None or len(ecc) != len(prob.P) else ecc
-        ecc = ecc[meas] if meas is not None and len(meas) == len(prob.P) and not meas.all() else ecc
-        tau = face_misfit_px(ecc, face_sigma)
+        tau = face_misfit_px(ecc, face_sigma)  # each face's misfit: the mean square over its photos' points
         face_max = float(tau[misfit_groups >= 0].max()) if (misfit_groups >= 0).any() else math.nan
         scale = [float(np.mean(tau[misfit_groups == g] ** 2)) / face_sigma**2
                  for g in np.unique(misfit_groups[misfit_groups >= 0])]
