@@ -2,8 +2,10 @@
 
 Parameters: per carriage a scene-frame rotation vector and the origin (6), plus each estimated focal (px).
 Held couplings enter as the soft prior ``T ~ N(0, (slack / sqrt 5)^2 I)`` (not the solver's hard bound), the
-weighting through the sandwich ``H^-1 G H^-1``, pose predictions with their face alignment's error (the others not
-at all), a face's shared misfit in ``G``; the pixel sigma is pooled with the configured one. Each carriage's
+weighting through the sandwich ``H^-1 G H^-1`` (``H`` the information of the cost the solver minimises, pixels at the
+configured sigma against the priors; ``G`` the gradient's covariance, the pixels' noise at the pixel sigma pooled
+with the configured one), pose predictions with their face alignment's error (the others not at all), a face's
+shared misfit in ``G``. Each carriage's
 response to a camera motion (:func:`camera_responses`) for the camera term (:mod:`.camera_term`).
 ``docs/solver.md``.
 """
@@ -246,22 +248,27 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         sigma, sigma_hat, dof = _pooled_sigma(r, w2, M, Hp_unit, Hprior, sigma_cfg, prior_dof, assemble, cam_dirs)
         q = float(stdtrit(dof + prior_dof, 0.975)) if dof + prior_dof > 0 else 1.959963984540054
     Hp_unit = Hp_unit + (pose.info if pose is not None else 0.0)  # the fit's weights on the counted predictions
-    H, Hi = assemble(sigma)
-    G = Gp_unit / sigma**2 + Hprior
+    # the sandwich of the estimator the solve runs: its cost weighs the pixels at the configured sigma against the
+    # priors (the contact's scale, the couplers' prior_px), so H is that cost's information, and G the gradient's
+    # covariance with the pixels' noise at ``sigma``; where ``sigma`` is not the configured one, a cost that
+    # leans on a prior more (or less) than the noise would have it carries that prior's error to the poses
+    sw = sigma if sigma_fixed is not None else sigma_cfg
+    H, Hi = assemble(sw)
+    G = Gp_unit * (sigma**2 / sw**4) + Hprior
     misfit_groups = np.where(block >= 0, -1, groups)  # an aligned point's face error is its alignment's
     face_max = math.nan
     if vc is not None and vc.face_sigmas_px:  # each face its own misfit
         G = G + _shared_misfit(J * rho[:, None], groups, views, uv_obs, w_row,
-                               np.square(vc.face_sigmas_px)) / sigma**4
+                               np.square(vc.face_sigmas_px)) / sw**4
     elif face_sigma > 0:
         tau = face_misfit_px(ecc, face_sigma)  # each face's misfit: the mean square over its photos' points
         face_max = float(tau[misfit_groups >= 0].max()) if (misfit_groups >= 0).any() else math.nan
         scale = [float(np.mean(tau[misfit_groups == g] ** 2)) / face_sigma**2
                  for g in np.unique(misfit_groups[misfit_groups >= 0])]
-        G = G + face_sigma**2 / sigma**4 * _shared_misfit(J * rho[:, None], misfit_groups, views, uv_obs, w_row,
+        G = G + face_sigma**2 / sw**4 * _shared_misfit(J * rho[:, None], misfit_groups, views, uv_obs, w_row,
                                                           scale)
     if (block >= 0).any():
-        G = G + alignment_term(J * rho[:, None], block, loading, w_row, pose and pose.contrib) / sigma**4
+        G = G + alignment_term(J * rho[:, None], block, loading, w_row, pose and pose.contrib) / sw**4
     cov = Hi @ G @ Hi
     cov = 0.5 * (cov + cov.T)
     camera_px = math.nan if cam_dirs is None or not cam_dirs.shape[1] else \
