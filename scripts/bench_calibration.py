@@ -322,12 +322,45 @@ def perturb_control_points(path: Path, seed: int) -> None:
     path.write_text(json.dumps(doc, indent=1))
 
 
+DEM_NOISE_TAG = "bench_calibration_dem_error_m"  # the GeoTIFF tag that marks a DEM given its error (--dem-noise)
+
+
+def perturb_dem(root: Path, seed: int) -> None:
+    """Give the synthetic incident's DEM the vertical error it states (``terrain.dem_vertical_accuracy_m``):
+    :func:`workbench.synth.terrain.dem_error` added to the exact terrain the generator writes (under which a
+    terrain contact that believes the stated 0.25 m is far better held than it thinks). Once per file (a tag in
+    the GeoTIFF); written to a temporary file and renamed."""
+    import tomllib
+
+    import rasterio
+
+    from workbench.core.io import atomic_write
+    from workbench.synth.terrain import dem_error
+
+    terrain = tomllib.loads((root / "project.toml").read_text())["terrain"]
+    path, sd = root / terrain["dem"], float(terrain["dem_vertical_accuracy_m"])
+    with rasterio.open(path) as src:
+        if DEM_NOISE_TAG in src.tags():
+            return
+        z, profile, tags, res = src.read(1), src.profile, src.tags(), abs(src.res[0])
+    valid = z != profile.get("nodata")
+    z = np.where(valid, z + dem_error(np.random.default_rng([seed, 2]), z.shape, res, sd), z).astype(z.dtype)
+
+    def write(tmp: Path) -> None:
+        with rasterio.open(tmp, "w", **profile) as dst:
+            dst.write(z, 1)
+            dst.update_tags(**tags, **{DEM_NOISE_TAG: str(sd)})
+
+    atomic_write(path, write, suffix=".tif")
+
+
 def solve_incident(root: Path, seed: int, n_cars: int, width: int = 800, height: int = 600,
                    n_panorama: int | None = None, n_multiview: int = 0, resolve: bool = False,
-                   survey_noise: bool = False) -> dict:
+                   survey_noise: bool = False, dem_noise: bool = False) -> dict:
     """Generate one incident (``workbench synth``; kept when already generated), write its control points, run
     the pipeline up to ``solve`` (``resolve``: the solve stage again, the rest as it is); returns the solution and
-    the truth (both as JSON documents). ``survey_noise``: :func:`perturb_control_points`."""
+    the truth (both as JSON documents). ``survey_noise``: :func:`perturb_control_points`; ``dem_noise``:
+    :func:`perturb_dem` (before the pipeline: every stage sees the DEM with its error)."""
     from workbench import pipeline
     from workbench.project import Project
     from workbench.runner import Runner
@@ -339,6 +372,8 @@ def solve_incident(root: Path, seed: int, n_cars: int, width: int = 800, height:
     write_control_points(root)
     if survey_noise:
         perturb_control_points(root / "control_points.json", seed)
+    if dem_noise:
+        perturb_dem(root, seed)
     project = Project(root)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -412,7 +447,8 @@ def incident_records(problem: str, sol: dict, truth: dict, T_cam: np.ndarray | N
 
 
 def route_auto(n: int, seed0: int, log=print, work: Path | None = None, keep: bool = True,
-               resolve: bool = False, survey_noise: bool = False) -> tuple[list[dict], dict]:
+               resolve: bool = False, survey_noise: bool = False, dem_noise: bool = False
+               ) -> tuple[list[dict], dict]:
     """Incidents ``work/inc_<seed>`` (kept, so that ``resolve`` can solve them again after a change to the solve,
     without the 40-60 s of the earlier stages)."""
     work = work or REPO / "bench_out" / "calibration_auto"
@@ -426,7 +462,8 @@ def route_auto(n: int, seed0: int, log=print, work: Path | None = None, keep: bo
         root = work / f"inc_{seed}"
         t1 = time.perf_counter()
         try:
-            out = solve_incident(root, seed, n_cars, resolve=resolve, survey_noise=survey_noise)
+            out = solve_incident(root, seed, n_cars, resolve=resolve, survey_noise=survey_noise,
+                                 dem_noise=dem_noise)
         except Exception as e:  # noqa: BLE001 - a failed incident is counted and named, not fatal
             info["failed"].append({"seed": seed, "error": f"{type(e).__name__}: {str(e)[:300]}"})
             log(f"  seed {seed}: failed ({type(e).__name__}: {str(e)[:120]})")
@@ -796,6 +833,8 @@ def main(argv=None) -> int:
                     help="with --terrain: the terrain's stated accuracy (m; default SolveOptions' 0.10)")
     ap.add_argument("--survey-noise", action="store_true",
                     help="route auto: perturb the control points' coordinates by the sigma_m they state")
+    ap.add_argument("--dem-noise", action="store_true",
+                    help="route auto: give the DEM the vertical error it states (a smooth field, perturb_dem)")
     ap.add_argument("--no-keep", action="store_true", help="route auto: delete each incident once solved")
     ap.add_argument("--resolve", action="store_true", help="route auto: run the solve stage again on incidents "
                                                            "already there (after a change to the solve)")
@@ -843,7 +882,8 @@ def main(argv=None) -> int:
               "terrain_sigma_m": a.terrain_sigma, "routes": {}}
     for r in routes:
         print(f"route {r}: solving until {a.n} carriages ...", flush=True)
-        kw = {"work": a.work, "keep": not a.no_keep, "resolve": a.resolve, "survey_noise": a.survey_noise} \
+        kw = {"work": a.work, "keep": not a.no_keep, "resolve": a.resolve, "survey_noise": a.survey_noise,
+              "dem_noise": a.dem_noise} \
             if r == "auto" else {"pp_uniform": a.pp_uniform} if r.startswith("relative") else \
             {"work": a.work, "draws": a.draws, "sfm_noise": tuple(a.sfm_noise), "real_sfm": a.real_sfm,
              "max_incidents": a.real_sfm_incidents} \

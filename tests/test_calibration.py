@@ -182,3 +182,41 @@ def test_report_states_a_relative_scenes_intervals_and_their_calibration():
     s = interval_scope(sol, solver, None)
     assert not any("principal point" in x for x in s["included"])
     assert "relative incidents" in s["calibration"] and "a known focal" in s["calibration"]
+
+
+def test_a_dem_is_given_the_error_it_states(bench, tmp_path):
+    """``perturb_dem`` (``--dem-noise``): the incident's DEM gains a smooth error of the standard deviation its
+    ``dem_vertical_accuracy_m`` states (mean zero, neighbouring cells nearly equal, the nodata cells kept), once
+    (a second call leaves the file as it is); another seed draws another field."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    z = np.full((120, 150), 10.0, dtype=np.float32)
+    z[:5, :5] = -9999.0
+    profile = {"driver": "GTiff", "width": 150, "height": 120, "count": 1, "dtype": "float32", "crs": "EPSG:32618",
+               "transform": from_origin(590000.0, 4526000.0, 1.0, 1.0), "nodata": -9999.0}
+    for name in ("a", "b"):
+        (tmp_path / name / "layers").mkdir(parents=True)
+        with rasterio.open(tmp_path / name / "layers" / "dem.tif", "w", **profile) as dst:
+            dst.write(z, 1)
+        (tmp_path / name / "project.toml").write_text(
+            '[terrain]\ndem = "layers/dem.tif"\ndem_vertical_accuracy_m = 0.25\n')
+    bench.perturb_dem(tmp_path / "a", 5)
+    bench.perturb_dem(tmp_path / "b", 6)
+    with rasterio.open(tmp_path / "a" / "layers" / "dem.tif") as src:
+        za, tags = src.read(1).astype(float), src.tags()
+    assert tags[bench.DEM_NOISE_TAG] == "0.25"
+    assert np.all(za[:5, :5] == -9999.0)
+    e = za[5:, 5:] - 10.0
+    assert 0.2 < e.std() < 0.3 and abs(e.mean()) < 0.05
+    assert np.corrcoef(e[:, :-1].ravel(), e[:, 1:].ravel())[0, 1] > 0.95  # smooth: features of 30 m
+    before = (tmp_path / "a" / "layers" / "dem.tif").read_bytes()
+    bench.perturb_dem(tmp_path / "a", 5)
+    assert (tmp_path / "a" / "layers" / "dem.tif").read_bytes() == before
+    with rasterio.open(tmp_path / "b" / "layers" / "dem.tif") as src:
+        eb = src.read(1).astype(float)[5:, 5:] - 10.0
+    assert np.abs(eb - e).max() > 0.1
+    from workbench.synth.terrain import dem_error
+
+    with pytest.raises(ValueError, match="sd_m"):
+        dem_error(np.random.default_rng(0), (8, 8), 1.0, -0.1)

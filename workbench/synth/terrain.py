@@ -33,8 +33,8 @@ from shapely.geometry import Polygon
 from ..core.frames import SceneFrame
 from ..core.io import atomic_write
 
-__all__ = ["SynthTerrain", "make_terrain", "write_dem_geotiff", "scenario_frame", "SCENARIOS", "SCENARIO_SITES",
-           "TOP_OF_RAIL_ABOVE_BED_M", "RAIL_HALF_GAUGE_M"]
+__all__ = ["SynthTerrain", "make_terrain", "write_dem_geotiff", "dem_error", "scenario_frame", "SCENARIOS",
+           "SCENARIO_SITES", "TOP_OF_RAIL_ABOVE_BED_M", "RAIL_HALF_GAUGE_M"]
 
 #: Top of rail above the DEM surface of the ballast bed (rail 172 mm on sleepers flush with the ballast).
 TOP_OF_RAIL_ABOVE_BED_M = 0.2
@@ -190,6 +190,25 @@ def _value_noise(rng: np.random.Generator, shape: tuple[int, int], cell_px: floa
         out = cv2.resize(g, (w, h), interpolation=cv2.INTER_CUBIC)
     s = float(out.std()) or 1.0
     return (out / s).astype(np.float32)
+
+
+# feature size (m) of a DEM's vertical error in :func:`dem_error`: the generated terrain's own largest undulations
+DEM_ERROR_FEATURE_M = 30.0
+
+
+def dem_error(rng: np.random.Generator, shape: tuple[int, int], resolution_m: float, sd_m: float,
+              feature_m: float = DEM_ERROR_FEATURE_M) -> np.ndarray:
+    """A DEM's vertical error (``shape`` grid of ``resolution_m`` cells, float64 m): smooth noise with features of
+    ``feature_m`` (neighbouring carriages share much of it, as they share a real DEM's), its mean over the grid
+    zero and its standard deviation ``sd_m`` (the accuracy a DEM states). The generator writes the terrain it
+    rendered, exact; the calibration benchmark adds this to give a contact the error it believes."""
+    if not (sd_m >= 0 and resolution_m > 0 and feature_m > 0):
+        raise ValueError(f"sd_m={sd_m}, resolution_m={resolution_m}, feature_m={feature_m}: need sd_m >= 0 and "
+                         "positive sizes")
+    e = _value_noise(rng, shape, feature_m / resolution_m).astype(np.float64)
+    e -= e.mean()
+    s = float(e.std())
+    return e * (sd_m / s) if s > 0 else e
 
 
 def _smoothstep(t: np.ndarray) -> np.ndarray:
