@@ -42,7 +42,7 @@ from ..rolling_stock import load_library
 from ..terrain.extrude import building_meshes
 from .buildings import make_buildings
 from .control_points import PIXEL_SIGMA_PX, write_control_points
-from .layout import lay_consist
+from .layout import HELD_OFFSET_MAX_M, lay_consist
 from .scenarios import SCENARIOS, plan_consist
 from .terrain import make_terrain, write_dem_geotiff
 from .track import carriage_track_truth, write_track_layer
@@ -475,6 +475,9 @@ def _write_settings(root: Path, settings_path: Path, scn, opts: SynthOptions, la
         # the control points this generator writes (write_control_points) are the true pixels plus this noise:
         # stated, so that the georegistration's covariance is that of the picks it fits
         "georef": {"pick_sigma_px": PIXEL_SIGMA_PX},
+        # the couplers' play the layout drew the held couplings' offsets from: stated, so that the solve's coupler
+        # prior is the generator's (the default, 5 cm, made its intervals wider than the truth's 3 cm warrants)
+        "solver": {"slack_held_m": HELD_OFFSET_MAX_M},
     }
     parse_settings(settings, str(settings_path))  # what we write must validate
     header = ("# Incident settings written by `workbench synth` (see docs/formats.md).\n"

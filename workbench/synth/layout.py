@@ -144,10 +144,16 @@ def _settle_pinned(contact: _Contact, heading: float, roll: float, pin: np.ndarr
     return pose(lo)
 
 
+# the couplers' play (m): a held coupling's offset is drawn uniformly in the ball of this radius, the distribution
+# the solver's coupler prior stands for (``solver.slack_held_m``; the generator states it in project.toml)
+HELD_OFFSET_MAX_M = 0.03
+
+
 def lay_consist(plans: list[CarPlan], terrain, track_enu: np.ndarray, *, front_s_m: float, lateral_m: float,
-                rng: np.random.Generator, held_offset_max_m: float = 0.03) -> list[PlacedCar]:
+                rng: np.random.Generator, held_offset_max_m: float = HELD_OFFSET_MAX_M) -> list[PlacedCar]:
     """Place the consist. ``front_s_m``: arc length along the track where the front car came to rest;
-    ``lateral_m``: its sideways displacement from the track (positive: left of the direction of travel)."""
+    ``lateral_m``: its sideways displacement from the track (positive: left of the direction of travel);
+    ``held_offset_max_m``: the couplers' play (a held coupling's offset uniform in the ball of that radius)."""
     track = np.asarray(track_enu, float)
     seg = np.diff(track[:, :2], axis=0)
     s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(seg, axis=1))])
@@ -195,7 +201,7 @@ def lay_consist(plans: list[CarPlan], terrain, track_enu: np.ndarray, *, front_s
                 prev_rear = prev.world_from_carriage.apply(prev.ctype.coupler_rear)
                 if held:
                     off = rng.normal(size=3)
-                    offset = off / np.linalg.norm(off) * rng.uniform(0.0, held_offset_max_m)
+                    offset = off / np.linalg.norm(off) * held_offset_max_m * rng.uniform() ** (1.0 / 3.0)
                     pose = _settle_pinned(contact, heading, roll, prev_rear + offset, np.asarray(ct.coupler_front))
                     if pose is None:
                         notes.append(f"attempt {attempt}: could not hang from the coupler at jackknife {jk:.0f} deg, "
