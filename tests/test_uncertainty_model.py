@@ -222,7 +222,7 @@ def test_intervals_are_the_estimators_when_the_pixels_are_better_than_configured
     as it states. The solver's cost weighs the pixels at 1 px against the contact, so it leans on the DEM more
     than 0.1 px picks would have it: the intervals are those of that estimator (the sandwich at the configured
     weights), and the body centres' errors over their sigmas have an RMS near 1. (The information at the
-    estimated 0.1 px, the former model, gave 1.30-1.36: too narrow.)"""
+    estimated 0.1 px, the former model, gave 1.38 on these 160: too narrow.)"""
     from workbench.solve.simulate import dem_with_error
 
     z = []
