@@ -710,6 +710,10 @@ def mv_draw(root: Path, draw_seed: int, sigma_px: float, cp_sigma_px: float = 0.
     random similarity; ``sfm_noise`` (deg, m): each SfM pose disturbed, :func:`_sfm_noisy`), hand picks (true
     pixels + N(0, ``sigma_px``)), then the georef and solve stages.
     Returns the solution, the truth and the cameras (JSON documents)."""
+    import tomllib
+
+    import tomli_w
+
     from workbench.core.io import atomic_write_json
     from workbench.georef.stage import run_georef
     from workbench.project import Project
@@ -735,8 +739,9 @@ def mv_draw(root: Path, draw_seed: int, sigma_px: float, cp_sigma_px: float = 0.
         rec = _sfm_noisy(rec, scale, rng, *sfm_noise)
     atomic_write_json(root / "out" / "sfm" / "reconstruction.json", rec)
     write_true_correspondences(root, "multiview", sigma_px=sigma_px, seed=draw_seed)
-    t = (root / "project.toml").read_text().split("\n[solver]")[0]
-    (root / "project.toml").write_text(t + f"\n[solver]\npixel_sigma_px = {sigma_px}\n")
+    settings = tomllib.loads((root / "project.toml").read_text())  # the generator's [solver] keys kept
+    settings.setdefault("solver", {})["pixel_sigma_px"] = sigma_px
+    (root / "project.toml").write_text(tomli_w.dumps(settings))
     project = Project(root)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")

@@ -19,6 +19,20 @@ SMALL_INCIDENT_OPTIONS = dict(scenario="spuyten-duyvil", seed=1, n_cars=4, photo
                               n_panorama=4, n_multiview=8, supersample=1, layers_dir="../../terrain/bronx")
 
 
+def with_solver_lines(text: str, *lines: str) -> str:
+    """A project.toml's ``text`` with the TOML ``lines`` (``key = value``) first in its ``[solver]`` table, in
+    place of the same keys there (the generator writes one: the couplers' play it drew from), or with that table
+    added where there is none."""
+    new = "".join(f"{ln}\n" for ln in lines)
+    if "\n[solver]\n" not in "\n" + text:
+        return text + "\n[solver]\n" + new
+    head, rest = text.split("[solver]\n", 1)
+    table, sep, tail = rest.partition("\n[")
+    keys = {ln.split("=")[0].strip() for ln in lines}
+    kept = [ln for ln in table.split("\n") if ln.split("=")[0].strip() not in keys]
+    return head + "[solver]\n" + new + "\n".join(kept) + sep + tail
+
+
 def built_once(tmp_path_factory, name: str, build) -> Path:
     """The folder ``name`` that ``build(folder)`` fills, built once for the whole test run: with pytest-xdist every
     worker is its own session, so the workers share the run's temporary folder (the parent of each worker's), and

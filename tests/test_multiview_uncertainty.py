@@ -15,6 +15,8 @@ import warnings
 import numpy as np
 import pytest
 
+from conftest import with_solver_lines
+
 from workbench.core.camera import look_at, project_world
 from workbench.core.geometry import exp_so3, log_so3
 from workbench.georef.similarity import SimilarityResult
@@ -219,9 +221,10 @@ def multiview_incident(small_incident, tmp_path_factory):
     shutil.copytree(src.parent.parent, base, dirs_exist_ok=True, ignore=shutil.ignore_patterns("out"))
     root = base / "projects" / src.name
     t = (root / "project.toml").read_text()
-    (root / "project.toml").write_text(t.replace('source = "calibrated"', 'source = "sfm"')
-                                       .replace('photos = "photos/panorama"', 'photos = "photos/multiview"')
-                                       + "\n[solver]\npixel_sigma_px = 0.5\n")
+    (root / "project.toml").write_text(with_solver_lines(t.replace('source = "calibrated"', 'source = "sfm"')
+                                                         .replace('photos = "photos/panorama"',
+                                                                  'photos = "photos/multiview"'),
+                                                         "pixel_sigma_px = 0.5"))
     cp = json.loads((root / "control_points.json").read_text())
     rng = np.random.default_rng(7)
     for p in cp["points"]:

@@ -11,6 +11,8 @@ import time
 import numpy as np
 import pytest
 
+from conftest import with_solver_lines
+
 from workbench.core.frames import SceneFrame, rotation_from_hpr
 from workbench.core.geometry import exp_so3
 from workbench.core.track import RailwayLine, centre_heading_covariance, reference_line, track_position, wrap_deg
@@ -452,9 +454,9 @@ def test_a_carriage_on_the_rails_keeps_to_the_line(solved, tmp_path):
     text = (root / "project.toml").read_text()
     text = text.replace(f'railways = "{project.settings.terrain.railways}"', 'railways = "kept.geojson"')
     entry = next(ln for ln in text.splitlines() if f'number = "{car["number"]}"' in ln)
-    assert "[solver]" not in text and entry.endswith("},")
-    (root / "project.toml").write_text(text.replace(entry, entry[:-2] + ', on_track = true },') +
-                                       "\n[solver]\ntrack_sigma_m = 0.05\n")
+    assert entry.endswith("},")
+    (root / "project.toml").write_text(with_solver_lines(text.replace(entry, entry[:-2] + ', on_track = true },'),
+                                                         "track_sigma_m = 0.05"))
     p = Project(root)
     assert stage("solve").inputs(p)["railways"] == root / "kept.geojson"
     line = p.railways(heights=False).lines[0]

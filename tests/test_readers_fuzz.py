@@ -222,19 +222,20 @@ def test_settings_refuse_strings_nan_and_infinity(docs):
     """Silently accepted before: strings for numbers and booleans, NaN and infinity (issue 20)."""
     from workbench.core.settings import load_settings
 
+    from conftest import with_solver_lines
+
     text = (docs["root"] / "project.toml").read_text()
-    assert "[solver]" not in text
     path = docs["root"] / "strict_project.toml"
     for line, needle in [('pixel_sigma_px = "1.5"', "solver.pixel_sigma_px"),
                          ('estimate_focal = "yes"', "solver.estimate_focal"),
                          ("pixel_sigma_px = nan", "solver.pixel_sigma_px"),
                          ("slack_held_m = inf", "solver.slack_held_m"),
                          ("max_iterations = 20.5", "solver.max_iterations")]:
-        path.write_text(text + f"\n[solver]\n{line}\n")
+        path.write_text(with_solver_lines(text, line))
         with pytest.raises(WorkbenchError, match=needle.replace(".", r"\.")) as err:
             load_settings(path)
         assert str(path) in str(err.value)
-    path.write_text(text + "\n[solver]\npixel_sigma_px = 2\n")  # an integer is a number
+    path.write_text(with_solver_lines(text, "pixel_sigma_px = 2"))  # an integer is a number
     assert load_settings(path).solver.pixel_sigma_px == 2.0
 
 

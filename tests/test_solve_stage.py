@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import hand_picked_incident
+from conftest import hand_picked_incident, with_solver_lines
 
 from workbench.errors import InputError, WorkbenchError
 from workbench.pipeline import STAGES
@@ -148,7 +148,7 @@ def test_not_converged_keeps_the_previous_solution(incident, tmp_path, monkeypat
     root = _copy_with_corr(incident, tmp_path, lambda o: None, with_out=True)
     Runner(Project(root), STAGES).run(until="solve")
     good = (root / "out" / "solve" / "solution.json").read_bytes()
-    text = (root / "project.toml").read_text().replace("[camera]", "[solver]\nmax_iterations = 1\n\n[camera]", 1)
+    text = with_solver_lines((root / "project.toml").read_text(), "max_iterations = 1")
     (root / "project.toml").write_text(text)
     with pytest.raises(WorkbenchError) as exc:
         Runner(Project(root), STAGES).run(until="solve")
@@ -222,8 +222,8 @@ def test_solution_records_the_bias_correction(incident, tmp_path):
     root = tmp_path / "inc"
     shutil.copytree(incident, root)  # with its outputs: the setting makes the solve alone stale
     text = (root / "project.toml").read_text()
-    assert "[solver]" not in text
-    (root / "project.toml").write_text(text.replace("[camera]", "[solver]\nbias_correction = false\n\n[camera]", 1))
+    assert "bias_correction" not in text
+    (root / "project.toml").write_text(with_solver_lines(text, "bias_correction = false"))
     Runner(Project(root), STAGES).run(until="solve")
     off = json.loads((root / "out" / "solve" / "solution.json").read_text())
     assert off["bias_correction"] == {} and "5_bias_correction" not in [s["name"] for s in off["steps"]]
