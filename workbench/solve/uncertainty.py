@@ -241,7 +241,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         q = float(stdtrit(dof, 0.975))
     elif aligned.all() and len(aligned):
         # every measured point's error is its alignment's, known from its matches (2 N - 8 residual degrees of
-        # freedom each, N >= 8): the pixel sigma only weights the pixels against the priors in the information
+        # freedom each, N >= 8): the pixel sigma is no point's error (and the cost's weights are the configured's)
         sigma, sigma_hat, dof, q = _pooled_sigma(r, w2, M, Hp_unit, Hprior, sigma_cfg, prior_dof, assemble,
                                                  cam_dirs) + (1.959963984540054,)
     else:
