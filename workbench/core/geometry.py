@@ -7,6 +7,8 @@ Rotation vectors are axis * angle in radians; ``Exp(w)`` is the rotation matrix 
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 
@@ -170,9 +172,18 @@ def boxes_overlap(c1: np.ndarray, R1: np.ndarray, h1: np.ndarray, c2: np.ndarray
     """Whether two oriented boxes overlap (the separating-axis test): centres ``c`` (3,), rotations ``R`` (3, 3)
     box -> world, half extents ``h`` (3,), same units. ``margin`` > 0 counts boxes closer than it as overlapping;
     ``margin`` < 0 only boxes that interpenetrate by more than ``-margin`` along every axis."""
+    return boxes_depth(c1, R1, h1, c2, R2, h2) >= -margin
+
+
+def boxes_depth(c1: np.ndarray, R1: np.ndarray, h1: np.ndarray, c2: np.ndarray, R2: np.ndarray,
+                h2: np.ndarray) -> float:
+    """How deep two oriented boxes (as :func:`boxes_overlap`) interpenetrate, in their units: the least overlap of
+    their projections over the separating-axis test's 15 axes (> 0: they share space, at least this deep along every
+    axis; < 0: they are apart, by minus it along the axis that separates them most)."""
     axes = [R1[:, i] for i in range(3)] + [R2[:, i] for i in range(3)]
     axes += [np.cross(R1[:, i], R2[:, j]) for i in range(3) for j in range(3)]
     d = c2 - c1
+    depth = math.inf
     for a in axes:
         n = np.linalg.norm(a)
         if n < 1e-9:
@@ -180,6 +191,5 @@ def boxes_overlap(c1: np.ndarray, R1: np.ndarray, h1: np.ndarray, c2: np.ndarray
         a = a / n
         r1 = np.sum(np.abs(R1.T @ a) * h1)
         r2 = np.sum(np.abs(R2.T @ a) * h2)
-        if abs(d @ a) > r1 + r2 + margin:
-            return False
-    return True
+        depth = min(depth, float(r1 + r2 - abs(d @ a)))
+    return depth

@@ -123,8 +123,8 @@ def doubts_of(doc: dict) -> dict[str, str]:
 
 # warning kinds that make a posed carriage's pose and interval doubtful: its solution does not fit its measured
 # points; its measured points and its matched face's pose disagree (solve step 4b); another pose fits its points
-# about as well (solve step 4's branch check)
-DOUBT_KINDS = ("misfit", "predictions_disagree", "ambiguous")
+# about as well (solve step 4's branch check); its body and another carriage's share space (the solver's last check)
+DOUBT_KINDS = ("misfit", "predictions_disagree", "ambiguous", "overlap")
 
 
 def _rigid(value: Any, where: str) -> np.ndarray:

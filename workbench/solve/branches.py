@@ -16,7 +16,7 @@ from typing import Sequence
 
 import numpy as np
 
-from ..core.geometry import boxes_overlap, exp_so3, log_so3, rot_x, rot_z, rotation_angle_deg
+from ..core.geometry import boxes_depth, boxes_overlap, exp_so3, log_so3, rot_x, rot_z, rotation_angle_deg
 from .active_set import ChainedFit, ChainedProblem
 from .layout import ChainLayout, residuals_and_jacobian
 from .loss import chi2_quantile
@@ -130,6 +130,30 @@ def body_inside(cp: ChainedProblem, poses: Poses, k: int, depth_m: float = RIVAL
         if i != k and boxes_overlap(ck, Rk, hk, *box(i), margin=-depth_m):
             return cp.cars[i].number
     return None
+
+
+def overlapping_bodies(cars: Sequence[Car], poses: Poses, placed: Sequence[int],
+                       depth_m: float = RIVAL_OVERLAP_M) -> list[tuple[int, int, float]]:
+    """The pairs ``(i, j, depth)`` (``i < j``, of ``placed``) whose bodies (each its type's first collision box)
+    share space more than ``depth_m`` deep along every axis at ``poses``: two carriages where one body stands. At
+    most one of the two is where its pose says (a face matched on the other carriage, a wrong branch), unless one
+    body was driven into the other (telescoping), which the solver does not model. Neighbours in the consist count
+    only deeper than the narrower body's half width (or height): at a coupling, the inner corners of two jack-knifed
+    boxes cross (a box is not the body's plan, which narrows at its ends), by up to about 1 m in the simulated
+    consists (``solve.simulate``, jack-knives of 20-80 deg); a carriage placed on its neighbour shares its width."""
+    boxes = {}
+    for i in placed:
+        c, h = cars[i].ctype.collision_boxes()[0]
+        boxes[i] = (poses.R[i] @ np.asarray(c, float) + poses.t[i], poses.R[i], np.asarray(h, float))
+    out = []
+    ids = sorted(boxes)
+    for a, i in enumerate(ids):
+        for j in ids[a + 1:]:
+            limit = depth_m if j - i > 1 else max(depth_m, float(min(boxes[i][2][1:].min(), boxes[j][2][1:].min())))
+            d = boxes_depth(*boxes[i], *boxes[j])
+            if d > limit:
+                out.append((i, j, d))
+    return out
 
 
 def _between(a: Poses, b: Poses, s: float) -> Poses:

@@ -16,6 +16,7 @@ import numpy as np
 from ..core.frames import hpr_from_rotation
 from .active_set import ChainedFit, ChainedProblem
 from .bias import correct
+from .branches import overlapping_bodies
 from .layout import full_cost
 from .model import CarriageInput, CarriageResult, ChainLink, SolveOptions, SolveResult, View
 from .plan import Plan, plan_consist
@@ -83,6 +84,23 @@ def _warn_focal_at_limit(s: SolveContext, f: np.ndarray) -> None:
                 f"EXIF)")
 
 
+def _warn_overlaps(s: SolveContext, poses: Poses) -> None:
+    """Mark both carriages of every pair whose placed bodies share space (:func:`.branches.overlapping_bodies`):
+    e.g. one carriage's face found on the other in a photo (the same type looks the same), so that its points put
+    it where the other stands and fit there as well as the other's do."""
+    placed = [k for k in range(len(s.cars)) if s.plan.status[k] != "left_out"]
+    for i, j, depth in overlapping_bodies(s.cars, poses, placed):
+        a, b = s.cars[i].number, s.cars[j].number
+        for k, other in ((i, b), (j, a)):
+            record_warning(
+                s.warnings, s.cars[k], "overlap",
+                f"car {s.cars[k].number}: its body and car {other}'s share space where the solution places them "
+                f"({depth:.1f} m deep along every axis): at most one of the two "
+                f"is where its pose says (one's points may lie on the other in a photo, a carriage that looks "
+                f"alike), unless one body was driven into the other; its pose and its interval are doubtful: check "
+                f"both against their photo overlays and pick their points by hand")
+
+
 def _context(carriages: Sequence[CarriageInput], links: Sequence[ChainLink], views: list[View],
              options: SolveOptions, terrain: Any, refused: dict[int, str] | None = None,
              railways: Sequence[Any] = ()) -> SolveContext:
@@ -140,6 +158,7 @@ def solve_consist(carriages: Sequence[CarriageInput], links: Sequence[ChainLink]
     bias = step_bias(s, prob, fit, cost_at_minimum)
     fit = bias.fit
     results = _carriage_results(s.cars, s.plan, prob, fit.poses, views, s.contact)
+    _warn_overlaps(s, fit.poses)
     _warn_focal_at_limit(s, fit.poses.f)
     status = "converged" if not s.failures else "not_converged"
     if s.failures:
