@@ -16,11 +16,12 @@ CALIBRATION = {
                   "narrow (positions held 75-81 %); with one more accurate than it states, wider than the errors.",
     "auto": "On 203 carriages of fresh generated incidents with automatic points (800x600 photos, each DEM "
             "given the 0.25 m error it states) the intervals of the unmarked carriages held the truth in "
-            "89.6-96.7 % of cases per axis. 21 carriages were marked doubtful (‡), but 2 of the 3 that lay far "
-            "outside their intervals were not (one of them 58 m off). Without those two the typical error "
-            "was a little larger than the intervals say in east and north (RMS of error over sigma 1.16 and "
-            "1.10), about as they say in height and heading (0.96, 1.05), a little smaller in pitch and roll "
-            "(0.84). Heed the ‡ mark, and check every carriage against its photo overlay.",
+            "89.6-97.3 % of cases per axis. 20 carriages were marked doubtful (‡); of the 3 that lay far outside "
+            "their intervals one was not (3.3 m off along the line of sight: its face's alignment was off by more "
+            "than its matches showed). Without it the typical error was a little larger than the intervals say in "
+            "east and north (RMS of error over sigma 1.14 and 1.08), about as they say in height and heading "
+            "(0.92, 1.04), a little smaller in pitch and roll (0.85, 0.79). Heed the ‡ mark, and check every "
+            "carriage against its photo overlay.",
     "relative": "On simulated relative incidents (no survey; hand-picked points, a known focal, the track tilted "
                 "0.5° against gravity) they held the truth in 94.5-98.0 % of cases per axis (600 carriages): "
                 "calibrated.",
@@ -48,6 +49,16 @@ def calibration_note(solution: dict) -> str:
     if (solution.get("frame") or {}).get("kind") == "relative":
         return CALIBRATION["relative_focal" if solution.get("sigma_focal_px") else "relative"]
     return CALIBRATION["hand_focal" if solution.get("sigma_focal_px") else "hand_known"]
+
+
+def alignment_phrase(n_aligned: int, more_px: float | None) -> str:
+    """What the ± include for the automatic points placed by their face's alignment: its error from its own
+    matches (``n_aligned`` points), and, where a face's reference matched the photo less closely, the misfit added
+    to it (up to ``more_px``, ``aligned_misfit_max_px`` of solution.json; docs/calibration.md, "Session 25")."""
+    more = (f"; up to {float(more_px):.2f} px more where a face's reference matched the photo less closely, from "
+            f"its alignment's correlation") if more_px else ""
+    return (f"each automatically matched face's alignment error, from its own matches and shared by the photos it "
+            f"is aligned in ({n_aligned} points{more})")
 
 
 def face_misfit_phrase(face_px: float, largest_px: float | None, estimated: bool) -> str:

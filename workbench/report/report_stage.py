@@ -35,7 +35,7 @@ from ..files.solution import doubts_of
 from ..project import Project
 from .beside import load_pdf_engine, run_beside
 from .scene import car_color
-from .calibration_notes import calibration_note, face_misfit_phrase
+from .calibration_notes import alignment_phrase, calibration_note, face_misfit_phrase
 from .track_table import track_table
 
 log = logging.getLogger(__name__)
@@ -272,8 +272,7 @@ def interval_scope(solution: dict, solver: Any, dem_accuracy_m: float | None) ->
         face = float(solver.face_sigma_px)
     n_aligned = (solution.get("correspondences") or {}).get("n_with_alignment") or 0
     if by_source.get("sift") and n_aligned:
-        inc.append(f"each automatically matched face's alignment error, from its own matches and shared by the "
-                   f"photos it is aligned in ({n_aligned} points)")
+        inc.append(alignment_phrase(n_aligned, solution.get("aligned_misfit_max_px")))
     if by_source.get("sift") and face is not None and float(face) > 0 and int(by_source["sift"]) > n_aligned:
         inc.append(face_misfit_phrase(float(face), solution.get("face_misfit_max_px"), estimated))
     if solution.get("links"):

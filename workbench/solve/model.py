@@ -213,6 +213,7 @@ class SolveResult:
     sigma_px_camera: float = float("nan")  # the residuals' RMS (px) along the directions the cameras' errors fill
     face_sigma_px: float = 0.0  # the shared face misfit in the covariance (px)
     face_misfit_max_px: float | None = None  # the largest face misfit taken from a face's ECC correlation (px)
+    aligned_misfit_max_px: float | None = None  # the largest misfit added to an aligned face's alignment error (px)
     noise_estimated: bool = False  # sigma_px and face_sigma_px both estimated from the residuals
     dof: float = 0.0
     ci95_factor: float = 1.96

@@ -682,7 +682,7 @@ def solution_document(project: Project, res: Any, views: list, cam_doc: dict, ob
         "sigma_px": d.get("sigma_px"), "sigma_px_estimated": d.get("sigma_px_estimated"),
         "sigma_px_camera": d.get("sigma_px_camera"), "dof": d.get("dof"),
         "face_sigma_px": d.get("face_sigma_px"), "face_misfit_max_px": d.get("face_misfit_max_px"),
-        "noise_estimated": d.get("noise_estimated"),
+        "aligned_misfit_max_px": d.get("aligned_misfit_max_px"), "noise_estimated": d.get("noise_estimated"),
         "ci95_factor": d.get("ci95_factor"), "iterations": d.get("iterations"), "time_s": d.get("time_s"),
         "final_cost": d.get("final_cost"), "cost_at_minimum": d.get("cost_at_minimum"),
         "bias_correction": d.get("bias_correction") or {}, "carriages": cars_out, "links": d.get("links", []),

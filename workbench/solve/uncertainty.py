@@ -39,6 +39,16 @@ from .variance_components import (FALLBACK_FACE_SIGMA_PX, VarianceComponents, es
 # (RMS of error over sigma 0.76-0.86 in east, north, up and heading), 4 too narrow in heading (1.16), 6 gave
 # 0.86-1.00 there (the same incidents)
 ECC_MISFIT_PX = 6.0
+# A face aligned from matches of its own takes its points' error from its alignment's loading (docs/
+# correspondences.md), which its matches measure; where its reference matched the photo less closely than
+# ``1 - ALIGNED_ECC_FREE``, its points are off by more than that (the reference's texture is not the photo's there,
+# and the matches' scatter does not show the difference): a misfit shared by the face's points of
+# ALIGNED_ECC_MISFIT_PX px per affine mode per unit of ECC correlation below it is added to the loading. Measured
+# against the truth on 942 aligned faces of the automatic route (seeds 237000-237067 and 238000-238067, 800 x 600
+# photos; docs/calibration.md, "Session 25"): the points' RMS error over the loading's RMS was 0.82-1.01 for
+# 1 - ecc under 0.03 (853 faces), 1.33 and 1.83 above (89 faces); with the term 0.82-1.12 in every band
+ALIGNED_ECC_FREE = 0.02
+ALIGNED_ECC_MISFIT_PX = 5.0
 
 
 def pixel_rows(prob, R, t, f, focal_views):
@@ -147,6 +157,7 @@ class CovarianceModel:
     face_misfit_max: float = math.nan  # the largest of the faces' own misfits from their ECC (face_misfit_px)
     components: VarianceComponents | None = None  # when both were estimated from the residuals
     camera_px: float = math.nan  # the residuals' RMS (px) along the directions the multi-view cameras' errors fill
+    aligned_misfit_max: float = math.nan  # the largest misfit added to an aligned face's loading (aligned_misfit_px)
 
 
 def undetermined_parameters(H: np.ndarray) -> np.ndarray | None:
@@ -256,7 +267,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     H, Hi = assemble(sw)
     G = Gp_unit * (sigma**2 / sw**4) + Hprior
     misfit_groups = np.where(block >= 0, -1, groups)  # an aligned point's face error is its alignment's
-    face_max = math.nan
+    face_max = aligned_max = math.nan
     if vc is not None and vc.face_sigmas_px:  # each face its own misfit
         G = G + _shared_misfit(J * rho[:, None], groups, views, uv_obs, w_row,
                                np.square(vc.face_sigmas_px)) / sw**4
@@ -269,12 +280,19 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
                                                           scale)
     if (block >= 0).any():
         G = G + alignment_term(J * rho[:, None], block, loading, w_row, pose and pose.contrib) / sw**4
+        tau = aligned_misfit_px(np.where(block >= 0, ecc, np.nan))
+        excess = np.where(tau > 0, groups, -1)  # aligned faces whose reference matched less closely
+        if (excess >= 0).any():
+            aligned_max = float(tau.max())
+            G = G + _shared_misfit(J * rho[:, None], excess, views, uv_obs, w_row,
+                                   [float(np.mean(tau[excess == g] ** 2)) for g in np.unique(excess[excess >= 0])]
+                                   ) / sw**4
     cov = Hi @ G @ Hi
     cov = 0.5 * (cov + cov.T)
     camera_px = math.nan if cam_dirs is None or not cam_dirs.shape[1] else \
         math.sqrt(float(np.sum((cam_dirs.T @ r) ** 2)) / (float(np.sum(w2)) * cam_dirs.shape[1] / (2.0 * M)))
     return CovarianceModel(cov, col, sigma, sigma_hat, dof, q, P, Hi, undetermined_parameters(H), face_sigma,
-                           face_max, vc, camera_px)
+                           face_max, vc, camera_px, aligned_max)
 
 
 def _pooled_sigma(r, w2, M, Hp_unit, Hprior, sigma_cfg, prior_dof, assemble, camera_dirs=None
@@ -308,6 +326,15 @@ def face_misfit_px(ecc: np.ndarray, floor_px: float) -> np.ndarray:
     :data:`ECC_MISFIT_PX` times ``1 - ecc``, at least ``floor_px`` (``solver.face_sigma_px``)."""
     ecc = np.asarray(ecc, dtype=float)
     return np.where(np.isfinite(ecc), np.maximum(floor_px, ECC_MISFIT_PX * (1.0 - ecc)), floor_px)
+
+
+def aligned_misfit_px(ecc: np.ndarray) -> np.ndarray:
+    """The misfit (px per affine mode) that the points of a face aligned from its own matches share beyond their
+    alignment's loading, from the face's ECC correlation ``ecc`` (NaN: none): :data:`ALIGNED_ECC_MISFIT_PX` times
+    the correlation below ``1 - ALIGNED_ECC_FREE``, else 0."""
+    ecc = np.asarray(ecc, dtype=float)
+    below = np.where(np.isfinite(ecc), (1.0 - ALIGNED_ECC_FREE) - ecc, 0.0)
+    return ALIGNED_ECC_MISFIT_PX * np.maximum(below, 0.0)
 
 
 def _shared_misfit(J: np.ndarray, groups: np.ndarray, views: np.ndarray, uv: np.ndarray,
@@ -445,6 +472,7 @@ def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Cha
     res.sigma_px_camera = model.camera_px
     res.face_sigma_px = model.face_sigma
     res.face_misfit_max_px = None if math.isnan(model.face_misfit_max) else model.face_misfit_max
+    res.aligned_misfit_max_px = None if math.isnan(model.aligned_misfit_max) else model.aligned_misfit_max
     res.noise_estimated = model.components is not None
     res.dof = model.dof
     res.ci95_factor = q
