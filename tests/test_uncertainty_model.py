@@ -217,6 +217,62 @@ def test_a_face_takes_its_misfit_from_its_ecc_correlation():
     assert rms_without > 1.4 * rms_with, (rms_without, rms_with)
 
 
+def test_a_guided_faces_points_carry_the_warps_remainder_not_the_pooled_noise(monkeypatch):
+    """A face aligned by ECC without matches places its points by one warp: their errors are the face's shared
+    misfit and a small remainder (``GUIDED_NOISE_PX``, 0.105 px measured beyond the affine modes), not independent
+    noise at the pooled pixel sigma (0.35 px there). With the remainder set to the pixel sigma the intervals are
+    those of the same points without their ECC (and a misfit at the floor either way); at the default they are
+    narrower. Monte Carlo: faces whose points move by a misfit drawn from their ECC and a remainder of
+    ``GUIDED_NOISE_PX``, solved at a pixel sigma of 0.35 px: RMS of error over sigma near 1; taken as plain points
+    (no ECC), the intervals are wider than the errors."""
+    from workbench.solve import uncertainty
+    from workbench.solve.uncertainty import ECC_MISFIT_PX, GUIDED_NOISE_PX
+
+    assert 0.05 <= GUIDED_NOISE_PX <= 0.2
+    opts = SolveOptions(pixel_sigma_px=0.35, face_sigma_px=0.15, prior_dof=1e6)
+
+    def faces(ecc):
+        sim = simulate_consist(3, seed=6, pixel_sigma_px=0.35)
+        for k in range(3):
+            _with(sim, k, lambda v, obs, clean: [Observation(n, *uv, group="left", ecc=ecc) for n, uv in obs.items()])
+        return sim
+
+    plain = _sigma_position(faces(None), opts)
+    monkeypatch.setattr(uncertainty, "GUIDED_NOISE_PX", 0.35)
+    np.testing.assert_allclose(_sigma_position(faces(0.995), opts), plain, rtol=1e-6)
+    monkeypatch.undo()
+    guided = _sigma_position(faces(0.995), opts)
+    assert np.all(guided < 0.9 * plain)
+
+    z = {True: [], False: []}
+    for trial in range(12):
+        sim = simulate_consist(3, seed=820 + trial, pixel_sigma_px=0.0)
+        rng = np.random.default_rng(60 + trial)
+        for k in range(3):
+            ecc = float(rng.choice([0.99, 0.97, 0.95]))
+            a = rng.normal(0.0, max(0.15, ECC_MISFIT_PX * (1.0 - ecc)), 6)
+
+            def warp(v, obs, clean, a=a, ecc=ecc):
+                uv = np.array([clean[n] for n in obs])
+                p = uv + _affine_shift(uv, a) + rng.normal(0.0, GUIDED_NOISE_PX, uv.shape)
+                return [Observation(n, *q, group="side", ecc=ecc) for n, q in zip(obs, p)]
+
+            _with(sim, k, warp)
+        for given in (True, False):
+            if not given:
+                for c in sim.carriages:
+                    c.observations = {v: [Observation(o.point, o.u, o.v, group=o.group) for o in obs]
+                                      for v, obs in c.observations.items()}
+            res = solve_consist(sim.carriages, sim.links, sim.views, opts, terrain=None)
+            for c, ci, M in zip(res.carriages, sim.carriages, sim.truth):
+                truth = M[:3, :3] @ [0.0, 0.0, ci.carriage_type.height_m / 2] + M[:3, 3]
+                z[given].extend((np.asarray(c.body_centre_m) - truth) / np.asarray(c.sigma_body_centre_m))
+    rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in z.items()}
+    assert len(z[True]) == 12 * 3 * 3
+    assert 0.8 < rms[True] < 1.3, rms
+    assert rms[False] < 0.95 * rms[True], rms
+
+
 def test_intervals_are_the_estimators_when_the_pixels_are_better_than_configured():
     """Monte Carlo: picks at 0.1 px solved with ``pixel_sigma_px = 1`` on a DEM wrong by N(0, 0.25 m) per carriage,
     as it states. The solver's cost weighs the pixels at 1 px against the contact, so it leans on the DEM more

@@ -47,6 +47,11 @@ ECC_MISFIT_PX = 6.0
 # against the truth on 942 aligned faces of the automatic route (seeds 237000-237067 and 238000-238067, 800 x 600
 # photos; docs/calibration.md, "Session 25"): the points' RMS error over the loading's RMS was 0.82-1.01 for
 # 1 - ecc under 0.03 (853 faces), 1.33 and 1.83 above (89 faces); with the term 0.82-1.12 in every band
+# A guided face's points (aligned by ECC without matches) are placed by one warp: beyond the face's misfit (the six
+# affine modes) their errors against the truth have 0.105 px per coordinate (226 guided faces of 4 or more points
+# of seeds 237000-, 238000-, 239000-, the least-squares affine fit per face and photo taken out, 2 n - 6 degrees of
+# freedom; docs/calibration.md, "Session 25"), where the pooled pixel sigma is 0.35 px (median)
+GUIDED_NOISE_PX = 0.1
 ALIGNED_ECC_FREE = 0.02
 ALIGNED_ECC_MISFIT_PX = 5.0
 
@@ -227,7 +232,11 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     if views_shared and (block >= 0).any():
         loading = loading * np.sqrt(views_per_face(block, groups, views))[:, None, None]
     aligned = np.repeat(block >= 0, 2)  # rows whose error their face alignment gives (not the fixed misfit)
-    Gp_unit = (J * (rho**2 * w2 * ~aligned)[:, None]).T @ J
+    # rows of faces aligned by ECC without matches of their own: placed by one warp, their error is the face's
+    # (the shared misfit below) and a remainder of GUIDED_NOISE_PX, not the pooled pixel noise
+    guided = np.repeat((block < 0) & (groups >= 0) & np.isfinite(ecc), 2)
+    Gp_unit = (J * (rho**2 * w2 * ~aligned * ~guided)[:, None]).T @ J
+    Gg_unit = (J * (rho**2 * w2 * guided)[:, None]).T @ J
     Hprior = _prior_info(prob.cars, R, t, chains, slacks, col, P) + _contact_info(contact, R, t, col, P, sigma_cfg)
 
     def assemble(sig):
@@ -265,7 +274,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     # leans on a prior more (or less) than the noise would have it carries that prior's error to the poses
     sw = sigma if sigma_fixed is not None else sigma_cfg
     H, Hi = assemble(sw)
-    G = Gp_unit * (sigma**2 / sw**4) + Hprior
+    G = Gp_unit * (sigma**2 / sw**4) + Gg_unit * (GUIDED_NOISE_PX**2 / sw**4) + Hprior
     misfit_groups = np.where(block >= 0, -1, groups)  # an aligned point's face error is its alignment's
     face_max = aligned_max = math.nan
     if vc is not None and vc.face_sigmas_px:  # each face its own misfit
