@@ -391,8 +391,9 @@ def findings(project: Project, solution: dict) -> list[str]:
         its = 'its' if len(doubtful) == 1 else 'their'
         out.append(f"Doubtful: car {', '.join(map(str, doubtful))}: {its} marked points do not settle {its} pose "
                    f"(the solution does not fit them, they disagree with the pose of the face they were matched on, "
-                   f"or another pose fits them about as well, or far better but with the body inside a neighbour's: "
-                   f"a wrong pose branch, telescoped bodies or mismatched points), so the pose "
+                   f"or another pose fits them about as well, or far better but with the body inside a neighbour's, "
+                   f"or the body shares space with another placed carriage's: a wrong pose branch, telescoped bodies "
+                   f"or points matched on the wrong carriage), so the pose "
                    f"and its interval may be far off; "
                    f"check the points before acting on it (marked ‡ in section 2).")
     carried = [c["number"] for c in cars if c.get("status") == "carried"]
