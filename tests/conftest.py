@@ -19,6 +19,18 @@ SMALL_INCIDENT_OPTIONS = dict(scenario="spuyten-duyvil", seed=1, n_cars=4, photo
                               n_panorama=4, n_multiview=8, supersample=1, layers_dir="../../terrain/bronx")
 
 
+def body_centre_z(res, sim) -> list:
+    """The body centres' errors over their sigmas (3 per carriage, east / north / up) of the solve result ``res``
+    of the simulated consist ``sim`` (``solve.simulate.SimProblem``), against its truth."""
+    import numpy as np
+
+    out = []
+    for c, ci, M in zip(res.carriages, sim.carriages, sim.truth):
+        truth = M[:3, :3] @ [0.0, 0.0, ci.carriage_type.height_m / 2] + M[:3, 3]
+        out.extend((np.asarray(c.body_centre_m) - truth) / np.asarray(c.sigma_body_centre_m))
+    return out
+
+
 def with_solver_lines(text: str, *lines: str) -> str:
     """A project.toml's ``text`` with the TOML ``lines`` (``key = value``) first in its ``[solver]`` table, in
     place of the same keys there (the generator writes one: the couplers' play it drew from), or with that table

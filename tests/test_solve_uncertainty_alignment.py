@@ -11,6 +11,7 @@ from functools import partial
 
 import numpy as np
 import pytest
+from conftest import body_centre_z
 
 from workbench.solve import Observation, SolveOptions, solve_consist, uncertainty
 from workbench.solve.problem import AlignedObservation
@@ -205,9 +206,7 @@ def test_an_aligned_face_that_matched_less_closely_adds_its_misfit():
         for with_ecc in (True, False):
             sim, views = _aligned_faces(trial, eccs, True, with_ecc)
             res = solve_consist(sim.carriages, sim.links, views, opts, terrain=None)
-            for c, ci, M in zip(res.carriages, sim.carriages, sim.truth):
-                truth = M[:3, :3] @ [0.0, 0.0, ci.carriage_type.height_m / 2] + M[:3, 3]
-                z[with_ecc].extend((np.asarray(c.body_centre_m) - truth) / np.asarray(c.sigma_body_centre_m))
+            z[with_ecc].extend(body_centre_z(res, sim))
     rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in z.items()}
     assert len(z[True]) == 10 * 3 * 3
     assert 0.75 < rms[True] < 1.3, rms

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import body_centre_z
 
 from workbench.errors import SettingsError
 from workbench.solve import Observation, SolveOptions, solve_consist
@@ -264,9 +265,7 @@ def test_a_guided_faces_points_carry_the_warps_remainder_not_the_pooled_noise(mo
                     c.observations = {v: [Observation(o.point, o.u, o.v, group=o.group) for o in obs]
                                       for v, obs in c.observations.items()}
             res = solve_consist(sim.carriages, sim.links, sim.views, opts, terrain=None)
-            for c, ci, M in zip(res.carriages, sim.carriages, sim.truth):
-                truth = M[:3, :3] @ [0.0, 0.0, ci.carriage_type.height_m / 2] + M[:3, 3]
-                z[given].extend((np.asarray(c.body_centre_m) - truth) / np.asarray(c.sigma_body_centre_m))
+            z[given].extend(body_centre_z(res, sim))
     rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in z.items()}
     assert len(z[True]) == 12 * 3 * 3
     assert 0.8 < rms[True] < 1.3, rms
