@@ -149,6 +149,8 @@ def overlapping_bodies(cars: Sequence[Car], poses: Poses, placed: Sequence[int],
     ids = sorted(boxes)
     for a, i in enumerate(ids):
         for j in ids[a + 1:]:
+            if np.linalg.norm(boxes[i][0] - boxes[j][0]) >= np.linalg.norm(boxes[i][2]) + np.linalg.norm(boxes[j][2]):
+                continue  # their bounding spheres are apart (a long consist: most pairs)
             limit = depth_m if j - i > 1 else max(depth_m, float(min(boxes[i][2][1:].min(), boxes[j][2][1:].min())))
             d = boxes_depth(*boxes[i], *boxes[j])
             if d > limit:
