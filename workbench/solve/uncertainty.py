@@ -47,13 +47,14 @@ ECC_MISFIT_PX = 6.0
 # against the truth on 942 aligned faces of the automatic route (seeds 237000-237067 and 238000-238067, 800 x 600
 # photos; docs/calibration.md, "Session 25"): the points' RMS error over the loading's RMS was 0.82-1.01 for
 # 1 - ecc under 0.03 (853 faces), 1.33 and 1.83 above (89 faces); with the term 0.82-1.12 in every band
+ALIGNED_ECC_FREE = 0.02
+ALIGNED_ECC_MISFIT_PX = 5.0
 # A guided face's points (aligned by ECC without matches) are placed by one warp: beyond the face's misfit (the six
 # affine modes) their errors against the truth have 0.105 px per coordinate (226 guided faces of 4 or more points
 # of seeds 237000-, 238000-, 239000-, the least-squares affine fit per face and photo taken out, 2 n - 6 degrees of
-# freedom; docs/calibration.md, "Session 25"), where the pooled pixel sigma is 0.35 px (median)
+# freedom; docs/calibration.md, "Session 25"), where the pooled pixel sigma is 0.35 px (median). Not in the bound
+# at a fixed sigma (CRB) nor where the noise and the faces' misfits are estimated together (variance components)
 GUIDED_NOISE_PX = 0.1
-ALIGNED_ECC_FREE = 0.02
-ALIGNED_ECC_MISFIT_PX = 5.0
 
 
 def pixel_rows(prob, R, t, f, focal_views):
@@ -206,6 +207,10 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     ecc = getattr(prob, "ecc", None)  # each point's face alignment's ECC correlation (face_misfit_px), NaN: none
     if ecc is None or len(ecc) != len(prob.P):
         ecc = np.full(len(prob.P), np.nan)
+    # points of faces aligned by ECC without matches of their own (an ECC, no alignment): placed by one warp, their
+    # error is the face's (the shared misfit below) and a remainder of GUIDED_NOISE_PX, not the pooled pixel noise
+    own = block if block is not None and len(block) == len(prob.P) else np.full(len(prob.P), -1)
+    guided_pt = np.isfinite(ecc) & (own < 0) & (sigma_fixed is None) & (face_sigma is not None)
     if not use_alignments or block is None or len(block) != len(prob.P) or sigma_fixed is not None \
             or face_sigma is None:
         block, loading = np.full(len(prob.P), -1), np.zeros((len(prob.P), 2, 8))
@@ -220,7 +225,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         J, r = J[keep], r[keep]
         D = D[keep] if D is not None else None
         groups, uv_obs, w_row, views = groups[meas], uv_obs[meas], w_row[meas], views[meas]
-        block, loading, ecc = block[meas], loading[meas], ecc[meas]
+        block, loading, ecc, guided_pt = block[meas], loading[meas], ecc[meas], guided_pt[meas]
         w2 = np.repeat(prob.w_noise[meas] ** 2, 2)
         M = int(meas.sum())
     else:
@@ -232,9 +237,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     if views_shared and (block >= 0).any():
         loading = loading * np.sqrt(views_per_face(block, groups, views))[:, None, None]
     aligned = np.repeat(block >= 0, 2)  # rows whose error their face alignment gives (not the fixed misfit)
-    # rows of faces aligned by ECC without matches of their own: placed by one warp, their error is the face's
-    # (the shared misfit below) and a remainder of GUIDED_NOISE_PX, not the pooled pixel noise
-    guided = np.repeat((block < 0) & (groups >= 0) & np.isfinite(ecc), 2)
+    guided = np.repeat(guided_pt & (groups >= 0), 2)
     Gp_unit = (J * (rho**2 * w2 * ~aligned * ~guided)[:, None]).T @ J
     Gg_unit = (J * (rho**2 * w2 * guided)[:, None]).T @ J
     Hprior = _prior_info(prob.cars, R, t, chains, slacks, col, P) + _contact_info(contact, R, t, col, P, sigma_cfg)
