@@ -292,13 +292,8 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
                                                           scale)
     if (block >= 0).any():
         G = G + alignment_term(J * rho[:, None], block, loading, w_row, pose and pose.contrib) / sw**4
-        tau = aligned_misfit_px(np.where(block >= 0, ecc, np.nan))
-        excess = np.where(tau > 0, groups, -1)  # aligned faces whose reference matched less closely
-        if (excess >= 0).any():
-            aligned_max = float(tau.max())
-            G = G + _shared_misfit(J * rho[:, None], excess, views, uv_obs, w_row,
-                                   [float(np.mean(tau[excess == g] ** 2)) for g in np.unique(excess[excess >= 0])]
-                                   ) / sw**4
+        G_excess, aligned_max = _aligned_excess(J * rho[:, None], block, ecc, groups, views, uv_obs, w_row)
+        G = G + G_excess / sw**4
     cov = Hi @ G @ Hi
     cov = 0.5 * (cov + cov.T)
     camera_px = math.nan if cam_dirs is None or not cam_dirs.shape[1] else \
@@ -347,6 +342,19 @@ def aligned_misfit_px(ecc: np.ndarray) -> np.ndarray:
     ecc = np.asarray(ecc, dtype=float)
     below = np.where(np.isfinite(ecc), (1.0 - ALIGNED_ECC_FREE) - ecc, 0.0)
     return ALIGNED_ECC_MISFIT_PX * np.maximum(below, 0.0)
+
+
+def _aligned_excess(J: np.ndarray, block: np.ndarray, ecc: np.ndarray, groups: np.ndarray, views: np.ndarray,
+                    uv: np.ndarray, w: np.ndarray) -> tuple[np.ndarray | float, float]:
+    """The gradient covariance (as :func:`_shared_misfit`'s, per unit weight) of the misfit that the aligned faces
+    whose reference matched the photo less closely share beyond their loading (:func:`aligned_misfit_px`), and the
+    largest such misfit (px per mode; NaN and 0.0 where no face has any)."""
+    tau = aligned_misfit_px(np.where(block >= 0, ecc, np.nan))
+    excess = np.where(tau > 0, groups, -1)  # aligned faces whose reference matched less closely
+    if not (excess >= 0).any():
+        return 0.0, math.nan
+    scale = [float(np.mean(tau[excess == g] ** 2)) for g in np.unique(excess[excess >= 0])]
+    return _shared_misfit(J, excess, views, uv, w, scale), float(tau.max())
 
 
 def _shared_misfit(J: np.ndarray, groups: np.ndarray, views: np.ndarray, uv: np.ndarray,
