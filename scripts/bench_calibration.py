@@ -446,6 +446,27 @@ def incident_records(problem: str, sol: dict, truth: dict, T_cam: np.ndarray | N
     return recs, fit, left, no_interval
 
 
+def pose_searched(root: Path) -> set[str]:
+    """The carriages the correspond stage's chain/terrain pose search found in some photo of incident ``root``
+    (``cars_by_pose_search`` of ``out/correspond/stats.json``; none where the file is absent)."""
+    path = root / "out" / "correspond" / "stats.json"
+    if not path.is_file():
+        return set()
+    photos = json.loads(path.read_text()).get("photos") or {}
+    return {str(c) for v in photos.values() for c in (v.get("cars_by_pose_search") or [])}
+
+
+def finder_split(recs: list[dict]) -> dict[str, list[dict]]:
+    """The automatic route's unmarked carriages (not ``doubtful``) by how the finder placed them (``found_by``:
+    ``matched``, a face matched in every photo it was found in; ``pose_search``, found by the pose search in some
+    photo). Their intervals come from different terms (docs/calibration.md, "Session 25"), so each is told apart."""
+    out: dict[str, list[dict]] = {}
+    for r in recs:
+        if not r.get("doubtful") and r.get("found_by"):
+            out.setdefault(r["found_by"], []).append(r)
+    return dict(sorted(out.items()))
+
+
 def route_auto(n: int, seed0: int, log=print, work: Path | None = None, keep: bool = True,
                resolve: bool = False, survey_noise: bool = False, dem_noise: bool = False
                ) -> tuple[list[dict], dict]:
@@ -475,6 +496,9 @@ def route_auto(n: int, seed0: int, log=print, work: Path | None = None, keep: bo
         cam = camera_error(out["cameras"], out["truth"])
         r, fit, left, no_int = incident_records(f"seed{seed}", out["solution"], out["truth"],
                                                 None if cam is None else cam[0], n_cars=n_cars)
+        searched = pose_searched(root)
+        for x in r + fit:
+            x["found_by"] = "pose_search" if x["number"] in searched else "matched"
         recs += r
         info["fit_records"] += fit
         if cam is not None:
@@ -877,6 +901,8 @@ def main(argv=None) -> int:
         for rt, recs in by_route.items():
             print_table(rt, axis_stats(recs))
             print_doubts(rt, recs)
+            for how, sub in finder_split(recs).items() if rt == "auto" else ():
+                print_table(f"auto, unmarked, found by {how.replace('_', ' ')}", axis_stats(sub))
         return 0
     routes = [r.strip() for r in a.route.split(",") if r.strip()]
     for r in routes:
@@ -912,6 +938,11 @@ def main(argv=None) -> int:
         if info.get("real_sfm"):
             print_placed_split(recs, info)
         result["routes"][r] = {"stats": st, "info": info, "records": recs}
+        if r == "auto":  # the unmarked carriages by how the finder placed them
+            result["routes"][r]["stats_by_finder"] = {}
+            for how, sub in finder_split(recs).items():
+                result["routes"][r]["stats_by_finder"][how] = st_how = axis_stats(sub)
+                print_table(f"auto, unmarked, found by {how.replace('_', ' ')}", st_how)
         if info.get("fit_records"):  # the fit's own intervals against the truth moved by the camera's error
             st_fit = axis_stats(info["fit_records"])
             zc = np.array([c["z"] for c in info.get("camera", []) if c.get("z") is not None])

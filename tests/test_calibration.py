@@ -5,6 +5,7 @@ sentence on what the intervals include."""
 from __future__ import annotations
 
 import importlib.util
+import json
 import sys
 import warnings
 from pathlib import Path
@@ -220,3 +221,22 @@ def test_a_dem_is_given_the_error_it_states(bench, tmp_path):
 
     with pytest.raises(ValueError, match="sd_m"):
         dem_error(np.random.default_rng(0), (8, 8), 1.0, -0.1)
+
+
+def test_the_automatic_route_is_told_apart_by_how_the_finder_placed_a_carriage(bench, tmp_path):
+    """The carriages the correspond stage's pose search found (``cars_by_pose_search`` in its stats.json) have
+    intervals from other terms than those matched by their faces (docs/calibration.md, "Session 25"): the benchmark
+    tags each record and gives the unmarked carriages of each kind their own figures."""
+    stats = tmp_path / "out" / "correspond" / "stats.json"
+    assert bench.pose_searched(tmp_path) == set()
+    stats.parent.mkdir(parents=True)
+    stats.write_text(json.dumps({"photos": {"a.jpg": {"cars_by_pose_search": ["6223"]},
+                                            "b.jpg": {"cars_by_pose_search": [6240]}, "c.jpg": {}}}))
+    assert bench.pose_searched(tmp_path) == {"6223", "6240"}
+    recs = [{"number": n, "found_by": f, "doubtful": d} for n, f, d in
+            (("1", "matched", False), ("2", "pose_search", False), ("3", "pose_search", True),
+             ("4", "matched", False))]
+    split = bench.finder_split(recs + [{"number": "5", "doubtful": False}])
+    assert list(split) == ["matched", "pose_search"]
+    assert [r["number"] for r in split["matched"]] == ["1", "4"]
+    assert [r["number"] for r in split["pose_search"]] == ["2"]
