@@ -118,33 +118,33 @@ def chi2_of(cp: ChainedProblem, poses: Poses) -> float:
     return float(np.sum((r[:m] / noise) ** 2) + np.sum(r[m:] ** 2)) / sig**2
 
 
-def body_inside(cp: ChainedProblem, poses: Poses, k: int, depth_m: float = RIVAL_OVERLAP_M) -> str | None:
-    """The number of a carriage whose body carriage ``k``'s body enters by more than ``depth_m`` at ``poses`` (each
-    body its type's first collision box), or None."""
-    def box(i):
-        c, h = cp.cars[i].ctype.collision_boxes()[0]
-        return poses.R[i] @ np.asarray(c, float) + poses.t[i], poses.R[i], np.asarray(h, float)
+def body_box(car: Car, poses: Poses, i: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Carriage ``i``'s body at ``poses`` as an oriented box (its type's first collision box): centre (3,), rotation
+    box -> scene (3, 3), half extents (3,), as :func:`core.geometry.boxes_overlap` takes it."""
+    c, h = car.ctype.collision_boxes()[0]
+    return poses.R[i] @ np.asarray(c, float) + poses.t[i], poses.R[i], np.asarray(h, float)
 
-    ck, Rk, hk = box(k)
+
+def body_inside(cp: ChainedProblem, poses: Poses, k: int, depth_m: float = RIVAL_OVERLAP_M) -> str | None:
+    """The number of a carriage whose body carriage ``k``'s body enters by more than ``depth_m`` at ``poses``
+    (:func:`body_box`), or None."""
+    ck, Rk, hk = body_box(cp.cars[k], poses, k)
     for i in cp.prob.active:
-        if i != k and boxes_overlap(ck, Rk, hk, *box(i), margin=-depth_m):
+        if i != k and boxes_overlap(ck, Rk, hk, *body_box(cp.cars[i], poses, i), margin=-depth_m):
             return cp.cars[i].number
     return None
 
 
 def overlapping_bodies(cars: Sequence[Car], poses: Poses, placed: Sequence[int],
                        depth_m: float = RIVAL_OVERLAP_M) -> list[tuple[int, int, float]]:
-    """The pairs ``(i, j, depth)`` (``i < j``, of ``placed``) whose bodies (each its type's first collision box)
-    share space more than ``depth_m`` deep along every axis at ``poses``: two carriages where one body stands. At
-    most one of the two is where its pose says (a face matched on the other carriage, a wrong branch), unless one
-    body was driven into the other (telescoping), which the solver does not model. Neighbours in the consist count
+    """The pairs ``(i, j, depth)`` (``i < j``, of ``placed``) whose bodies (:func:`body_box`) share space more than
+    ``depth_m`` deep along every axis at ``poses``: two carriages where one body stands. At most one of the two is
+    where its pose says (a face matched on the other carriage, a wrong branch), unless one body was driven into the
+    other (telescoping), which the solver does not model. Neighbours in the consist count
     only deeper than the narrower body's half width (or height): at a coupling, the inner corners of two jack-knifed
     boxes cross (a box is not the body's plan, which narrows at its ends), by up to about 1 m in the simulated
     consists (``solve.simulate``, jack-knives of 20-80 deg); a carriage placed on its neighbour shares its width."""
-    boxes = {}
-    for i in placed:
-        c, h = cars[i].ctype.collision_boxes()[0]
-        boxes[i] = (poses.R[i] @ np.asarray(c, float) + poses.t[i], poses.R[i], np.asarray(h, float))
+    boxes = {i: body_box(cars[i], poses, i) for i in placed}
     out = []
     ids = sorted(boxes)
     for a, i in enumerate(ids):
