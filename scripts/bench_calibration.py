@@ -73,6 +73,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from workbench.core.frames import hpr_from_rotation  # noqa: E402
+from workbench.core.geometry import skew  # noqa: E402
 from workbench.solve import SolveOptions, SolveWarning, solve_consist  # noqa: E402
 from workbench.solve.simulate import simulate_consist  # noqa: E402
 
@@ -186,6 +187,88 @@ def record(problem: str, number: str, M_est: np.ndarray, body_est, M_true: np.nd
     return {"problem": problem, "number": number, "error": e.tolist(),
             "sigma": np.concatenate([sigma_body, sigma_hpr]).tolist(),
             "ci95": np.concatenate([ci_body, ci_hpr]).tolist(), **extra}
+
+
+# ----------------------------------------------------------------------------------------------------------
+# the body centre's error along the line of sight (a panorama's depth) and across it
+# ----------------------------------------------------------------------------------------------------------
+SIGHT = ("sight", "across", "up_tilted")  # along the line of sight, horizontal across it, their cross product
+
+
+def sight_frame(origin, target) -> np.ndarray:
+    """(3, 3) rows, ENU: the line of sight from ``origin`` to ``target`` (unit), the horizontal unit vector across
+    it (to the left, seen from ``origin``) and their cross product (up, tilted by the sight's dip)."""
+    u = np.subtract(target, origin).astype(float)
+    u /= np.linalg.norm(u)
+    v = np.array([-u[1], u[0], 0.0])
+    v /= np.linalg.norm(v)
+    return np.vstack([u, v, np.cross(u, v)])
+
+
+def sight_z(car: dict, body_true, origin) -> list[float] | None:
+    """A solved carriage's body-centre error over its sigma in :func:`sight_frame` (seen from ``origin``, the
+    camera's centre), from its (6, 6) ``covariance_pose`` (the scene rotation vector, then the origin, as the solve
+    writes it: the same sigmas as ``sigma_body_centre_m``, rotated); None without one. A mean of these z away from
+    0 over many carriages is a bias (e.g. along the sight: carriages placed too far or too near), which the
+    per-axis east / north figures only show as a little too narrow."""
+    cov = car.get("covariance_pose")
+    if cov is None or car.get("world_from_carriage") is None or car.get("body_centre_enu") is None:
+        return None
+    C = np.asarray(cov, float)
+    if C.shape != (6, 6) or not np.all(np.isfinite(C)):
+        return None
+    M = np.asarray(car["world_from_carriage"], float)
+    body = np.asarray(car["body_centre_enu"], float)
+    J = np.hstack([-skew(body - M[:3, 3]), np.eye(3)])  # d(body centre) / d(omega, t): R' = exp(omega) R, t' = t + dt
+    F = sight_frame(origin, body_true)
+    s = np.sqrt(np.diag(F @ J @ C @ J.T @ F.T))
+    return (F @ (body - np.asarray(body_true, float)) / s).tolist()
+
+
+def sight_stats(records: list[dict], n_boot: int = 2000, seed: int = 0) -> dict | None:
+    """Mean z (the bias), RMS z and coverage of ``sight_z`` per direction, each with a 95 % cluster bootstrap
+    interval (clusters: ``record["problem"]``); None when no record has them."""
+    recs = [r for r in records if r.get("sight_z") is not None]
+    if not recs:
+        return None
+    Z = np.array([r["sight_z"] for r in recs], float)
+    q = np.array([float(r.get("t_factor") or Z95) for r in recs])
+    keys = [r["problem"] for r in recs]
+    ids = {k: i for i, k in enumerate(dict.fromkeys(keys))}
+    cl = np.array([ids[k] for k in keys])
+    C = len(ids)
+    n_c = np.bincount(cl, minlength=C).astype(float)
+
+    def sums(x):
+        out = np.zeros((C, x.shape[1]))
+        np.add.at(out, cl, x)
+        return out
+
+    s1, s2, inside = sums(Z), sums(Z ** 2), sums((np.abs(Z) <= q[:, None]).astype(float))
+    W = np.vstack([np.ones(C), np.random.default_rng(seed).multinomial(C, np.full(C, 1.0 / C), size=n_boot)])
+    n = (W @ n_c)[:, None]
+    figs = {"mean_z": (W @ s1) / n, "rms_z": np.sqrt((W @ s2) / n), "coverage": (W @ inside) / n}
+    out = {"n_carriages": len(recs), "n_problems": C, "axes": {}}
+    for j, ax in enumerate(SIGHT):
+        a = {}
+        for name, v in figs.items():
+            a[name] = float(v[0, j])
+            a[name + "_ci95"] = [float(x) for x in np.percentile(v[1:, j], [2.5, 97.5])]
+        out["axes"][ax] = a
+    return out
+
+
+def print_sight(route: str, st: dict | None) -> None:
+    if st is None:
+        return
+    print(f"\nroute {route}: the body centre seen from the camera ({st['n_carriages']} carriages in "
+          f"{st['n_problems']} problems)")
+    print(f"{'direction':>10} | {'mean z [95% CI]':>22} | {'RMS z [95% CI]':>21} | {'coverage % [95% CI]':>22}")
+    for ax, a in st["axes"].items():
+        m, z, c = a["mean_z"], a["rms_z"], a["coverage"]
+        print(f"{ax:>10} | {m:+6.3f} [{a['mean_z_ci95'][0]:+6.3f}, {a['mean_z_ci95'][1]:+6.3f}] | "
+              f"{z:5.3f} [{a['rms_z_ci95'][0]:5.3f}, {a['rms_z_ci95'][1]:5.3f}] | "
+              f"{100 * c:6.1f} [{100 * a['coverage_ci95'][0]:5.1f}, {100 * a['coverage_ci95'][1]:5.1f}]")
 
 
 GROSS_Z = 5.0  # an error beyond this many sigmas on some axis: a gross failure, not the tail of the noise model
@@ -436,6 +519,8 @@ def incident_records(problem: str, sol: dict, truth: dict, T_cam: np.ndarray | N
                            sigma_px=sol.get("sigma_px"), sigma_px_estimated=sol.get("sigma_px_estimated"),
                            camera_uncertainty=bool((sol.get("camera_uncertainty") or {}).get("included")),
                            doubtful=c["number"] in doubts, **extra))
+        if truth.get("panorama_center_enu") is not None:  # one camera centre: the sight is defined
+            recs[-1]["sight_z"] = sight_z(c, t["body_centre_enu"], truth["panorama_center_enu"])
         if T_cam is not None and c.get("sigma_body_centre_fit_m") is not None:
             q = float(sol.get("ci95_factor") or Z95)
             sb, sh = np.asarray(c["sigma_body_centre_fit_m"], float), np.asarray(c["sigma_hpr_fit_deg"], float)
@@ -903,6 +988,7 @@ def main(argv=None) -> int:
             print_doubts(rt, recs)
             for how, sub in finder_split(recs).items() if rt == "auto" else ():
                 print_table(f"auto, unmarked, found by {how.replace('_', ' ')}", axis_stats(sub))
+            print_sight(f"{rt}, unmarked", sight_stats([x for x in recs if not x.get("doubtful")]))
         return 0
     routes = [r.strip() for r in a.route.split(",") if r.strip()]
     for r in routes:
@@ -943,6 +1029,8 @@ def main(argv=None) -> int:
             for how, sub in finder_split(recs).items():
                 result["routes"][r]["stats_by_finder"][how] = st_how = axis_stats(sub)
                 print_table(f"auto, unmarked, found by {how.replace('_', ' ')}", st_how)
+            result["routes"][r]["stats_sight"] = st_sight = sight_stats([x for x in recs if not x.get("doubtful")])
+            print_sight("auto, unmarked", st_sight)
         if info.get("fit_records"):  # the fit's own intervals against the truth moved by the camera's error
             st_fit = axis_stats(info["fit_records"])
             zc = np.array([c["z"] for c in info.get("camera", []) if c.get("z") is not None])

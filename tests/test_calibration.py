@@ -240,3 +240,85 @@ def test_the_automatic_route_is_told_apart_by_how_the_finder_placed_a_carriage(b
     assert list(split) == ["matched", "pose_search"]
     assert [r["number"] for r in split["matched"]] == ["1", "4"]
     assert [r["number"] for r in split["pose_search"]] == ["2"]
+
+
+def test_the_error_seen_from_the_camera_shows_a_bias_along_the_sight(bench):
+    """The body centre's error in the frame of the camera's line of sight (``sight_z``: along it, across it, up)
+    from the pose covariance the solve writes: its sigmas are the record's east / north / up sigmas rotated (the
+    same covariance), a known error along the sight gives its z, and over many carriages placed too far by half
+    a sigma the mean z along the sight is +0.5 (its interval excluding 0) where east and north only look a little
+    narrow (docs/calibration.md, "Session 26")."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(4)
+    F = bench.sight_frame([0.0, 0.0, 10.0], [80.0, 60.0, 0.0])
+    assert np.allclose(F @ F.T, np.eye(3)) and F[1, 2] == 0.0 and F[2, 2] > 0  # orthonormal, across is level
+    assert np.allclose(F[0], np.array([80.0, 60.0, -10.0]) / np.linalg.norm([80.0, 60.0, -10.0]))
+    recs = []
+    for k in range(300):
+        A = rng.normal(size=(6, 6)) * np.array([0.01, 0.01, 0.02, 0.3, 0.2, 0.1])
+        cov = A @ A.T + np.diag([1e-5, 1e-5, 4e-5, 0.01, 0.01, 0.004])
+        M = np.eye(4)
+        M[:3, :3] = Rotation.from_rotvec([0.0, 0.0, rng.uniform(-3, 3)]).as_matrix()
+        M[:3, 3] = [rng.uniform(60, 140), rng.uniform(-40, 40), rng.uniform(-2, 2)]
+        body = M[:3, 3] + M[:3, :3] @ [0.3, 0.0, 2.0]
+        J = np.hstack([-bench.skew(body - M[:3, 3]), np.eye(3)])
+        S = J @ cov @ J.T  # the body centre's covariance
+        origin = np.array([0.0, 0.0, 12.0])
+        z_true, true = rng.normal(size=3) + [0.5, 0.0, 0.0], body.copy()
+        for _ in range(12):  # the frame is the true centre's sight: the error that gives z_true, by fixed point
+            Fk = bench.sight_frame(origin, true)
+            s = np.sqrt(np.diag(Fk @ S @ Fk.T))
+            e = Fk.T @ (z_true * s)  # the estimate's error, ENU
+            true = body - e
+        car = {"covariance_pose": cov.tolist(), "world_from_carriage": M.tolist(), "body_centre_enu": body.tolist()}
+        z = bench.sight_z(car, true, origin)
+        assert np.allclose(z, z_true, atol=1e-6)
+        recs.append({"problem": f"p{k // 3}", "sight_z": z, "t_factor": bench.Z95,
+                     "error": list(e) + [0.0] * 3, "sigma": list(np.sqrt(np.diag(S))) + [1.0] * 3})
+    assert bench.sight_z({"covariance_pose": None}, body, origin) is None
+    st = bench.sight_stats(recs + [{"problem": "x", "sight_z": None}])
+    assert st["n_carriages"] == 300 and st["n_problems"] == 100
+    a, b = st["axes"]["sight"], st["axes"]["across"]
+    assert 0.35 < a["mean_z"] < 0.65 and a["mean_z_ci95"][0] > 0.2  # the bias, told apart from 0
+    assert 1.0 < a["rms_z"] < 1.25 and 0.85 < a["coverage"] < 0.95
+    assert abs(b["mean_z"]) < 0.15 and b["mean_z_ci95"][0] < 0 < b["mean_z_ci95"][1] and 0.85 < b["rms_z"] < 1.15
+    assert bench.sight_stats([{"problem": "x"}]) is None
+
+
+def test_the_faces_shape_is_measured_against_the_truth():
+    """``bench_alignment_points.shape_errors``: a face whose points are 1 % too close together across it (and right
+    along it) reads across -0.01, along 0; pose predictions 0.3 % too close to their mean read radial -0.003; a
+    face off by pixels (a mismatch) and one too thin to measure across are left out."""
+    spec = importlib.util.spec_from_file_location("bench_alignment_points", SCRIPT.parent / "bench_alignment_points.py")
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    a = np.deg2rad(20.0)
+    along, across = np.array([np.cos(a), np.sin(a)]), np.array([-np.sin(a), np.cos(a)])
+    corners = {f"p{i}": np.array([300.0, 200.0]) + x * along + y * across
+               for i, (x, y) in enumerate([(-60, -12), (60, -12), (60, 12), (-60, 12), (10, 5)])}
+    found = {k: np.array([300.0, 200.0]) + ((v - [300, 200]) @ along) * along
+             + 0.99 * ((v - [300, 200]) @ across) * across + [0.4, -0.3] for k, v in corners.items()}
+    pose_true = {"c0": np.array([210.0, 230.0]), "c1": np.array([395.0, 160.0]), "c2": np.array([300.0, 260.0])}
+    m = np.mean(list(pose_true.values()), axis=0)
+    pose = {k: m + 0.997 * (v - m) for k, v in pose_true.items()}
+    thin = {f"t{i}": np.array([100.0 + 40 * i, 500.0 + 0.5 * i]) for i in range(4)}
+    obs_true = {**corners, **pose_true, **thin, **{f"x{k}": v for k, v in corners.items()}}
+    truth = {"photos": [{"photo": "photos/a.jpg", "observations": {
+        "6100": {k: {"uv": v.tolist()} for k, v in list(corners.items()) + list(pose_true.items())},
+        "6223": {k: {"uv": v.tolist()} for k, v in thin.items()},
+        "6227": {f"x{k}": {"uv": v.tolist()} for k, v in corners.items()}}}]}
+    obs = [{"carriage": "6100", "point": k, "view": "a.jpg", "uv": v.tolist(), "method": "homography",
+            "face": "left", "alignment": {"loading_px": [[0.1] * 8] * 2}} for k, v in found.items()]
+    obs += [{"carriage": "6100", "point": k, "view": "a.jpg", "uv": v.tolist(), "method": "pose", "face": "left"}
+            for k, v in pose.items()]
+    obs += [{"carriage": "6223", "point": k, "view": "a.jpg", "uv": v.tolist(), "method": "homography",
+             "face": "left"} for k, v in thin.items()]
+    obs += [{"carriage": "6227", "point": f"x{k}", "view": "a.jpg", "uv": (v + [6.0, 0.0]).tolist(),
+             "method": "homography", "face": "left"} for k, v in corners.items()]
+    assert set(obs_true) >= {o["point"] for o in obs}
+    recs = mod.shape_errors({"observations": obs}, truth)
+    assert sorted(r["kind"] for r in recs) == ["left/matched", "pose"]
+    face = next(r for r in recs if r["kind"] == "left/matched")
+    assert abs(face["across"] + 0.01) < 1e-5 and abs(face["along"]) < 1e-5 and face["n"] == 5
+    assert abs(next(r for r in recs if r["kind"] == "pose")["radial"] + 0.003) < 1e-9
