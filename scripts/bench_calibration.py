@@ -519,7 +519,7 @@ def incident_records(problem: str, sol: dict, truth: dict, T_cam: np.ndarray | N
                            sigma_px=sol.get("sigma_px"), sigma_px_estimated=sol.get("sigma_px_estimated"),
                            camera_uncertainty=bool((sol.get("camera_uncertainty") or {}).get("included")),
                            doubtful=c["number"] in doubts, **extra))
-        if truth.get("panorama_center_enu") is not None:  # one camera centre: the sight is defined
+        if sol.get("route") == "panorama" and truth.get("panorama_center_enu") is not None:  # one camera centre
             recs[-1]["sight_z"] = sight_z(c, t["body_centre_enu"], truth["panorama_center_enu"])
         if T_cam is not None and c.get("sigma_body_centre_fit_m") is not None:
             q = float(sol.get("ci95_factor") or Z95)

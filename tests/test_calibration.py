@@ -284,6 +284,17 @@ def test_the_error_seen_from_the_camera_shows_a_bias_along_the_sight(bench):
     assert 1.0 < a["rms_z"] < 1.25 and 0.85 < a["coverage"] < 0.95
     assert abs(b["mean_z"]) < 0.15 and b["mean_z_ci95"][0] < 0 < b["mean_z_ci95"][1] and 0.85 < b["rms_z"] < 1.15
     assert bench.sight_stats([{"problem": "x"}]) is None
+    # in the benchmark's records: a panorama's carriage gets its z seen from the panorama's centre, a multi-view
+    # incident's (several camera centres) none
+    car = {**car, "number": "6100", "status": "solved", "n_points": 8, "sigma_body_centre_m": [0.1] * 3,
+           "ci95_body_centre_m": [0.2] * 3, "sigma_hpr_deg": [0.1] * 3, "ci95_hpr_deg": [0.2] * 3}
+    truth = {"carriages": [{"number": "6100", "world_from_carriage": M.tolist(), "body_centre_enu": true.tolist()}],
+             "panorama_center_enu": origin.tolist()}
+    for route, want in (("panorama", True), ("multiview", False)):
+        recs, _, _, _ = bench.incident_records("p", {"route": route, "carriages": [car]}, truth)
+        assert ("sight_z" in recs[0]) is want
+        if want:
+            assert np.allclose(recs[0]["sight_z"], z_true, atol=1e-6)
 
 
 def test_the_faces_shape_is_measured_against_the_truth():
