@@ -39,6 +39,12 @@ def incidents(paths: list[Path]) -> list[Path]:
     return out
 
 
+def true_pixels(truth: dict) -> dict[tuple[str, str, str], np.ndarray]:
+    """``{(car, point, photo file name): true pixel (2,)}`` of the photos on disk, from ground_truth.json."""
+    return {(car, pt, Path(ph["photo"]).name): np.asarray(o["uv"], float)
+            for ph in truth["photos"] for car, pts in ph.get("observations", {}).items() for pt, o in pts.items()}
+
+
 def _scale(found: np.ndarray, true: np.ndarray, axes: np.ndarray | None = None):
     """The relative error of the spread of points ``found`` (n, 2) about their mean against ``true`` (n, 2): along
     the rows of ``axes`` (2, 2), least squares of each axis's component on the true offsets (the along one: the
@@ -59,8 +65,7 @@ def shape_errors(corr: dict, truth: dict) -> list[dict]:
     relative error of their spread along the face's long axis and across it (``along``, ``across``: -0.01 is 1 %
     too short), and per car and photo with 3 or more pose predictions, their radial spread's error about the
     true mean (``radial``); points off by over 5 px RMS (a mismatch) are left out."""
-    true_uv = {(car, pt, Path(ph["photo"]).name): np.asarray(o["uv"], float)
-               for ph in truth["photos"] for car, pts in ph.get("observations", {}).items() for pt, o in pts.items()}
+    true_uv = true_pixels(truth)
     groups: dict[tuple, list] = {}
     for o in corr["observations"]:
         t = true_uv.get((o["carriage"], o["point"], o["view"]))
@@ -109,12 +114,7 @@ def main() -> None:
         corr = json.loads((root / "out/correspond/correspondences.json").read_text())
         truth = json.loads((root / "truth/ground_truth.json").read_text())
         shapes += [{"incident": root.name, **r} for r in shape_errors(corr, truth)]
-        true_uv = {}
-        for ph in truth["photos"]:
-            name = Path(ph["photo"]).name
-            for car, pts in ph.get("observations", {}).items():
-                for pt, o in pts.items():
-                    true_uv[(car, pt, name)] = np.asarray(o["uv"], float)
+        true_uv = true_pixels(truth)
         blocks: dict[tuple, list] = {}
         for o in corr["observations"]:
             al = o.get("alignment")

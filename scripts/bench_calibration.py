@@ -100,6 +100,25 @@ def _wrap_deg(a):
     return (np.asarray(a, float) + 180.0) % 360.0 - 180.0
 
 
+def cluster_bootstrap(records: list[dict], n_boot: int, seed: int):
+    """The clusters of ``records`` (``record["problem"]``: one incident's carriages share its camera and noise draw)
+    and their bootstrap: ``(cl (n,) each record's cluster, C, n_c (C,) records per cluster, W (1 + n_boot, C) cluster
+    counts, row 0 the sample itself, sums: (n, k) -> (C, k) per-cluster sums)``."""
+    keys = [r["problem"] for r in records]
+    ids = {k: i for i, k in enumerate(dict.fromkeys(keys))}
+    cl = np.array([ids[k] for k in keys])
+    C = len(ids)
+    n_c = np.bincount(cl, minlength=C).astype(float)
+
+    def sums(x):
+        out = np.zeros((C, x.shape[1]))
+        np.add.at(out, cl, x)
+        return out
+
+    W = np.random.default_rng(seed).multinomial(C, np.full(C, 1.0 / C), size=n_boot).astype(float)
+    return cl, C, n_c, np.vstack([np.ones(C), W]), sums
+
+
 def axis_stats(records: list[dict], n_boot: int = 2000, seed: int = 0) -> dict:
     """Per axis: coverage, RMS z, width / spread, mean half width and RMS error, each with a 95 % cluster
     bootstrap interval (clusters: ``record["problem"]``); the coverage's Wilson interval too."""
@@ -109,25 +128,12 @@ def axis_stats(records: list[dict], n_boot: int = 2000, seed: int = 0) -> dict:
     err = np.array([r["error"] for r in records], float)  # (n, 6)
     sig = np.array([r["sigma"] for r in records], float)
     half = np.array([r["ci95"] for r in records], float)
-    keys = [r["problem"] for r in records]
-    ids = {k: i for i, k in enumerate(dict.fromkeys(keys))}
-    cl = np.array([ids[k] for k in keys])
-    C = len(ids)
-    n_c = np.bincount(cl, minlength=C).astype(float)
-
-    def per_cluster(x):  # (n, 6) -> (C, 6) sums
-        out = np.zeros((C, x.shape[1]))
-        np.add.at(out, cl, x)
-        return out
-
+    cl, C, n_c, W, per_cluster = cluster_bootstrap(records, n_boot, seed)
     inside = per_cluster((np.abs(err) <= half).astype(float))
     z2 = per_cluster((err / sig) ** 2)
     e2 = per_cluster(err ** 2)
     s2 = per_cluster(sig ** 2)
     hw = per_cluster(half)
-    rng = np.random.default_rng(seed)
-    W = rng.multinomial(C, np.full(C, 1.0 / C), size=n_boot).astype(float)  # (B, C) cluster counts
-    W = np.vstack([np.ones(C), W])  # row 0: the sample itself
 
     def figures(w):
         n = w @ n_c
@@ -233,19 +239,8 @@ def sight_stats(records: list[dict], n_boot: int = 2000, seed: int = 0) -> dict 
         return None
     Z = np.array([r["sight_z"] for r in recs], float)
     q = np.array([float(r.get("t_factor") or Z95) for r in recs])
-    keys = [r["problem"] for r in recs]
-    ids = {k: i for i, k in enumerate(dict.fromkeys(keys))}
-    cl = np.array([ids[k] for k in keys])
-    C = len(ids)
-    n_c = np.bincount(cl, minlength=C).astype(float)
-
-    def sums(x):
-        out = np.zeros((C, x.shape[1]))
-        np.add.at(out, cl, x)
-        return out
-
+    _, C, n_c, W, sums = cluster_bootstrap(recs, n_boot, seed)
     s1, s2, inside = sums(Z), sums(Z ** 2), sums((np.abs(Z) <= q[:, None]).astype(float))
-    W = np.vstack([np.ones(C), np.random.default_rng(seed).multinomial(C, np.full(C, 1.0 / C), size=n_boot)])
     n = (W @ n_c)[:, None]
     figs = {"mean_z": (W @ s1) / n, "rms_z": np.sqrt((W @ s2) / n), "coverage": (W @ inside) / n}
     out = {"n_carriages": len(recs), "n_problems": C, "axes": {}}
