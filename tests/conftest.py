@@ -116,17 +116,18 @@ def hand_picked_incident(tmp_path_factory) -> Path:
 # worker (`--dist loadfile`), and hands out the files in the collection's order (`--no-loadscope-reorder`; xdist's
 # own order is by number of tests, which put the one-test end-to-end file, about 150 s, last: the other worker
 # waited for it). Longest first, so the workers finish together (greedy scheduling, longest processing time
-# first). The seconds are what each file took in a full run on the 2-core machine under load (session 21,
-# `--junitxml`, a file's test times summed, load 1.7-7.8, after the fixtures' needless finder runs and duplicate
-# incidents went; docs/performance.md, the thirteenth pass); files not listed (each under 20 s) follow in their
-# usual order. Re-measure when a file's cost changes much: a wrong order costs time, never a test.
+# first). The seconds are what each file took in a full run on the 2-core machine, idle but for the suite
+# (session 27, `scripts/test.sh --junitxml`, a file's test times summed: 890 s in all, 467 s of wall; after the pose
+# search's faster correlation; docs/performance.md); files not listed (each under 13 s) follow in their usual
+# order. Re-measure when a file's cost changes much: a wrong order costs time, never a test.
 # --------------------------------------------------------------------------------------------------------------
 SLOW_FILES_SECONDS = {
-    "test_cli_end_to_end.py": 264, "test_correspond.py": 182, "test_solve.py": 147, "test_georef.py": 145,
-    "test_report.py": 134, "test_sfm.py": 93, "test_cli.py": 90, "test_georef_gps.py": 63, "test_synth.py": 58,
-    "test_picker.py": 47, "test_stitch.py": 44, "test_relative.py": 41, "test_picker_map.py": 39,
-    "test_multiview_uncertainty.py": 34, "test_viewer.py": 34, "test_georef_covariance.py": 32,
-    "test_export.py": 26, "test_georef_track.py": 23, "test_solve_stage.py": 21,
+    "test_cli_end_to_end.py": 108, "test_correspond.py": 106, "test_georef.py": 78, "test_sfm.py": 55,
+    "test_report.py": 49, "test_solve.py": 47, "test_picker.py": 40, "test_cli.py": 36, "test_synth.py": 34,
+    "test_picker_map.py": 28, "test_georef_gps.py": 26, "test_stitch.py": 24, "test_viewer.py": 21,
+    "test_relative.py": 21, "test_export.py": 17, "test_multiview_uncertainty.py": 16,
+    "test_georef_covariance.py": 16, "test_uncertainty_model.py": 15, "test_georef_track.py": 14,
+    "test_solve_stage.py": 13,
 }
 
 
