@@ -23,6 +23,7 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import os
+import time
 from dataclasses import dataclass
 from typing import Callable
 
@@ -120,7 +121,8 @@ def _map_here(fn: Callable, items: list, progress: Callable, on_result: Callable
 def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int, str, str], None],
                on_result: Callable[[int, object], None] | None = None, first: Callable | None = None,
                on_first: Callable[[int, object], None] | None = None,
-               before_second: Callable[[], None] | None = None, hold: Callable[[int], bool] | None = None) -> list:
+               before_second: Callable[[], None] | None = None, hold: Callable[[int, bool], bool] | None = None
+               ) -> list:
     """``[fn(item, note) for item in items]``, on up to ``workers`` forked processes (in order).
 
     ``fn(item, note)`` does one photo and calls ``note(step, message)`` at each of its steps; the parent calls
@@ -134,19 +136,20 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
     item's first task finishes (any order). ``before_second()``: work of the parent's own, done once the workers
     are forked and the first tasks queued, before any second task is queued (what the second tasks need and the
     workers, forked before it, read from files). Second tasks are queued in the order their first tasks finished.
-    ``hold(index)``: true for an item to hold back (a photo whose features another process is computing:
-    ``prefetch.py``): asked for every item when the map starts, such an item's first task is queued once every
-    other item's first task is done, or as soon as ``hold(index)`` turns false (the parent asks while it waits);
-    while an item is held, second tasks are queued only while a worker is free (and one more, so that a worker
-    finishing while the parent runs a callback finds one), so the held one goes ahead of those not queued yet.
-    Without ``first``, a held item's task is queued last; one process takes them last. The results are in the items' order whatever the order of the tasks. A worker that dies (killed, out of
-    memory) fails the map with a RuntimeError instead of leaving it waiting.
+    ``hold(index, idle)``: true for an item to hold back (a photo whose features another process computes:
+    ``prefetch.py``); ``idle``: a worker has nothing to do. Asked for every item when the map starts, such an
+    item's first task is queued as soon as ``hold`` turns false for it (the parent asks while it waits, every
+    0.2 s at most); while an item is held, second tasks are queued only while a worker is free (and one more, so
+    that a worker finishing while the parent runs a callback finds one), so the held one goes ahead of those not
+    queued yet. Without ``first``, a held item's task is queued last; one process takes them last. The results
+    are in the items' order whatever the order of the tasks. A worker that dies (killed, out of memory) fails the
+    map with a RuntimeError instead of leaving it waiting.
     """
     import cv2
 
     if before_second is not None and first is None:
         raise ValueError("before_second needs first tasks")
-    held = [i for i in range(len(items)) if hold is not None and hold(i)]
+    held = [i for i in range(len(items)) if hold is not None and hold(i, False)]
     n = min(max(1, int(workers)), len(items))
     if n <= 1 or "fork" not in mp.get_all_start_methods():
         return _map_here(fn, items, progress, on_result, first, on_first, before_second,
@@ -165,7 +168,6 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
     try:
         phase0 = 1 if first is not None else 2
         futures = {ex.submit(_run_one, i, phase0): (i, phase0) for i in range(len(items)) if i not in held}
-        firsts_left = {i for i, phase in futures.values() if phase == 1}  # first tasks queued or running
         if before_second is not None:  # the parent's own work, with its own OpenCV threads
             cv2.setNumThreads(threads)
             before_second()
@@ -180,21 +182,19 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
             pending.add(g)
 
         def dispatch() -> None:
-            # a held item once every other first task is done, ahead of the second tasks not queued yet (while an
-            # item is held, they are queued only while a worker is free, and one more), or as soon as it need not
-            # be held
-            for i in [i for i in held if not firsts_left or not hold(i)]:
+            # a held item as soon as it need not be held, ahead of the second tasks not queued yet (while an item is
+            # held, they are queued only while a worker is free, and one more)
+            for i in [i for i in held if not hold(i, len(pending) < n)]:
                 held.remove(i)
                 submit(i, phase0)
-                if phase0 == 1:
-                    firsts_left.add(i)
             while ready and (not held or len(pending) <= n):
                 i, token = ready.pop(0)
                 submit(i, 2, token)
 
         while pending or held or ready:
             dispatch()
-            if not pending:
+            if not pending:  # every item left is held: asked again shortly
+                time.sleep(0.02)
                 continue
             done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
             while not q.empty():
@@ -203,7 +203,6 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
             for f in finished:
                 i, phase = futures[f]
                 if phase == 1:  # its second task: queued by dispatch
-                    firsts_left.discard(i)
                     ready.append((i, f.result()))
                 else:
                     results[i] = f.result()  # re-raises a worker's exception here

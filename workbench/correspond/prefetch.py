@@ -1,4 +1,4 @@
-"""The correspond stage's photo features computed ahead of the stage, in a ``workbench run``.
+"""The correspond stage's photo features computed ahead of the stage, in a ``workbench run``, by one process.
 
 The stages before it (inputs, terrain, stitch, georef) leave a core free most of the time, and SIFT on the
 upsampled photos is a third of the stage's CPU. When the run begins (``StageSpec.prefetch``:
@@ -8,16 +8,22 @@ photo's digest, its intrinsics as known when the run begins (the incident's own 
 else the camera profile, else EXIF) and the options. Where georef then gives the photo other intrinsics, the names
 differ and the entry is not used (it is pruned at the end of the stage).
 
+When the stage starts it takes the process on (:func:`adopt`): where the stage reads the photos under the names the
+process writes, the process goes on with every photo it has not done, in order, and the stage's workers match each
+photo once its entry is there (``stage._match_photos`` holds a photo back while the process owns it: :func:`owns`).
+One process computes every photo's features: SIFT on a 4000 x 3000 photo allocates about 3 GB, which a process
+keeps for its next photo (``cli._freed_memory_kept``), while every other process computing one faults those pages
+in and zeroes them afresh, several at once on two cores: 12-19 s of system time on the sample incident when the
+stage's two workers and this process each computed some (docs/performance.md, session 28). Elsewhere the stage
+stops the process from taking another photo (:func:`stop`), and a photo it is computing then is waited for.
+
 The process runs at the lowest priority (:data:`NICE`): it takes the cores the run's own stages leave idle, not
-theirs. When the stage starts it stops the process from taking another photo (:func:`stop`); a photo the process is
-computing then is held back (:func:`computing`, ``stage._match_photos``) until the process has written it or every
-other photo's features are done, and waited for by the worker that reaches it (:func:`wait_for`): while the workers
-compute the other photos' features (and the parent the cars' references) the niced process gets no core; the
-worker that reaches it later leaves it its core. Where other work holds the cores (a loaded machine), the process
-may get none for minutes: a worker that sees it get less than :data:`STARVED_SHARE` of a core over
-:data:`STARVED_WINDOW_S` computes the photo itself, and the stage's end ends the process (:func:`finish`). The
-others are computed by the stage as before. Entries are written atomically, and the features are the same arrays
-whichever process computes them (``match.photo_features``, OpenCV single-threaded in both).
+theirs, so while the stage's workers match photos it waits, and a worker left without a photo leaves its core to it.
+Where other work holds the cores (a loaded machine), the process may get none for minutes: where it gets less than
+:data:`STARVED_SHARE` of a core over :data:`STARVED_WINDOW_S` while a worker is idle, the stage takes its photos back
+(:func:`owns`; a worker waiting for the photo it is computing does the same in :func:`wait_for`), and the stage's end
+ends the process (:func:`finish`). Entries are written atomically, and the features are the same arrays whichever
+process computes them (``match.photo_features``, OpenCV single-threaded in both).
 """
 
 from __future__ import annotations
@@ -78,7 +84,8 @@ def _work(photos: list[Path], compute: Callable[[Path], None], status, stop_flag
 
 
 def stop() -> dict:
-    """The stage starts: the prefetch takes no other photo. Returns what it had done (for the statistics)."""
+    """The stage starts without taking the process on (:func:`adopt`): the prefetch takes no other photo. Returns
+    what it had done (for the statistics)."""
     if not _STATE:
         return {}
     status = _STATE["status"]
@@ -91,6 +98,59 @@ def stop() -> dict:
     return {"done": done, "busy": busy}
 
 
+def adopt(files: dict[str, Path]) -> list[str]:
+    """The stage starts, reading each photo's features from ``files`` (photo name -> entry). Where those are the
+    entries the process writes (the intrinsics it used are the stage's), the process goes on with every photo it
+    has not done: returns their names (the photos it owns, :func:`owns`). Else it is stopped (:func:`stop`) and
+    none are its (a photo it is computing is still waited for: :func:`wait_for`)."""
+    if not _STATE:
+        return []
+    if any(files.get(n) != e for n, e in _STATE["files"].items()) or not _alive(_STATE["proc"].pid):
+        stop()
+        return []
+    status = _STATE["status"]
+    with status.get_lock():
+        states = list(status[:])
+        stopped = bool(_STATE["stop"].value)
+    owned = [n for n, s in zip(_STATE["names"], states) if s == BUSY or (s == PENDING and not stopped)]
+    log.info("correspond: features computed ahead of the stage: %s; the prefetch computes the others: %s",
+             [n for n, s in zip(_STATE["names"], states) if s == DONE], owned)
+    _STATE["watch"] = None  # (monotonic time, the process's CPU s) where a window of idle waiting began
+    return owned
+
+
+def owns(name: str, entry: Path, idle: bool = False) -> bool:
+    """Whether the prefetch will compute, or is computing, the photo ``name``'s features into ``entry`` (the
+    stage's own name for it), so that the stage waits for them; False once they are written. ``idle``: the caller
+    has a worker with nothing to do. Where the process got less than :data:`STARVED_SHARE` of a core over
+    :data:`STARVED_WINDOW_S` of such idle waiting (other work holds the cores), it is stopped and False is returned
+    for every photo from then on: the stage computes them."""
+    if not _STATE or _STATE["files"].get(name) != entry:
+        return False
+    i = _STATE["names"].index(name)
+    state = _STATE["status"][i]
+    if state == DONE or (state == PENDING and _STATE["stop"].value) or not _alive(_STATE["proc"].pid):
+        return False
+    if not idle:
+        _STATE["watch"] = None
+        return True
+    now, cpu = time.monotonic(), _cpu_s(_STATE["proc"].pid)
+    if _STATE.get("watch") is None or cpu is None:
+        _STATE["watch"] = (now, cpu)
+        return True
+    t0, c0 = _STATE["watch"]
+    if now - t0 < STARVED_WINDOW_S:
+        return True
+    if c0 is not None and cpu - c0 < STARVED_SHARE * (now - t0):
+        log.info("correspond: the prefetch got %.0f %% of a core in the last %.1f s while a worker waited (other "
+                 "work holds the cores): the stage computes the photos' features", 100 * (cpu - c0) / (now - t0),
+                 now - t0)
+        stop()
+        return False
+    _STATE["watch"] = (now, cpu)
+    return True
+
+
 def computing(name: str, entry: Path) -> bool:
     """Whether the prefetch is computing the photo ``name``'s features into ``entry`` now (the stage's own name for
     it; another name: False)."""
@@ -100,15 +160,16 @@ def computing(name: str, entry: Path) -> bool:
 
 
 def wait_for(name: str, entry: Path) -> None:
-    """In a worker: wait while the prefetch computes the photo ``name``'s features into ``entry`` (the stage's
-    own name for it; another name: nothing to wait for), and while it gets a core: one that got less than
-    :data:`STARVED_SHARE` of a core over :data:`STARVED_WINDOW_S` is left (the worker computes the photo)."""
+    """In a worker (or the stage's own process): wait while the prefetch computes the photo ``name``'s features
+    into ``entry`` (the stage's own name for it; another name: nothing to wait for), or will compute them (a photo
+    it owns, :func:`adopt`), and while it gets a core: one that got less than :data:`STARVED_SHARE` of a core over
+    :data:`STARVED_WINDOW_S` is left (the caller computes the photo; a photo not begun is not begun then)."""
     t0 = time.monotonic()
-    if not computing(name, entry):
+    if not _pending(name, entry):
         return
     pid = _STATE["proc"].pid
     w0, c0 = t0, _cpu_s(pid)
-    while computing(name, entry) and time.monotonic() - t0 < WAIT_MAX_S:
+    while _pending(name, entry) and time.monotonic() - t0 < WAIT_MAX_S:
         time.sleep(0.02)
         now = time.monotonic()
         if now - w0 >= STARVED_WINDOW_S:
@@ -117,9 +178,22 @@ def wait_for(name: str, entry: Path) -> None:
                 log.info("correspond: the prefetch computing %s got %.0f %% of a core in the last %.1f s (other work "
                          "holds the cores): computed here after waiting %.1f s", name, 100 * (c1 - c0) / (now - w0),
                          now - w0, now - t0)
+                with _STATE["status"].get_lock():
+                    _STATE["stop"].value = 1
                 return
             w0, c0 = now, c1
     log.info("correspond: waited %.1f s for the prefetch computing %s", time.monotonic() - t0, name)
+
+
+def _pending(name: str, entry: Path) -> bool:
+    """Whether the prefetch is computing the photo's features into ``entry`` now, or will (not begun, not stopped),
+    and is alive."""
+    if not _STATE or _STATE["files"].get(name) != entry:
+        return False
+    state = _STATE["status"][_STATE["names"].index(name)]
+    if state == DONE or (state == PENDING and _STATE["stop"].value):
+        return False
+    return _alive(_STATE["proc"].pid)
 
 
 WAIT_MAX_S = 300.0  # a prefetch that has not finished a photo by then: the worker computes it itself
@@ -167,4 +241,4 @@ def finish() -> None:
     _STATE.clear()
 
 
-__all__ = ["start", "stop", "computing", "wait_for", "finish"]
+__all__ = ["start", "stop", "adopt", "owns", "computing", "wait_for", "finish"]

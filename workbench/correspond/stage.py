@@ -320,11 +320,11 @@ def _match_photos(matcher: _PhotoMatcher, photos: list[Path], intrinsics: dict[s
     """Every photo matched on worker processes: the results, in the photos' order, and, to carry points between
     the photos of a panorama set, their features and the homographies between them. ``references()``: builds the
     cars' references (into the cache, where the workers read them) once the workers are computing the photos'
-    features. A photo whose features the prefetch (``prefetch.py``) is computing as the stage starts is held back
-    (``map_photos(hold=...)``) until the prefetch has written them or every other photo's features are done (then
-    it goes ahead of the matches not queued yet): at niceness 19 the prefetch gets no core while the workers and
-    the references' threads hold both, so a worker that waited for it at the start would only wait; later, the
-    worker that reaches it leaves its core to the prefetch."""
+    features. A photo whose features the prefetch (``prefetch.py``) computes, or will (it took the photos on:
+    ``prefetch.adopt``), is held back (``map_photos(hold=...)``) until the prefetch has written them (then it goes
+    ahead of the matches not queued yet), so that one process computes them all; at niceness 19 the prefetch
+    gets a core once a worker has nothing else to do, and where it gets none then (a loaded machine) the
+    photos are the workers' (``prefetch.owns``)."""
     steps_done: set = set()
 
     def report(index: int, step: str, message: str) -> None:
@@ -365,9 +365,9 @@ def _match_photos(matcher: _PhotoMatcher, photos: list[Path], intrinsics: dict[s
         if pairs is not None:
             pairs.advance(features)
 
-    def computed_ahead(index: int) -> bool:
+    def computed_ahead(index: int, idle: bool) -> bool:
         name = photos[index].name
-        return prefetch.computing(name, matcher.photo_file[name])
+        return prefetch.owns(name, matcher.photo_file[name], idle)
 
     results = map_photos(matcher.match, photos, workers, report, on_result=done, first=matcher.features,
                          on_first=features_done, before_second=before_second, hold=computed_ahead)
@@ -417,7 +417,7 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
 
     if cache_dir is None:
         references()
-    prefetch.stop()  # the photos not begun ahead of the stage are the stage's
+    prefetch.adopt(photo_file)  # the prefetch goes on with the photos not begun, where its entries are the stage's
     try:
         results, features, pairs = _match_photos(matcher, photos, intrinsics, opts, progress, carry_on,
                                                  references if cache_dir is not None else None)
