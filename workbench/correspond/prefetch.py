@@ -42,9 +42,12 @@ PENDING, BUSY, DONE = 0, 1, 2
 NICE = 19  # the process's niceness (the run's own processes come first; an idle core is still all its own)
 
 
-def start(photos: list[Path], files: dict[str, Path], compute: Callable[[Path], None]) -> None:
+def start(photos: list[Path], files: dict[str, Path], compute: Callable[[Path], None], *, ahead: bool = True
+          ) -> None:
     """Fork the process that runs ``compute(photo)`` (the photo's features into its entry ``files[photo.name]``)
-    for each photo whose entry is not there yet, in order (see the module); nothing where there is no ``fork``."""
+    for each photo whose entry is not there yet, in order (see the module); nothing where there is no ``fork``.
+    ``ahead``: started when the run begins (else by the stage itself, for the same reason: one process computing
+    every photo's features, where no run started one whose entries are the stage's)."""
     if "fork" not in mp.get_all_start_methods() or not photos:
         return
     import cv2
@@ -62,7 +65,8 @@ def start(photos: list[Path], files: dict[str, Path], compute: Callable[[Path], 
         cv2.setNumThreads(threads)
     _STATE.clear()
     _STATE.update(files=dict(files), names=[p.name for p in photos], status=status, stop=stop_flag, proc=proc)
-    log.info("correspond: the photos' features started ahead of the stage (process %d)", proc.pid)
+    log.info("correspond: the photos' features started %s (process %d)",
+             "ahead of the stage" if ahead else "in one process", proc.pid)
 
 
 def _work(photos: list[Path], compute: Callable[[Path], None], status, stop_flag) -> None:

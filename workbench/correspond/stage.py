@@ -278,11 +278,15 @@ class _PhotoMatcher:
         if f.is_file():
             note("features", "features from the cache")
         else:
-            pf = photo_features(p.name, _read_rgb(p), self.intrinsics[p.name], self.opts)
-            cache.save(self.project, f, {"gray": pf.gray_undistorted, "keypoints": pf.keypoints,
-                                         "descriptors": pf.descriptors, "frames": pf.frames})
-            note("features", f"{len(pf.keypoints)} features")
+            note("features", f"{self.compute_features(p)} features")
         return time.perf_counter() - t0
+
+    def compute_features(self, p: Path) -> int:
+        """The photo's features computed and written to its entry; returns how many."""
+        pf = photo_features(p.name, _read_rgb(p), self.intrinsics[p.name], self.opts)
+        cache.save(self.project, self.photo_file[p.name], {"gray": pf.gray_undistorted, "keypoints": pf.keypoints,
+                                                           "descriptors": pf.descriptors, "frames": pf.frames})
+        return len(pf.keypoints)
 
     def match(self, p: Path, note, t_features: float) -> PhotoResult:
         opts, consist, types = self.opts, self.consist, self.types
@@ -339,6 +343,14 @@ def _match_photos(matcher: _PhotoMatcher, photos: list[Path], intrinsics: dict[s
                       * K.width * K.height + 14.0 * K.width * K.height
                       for K in (intrinsics[p.name] for p in photos)] or [0.0])
     workers = opts.workers or default_workers(per_worker)
+    # one process computes every photo's features (prefetch.py): the run's prefetch where it computes the entries
+    # read here, else one started now, where the photos go to several workers and two or more are not computed yet
+    todo = [p for p in photos if not matcher.photo_file[p.name].is_file()]
+    if not prefetch.adopt(matcher.photo_file) and min(workers, len(photos)) > 1 and len(todo) > 1:
+        prefetch.finish()  # (a run's prefetch of other entries, which adopt stopped)
+        prefetch.start(todo, {p.name: matcher.photo_file[p.name] for p in todo},
+                       lambda p: matcher.compute_features(p), ahead=False)
+        prefetch.adopt(matcher.photo_file)
 
     def before_second() -> None:
         if references is not None:
@@ -417,7 +429,6 @@ def automatic(project: Project, photos: list[Path], intrinsics: dict[str, Camera
 
     if cache_dir is None:
         references()
-    prefetch.adopt(photo_file)  # the prefetch goes on with the photos not begun, where its entries are the stage's
     try:
         results, features, pairs = _match_photos(matcher, photos, intrinsics, opts, progress, carry_on,
                                                  references if cache_dir is not None else None)
