@@ -23,6 +23,7 @@ from __future__ import annotations
 import logging
 import multiprocessing as mp
 import os
+import threading
 import time
 from dataclasses import dataclass
 from typing import Callable
@@ -165,13 +166,32 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # in the workers (set here: in a forked child it hangs)
     ex = ProcessPoolExecutor(max_workers=n, mp_context=ctx)
+    parent_work: threading.Thread | None = None
     try:
         phase0 = 1 if first is not None else 2
+        ex.submit(int).result()  # the workers forked now, before the parent uses OpenCV's threads (below)
         futures = {ex.submit(_run_one, i, phase0): (i, phase0) for i in range(len(items)) if i not in held}
-        if before_second is not None:  # the parent's own work, with its own OpenCV threads
+        failed: list[BaseException] = []
+        if before_second is not None:
+            # the parent's own work, with its own OpenCV threads, on a thread of its own: meanwhile this one hands
+            # out the held items as they are released (a photo computed by the prefetch, or all of them where it
+            # gets no core); second tasks wait for it
+            def parent_part() -> None:
+                try:
+                    before_second()
+                except BaseException as exc:  # noqa: BLE001 - raised in the map's thread below
+                    failed.append(exc)
+
             cv2.setNumThreads(threads)
-            before_second()
-            cv2.setNumThreads(1)
+            parent_work = threading.Thread(target=parent_part, name="map_photos parent work")
+            parent_work.start()
+
+        def parent_done() -> bool:
+            if parent_work is None or parent_work.is_alive():
+                return parent_work is None
+            if failed:
+                raise failed[0]
+            return True
         results: dict[int, object] = {}
         ready: list[tuple[int, object]] = []  # (item, token): first task done, second not queued yet
         pending = set(futures)
@@ -187,13 +207,13 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
             for i in [i for i in held if not hold(i, len(pending) < n)]:
                 held.remove(i)
                 submit(i, phase0)
-            while ready and (not held or len(pending) <= n):
+            while ready and parent_done() and (not held or len(pending) <= n):
                 i, token = ready.pop(0)
                 submit(i, 2, token)
 
         while pending or held or ready:
             dispatch()
-            if not pending:  # every item left is held: asked again shortly
+            if not pending:  # every item left is held, or waits for the parent's work: asked again shortly
                 time.sleep(0.02)
                 continue
             done, pending = wait(pending, timeout=0.2, return_when=FIRST_COMPLETED)
@@ -214,6 +234,9 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
                     on_first(i, f.result())
                 elif phase == 2 and on_result is not None:
                     on_result(i, results[i])
+        if parent_work is not None:  # (its failure raised here where no second task was left to wait for it)
+            parent_work.join()
+            parent_done()
         while not q.empty():
             progress(*q.get())
         ex.shutdown(wait=True)
@@ -223,6 +246,8 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
                            f"MatchOptions.workers lower") from None
     finally:
         ex.shutdown(wait=False, cancel_futures=True)
+        if parent_work is not None:
+            parent_work.join()
         cv2.setNumThreads(threads)
         _JOB.clear()
 
