@@ -379,6 +379,44 @@ def test_photos_held_back_are_queued_when_released_results_in_the_items_order(tm
     assert idles[:5] == [False] * 5 and idles[5:] == [True] * 5, idles
 
 
+def test_the_parents_work_runs_beside_the_held_items_release_and_its_failure_is_raised(tmp_path):
+    """``map_photos(before_second=...)`` runs the parent's own work (the references) on a thread of its own: held
+    items released meanwhile start their first tasks before it ends, no second task starts before it ends, and an
+    exception it raises is the map's."""
+    from workbench.correspond.parallel import map_photos
+
+    log = tmp_path / "starts.txt"
+    log.write_text("")
+
+    def stamp(what):
+        with open(log, "a") as f:
+            f.write(f"{what} {time.monotonic()}\n")
+
+    def first(item, note):
+        stamp(f"1-{item}")
+        return item
+
+    def second(item, note, token):
+        stamp(f"2-{item}")
+        return item
+
+    def parent():
+        time.sleep(1.0)
+        stamp("parent")
+
+    out = map_photos(second, [0, 1, 2], 2, lambda *a: None, first=first, before_second=parent,
+                     hold=lambda i, idle: not idle)
+    assert out == [0, 1, 2]
+    t = {a: float(b) for a, b in (ln.split() for ln in log.read_text().splitlines())}
+    assert max(t[f"1-{i}"] for i in range(3)) < t["parent"] < min(t[f"2-{i}"] for i in range(3)), t
+
+    def fails():
+        raise ValueError("no references")
+
+    with pytest.raises(ValueError, match="no references"):
+        map_photos(second, [0, 1, 2], 2, lambda *a: None, first=first, before_second=fails)
+
+
 # ---------------------------------------------------------------------------------------------------------
 # a small synthetic incident through the stage
 # ---------------------------------------------------------------------------------------------------------

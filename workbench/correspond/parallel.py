@@ -119,6 +119,40 @@ def _map_here(fn: Callable, items: list, progress: Callable, on_result: Callable
         _JOB.clear()
 
 
+class _ParentWork:
+    """``map_photos``' ``before_second``, the parent's own work, on a thread of its own: meanwhile the map's thread
+    hands out the held items as they are released (a photo computed by the prefetch, or all of them where it gets
+    no core); second tasks wait for it (:meth:`done`). Its exception is raised in the map's thread."""
+
+    def __init__(self) -> None:
+        self._thread: threading.Thread | None = None
+        self._failed: list[BaseException] = []
+
+    def start(self, fn: Callable[[], None]) -> None:
+        def run() -> None:
+            try:
+                fn()
+            except BaseException as exc:  # noqa: BLE001 - raised in the map's thread (done, join)
+                self._failed.append(exc)
+
+        self._thread = threading.Thread(target=run, name="map_photos parent work")
+        self._thread.start()
+
+    def done(self) -> bool:
+        """Whether the work is done (or there is none); its exception, if it raised one."""
+        if self._thread is not None and self._thread.is_alive():
+            return False
+        if self._failed:
+            raise self._failed[0]
+        return True
+
+    def join(self, raise_failure: bool = True) -> None:
+        if self._thread is not None:
+            self._thread.join()
+        if raise_failure:
+            self.done()
+
+
 def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int, str, str], None],
                on_result: Callable[[int, object], None] | None = None, first: Callable | None = None,
                on_first: Callable[[int, object], None] | None = None,
@@ -166,32 +200,14 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
     threads = cv2.getNumThreads()
     cv2.setNumThreads(1)  # in the workers (set here: in a forked child it hangs)
     ex = ProcessPoolExecutor(max_workers=n, mp_context=ctx)
-    parent_work: threading.Thread | None = None
+    parent = _ParentWork()
     try:
         phase0 = 1 if first is not None else 2
         ex.submit(int).result()  # the workers forked now, before the parent uses OpenCV's threads (below)
         futures = {ex.submit(_run_one, i, phase0): (i, phase0) for i in range(len(items)) if i not in held}
-        failed: list[BaseException] = []
-        if before_second is not None:
-            # the parent's own work, with its own OpenCV threads, on a thread of its own: meanwhile this one hands
-            # out the held items as they are released (a photo computed by the prefetch, or all of them where it
-            # gets no core); second tasks wait for it
-            def parent_part() -> None:
-                try:
-                    before_second()
-                except BaseException as exc:  # noqa: BLE001 - raised in the map's thread below
-                    failed.append(exc)
-
+        if before_second is not None:  # with the parent's own OpenCV threads
             cv2.setNumThreads(threads)
-            parent_work = threading.Thread(target=parent_part, name="map_photos parent work")
-            parent_work.start()
-
-        def parent_done() -> bool:
-            if parent_work is None or parent_work.is_alive():
-                return parent_work is None
-            if failed:
-                raise failed[0]
-            return True
+            parent.start(before_second)
         results: dict[int, object] = {}
         ready: list[tuple[int, object]] = []  # (item, token): first task done, second not queued yet
         pending = set(futures)
@@ -207,7 +223,7 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
             for i in [i for i in held if not hold(i, len(pending) < n)]:
                 held.remove(i)
                 submit(i, phase0)
-            while ready and parent_done() and (not held or len(pending) <= n):
+            while ready and parent.done() and (not held or len(pending) <= n):
                 i, token = ready.pop(0)
                 submit(i, 2, token)
 
@@ -234,9 +250,7 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
                     on_first(i, f.result())
                 elif phase == 2 and on_result is not None:
                     on_result(i, results[i])
-        if parent_work is not None:  # (its failure raised here where no second task was left to wait for it)
-            parent_work.join()
-            parent_done()
+        parent.join()  # (its failure raised here where no second task was left to wait for it)
         while not q.empty():
             progress(*q.get())
         ex.shutdown(wait=True)
@@ -246,8 +260,7 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
                            f"MatchOptions.workers lower") from None
     finally:
         ex.shutdown(wait=False, cancel_futures=True)
-        if parent_work is not None:
-            parent_work.join()
+        parent.join(raise_failure=False)
         cv2.setNumThreads(threads)
         _JOB.clear()
 
