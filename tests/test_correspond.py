@@ -693,7 +693,7 @@ def test_the_stage_takes_the_prefetch_on_one_process_computes_every_photo(incide
     res = cs.run_correspond(copy, lambda f, m="": messages.append(m))
     assert not prefetch._STATE
     n = len(copy.photo_paths())
-    assert sum("features from the cache" in m for m in messages) == n, messages
+    assert sum("features computed by the features process" in m for m in messages) == n, messages
     assert not any(m.endswith(" features") for m in messages), messages
     assert Path(res.outputs["correspondences"]).read_bytes() == _AS_COMPUTED["correspondences"]
 

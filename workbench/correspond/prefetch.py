@@ -120,7 +120,14 @@ def adopt(files: dict[str, Path]) -> list[str]:
     log.info("correspond: features computed ahead of the stage: %s; the prefetch computes the others: %s",
              [n for n, s in zip(_STATE["names"], states) if s == DONE], owned)
     _STATE["watch"] = None  # (monotonic time, the process's CPU s) where a window of idle waiting began
+    _STATE["owned"] = frozenset(owned)
     return owned
+
+
+def took(name: str) -> bool:
+    """Whether the process took the photo ``name`` on when the stage started (:func:`adopt`; in the stage's
+    workers, forked after it): for the stage's progress, which says where a photo's features came from."""
+    return name in _STATE.get("owned", ())
 
 
 def owns(name: str, entry: Path, idle: bool = False) -> bool:
@@ -245,4 +252,4 @@ def finish() -> None:
     _STATE.clear()
 
 
-__all__ = ["start", "stop", "adopt", "owns", "computing", "wait_for", "finish"]
+__all__ = ["start", "stop", "adopt", "owns", "took", "computing", "wait_for", "finish"]

@@ -276,7 +276,8 @@ class _PhotoMatcher:
         f = self.photo_file[p.name]
         prefetch.wait_for(p.name, f)  # being computed ahead of the stage: its entry, once written
         if f.is_file():
-            note("features", "features from the cache")
+            note("features", "features computed by the features process" if prefetch.took(p.name)
+                 else "features from the cache")
         else:
             note("features", f"{self.compute_features(p)} features")
         return time.perf_counter() - t0
