@@ -265,10 +265,45 @@ def _centre_errors(sol: dict, truth: dict) -> dict:
     return out
 
 
+YARDSTICK = """
+import json, time
+import numpy as np, cv2
+cv2.setNumThreads(1)
+img = cv2.GaussianBlur((np.random.default_rng(0).random((900, 1200)) * 255).astype(np.uint8), (0, 0), 1.5)
+t = time.perf_counter()
+kp, _ = cv2.SIFT_create().detectAndCompute(img, None)
+out = {"sift_s": time.perf_counter() - t, "sift_keypoints": len(kp)}
+t, x = time.perf_counter(), 0
+for i in range(3_000_000):
+    x += i * i
+out["python_loop_s"] = time.perf_counter() - t
+print(json.dumps(out))
+"""
+
+
+def _yardstick() -> dict:
+    """The host's speed on a fixed workload, in a fresh process, so that figures from different machines can be set
+    side by side (this project's sessions have run on hosts about twice as fast as each other): SIFT on one thread
+    on a seeded 1200 x 900 image (its memory faulted in afresh, as a process's first photo is) and a pure-Python
+    loop of 3 million steps; medians of three processes."""
+    runs = []
+    for _ in range(3):
+        r = subprocess.run([sys.executable, "-c", YARDSTICK], capture_output=True, text=True, cwd=NEUTRAL_CWD,
+                           env={**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1"})
+        if r.returncode != 0:
+            return {"error": r.stderr.strip()[-500:]}
+        runs.append(json.loads(r.stdout))
+    return {k: round(statistics.median(r[k] for r in runs), 3) for k in runs[0]}
+
+
 def _table(results: dict) -> list[str]:
     base, head = results["versions"]
     b, h = results[base], results[head]
     rows = [f"| what | {base} | {head} | target |", "|---|---|---|---|"]
+    y = results["machine"].get("yardstick", {})
+    if "sift_s" in y:
+        rows.append(f"| this host's yardstick: SIFT on a fixed image / a Python loop | {y['sift_s']:.2f} / "
+                    f"{y['python_loop_s']:.2f} s | | |")
     for key, label in (("help", "`workbench --help`"), ("status", "`workbench status` (sample, run)"),
                        ("types", "`workbench types`")):
         if key in b:
@@ -324,6 +359,8 @@ def main() -> None:
         versions = [_version(f"base {args.base}", base_tree), _version("head", args.head_tree or ROOT)]
         results: dict = {"versions": [v["name"] for v in versions], "machine": {"cpus": os.cpu_count(),
                          "load_before": os.getloadavg()}, "date": time.strftime("%Y-%m-%d %H:%M:%S")}
+        results["machine"]["yardstick"] = _yardstick()
+        print(f"this host's yardstick: {results['machine']['yardstick']}", flush=True)
         for v in versions:
             print(f"{v['name']} ({v['tree']})", flush=True)
             results[v["name"]] = _bench_version(v, args, work)
