@@ -136,11 +136,7 @@ def owns(name: str, entry: Path, idle: bool = False) -> bool:
     has a worker with nothing to do. Where the process got less than :data:`STARVED_SHARE` of a core over
     :data:`STARVED_WINDOW_S` of such idle waiting (other work holds the cores), it is stopped and False is returned
     for every photo from then on: the stage computes them."""
-    if not _STATE or _STATE["files"].get(name) != entry:
-        return False
-    i = _STATE["names"].index(name)
-    state = _STATE["status"][i]
-    if state == DONE or (state == PENDING and _STATE["stop"].value) or not _alive(_STATE["proc"].pid):
+    if not _pending(name, entry):
         return False
     if not idle:
         _STATE["watch"] = None

@@ -154,9 +154,14 @@ def _cached_photo_features(project: Project, path: Path, K: CameraIntrinsics, op
             return PhotoFeatures(path.name, K, hit["gray"], hit["keypoints"], hit["descriptors"], hit["frames"])
     pf = photo_features(path.name, _read_rgb(path), K, opts)
     if cache_file is not None:
-        cache.save(project, cache_file, {"gray": pf.gray_undistorted, "keypoints": pf.keypoints,
-                                         "descriptors": pf.descriptors, "frames": pf.frames})
+        _save_features(project, cache_file, pf)
     return pf
+
+
+def _save_features(project: Project, entry: Path, pf: PhotoFeatures) -> None:
+    """A photo's features written to their cache entry (what :func:`_cached_photo_features` reads)."""
+    cache.save(project, entry, {"gray": pf.gray_undistorted, "keypoints": pf.keypoints,
+                                "descriptors": pf.descriptors, "frames": pf.frames})
 
 
 def prefetch_features(project: Project) -> None:
@@ -176,9 +181,7 @@ def prefetch_features(project: Project) -> None:
     files = {p.name: cache_dir / _photo_cache_name(p, intrinsics[p.name], opts) for p in photos}
 
     def compute(p: Path) -> None:
-        pf = photo_features(p.name, _read_rgb(p), intrinsics[p.name], opts)
-        cache.save(project, files[p.name], {"gray": pf.gray_undistorted, "keypoints": pf.keypoints,
-                                            "descriptors": pf.descriptors, "frames": pf.frames})
+        _save_features(project, files[p.name], photo_features(p.name, _read_rgb(p), intrinsics[p.name], opts))
 
     prefetch.start(photos, files, compute)
 
@@ -285,8 +288,7 @@ class _PhotoMatcher:
     def compute_features(self, p: Path) -> int:
         """The photo's features computed and written to its entry; returns how many."""
         pf = photo_features(p.name, _read_rgb(p), self.intrinsics[p.name], self.opts)
-        cache.save(self.project, self.photo_file[p.name], {"gray": pf.gray_undistorted, "keypoints": pf.keypoints,
-                                                           "descriptors": pf.descriptors, "frames": pf.frames})
+        _save_features(self.project, self.photo_file[p.name], pf)
         return len(pf.keypoints)
 
     def match(self, p: Path, note, t_features: float) -> PhotoResult:
@@ -350,7 +352,7 @@ def _match_photos(matcher: _PhotoMatcher, photos: list[Path], intrinsics: dict[s
     if not prefetch.adopt(matcher.photo_file) and min(workers, len(photos)) > 1 and len(todo) > 1:
         prefetch.finish()  # (a run's prefetch of other entries, which adopt stopped)
         prefetch.start(todo, {p.name: matcher.photo_file[p.name] for p in todo},
-                       lambda p: matcher.compute_features(p), ahead=False)
+                       matcher.compute_features, ahead=False)
         prefetch.adopt(matcher.photo_file)
 
     def before_second() -> None:
