@@ -63,3 +63,47 @@ def test_toml_syntax_error_names_file(tmp_path: Path):
         load_settings(f)
     with pytest.raises(SettingsError, match="settings file not found"):
         load_settings(tmp_path / "nope" / "project.toml")
+
+
+def test_utm_codes_known_without_pyproj_are_what_pyproj_says():
+    """Every EPSG code the settings accept without pyproj (``core.crs.UTM_EPSG_RANGES``) is, in pyproj's database, a
+    projected CRS in metres, as :func:`parse_projected_crs` requires; the neighbours of each range are not taken
+    on trust; other spellings and CRSs still go to pyproj (and are refused where pyproj refuses them)."""
+    from pyproj import CRS
+
+    from workbench.core.crs import UTM_EPSG_RANGES, check_projected_crs, is_utm_epsg, parse_projected_crs
+
+    for lo, hi in UTM_EPSG_RANGES:
+        for code in range(lo, hi + 1):
+            assert is_utm_epsg(f"EPSG:{code}") and is_utm_epsg(f"epsg:{code}")
+            crs = parse_projected_crs(f"EPSG:{code}")  # (raises unless projected, in metres)
+            assert "UTM zone" in crs.name and crs.to_epsg() == code
+        assert not is_utm_epsg(f"EPSG:{lo - 1}") and not is_utm_epsg(f"EPSG:{hi + 1}")
+    for other in ("EPSG:4326", "EPSG:3857", "EPSG:27700", " EPSG:32618", "EPSG::32618", "EPSG:32618x", 32618,
+                  "urn:ogc:def:crs:EPSG::32618", CRS.from_epsg(32618).to_wkt()):
+        assert not is_utm_epsg(other)
+    check_projected_crs("EPSG:27700")  # British National Grid: projected, metres (through pyproj)
+    check_projected_crs(" EPSG:32618")  # (pyproj's spelling rules)
+    for bad in ("EPSG:4326", "EPSG::32618", "EPSG:99999999", "not a crs"):
+        with pytest.raises(SettingsError, match="location.crs"):
+            check_projected_crs(bad)
+
+
+def test_settings_with_a_utm_zone_load_without_pyproj(tmp_path: Path):
+    """Loading an incident's settings whose CRS is a UTM zone's EPSG code does not import pyproj (about 45 ms of
+    every command's start: docs/performance.md); another CRS is checked by pyproj."""
+    import subprocess
+    import sys
+
+    p = Project.create(tmp_path / "inc", lat=40.0, lon=-75.0)
+    code = ("import sys; from workbench.core.settings import load_settings; "
+            "s = load_settings(sys.argv[1]); print(s.location.crs, 'pyproj' in sys.modules)")
+    run = subprocess.run([sys.executable, "-c", code, str(p.settings_path)], capture_output=True, text=True,
+                         check=True)
+    assert run.stdout.split() == ["EPSG:32618", "False"]
+    text = p.settings_path.read_text()
+    assert 'crs = "EPSG:32618"' in text
+    p.settings_path.write_text(text.replace('crs = "EPSG:32618"', 'crs = "EPSG:27700"'))
+    run = subprocess.run([sys.executable, "-c", code, str(p.settings_path)], capture_output=True, text=True,
+                         check=True)
+    assert run.stdout.split() == ["EPSG:27700", "True"]

@@ -15,7 +15,7 @@ from typing import Annotated, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from ..errors import SettingsError
-from .crs import parse_projected_crs
+from .crs import check_projected_crs
 from .layout import SETTINGS_FILE
 
 
@@ -54,7 +54,7 @@ class Location(_Strict):
     @classmethod
     def _projected(cls, v: str) -> str:
         try:
-            parse_projected_crs(v)
+            check_projected_crs(v)
         except SettingsError as exc:
             raise ValueError(str(exc).split(" = ", 1)[-1]) from None
         return v
