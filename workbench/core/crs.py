@@ -1,4 +1,5 @@
-"""The project CRS, parsed and checked (pyproj only: settings are validated without loading numpy)."""
+"""The project CRS, parsed and checked: pyproj, imported where a CRS is parsed (not numpy: settings are validated
+without it), and not at all for the settings' check of a UTM zone's EPSG code (:func:`check_projected_crs`)."""
 
 from __future__ import annotations
 
