@@ -12,7 +12,7 @@ if TYPE_CHECKING:
     from pyproj import CRS
 
 # The UTM zones of the datums a railway incident's data usually comes in, as EPSG numbers: each is a projected CRS
-# with metre axes (tests/test_crs.py checks every one against pyproj's database).
+# with metre axes (tests/test_settings.py checks every one against pyproj's database).
 UTM_EPSG_RANGES = (
     (32601, 32660),  # WGS 84 / UTM zone 1N-60N
     (32701, 32760),  # WGS 84 / UTM zone 1S-60S
