@@ -408,17 +408,10 @@ def solution_model(prob: Problem, poses: Poses, focal_views, chains: Chains, con
                             face_sigma=options.face_sigma_px, camera_errors=options.camera_errors)
 
 
-def misfit_carriages(prob: Problem, poses: Poses, sigma: float, p_value: float = 1e-4,
-                     relative: float = 4.0) -> dict[int, float]:
-    """The carriages whose measured points the solution does not fit, as the branch check judges a misfit
-    (:func:`.branches.misfit_cars`: chi-square at ``sigma`` beyond its (1 - ``p_value``) quantile with 2 n - 6
-    degrees of freedom, *and* more than ``relative`` times the median carriage's misfit per row), on the measured
-    points alone (a prediction's residual says how far its face's pose was off, not that the fit failed).
-    Returns carriage -> RMS residual (px) of its measured points. Such a carriage sits on a wrong branch or on
-    mismatched points the branch check and the outlier rejection did not cure, and the noise model its interval
-    rests on does not hold for it; or its points share a misfit (``face_sigma_px``) this test does not model,
-    so it warns and keeps the interval (docs/calibration.md: 1 gross failure and 5 sound intervals among 6 flags
-    on the automatic route)."""
+def _carriage_chi2(prob: Problem, poses: Poses, sigma: float) -> dict[int, tuple[float, int, float]]:
+    """Per carriage with measured points: (their chi-square at ``sigma``, each point at its own sigma relative to
+    the configured, its number of rows 2 n, their RMS residual in px), on the measured points alone (a prediction's
+    residual says how far its face's pose was off, not that the fit failed)."""
     uv, *_ = prob.project(poses.R, poses.t, poses.f)
     scale = prob.w / np.where(prob.w_noise > 0, prob.w_noise, 1.0)  # each point's own sigma, relative
     e2 = np.sum(((uv - prob.uv) * scale[:, None] / sigma) ** 2, axis=1)
@@ -430,9 +423,57 @@ def misfit_carriages(prob: Problem, poses: Poses, sigma: float, p_value: float =
         idx = idx[meas[idx]]
         if len(idx):
             chi[k] = (float(np.sum(e2[idx])), 2 * len(idx), float(np.sqrt(np.mean(r2[idx]))))
+    return chi
+
+
+def misfit_carriages(prob: Problem, poses: Poses, sigma: float, p_value: float = 1e-4,
+                     relative: float = 4.0) -> dict[int, float]:
+    """The carriages whose measured points the solution does not fit, as the branch check judges a misfit
+    (:func:`.branches.misfit_cars`: chi-square at ``sigma`` beyond its (1 - ``p_value``) quantile with 2 n - 6
+    degrees of freedom, *and* more than ``relative`` times the median carriage's misfit per row), on the measured
+    points alone (:func:`_carriage_chi2`). Returns carriage -> RMS residual (px) of its measured points. Such a
+    carriage sits on a wrong branch or on mismatched points the branch check and the outlier rejection did not cure,
+    and the noise model its interval rests on does not hold for it; or its points share a misfit (``face_sigma_px``)
+    this test does not model, so it warns and keeps the interval (docs/calibration.md: 1 gross failure and 5 sound
+    intervals among 6 flags on the automatic route)."""
+    chi = _carriage_chi2(prob, poses, sigma)
     med = float(np.median([x / m for x, m, _ in chi.values()])) if chi else 0.0
     return {k: rms for k, (x, m, rms) in chi.items()
             if x > chi2_quantile(1.0 - p_value, max(m - 6, 1)) and x / m > relative * med}
+
+
+WHOLE_MISFIT_RATIO = 4.0  # a fit misses as a whole: its residuals' own pixel sigma over this times the configured
+
+
+def fit_misfit(sigma_hat: float, dof: float, sigma_cfg: float, p_value: float = 1e-4,
+               ratio: float = WHOLE_MISFIT_RATIO) -> bool:
+    """Whether the marked points as a whole do not fit the solution: their residuals' own pixel sigma ``sigma_hat``
+    (px, with ``dof`` degrees of freedom) over ``ratio`` times the configured ``sigma_cfg`` (16 times its variance)
+    and its chi-square beyond the (1 - ``p_value``) quantile. Where every carriage misfits alike, the test of
+    :func:`misfit_carriages` (against the pooled sigma, relative to the median carriage) passes each; this one sees
+    a wrong camera or georeference, a wrong focal or carriage type, or picks much rougher than configured. False
+    where the residuals give no sigma of their own (NaN, no degrees of freedom)."""
+    if not (math.isfinite(sigma_hat) and dof > 0 and sigma_cfg > 0):
+        return False
+    r = sigma_hat / sigma_cfg
+    return r > ratio and dof * r**2 > chi2_quantile(1.0 - p_value, dof)
+
+
+def whole_misfit_carriages(prob: Problem, poses: Poses, sigma_cfg: float, named: dict[int, float],
+                           p_value: float = 1e-4, ratio: float = WHOLE_MISFIT_RATIO) -> dict[int, float]:
+    """Where the fit misses as a whole (:func:`fit_misfit`), the carriages it is doubtful for: every carriage with
+    measured points that :func:`misfit_carriages` did not name (``named``), if together their points still miss at
+    the configured ``sigma_cfg`` (their chi-square over its (1 - ``p_value``) quantile and over ``ratio`` squared
+    times its degrees of freedom, 2 n - 6 a carriage); else none. A wrong camera, focal or type moves every
+    carriage's points, each by its own amount; one mismatched carriage that alone lifts the residuals' sigma is
+    named by :func:`misfit_carriages`, and the others, whose points fit, are left alone. Returns carriage -> RMS
+    residual (px) of its measured points."""
+    rest = {k: v for k, v in _carriage_chi2(prob, poses, sigma_cfg).items() if k not in named}
+    x = sum(v[0] for v in rest.values())
+    dof = sum(max(v[1] - 6, 1) for v in rest.values())
+    if not rest or x <= chi2_quantile(1.0 - p_value, dof) or x / dof <= ratio**2:
+        return {}
+    return {k: v[2] for k, v in rest.items()}
 
 
 def camera_responses(prob: Problem, poses: Poses, focal_views, chains: Chains, contact,
@@ -505,6 +546,8 @@ def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Cha
     res.covariance_order = order
     Jbs = {}
     misfit = misfit_carriages(prob, poses, model.sigma)
+    whole = whole_misfit_carriages(prob, poses, options.pixel_sigma_px, misfit) \
+        if fit_misfit(model.sigma_hat, model.dof, options.pixel_sigma_px) else {}
     for k in prob.active:
         cr = res.carriages[k]
         c = col[k]
@@ -516,6 +559,13 @@ def attach_covariance(res, prob: Problem, poses: Poses, focal_views, chains: Cha
             record_warning(res.warnings, prob.cars[k], "misfit",
                            f"car {cr.number}: the solution does not fit its points (RMS {misfit[k]:.1f} px against "
                            f"a pixel sigma of {model.sigma:.2f} px): a wrong branch or mismatched points; its "
+                           f"pose and its interval are doubtful")
+        elif k in whole and cr.covariance_pose is not None:
+            record_warning(res.warnings, prob.cars[k], "misfit",
+                           f"car {cr.number}: the solution does not fit the marked points as a whole (RMS "
+                           f"{whole[k]:.1f} px on this carriage, a pixel sigma of {model.sigma_hat:.1f} px from all "
+                           f"residuals, against the {options.pixel_sigma_px:g} px configured): a camera placed wrong, "
+                           f"a wrong focal or carriage type, or picks rougher than solver.pixel_sigma_px says; its "
                            f"pose and its interval are doubtful")
         elif cr.covariance_pose is None:
             record_warning(res.warnings, prob.cars[k], "undetermined",
