@@ -170,7 +170,8 @@ def map_photos(fn: Callable, items: list, workers: int, progress: Callable[[int,
     platform, the items run here, one after the other. ``on_first(index, token)``: called in the parent as each
     item's first task finishes (any order). ``before_second()``: work of the parent's own, done once the workers
     are forked and the first tasks queued, on a thread of its own (held items are handed out meanwhile), before
-    any second task is queued (what the second tasks need and the workers, forked before it, read from files). Second tasks are queued in the order their first tasks finished.
+    any second task is queued (what the second tasks need and the workers, forked before it, read from files).
+    Second tasks are queued in the order their first tasks finished.
     ``hold(index, idle)``: true for an item to hold back (a photo whose features another process computes:
     ``prefetch.py``); ``idle``: a worker has nothing to do. Asked for every item when the map starts, such an
     item's first task is queued as soon as ``hold`` turns false for it (the parent asks while it waits, every
