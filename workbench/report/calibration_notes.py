@@ -1,7 +1,13 @@
-"""The calibration figures the report quotes beside the carriages table: how often the 95 % intervals held the
-truth in simulation, per route (docs/calibration.md has the commands and the full tables)."""
+"""What the report says beside the carriages table: what the 95 % intervals include (:func:`interval_scope`), and
+how often they held the truth in simulation, per route (docs/calibration.md has the commands and the full
+tables)."""
 
 from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
 
 # How often the 95 % intervals held the truth in simulation, per route (docs/calibration.md, where the commands
 # and the full tables are; measured 2026-11-26 to 2026-11-28 with scripts/bench_calibration.py): a reader's check on
@@ -79,3 +85,82 @@ def face_misfit_phrase(face_px: float, largest_px: float | None, estimated: bool
                 f"its alignment's correlation")
     return (f"a misfit shared by each automatically matched face without its own alignment error ({face_px:.2f} px, "
             f"{how})")
+
+
+def interval_scope(solution: dict, solver: Any, dem_accuracy_m: float | None) -> dict:
+    """What the carriages' 95 % intervals include and leave out, from ``solution.json`` and the solver settings:
+    ``{"included": [...], "excluded": [...], "text": a sentence or two}`` (docs/calibration.md)."""
+    inc, exc = [], []
+    sig, est, dof, q = (solution.get(k) for k in ("sigma_px", "sigma_px_estimated", "dof", "ci95_factor"))
+    fit = "the fit of the marked points"
+    estimated = bool(solution.get("noise_estimated"))
+    if sig is not None and estimated:
+        fit += (f" (pixel noise {number_text(sig, 2)} px, estimated from the residuals with the faces' shared misfit "
+                f"({number_text(dof, 0)} degrees of freedom)"
+                + (f"; ± = {number_text(q, 2)} σ" if q is not None else "") + ")")
+    elif sig is not None:
+        aside = ("the misfit a principal point off the photo's centre leaves" if (solution.get(
+            "camera_uncertainty") or {}).get("principal_point") else "the photos' disagreement that their stated "
+            "camera errors account for")
+        fit += f" (pixel noise {number_text(sig, 2)} px" + (
+            f": the residuals' {number_text(est, 2)} px ({number_text(dof, 0)} degrees of freedom) pooled with the "
+            f"configured {number_text(solver.pixel_sigma_px, 2)} px" if est is not None and dof else "") + (
+            f"; {aside} ({number_text(solution['sigma_px_camera'], 2)} px RMS) set aside"
+            if solution.get("sigma_px_camera") else "") + (
+            f"; ± = {number_text(q, 2)} σ" if q is not None else "") + ")"
+    inc.append(fit)
+    by_source = (solution.get("correspondences") or {}).get("by_source") or {}
+    face = solution.get("face_sigma_px")
+    if face is None and solver.face_sigma_px != "estimate":  # a solution.json written before the field
+        face = float(solver.face_sigma_px)
+    n_aligned = (solution.get("correspondences") or {}).get("n_with_alignment") or 0
+    if by_source.get("sift") and n_aligned:
+        inc.append(alignment_phrase(n_aligned, solution.get("aligned_misfit_max_px")))
+    if by_source.get("sift") and face is not None and float(face) > 0 and int(by_source["sift"]) > n_aligned:
+        inc.append(face_misfit_phrase(float(face), solution.get("face_misfit_max_px"), estimated))
+    if solution.get("links"):
+        inc.append(f"the couplers' play ({number_text(100 * float(solver.slack_held_m), 0)} cm)")
+    swung = [c for c in solution.get("carriages", []) if c.get("centre_curvature_m2") is not None]
+    if swung:  # docs/solver.md: a carried carriage's swing about its held coupling, to second order
+        big = max(math.sqrt(max(float(np.trace(np.asarray(c["centre_curvature_m2"], float))), 0.0)) for c in swung)
+        inc.append(f"for the {len(swung)} carriage(s) carried by their couplings, the curve of their swing about "
+                   f"the coupling (up to {number_text(big, 2)} m)")
+    if any((st.get("facts") or {}).get("terrain_contact") for st in solution.get("steps", [])) \
+            and dem_accuracy_m is not None:
+        inc.append(f"the contact with the terrain model (±{number_text(dem_accuracy_m, 2)} m, carriage by carriage)")
+    cu = solution.get("camera_uncertainty") or {}
+    if cu.get("included"):
+        what = {"relative": "the levelling of the relative scene", "gps": "the GPS and compass placement"}.get(
+            (solution.get("frame") or {}).get("kind"), "the cameras' georegistration" if solution.get("route") ==
+            "multiview" else "the camera's georegistration")
+        inc.append(f"{what} (1σ up to {number_text(max(cu.get('sigma_centre_m') or [0.0]), 2)} m and "
+                   f"{number_text(max(cu.get('sigma_rotation_deg') or [0.0]), 3)}°)")
+    else:
+        exc.append("the cameras' georegistration (taken as exact)")
+    pp = cu.get("principal_point") or {}
+    if pp.get("sigma_px") is not None:
+        inc.append(f"the principal point, not known (1σ {number_text(pp['sigma_px'], 0)} px from the photo's centre)")
+    sf = solution.get("sigma_focal_px") or {}
+    if sf:
+        inc.append("the focal length, estimated (1σ "
+                   + ", ".join(sorted({f"{number_text(v, 0)} px" for v in sf.values()})) + ")")
+    else:
+        exc.append(f"the focal length (taken as known: {solution.get('intrinsics_source') or 'given'})")
+    exc += ["errors of the carriage models", "a common offset of the terrain model",
+            "a wrong match the outlier check kept"]
+    text = "The ± include " + ", ".join(inc[:-1]) + (" and " if len(inc) > 1 else "") + inc[-1] + \
+        ". Not included: " + ", ".join(exc) + "."
+    return {"included": inc, "excluded": exc, "text": text, "calibration": calibration_note(solution)}
+
+
+def number_text(x, nd: int) -> str:
+    """``x`` with ``nd`` decimals and a true minus sign; \u2013 for None or a number that is not finite."""
+    if x is None:
+        return "–"
+    try:
+        x = float(x)
+    except (TypeError, ValueError):
+        return str(x)
+    if not math.isfinite(x):
+        return "–"
+    return f"{x:.{nd}f}".replace("-", "\u2212")

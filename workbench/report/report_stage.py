@@ -35,7 +35,7 @@ from ..files.solution import doubts_of
 from ..project import Project
 from .beside import load_pdf_engine, run_beside
 from .scene import car_color
-from .calibration_notes import alignment_phrase, calibration_note, face_misfit_phrase
+from .calibration_notes import interval_scope, number_text as _f
 from .track_table import track_table
 
 log = logging.getLogger(__name__)
@@ -248,80 +248,6 @@ def residual_figure(path: Path, cars: list[dict], sigma_px: float | None) -> dic
 # ----------------------------------------------------------------------------------------------------------
 # Tables
 # ----------------------------------------------------------------------------------------------------------
-def interval_scope(solution: dict, solver: Any, dem_accuracy_m: float | None) -> dict:
-    """What the carriages' 95 % intervals include and leave out, from ``solution.json`` and the solver settings:
-    ``{"included": [...], "excluded": [...], "text": a sentence or two}`` (docs/calibration.md)."""
-    inc, exc = [], []
-    sig, est, dof, q = (solution.get(k) for k in ("sigma_px", "sigma_px_estimated", "dof", "ci95_factor"))
-    fit = "the fit of the marked points"
-    estimated = bool(solution.get("noise_estimated"))
-    if sig is not None and estimated:
-        fit += (f" (pixel noise {_f(sig, 2)} px, estimated from the residuals with the faces' shared misfit "
-                f"({_f(dof, 0)} degrees of freedom)" + (f"; ± = {_f(q, 2)} σ" if q is not None else "") + ")")
-    elif sig is not None:
-        fit += f" (pixel noise {_f(sig, 2)} px" + (
-            f": the residuals' {_f(est, 2)} px ({_f(dof, 0)} degrees of freedom) pooled with the configured "
-            f"{_f(solver.pixel_sigma_px, 2)} px" if est is not None and dof else "") + (
-            f"; the photos' disagreement that their stated camera errors account for "
-            f"({_f(solution['sigma_px_camera'], 2)} px RMS) set aside" if solution.get("sigma_px_camera") else "") + (
-            f"; ± = {_f(q, 2)} σ" if q is not None else "") + ")"
-    inc.append(fit)
-    by_source = (solution.get("correspondences") or {}).get("by_source") or {}
-    face = solution.get("face_sigma_px")
-    if face is None and solver.face_sigma_px != "estimate":  # a solution.json written before the field
-        face = float(solver.face_sigma_px)
-    n_aligned = (solution.get("correspondences") or {}).get("n_with_alignment") or 0
-    if by_source.get("sift") and n_aligned:
-        inc.append(alignment_phrase(n_aligned, solution.get("aligned_misfit_max_px")))
-    if by_source.get("sift") and face is not None and float(face) > 0 and int(by_source["sift"]) > n_aligned:
-        inc.append(face_misfit_phrase(float(face), solution.get("face_misfit_max_px"), estimated))
-    if solution.get("links"):
-        inc.append(f"the couplers' play ({_f(100 * float(solver.slack_held_m), 0)} cm)")
-    swung = [c for c in solution.get("carriages", []) if c.get("centre_curvature_m2") is not None]
-    if swung:  # docs/solver.md: a carried carriage's swing about its held coupling, to second order
-        big = max(math.sqrt(max(float(np.trace(np.asarray(c["centre_curvature_m2"], float))), 0.0)) for c in swung)
-        inc.append(f"for the {len(swung)} carriage(s) carried by their couplings, the curve of their swing about "
-                   f"the coupling (up to {_f(big, 2)} m)")
-    if any((st.get("facts") or {}).get("terrain_contact") for st in solution.get("steps", [])) \
-            and dem_accuracy_m is not None:
-        inc.append(f"the contact with the terrain model (±{_f(dem_accuracy_m, 2)} m, carriage by carriage)")
-    cu = solution.get("camera_uncertainty") or {}
-    if cu.get("included"):
-        what = {"relative": "the levelling of the relative scene", "gps": "the GPS and compass placement"}.get(
-            (solution.get("frame") or {}).get("kind"), "the cameras' georegistration" if solution.get("route") ==
-            "multiview" else "the camera's georegistration")
-        inc.append(f"{what} (1σ up to {_f(max(cu.get('sigma_centre_m') or [0.0]), 2)} m and "
-                   f"{_f(max(cu.get('sigma_rotation_deg') or [0.0]), 3)}°)")
-    else:
-        exc.append("the cameras' georegistration (taken as exact)")
-    pp = cu.get("principal_point") or {}
-    if pp.get("sigma_px") is not None:
-        inc.append(f"the principal point, not known (1σ {_f(pp['sigma_px'], 0)} px from the photo's centre)")
-    sf = solution.get("sigma_focal_px") or {}
-    if sf:
-        inc.append("the focal length, estimated (1σ " + ", ".join(sorted({f"{_f(v, 0)} px" for v in sf.values()}))
-                   + ")")
-    else:
-        exc.append(f"the focal length (taken as known: {solution.get('intrinsics_source') or 'given'})")
-    exc += ["errors of the carriage models", "a common offset of the terrain model",
-            "a wrong match the outlier check kept"]
-    text = "The ± include " + ", ".join(inc[:-1]) + (" and " if len(inc) > 1 else "") + inc[-1] + \
-        ". Not included: " + ", ".join(exc) + "."
-    return {"included": inc, "excluded": exc, "text": text, "calibration": calibration_note(solution)}
-
-
-def _f(x, nd: int) -> str:
-    if x is None:
-        return "–"
-    try:
-        x = float(x)
-    except (TypeError, ValueError):
-        return str(x)
-    if not math.isfinite(x):
-        return "–"
-    return f"{x:.{nd}f}".replace("-", "\u2212")
-
-
 def carriage_rows(project: Project, solution: dict) -> list[dict]:
     """One row per carriage of the consist with every number the report shows (strings, formatted)."""
     frame = project.frame

@@ -27,7 +27,7 @@ from ..files import correspondences
 from ..files.cameras import parse_pose_uncertainty, read_cameras
 from ..files.panorama import read_panorama
 from .level import Levelling, UprightCar, add_levelling_uncertainty, level_from_carriages
-from .principal_point import guessed_principal_point_term
+from .principal_point import GUESSED_SOURCES, guessed_principal_point_errors, guessed_principal_point_term
 from .model import CarriageInput, ChainLink, Observation, SolveOptions, SolveWarning, View
 from .problem import AlignedObservation
 from .solver import solve_consist
@@ -202,7 +202,7 @@ def run_solve(project: Project, progress: Progress) -> StageResult:
                         prediction_release=float(s.solver.prediction_release),
                         hfov_range_deg=tuple(float(x) for x in s.solver.hfov_range_deg),
                         track_sigma_m=float(s.solver.track_sigma_m),
-                        camera_errors=_camera_errors(cam_doc, cam_path))
+                        camera_errors=_camera_errors(cam_doc, cam_path, views))
     relative = cam_doc.get("frame") == "relative"
     terrain = None
     if s.terrain.dem and not relative:
@@ -489,9 +489,14 @@ def camera_uncertainty(cam_doc: dict) -> dict | None:
     return {"cov": C, "centre_enu": centres[0]}
 
 
-def _camera_errors(cam_doc: dict, cam_path: Path) -> Any:
-    """The multi-view photos' stated errors for the fit's pixel sigma (:mod:`.camera_residual`), or None."""
-    pu = parse_pose_uncertainty(cam_doc, cam_path) if cam_doc.get("frame") != "relative" else None
+def _camera_errors(cam_doc: dict, cam_path: Path, views: list) -> Any:
+    """The camera errors the fit's pixel sigma sets aside (:mod:`.camera_residual`): the multi-view photos' stated
+    errors, or a relative scene's guessed principal point (the one :func:`guessed_principal_point_term` adds), or
+    None."""
+    if cam_doc.get("frame") == "relative":
+        guessed = cam_doc.get("intrinsics_source") in GUESSED_SOURCES
+        return guessed_principal_point_errors(views) if guessed else None
+    pu = parse_pose_uncertainty(cam_doc, cam_path)
     return view_camera_errors(pu) if pu is not None else None
 
 
