@@ -174,9 +174,13 @@ def test_report_states_a_relative_scenes_intervals_and_their_calibration():
                                   "sigma_rotation_deg": [0.61, 0.63, 0.005],
                                   "principal_point": {"sigma_px": 8.0, "carriages": {}}},
            "sigma_focal_px": {"photo.jpg": 115.0}}
+    sol["sigma_px_camera"] = 0.4
     s = interval_scope(sol, solver, None)
-    assert any("levelling of the relative scene" in x for x in s["included"])
+    # a turn about the camera: no "0.00 m" of centre
+    assert any("levelling of the relative scene (1σ up to 0.630°, a turn about the camera)" in x
+               for x in s["included"]), s["included"]
     assert any("principal point" in x and "8 px" in x for x in s["included"])
+    assert "the misfit a principal point off the photo's centre leaves (0.40 px RMS) set aside" in s["included"][0]
     assert "relative incidents" in s["calibration"] and "focal and the principal point not known" in s["calibration"]
     sol.update(sigma_focal_px={})
     del sol["camera_uncertainty"]["principal_point"]

@@ -133,8 +133,10 @@ def interval_scope(solution: dict, solver: Any, dem_accuracy_m: float | None) ->
         what = {"relative": "the levelling of the relative scene", "gps": "the GPS and compass placement"}.get(
             (solution.get("frame") or {}).get("kind"), "the cameras' georegistration" if solution.get("route") ==
             "multiview" else "the camera's georegistration")
-        inc.append(f"{what} (1σ up to {number_text(max(cu.get('sigma_centre_m') or [0.0]), 2)} m and "
-                   f"{number_text(max(cu.get('sigma_rotation_deg') or [0.0]), 3)}°)")
+        centre = max(cu.get("sigma_centre_m") or [0.0])
+        inc.append(f"{what} (1σ up to " + (f"{number_text(centre, 2)} m and " if centre > 0 else "") +
+                   f"{number_text(max(cu.get('sigma_rotation_deg') or [0.0]), 3)}°" +
+                   (", a turn about the camera" if not centre > 0 else "") + ")")
     else:
         exc.append("the cameras' georegistration (taken as exact)")
     pp = cu.get("principal_point") or {}
