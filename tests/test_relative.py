@@ -388,11 +388,12 @@ def test_a_guessed_principal_point_is_not_taken_for_pixel_noise():
                     for c in sim.carriages]
             for aside in (False, True):
                 opts = SolveOptions(pixel_sigma_px=0.5, estimate_focal=True, bias_correction=False,
-                                    camera_errors=guessed_principal_point_errors(views) if aside else None)
+                                    camera_errors=guessed_principal_point_errors(views, "fallback") if aside else None)
                 r = solve_consist(cars, sim.links, views, opts)
                 sig[pp_sigma, aside] = r.sigma_px_estimated
                 assert math.isfinite(r.sigma_px_camera) == aside
         ratios.append((sig[16.0, True] / sig[1e-9, True], sig[16.0, False] / sig[1e-9, False]))
+    assert guessed_principal_point_errors(views, "calibrated") is None  # a known camera's point is not guessed
     ratios = np.array(ratios)
     assert np.all(ratios[:, 0] < 1.7) and ratios[:, 0].mean() < 1.4, ratios
     assert ratios[:, 1].mean() > 2.5, ratios

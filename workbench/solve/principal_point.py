@@ -130,15 +130,17 @@ def add_principal_point_uncertainty(res: Any, carriages: Sequence[CarriageInput]
 GUESSED_SOURCES = ("fallback", "exif")  # cameras.json intrinsics_source whose principal point is the centre
 
 
-def guessed_principal_point_errors(views: Sequence[View]) -> ViewCameraErrors | None:
-    """The guessed principal point's error as the camera errors the fit sets aside when it estimates its pixel
-    sigma (:mod:`.camera_residual`): ``(c_x, c_y)`` shared by every view, :data:`GUESSED_PRINCIPAL_POINT_SIGMA` of
-    the reference photo's larger side per axis. A principal point off the centre is not a turn of the camera: the
-    pixels it moves differ from a turn's by about the shift times (distance from the centre / focal)^2, 3 px at a
-    1600 px photo's edge for a 16 px shift, which no pose follows. The residuals then hold it, and a pixel sigma
-    estimated from them would count it as noise while :func:`add_principal_point_uncertainty` adds its effect on
-    the poses: twice. None without views."""
-    if not views:
+def guessed_principal_point_errors(views: Sequence[View], intrinsics_source: str | None) -> ViewCameraErrors | None:
+    """A relative scene's guessed principal point (``intrinsics_source`` in :data:`GUESSED_SOURCES`, where
+    :func:`guessed_principal_point_term` adds its error) as the camera errors the fit sets aside when it estimates
+    its pixel sigma (:mod:`.camera_residual`): ``(c_x, c_y)`` shared by every view,
+    :data:`GUESSED_PRINCIPAL_POINT_SIGMA` of the reference photo's larger side per axis. A principal point off the
+    centre is not a turn of the camera: the pixels it moves differ from a turn's by about the shift times (distance
+    from the centre / focal)^2, 3 px at a 1600 px photo's edge for a 16 px shift, which no pose follows. The
+    residuals then hold it, and a pixel sigma estimated from them would count it as noise while
+    :func:`add_principal_point_uncertainty` adds its effect on the poses: twice. None for a camera that is not
+    guessed, or without views."""
+    if not views or intrinsics_source not in GUESSED_SOURCES:
         return None
     intr = views[0].intrinsics
     sigma = guessed_principal_point_sigma_px(intr.width, intr.height)

@@ -27,7 +27,7 @@ from ..files import correspondences
 from ..files.cameras import parse_pose_uncertainty, read_cameras
 from ..files.panorama import read_panorama
 from .level import Levelling, UprightCar, add_levelling_uncertainty, level_from_carriages
-from .principal_point import GUESSED_SOURCES, guessed_principal_point_errors, guessed_principal_point_term
+from .principal_point import guessed_principal_point_errors, guessed_principal_point_term
 from .model import CarriageInput, ChainLink, Observation, SolveOptions, SolveWarning, View
 from .problem import AlignedObservation
 from .solver import solve_consist
@@ -494,8 +494,7 @@ def _camera_errors(cam_doc: dict, cam_path: Path, views: list) -> Any:
     errors, or a relative scene's guessed principal point (the one :func:`guessed_principal_point_term` adds), or
     None."""
     if cam_doc.get("frame") == "relative":
-        guessed = cam_doc.get("intrinsics_source") in GUESSED_SOURCES
-        return guessed_principal_point_errors(views) if guessed else None
+        return guessed_principal_point_errors(views, cam_doc.get("intrinsics_source"))
     pu = parse_pose_uncertainty(cam_doc, cam_path)
     return view_camera_errors(pu) if pu is not None else None
 
