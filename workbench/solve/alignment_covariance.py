@@ -46,3 +46,60 @@ def views_per_face(block: np.ndarray, groups: np.ndarray, views: np.ndarray) -> 
         n[idx] = len(np.unique(views[idx]))
     return n
 
+
+
+# The misfit of a face aligned by ECC without matches of its own (a guided face), per affine mode along the face,
+# as a share of its ECC misfit (uncertainty.face_misfit_px). Measured against the truth on the guided sides of
+# seeds 240000-, 241000-, 242000- (189 alignments; docs/calibration.md, "Session 31"): the shift along the face
+# 0.72, its stretch along 0.68 of that misfit; the modes across the face 0.21-0.28 (GUIDED_ACROSS)
+GUIDED_ALONG = 0.7
+
+
+def guided_loadings(block: np.ndarray, loading: np.ndarray, guided: np.ndarray, groups: np.ndarray,
+                    views: np.ndarray, uv: np.ndarray, tau: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``block`` (M,) and ``loading`` (M, 2, 8) with each guided face's alignment added: the points ``guided``
+    (M,) bool of one face (``groups``) in one photo (``views``) become one alignment (a new block), their loading
+    the face's misfit ``tau`` (M,) px (the root mean square over the face's points) in six affine modes taken in
+    the face's own axes in that photo (the principal axes of its points ``uv`` (M, 2) px): a shift along the face,
+    its stretch along and its shear, each :data:`GUIDED_ALONG` of ``tau``, and the three across it (a shift, a
+    turn and a stretch) that times ``sqrt(s_across / s_along)``, the points' spreads across and along.
+
+    ECC pins a displacement by the outline's edges across it: a displacement across a side by its long edges, one
+    along it by its short ones, so the across modes are the better determined by the square root of the ratio of
+    their lengths (measured on the generated sides, whose spreads differ 13-fold: 0.21-0.28 of ``tau`` across
+    against 0.7 along). A face of fewer than 3 points, or whose points lie on a line, takes the misfit whole in
+    the photo's axes, as a face's shared misfit (:func:`.uncertainty._shared_misfit`).
+    As an alignment from matches, a guided face's error moves the pose the correspond stage fitted to it and the
+    points it predicted from that pose (:mod:`.pose_covariance`). Returns the new ``block``, ``loading`` and the
+    points given a guided alignment (M,) bool."""
+    block, loading = np.array(block, dtype=int, copy=True), np.array(loading, dtype=float, copy=True)
+    out = np.zeros(len(block), dtype=bool)
+    nxt = int(block.max()) + 1 if len(block) else 0
+    for g in np.unique(groups[guided]):
+        on_face = guided & (groups == g)
+        t = float(np.sqrt(np.mean(np.square(tau[on_face]))))
+        for v in np.unique(views[on_face]):
+            idx = np.nonzero(on_face & (views == v))[0]
+            d = uv[idx] - uv[idx].mean(0)
+            L = np.zeros((len(idx), 2, 8))
+            ev, V = np.linalg.eigh(d.T @ d / len(idx))
+            if len(idx) >= 3 and ev[0] > 1e-6:
+                a, c = V[:, 1], V[:, 0]  # along the face, across it
+                s_a, s_c = float(np.sqrt(ev[1])), float(np.sqrt(ev[0]))
+                k_a = GUIDED_ALONG
+                k_c = GUIDED_ALONG * np.sqrt(s_c / s_a)
+                r_a, r_c = (d @ a / s_a)[:, None], (d @ c / s_c)[:, None]
+                L[:, :, 0], L[:, :, 1] = k_a * a, k_c * c
+                L[:, :, 2], L[:, :, 3] = k_a * r_a * a, k_a * r_c * a
+                L[:, :, 4], L[:, :, 5] = k_c * r_a * c, k_c * r_c * c
+            else:  # no axes to take: the six modes in the photo's axes at the whole misfit, as uncertainty's
+                L[:, 0, 0] = L[:, 1, 1] = 1.0
+                sd = np.sqrt(np.mean(d**2, axis=0))
+                for j in range(2 if len(idx) >= 3 else 0):
+                    if sd[j] > 1e-6:
+                        L[:, 0, 2 + j] = L[:, 1, 4 + j] = d[:, j] / sd[j]
+            loading[idx] = t * L
+            block[idx] = nxt
+            out[idx] = True
+            nxt += 1
+    return block, loading, out

@@ -20,6 +20,12 @@ and a prediction ``x_p`` of the same car in that photo moves by ``J_p T d y``: i
 rows in the sandwich ``H^-1 G H^-1`` (their weights in ``H`` as the fit has them, their correlated error in ``G``) the
 covariance is that of the estimator the solve runs. Predictions of a car with fewer than 4 aligned points in that
 photo, and points carried from another photo, stay out (as before).
+
+A face aligned by ECC from a predicted pose, without matches of its own (a guided face: the pose search's and the
+completion's), is the same: the correspond stage fits the car's pose to its aligned faces' points
+(``correspond.complete.joint_pose``) and predicts the other points from it. Its loading is its misfit in six
+affine modes (:func:`.alignment_covariance.guided_loadings`); until session 31 its predictions stayed out too, and
+its misfit was counted on its own points alone (docs/calibration.md, "Session 31").
 """
 
 from __future__ import annotations
@@ -45,14 +51,17 @@ class PoseRows:
     n: int
 
 
-def pose_rows(prob, J: np.ndarray, rho: np.ndarray, col: dict[int, int], views_shared: bool = True
-              ) -> PoseRows | None:
+def pose_rows(prob, J: np.ndarray, rho: np.ndarray, col: dict[int, int], views_shared: bool = True,
+              block: np.ndarray | None = None, loading: np.ndarray | None = None) -> PoseRows | None:
     """The predictions of ``prob`` (:class:`.problem.Problem`; rows ``~measured``) counted as the module doc says.
     ``J`` (2M, P): the weighted pixel rows of every row (:func:`.uncertainty.pixel_rows`); ``rho`` (2M,) the robust
     loss's weights per row; ``col`` each carriage's first column; ``views_shared``: scale each face alignment's
     loading by the photos it is aligned in (:func:`.alignment_covariance.views_per_face`), as the measured points'.
-    None when no prediction qualifies."""
-    meas, block, loading = getattr(prob, "measured", None), getattr(prob, "block", None), getattr(prob, "loading", None)
+    ``block`` (M,), ``loading`` (M, 2, 8): the alignments to use (None: the problem's; with the guided faces'
+    of :func:`.alignment_covariance.guided_loadings`). None when no prediction qualifies."""
+    meas = getattr(prob, "measured", None)
+    block = getattr(prob, "block", None) if block is None else block
+    loading = getattr(prob, "loading", None) if loading is None else loading
     M = len(prob.P)
     if meas is None or block is None or loading is None or len(meas) != M or len(block) != M or meas.all() \
             or not (block >= 0).any():

@@ -24,7 +24,7 @@ from .model import SolveOptions
 from .problem import (Chains, Poses, Problem, carriage_weights, focal_groups, held_chains, prepare_cars,
                       record_warning)
 from .camera_term import inverse_psd, set_camera_response, set_pose_covariance
-from .alignment_covariance import alignment_term, views_per_face
+from .alignment_covariance import alignment_term, guided_loadings, views_per_face
 from .loss import chi2_quantile
 from .pose_covariance import pose_rows
 from .camera_residual import ViewCameraErrors, camera_directions, camera_shift_rows
@@ -187,7 +187,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
                      loss: str = "linear", loss_scale: float = 1.0, prior_dof: float = 5.0,
                      sigma_fixed: float | None = None, face_sigma: float | None = 0.0,
                      use_alignments: bool = True, views_shared: bool = True, count_pose: bool = True,
-                     camera_errors: ViewCameraErrors | None = None) -> CovarianceModel:
+                     camera_errors: ViewCameraErrors | None = None, guided_loading: bool = True) -> CovarianceModel:
     """Covariance in free-pose parameters at ``R, t, f`` (see the module doc). ``sigma_fixed``: use that pixel
     sigma (CRB); ``face_sigma``: pixels of the misfit shared by each group of points; ``use_alignments``: the
     points with a face alignment's loading (``Problem.loading``) take their error from it (:func:`alignment_term`)
@@ -196,17 +196,13 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     not independent from photo to photo; ``count_pose``: the pose predictions too (:mod:`.pose_covariance`);
     ``camera_errors``: the multi-view photos' stated errors; the residual directions they fill are set aside when
     the pixel sigma is pooled (:mod:`.camera_residual`; not in the variance-component split of automatic points'
-    noise and faces' misfit, ``face_sigma`` None)."""
+    noise and faces' misfit, ``face_sigma`` None). ``guided_loading``: a guided face's misfit is its alignment's
+    loading, which its pose predictions share (:func:`.alignment_covariance.guided_loadings`; with ``count_pose``
+    and ``use_alignments``); False: the six modes in the photo's axes on its own points alone (before session 31,
+    and what step 4's decisions still judge by: ``steps``)."""
     J, r, col, P = pixel_rows(prob, R, t, f, focal_views)
     D = camera_shift_rows(prob, R, t, J, col, camera_errors) if camera_errors is not None else None
-    groups = getattr(prob, "group", None)
-    if groups is None or len(groups) != len(prob.P):
-        groups = np.full(len(prob.P), -1)
-    block = getattr(prob, "block", None)
-    loading = getattr(prob, "loading", None)
-    ecc = getattr(prob, "ecc", None)  # each point's face alignment's ECC correlation (face_misfit_px), NaN: none
-    if ecc is None or len(ecc) != len(prob.P):
-        ecc = np.full(len(prob.P), np.nan)
+    groups, block, loading, ecc = _row_arrays(prob)
     # points of faces aligned by ECC without matches of their own (an ECC, no alignment): placed by one warp, their
     # error is the face's (the shared misfit below) and a remainder of GUIDED_NOISE_PX, not the pooled pixel noise
     own = block if block is not None and len(block) == len(prob.P) else np.full(len(prob.P), -1)
@@ -214,8 +210,13 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     if not use_alignments or block is None or len(block) != len(prob.P) or sigma_fixed is not None \
             or face_sigma is None:
         block, loading = np.full(len(prob.P), -1), np.zeros((len(prob.P), 2, 8))
+    own_aligned = block >= 0  # faces aligned from matches of their own
+    guided_blk = np.zeros(len(prob.P), dtype=bool)
+    if count_pose and use_alignments and guided_loading and guided_pt.any():  # its misfit: its alignment's loading
+        block, loading, guided_blk = guided_loadings(block, loading, guided_pt & (groups >= 0), groups, prob.view,
+                                                     prob.uv, face_misfit_px(ecc, face_sigma))
     pose = pose_rows(prob, J, np.repeat(_robust_weights((r.reshape(-1, 2) ** 2).sum(1), loss, loss_scale), 2), col,
-                     views_shared) if count_pose and (block >= 0).any() else None
+                     views_shared, block, loading) if count_pose and (block >= 0).any() else None
     uv_obs, w_row, views = prob.uv, prob.w, prob.view
     # predictions (points projected from a face's pose, points carried from another photo) guide the fit but
     # are functions of the measured points: counting them would claim information twice
@@ -226,6 +227,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         D = D[keep] if D is not None else None
         groups, uv_obs, w_row, views = groups[meas], uv_obs[meas], w_row[meas], views[meas]
         block, loading, ecc, guided_pt = block[meas], loading[meas], ecc[meas], guided_pt[meas]
+        own_aligned, guided_blk = own_aligned[meas], guided_blk[meas]
         w2 = np.repeat(prob.w_noise[meas] ** 2, 2)
         M = int(meas.sum())
     else:
@@ -262,7 +264,7 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     elif vc is not None:
         sigma, sigma_hat, dof = vc.sigma_px, vc.sigma_px, vc.dof
         q = float(stdtrit(dof, 0.975))
-    elif aligned.all() and len(aligned):
+    elif own_aligned.all() and len(own_aligned):
         # every measured point's error is its alignment's, known from its matches (2 N - 8 residual degrees of
         # freedom each, N >= 8): the pixel sigma is no point's error (and the cost's weights are the configured's)
         sigma, sigma_hat, dof, q = _pooled_sigma(r, w2, M, Hp_unit, Hprior, sigma_cfg, prior_dof, assemble,
@@ -279,20 +281,19 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     H, Hi = assemble(sw)
     G = Gp_unit * (sigma**2 / sw**4) + Gg_unit * (GUIDED_NOISE_PX**2 / sw**4) + Hprior
     misfit_groups = np.where(block >= 0, -1, groups)  # an aligned point's face error is its alignment's
-    face_max = aligned_max = math.nan
+    aligned_max = math.nan
+    face_max = float(face_misfit_px(ecc[guided_blk], face_sigma).max()) if guided_blk.any() else math.nan
     if vc is not None and vc.face_sigmas_px:  # each face its own misfit
         G = G + _shared_misfit(J * rho[:, None], groups, views, uv_obs, w_row,
                                np.square(vc.face_sigmas_px)) / sw**4
-    elif face_sigma > 0:
-        tau = face_misfit_px(ecc, face_sigma)  # each face's misfit: the mean square over its photos' points
-        face_max = float(tau[misfit_groups >= 0].max()) if (misfit_groups >= 0).any() else math.nan
-        scale = [float(np.mean(tau[misfit_groups == g] ** 2)) / face_sigma**2
-                 for g in np.unique(misfit_groups[misfit_groups >= 0])]
-        G = G + face_sigma**2 / sw**4 * _shared_misfit(J * rho[:, None], misfit_groups, views, uv_obs, w_row,
-                                                          scale)
+    elif face_sigma > 0 and (misfit_groups >= 0).any():
+        G_face, own_max = _ecc_misfit(J * rho[:, None], misfit_groups, ecc, face_sigma, views, uv_obs, w_row)
+        G = G + G_face / sw**4
+        face_max = own_max if math.isnan(face_max) else max(face_max, own_max)
     if (block >= 0).any():
         G = G + alignment_term(J * rho[:, None], block, loading, w_row, pose and pose.contrib) / sw**4
-        G_excess, aligned_max = _aligned_excess(J * rho[:, None], block, ecc, groups, views, uv_obs, w_row)
+        G_excess, aligned_max = _aligned_excess(J * rho[:, None], np.where(guided_blk, -1, block), ecc, groups,
+                                                views, uv_obs, w_row)
         G = G + G_excess / sw**4
     cov = Hi @ G @ Hi
     cov = 0.5 * (cov + cov.T)
@@ -300,6 +301,19 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         math.sqrt(float(np.sum((cam_dirs.T @ r) ** 2)) / (float(np.sum(w2)) * cam_dirs.shape[1] / (2.0 * M)))
     return CovarianceModel(cov, col, sigma, sigma_hat, dof, q, P, Hi, undetermined_parameters(H), face_sigma,
                            face_max, vc, camera_px, aligned_max)
+
+
+def _row_arrays(prob) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, np.ndarray]:
+    """Per point of ``prob``: its face group (-1: none), its face alignment and loading (None where the problem
+    has none) and its face alignment's ECC correlation (:func:`face_misfit_px`; NaN: none)."""
+    M = len(prob.P)
+    groups = getattr(prob, "group", None)
+    if groups is None or len(groups) != M:
+        groups = np.full(M, -1)
+    ecc = getattr(prob, "ecc", None)
+    if ecc is None or len(ecc) != M:
+        ecc = np.full(M, np.nan)
+    return groups, getattr(prob, "block", None), getattr(prob, "loading", None), ecc
 
 
 def _pooled_sigma(r, w2, M, Hp_unit, Hprior, sigma_cfg, prior_dof, assemble, camera_dirs=None
@@ -325,6 +339,16 @@ def _pooled_sigma(r, w2, M, Hp_unit, Hprior, sigma_cfg, prior_dof, assemble, cam
             else sigma_cfg**2
         sig = max(math.sqrt(s2), 0.1 * sigma_cfg)
     return sig, sigma_hat, dof
+
+
+def _ecc_misfit(J: np.ndarray, groups: np.ndarray, ecc: np.ndarray, floor_px: float, views: np.ndarray,
+                uv: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, float]:
+    """The gradient covariance (as :func:`_shared_misfit`'s, per unit weight) of the faces' misfits on their own
+    points (``groups`` >= 0), each face's the mean square over its photos' points of :func:`face_misfit_px`, and
+    the largest of them (px per mode)."""
+    tau = face_misfit_px(ecc, floor_px)
+    scale = [float(np.mean(tau[groups == g] ** 2)) for g in np.unique(groups[groups >= 0])]
+    return _shared_misfit(J, groups, views, uv, w, scale), float(tau[groups >= 0].max())
 
 
 def face_misfit_px(ecc: np.ndarray, floor_px: float) -> np.ndarray:
@@ -400,12 +424,13 @@ def body_centre_cov(model: CovarianceModel, cars, R, k: int) -> np.ndarray:
 
 
 def solution_model(prob: Problem, poses: Poses, focal_views, chains: Chains, contact,
-                   options: SolveOptions) -> CovarianceModel:
-    """:func:`covariance_model` at a solution with the solve's options."""
+                   options: SolveOptions, guided_loading: bool = True) -> CovarianceModel:
+    """:func:`covariance_model` at a solution with the solve's options (``guided_loading`` as there)."""
     return covariance_model(prob, poses.R, poses.t, poses.f, focal_views, chains.members, chains.slacks, contact,
                             options.pixel_sigma_px,
                             options.robust_loss, options.loss_scale_px, options.prior_dof,
-                            face_sigma=options.face_sigma_px, camera_errors=options.camera_errors)
+                            face_sigma=options.face_sigma_px, camera_errors=options.camera_errors,
+                            guided_loading=guided_loading)
 
 
 def _carriage_chi2(prob: Problem, poses: Poses, sigma: float) -> dict[int, tuple[float, int, float]]:
