@@ -82,13 +82,16 @@ def alignment_phrase(n_aligned: int, more_px: float | None) -> str:
 def face_misfit_phrase(face_px: float, largest_px: float | None, estimated: bool) -> str:
     """What the ± include for the automatic faces without an alignment error of their own: their shared misfit
     ``face_px`` (estimated or configured), and, when a face's ECC correlation gave more, the largest
-    (``face_misfit_max_px`` of solution.json; docs/calibration.md, "Session 23")."""
+    (``face_misfit_max_px`` of solution.json; docs/calibration.md, "Session 23"); configured, it is the face's
+    alignment loading, in its own axes and shared with its pose predictions (docs/calibration.md, "Session 31")."""
     how = "estimated from the residuals" if estimated else "configured"
     if not estimated and largest_px is not None and float(largest_px) > face_px + 5e-3:
         how += (f"; up to {float(largest_px):.2f} px where a face's reference matched the photo less closely, from "
                 f"its alignment's correlation")
+    where = "" if estimated else (", in the face's own axes, less across it than along it, and carried into the "
+                                  "points predicted from the car's pose fitted to those faces")
     return (f"a misfit shared by each automatically matched face without its own alignment error ({face_px:.2f} px, "
-            f"{how})")
+            f"{how}){where}")
 
 
 def interval_scope(solution: dict, solver: Any, dem_accuracy_m: float | None) -> dict:
