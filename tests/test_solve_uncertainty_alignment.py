@@ -85,6 +85,25 @@ def _as_independent(model, prob, *a, **k):
         prob.measured = saved
 
 
+def _z_per_variant(sim, view, variants: dict, out: dict[str, list]) -> None:
+    """Solve the single carriage of ``sim`` in ``view`` once per covariance in ``variants`` (name -> a stand-in for
+    ``uncertainty.covariance_model``; pixel sigma 1 px) and add its body-centre errors over their sigmas to
+    ``out[name]``."""
+    c = sim.carriages[0]
+    for name, variant in variants.items():
+        model = uncertainty.covariance_model
+        uncertainty.covariance_model = variant
+        try:
+            res = solve_consist(sim.carriages, sim.links, [view],
+                                SolveOptions(pixel_sigma_px=1.0, face_sigma_px=0.15), terrain=None)
+        finally:
+            uncertainty.covariance_model = model
+        assert res.status == "converged"
+        cr, M = res.carriages[0], sim.truth[0]
+        truth = M[:3, :3] @ [0.0, 0.0, c.carriage_type.height_m / 2] + M[:3, 3]
+        out[name].extend((np.asarray(cr.body_centre_m) - truth) / np.asarray(cr.sigma_body_centre_m))
+
+
 def _z_with_pose_predictions(trials: int = 40, scale_px: float = 0.25) -> dict[str, np.ndarray]:
     """Body-centre errors over their sigmas for single carriages seen in one photo by four aligned points
     (loadings as above, each point's scaled by e^N(0, 1.2): a face's points near its matches and far out) whose
@@ -116,18 +135,7 @@ def _z_with_pose_predictions(trials: int = 40, scale_px: float = 0.25) -> dict[s
         c.observations = {view.name: [AlignedObservation(n, *(clean[i] + dy[i]), group="side",
                                                          loading=tuple(map(tuple, L[i]))) for i, n in enumerate(face)]
                           + [Observation(n, *p, True, 2.0, True) for n, p in zip(pred, uv_p)]}
-        for name, variant in variants.items():
-            model = uncertainty.covariance_model
-            uncertainty.covariance_model = variant
-            try:
-                res = solve_consist(sim.carriages, sim.links, [view],
-                                    SolveOptions(pixel_sigma_px=1.0, face_sigma_px=0.15), terrain=None)
-            finally:
-                uncertainty.covariance_model = model
-            assert res.status == "converged"
-            cr, M = res.carriages[0], sim.truth[0]
-            truth = M[:3, :3] @ [0.0, 0.0, c.carriage_type.height_m / 2] + M[:3, 3]
-            out[name].extend((np.asarray(cr.body_centre_m) - truth) / np.asarray(cr.sigma_body_centre_m))
+        _z_per_variant(sim, view, variants, out)
     return {k: np.array(v) for k, v in out.items()}
 
 
@@ -176,18 +184,7 @@ def _z_guided_with_predictions(trials: int = 40, ecc: float = 0.95) -> dict[str,
         c.observations = {view.name: [Observation(nm, *(clean[i] + dy[i]), group="side", ecc=ecc)
                                       for i, nm in enumerate(face)]
                           + [Observation(nm, *p, True, 2.0, True) for nm, p in zip(pred, uv_p)]}
-        for name, variant in variants.items():
-            model = uncertainty.covariance_model
-            uncertainty.covariance_model = variant
-            try:
-                res = solve_consist(sim.carriages, sim.links, [view],
-                                    SolveOptions(pixel_sigma_px=1.0, face_sigma_px=0.15), terrain=None)
-            finally:
-                uncertainty.covariance_model = model
-            assert res.status == "converged"
-            cr, M = res.carriages[0], sim.truth[0]
-            truth = M[:3, :3] @ [0.0, 0.0, c.carriage_type.height_m / 2] + M[:3, 3]
-            out[name].extend((np.asarray(cr.body_centre_m) - truth) / np.asarray(cr.sigma_body_centre_m))
+        _z_per_variant(sim, view, variants, out)
     return {k: np.array(v) for k, v in out.items()}
 
 

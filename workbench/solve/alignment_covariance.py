@@ -47,11 +47,11 @@ def views_per_face(block: np.ndarray, groups: np.ndarray, views: np.ndarray) -> 
     return n
 
 
-
 # The misfit of a face aligned by ECC without matches of its own (a guided face), per affine mode along the face,
 # as a share of its ECC misfit (uncertainty.face_misfit_px). Measured against the truth on the guided sides of
 # seeds 240000-, 241000-, 242000- (189 alignments; docs/calibration.md, "Session 31"): the shift along the face
-# 0.72, its stretch along 0.68 of that misfit; the modes across the face 0.21-0.28 (GUIDED_ACROSS)
+# 0.72, its stretch along 0.68 of that misfit; the modes across it 0.21-0.28 (guided_loadings takes them from the
+# face's shape)
 GUIDED_ALONG = 0.7
 
 
