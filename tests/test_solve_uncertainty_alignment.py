@@ -269,3 +269,48 @@ def test_an_aligned_face_that_matched_less_closely_adds_its_misfit():
     assert len(z[True]) == 10 * 3 * 3
     assert 0.75 < rms[True] < 1.3, rms
     assert rms[False] > 1.3 * rms[True], rms
+
+
+def test_a_carried_point_counts_as_its_source_seen_again():
+    """A point carried from another photo of the panorama (``Observation.carried``) is its source seen again: the
+    fit weighs it as a point of its own, so the covariance counts it with its source's alignment error
+    (``pose_covariance.carried_rows``). Two carriages on a chain, car 0's aligned points carried into a second
+    photo from the same place: the fit is the one of car 0's points at half their variance, and so are its
+    intervals, to 1e-6 (the same error counted twice: ``H`` and ``G`` as that problem's). Left out, the intervals
+    are those of the first photo alone, 24 % off."""
+    sim = simulate_consist(2, seed=5, pixel_sigma_px=0.0)
+    rng = np.random.default_rng(3)
+    a, b = sim.views[0], replace(sim.views[0], name="photo_b")
+    opts = SolveOptions(pixel_sigma_px=1.0, face_sigma_px=0.15, prediction_release=1.0)
+    drawn = {}
+    for k, c in enumerate(sim.carriages):
+        names = list(dict(c.observations[a.name]))
+        L = rng.normal(0.0, 0.5 / np.sqrt(8.0), (len(names), 2, 8))
+        uv = np.array([sim.clean_pixels[k][n] for n in names]) + np.einsum("nij,j->ni", L, rng.normal(size=8))
+        drawn[k] = (names, uv, L)
+
+    def solve(carry: bool, half: bool, model=None) -> tuple[np.ndarray, np.ndarray]:
+        for k, c in enumerate(sim.carriages):
+            names, uv, L = drawn[k]
+            s = 1.0 / np.sqrt(2.0) if half and k == 0 else None
+            obs = {a.name: [AlignedObservation(n, *p, True, s, False, "side", loading=tuple(map(tuple, Li)))
+                            for n, p, Li in zip(names, uv, L)]}
+            if carry and k == 0:
+                obs[b.name] = [Observation(n, *p, True, None, True, carried=True) for n, p in zip(names, uv)]
+            c.observations = obs
+        saved = uncertainty.covariance_model
+        uncertainty.covariance_model = model or saved
+        try:
+            res = solve_consist(sim.carriages, sim.links, [a, b] if carry else [a], opts, terrain=None)
+        finally:
+            uncertainty.covariance_model = saved
+        return (np.array([c.sigma_body_centre_m for c in res.carriages]),
+                np.array([c.body_centre_m for c in res.carriages]))
+
+    model = uncertainty.covariance_model
+    counted, at_carried = solve(True, False)
+    half, at_half = solve(False, True)
+    left_out, _ = solve(True, False, lambda *x, **k: model(*x, **{**k, "count_carried": False}))
+    np.testing.assert_allclose(at_carried, at_half, atol=1e-4)
+    np.testing.assert_allclose(counted, half, rtol=1e-6)
+    assert np.abs(left_out / half - 1).max() > 0.1

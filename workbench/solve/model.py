@@ -40,6 +40,9 @@ class Observation:
     # the ECC correlation of the face alignment that placed the point (automatic points; None: none): a face
     # without matches of its own takes its shared misfit from it (uncertainty.face_misfit_px)
     ecc: float | None = None
+    # a prediction carried from another photo of the panorama (correspond's method "carried"): that photo's point
+    # seen again along the same ray; the covariance counts it with its source's alignment error (pose_covariance)
+    carried: bool = False
 
 
 @dataclass(frozen=True, kw_only=True)

@@ -19,7 +19,8 @@ and a prediction ``x_p`` of the same car in that photo moves by ``J_p T d y``: i
 ``beta`` of the car in that photo is ``J_p T_beta L_beta`` (2, 8), the same ``xi`` as the face's points. With these
 rows in the sandwich ``H^-1 G H^-1`` (their weights in ``H`` as the fit has them, their correlated error in ``G``) the
 covariance is that of the estimator the solve runs. Predictions of a car with fewer than 4 aligned points in that
-photo, and points carried from another photo, stay out (as before).
+photo stay out (as before). A point carried from another photo of the panorama is its source seen again: it counts
+with its source's alignment error (:func:`carried_rows`, since session 31).
 
 A face aligned by ECC from a predicted pose, without matches of its own (a guided face: the pose search's and the
 completion's), is the same: the correspond stage fits the car's pose to its aligned faces' points
@@ -110,3 +111,65 @@ def pose_rows(prob, J: np.ndarray, rho: np.ndarray, col: dict[int, int], views_s
                     contrib[int(b)] = contrib.get(int(b), np.zeros((P, 8))) + Jw.T @ (w[p] * Lp)
                 n += 1
     return PoseRows(info, contrib, n) if n else None
+
+
+def carried_rows(prob, J: np.ndarray, r: np.ndarray, rho: np.ndarray, col: dict[int, int], block: np.ndarray,
+                 loading: np.ndarray, views_shared: bool = True, max_px: float = 1.5) -> PoseRows | None:
+    """The points carried from another photo of a panorama (``prob.carried``; correspond's ``method = "carried"``)
+    counted as what they are: a point found in photo a placed in photo b by the photos' homography, the same ray,
+    so its error is its source's mapped by that homography's derivative ``D = d x_b / d x_a`` (2, 2). The fit
+    weighs it as a point of its own; here it enters ``H`` with that weight and ``G`` with its source's face
+    alignment error: its loading ``D L_a`` on the source's alignment. The source is the carriage's measured,
+    aligned point of the same name in another photo whose residual, mapped by ``D``, comes within ``max_px`` of
+    the carried point's (the correspond stage keeps the most confident of several); ``D`` is taken from the two
+    rows' derivatives with respect to the point (photos from one place see a point's direction alone). A carried
+    point without such a source (carried from a prediction) stays out. ``J``, ``rho``, ``col`` as
+    :func:`pose_rows`, ``r`` (2M,) the weighted residuals; ``block``, ``loading`` the alignments (M,), (M, 2, 8).
+    None when none qualifies."""
+    carried = getattr(prob, "carried", None)
+    meas = getattr(prob, "measured", None)
+    M = len(prob.P)
+    if carried is None or meas is None or len(carried) != M or not carried.any():
+        return None
+    nface = views_per_face(np.where(meas, block, -1), prob.group, prob.view) if views_shared else \
+        np.where(block >= 0, 1.0, 0.0)
+    scale = np.sqrt(np.maximum(nface, 0.0))
+    w, P = prob.w, J.shape[1]
+    Jr, rr = J.reshape(M, 2, P), rho.reshape(M, 2)
+    res = r.reshape(M, 2) / np.where(w > 0, w, 1.0)[:, None]  # the residuals in pixels
+    info = np.zeros((P, P))
+    contrib: dict[int, np.ndarray] = {}
+    n = 0
+    for i in np.nonzero(carried & (w > 0))[0]:
+        k, c = int(prob.car[i]), col.get(int(prob.car[i]))
+        if c is None:
+            continue
+        same = np.nonzero((prob.car == k) & meas & (block >= 0) & (prob.view != prob.view[i])
+                          & np.all(np.isclose(prob.P, prob.P[i]), axis=1))[0]
+        Jb = Jr[i, :, c + 3:c + 6] / w[i]  # d x_b / d X (the point's derivative: the pose's translation columns)
+        best, best_d = None, max_px
+        for s in same:
+            Ja = Jr[s, :, c + 3:c + 6] / w[s]
+            D = Jb @ np.linalg.pinv(Ja, rcond=1e-8)
+            d = float(np.linalg.norm(res[i] - D @ res[s]))
+            if d < best_d:
+                best, best_d = (s, D), d
+        if best is None:
+            continue
+        s, D = best
+        Jw = Jr[i] * rr[i][:, None]
+        info += Jw.T @ Jr[i]
+        Lc = D @ (loading[s] * scale[s])  # (2, 8) on the source's alignment
+        contrib[int(block[s])] = contrib.get(int(block[s]), np.zeros((P, 8))) + Jw.T @ (w[i] * Lc)
+        n += 1
+    return PoseRows(info, contrib, n) if n else None
+
+
+def merged_rows(a: PoseRows | None, b: PoseRows | None) -> PoseRows | None:
+    """Two sets of counted predictions as one (their information added, their shares of each alignment summed)."""
+    if a is None or b is None:
+        return a if b is None else b
+    contrib = dict(a.contrib)
+    for k, v in b.contrib.items():
+        contrib[k] = contrib[k] + v if k in contrib else v
+    return PoseRows(a.info + b.info, contrib, a.n + b.n)

@@ -89,6 +89,7 @@ class Car:
     loadings: np.ndarray | None = None  # (n, 2, 8) each point's share of its face alignment's error, NaN: none
     on_track: bool = False  # marked still on the rails (CarriageInput.on_track)
     ecc: np.ndarray | None = None  # (n,) the ECC correlation of the point's face alignment (Observation.ecc), NaN: none
+    carried: np.ndarray | None = None  # (n,) bool: a prediction carried from another photo (Observation.carried)
 
 
 def record_warning(wlist: list, car: Car | None, kind: str, message: str) -> None:
@@ -109,8 +110,8 @@ class AlignedObservation(Observation):
 
 
 def _iter_observations(obs: Any):
-    """(point name, (u, v), sigma_px or None, derived, group or None, loading or None, ECC correlation or None) of
-    the visible observations of one view."""
+    """(point name, (u, v), sigma_px or None, derived, group or None, loading or None, ECC correlation or None,
+    carried) of the visible observations of one view."""
     if isinstance(obs, Mapping):
         for name, uv in obs.items():
             if uv is None:
@@ -118,17 +119,18 @@ def _iter_observations(obs: Any):
             if isinstance(uv, Observation):
                 if uv.visible:
                     yield (str(name), (uv.u, uv.v), uv.sigma_px, uv.derived, uv.group, getattr(uv, "loading", None),
-                           uv.ecc)
+                           uv.ecc, uv.carried)
                 continue
-            yield str(name), uv, None, False, None, None, None
+            yield str(name), uv, None, False, None, None, None, False
     else:
         for o in obs:
             if isinstance(o, Observation):
                 if o.visible:
-                    yield o.point, (o.u, o.v), o.sigma_px, o.derived, o.group, getattr(o, "loading", None), o.ecc
+                    yield (o.point, (o.u, o.v), o.sigma_px, o.derived, o.group, getattr(o, "loading", None), o.ecc,
+                           o.carried)
             else:
                 name, uv = o
-                yield str(name), uv, None, False, None, None, None
+                yield str(name), uv, None, False, None, None, None, False
 
 
 def _check_views(views: Sequence[View]) -> dict[str, int]:
@@ -147,14 +149,14 @@ def _check_views(views: Sequence[View]) -> dict[str, int]:
 def _prepare_one(i: int, c: CarriageInput, views: Sequence[View], vindex: dict[str, int],
                  options: SolveOptions) -> Car:
     ct = c.carriage_type
-    names, vi, P, uv, sc, der, grp, lds, eccs = [], [], [], [], [], [], [], [], []
+    names, vi, P, uv, sc, der, grp, lds, eccs, carried_fl = [], [], [], [], [], [], [], [], [], []
     for vname, obs in (c.observations or {}).items():
         if vname not in vindex:
             raise InputError(f"car {c.number}: observations for view {vname!r}, which is not among the views "
                              f"{list(vindex)}")
         intr = views[vindex[vname]].intrinsics
         seen: set[str] = set()
-        for name, pix, sig, derived, group, loading, ecc in _iter_observations(obs):
+        for name, pix, sig, derived, group, loading, ecc, carried in _iter_observations(obs):
             where = f"car {c.number}, view {vname!r}"
             if name not in ct.marked_points:
                 raise InputError(f"{where}: point {name!r} is not a marked point of type "
@@ -182,11 +184,13 @@ def _prepare_one(i: int, c: CarriageInput, views: Sequence[View], vindex: dict[s
                 raise InputError(f"{where}, point {name!r}: its alignment loading has shape {ld.shape}, not (2, 8)")
             lds.append(ld)
             eccs.append(np.nan if ecc is None or derived else float(ecc))
+            carried_fl.append(bool(carried) and bool(derived))
     body = np.array([0.0, 0.0, 0.5 * float(ct.height_m)])
     return Car(i, str(c.number), ct, names, np.asarray(vi, dtype=int), np.asarray(P, dtype=float).reshape(-1, 3),
                np.asarray(uv, dtype=float).reshape(-1, 2), sorted(set(names)), np.asarray(ct.coupler_front, float),
                np.asarray(ct.coupler_rear, float), body, np.asarray(sc, dtype=float), np.asarray(der, dtype=bool),
-               grp, np.asarray(lds, dtype=float).reshape(-1, 2, 8), bool(c.on_track), np.asarray(eccs, dtype=float))
+               grp, np.asarray(lds, dtype=float).reshape(-1, 2, 8), bool(c.on_track), np.asarray(eccs, dtype=float),
+               np.asarray(carried_fl, dtype=bool))
 
 
 def prepare_cars(carriages: Sequence[CarriageInput], views: Sequence[View], options: SolveOptions) -> list[Car]:
@@ -258,7 +262,7 @@ class Problem:
     def __init__(self, cars: list[Car], active: list[int], views: Sequence[View], weights: dict[int, float]):
         self.cars, self.views = cars, views
         self.active = active
-        rows_car, rows_view, P, uv, w, wv, meas, grp, lds, blk, ecc = [], [], [], [], [], [], [], [], [], [], []
+        rows_car, rows_view, P, uv, w, wv, meas, grp, lds, blk, ecc, crr = ([] for _ in range(12))
         bcodes: dict[tuple, int] = {}
         codes: dict[tuple, int] = {}
         for k in active:
@@ -281,6 +285,7 @@ class Problem:
             has = np.all(np.isfinite(ld), axis=(1, 2)) & np.array([g is not None for g in gs], bool)
             lds.append(np.where(has[:, None, None], ld, 0.0))
             ecc.append(c.ecc if c.ecc is not None and len(c.ecc) == len(c.P) else np.full(len(c.P), np.nan))
+            crr.append(c.carried if c.carried is not None and len(c.carried) == len(c.P) else np.zeros(len(c.P), bool))
             # one face alignment: the carriage's points of one face in one view
             blk.append(np.array([bcodes.setdefault((k, g, int(v)), len(bcodes)) if h else -1
                                  for g, v, h in zip(gs, c.views, has)], dtype=int))
@@ -297,6 +302,7 @@ class Problem:
         self.block = np.concatenate(blk) if blk else np.zeros(0, int)
         self.loading = np.concatenate(lds) if lds else np.zeros((0, 2, 8))
         self.ecc = np.concatenate(ecc) if ecc else np.zeros(0)  # each row's face alignment's ECC correlation, NaN
+        self.carried = np.concatenate(crr) if crr else np.zeros(0, bool)  # a prediction carried from another photo
         self.by_view = [np.nonzero(self.view == v)[0] for v in range(len(views))]
         self.by_car = {k: np.nonzero(self.car == k)[0] for k in active}
 

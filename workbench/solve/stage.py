@@ -149,7 +149,7 @@ def read_correspondences(project: Project, path: Path, views: list, panorama: An
             n_aligned += 1
         else:
             ob = Observation(point, float(a[0]), float(a[1]), True, sig_used, method in ("pose", "carried"), group,
-                             ecc)
+                             ecc, carried=method == "carried")
         out.setdefault(car, {}).setdefault(view, {})[point] = ob
         s = str(o.get("source", "manual"))
         sources[s] = sources.get(s, 0) + 1

@@ -34,12 +34,13 @@ CHI2_6_95 = 12.5916  # 95 % point of the chi-square distribution with 6 degrees 
 # and its face's, disagree more than the noise model allows once in 10,000 carriages: one of them is wrong
 CHI2_6_DOUBT = 27.8563
 # Step 4's decisions (step 4b's release of a car's predictions, the second look at a level carriage's wheels) judge
-# by the covariance with a guided face's misfit on its own points (uncertainty.covariance_model's guided_loading
-# False), the yardstick their limits were set with; the intervals count the guided faces' predictions with it.
-# Judged by the intervals' covariance, step 4b released the predictions of 3 more pose-search carriages on seeds
-# 240000- to 242000- (the measured points alone then placed one 3.7 m off), and 3 carriages ended 5.3-6.0 sigma
-# off unmarked where none had (docs/calibration.md, "Session 31")
-DECISIONS_GUIDED_LOADING = False
+# by the covariance with a guided face's misfit on its own points and the carried points left out
+# (uncertainty.covariance_model's guided_loading and count_carried False), the yardstick their limits were set
+# with; the intervals count the guided faces' predictions and the carried points. Judged by the intervals'
+# covariance, step 4b released the predictions of 3 more pose-search carriages on seeds 240000- to 242000- (the
+# measured points alone then placed one 3.7 m off), and 3 carriages ended 5.3-6.0 sigma off unmarked where none
+# had (docs/calibration.md, "Session 31")
+DECISIONS_MODEL = {"guided_loading": False, "count_carried": False}
 
 
 @dataclass
@@ -258,8 +259,7 @@ def _relevel(s: SolveContext, fit: ChainedFit, start: Poses, level: list[int], t
     seen not level (a derailed carriage the step-3 test could not tell) goes
     back to the lowest point's row, and step 4 is solved again from step 3's ``start``. Returns (problem, fit,
     wheels, dropped carriages)."""
-    model = solution_model(s.prob, fit.poses, s.focal_views, s.plan.chains, s.contact, s.options,
-                           guided_loading=DECISIONS_GUIDED_LOADING)
+    model = solution_model(s.prob, fit.poses, s.focal_views, s.plan.chains, s.contact, s.options, **DECISIONS_MODEL)
     contact = s.contact.terrain_contact if isinstance(s.contact, SoftRows) else s.contact
     wheels, dropped = dict(contact.wheels), []
     for k in level:
@@ -446,7 +446,7 @@ def step_predictions(s: SolveContext, fit: ChainedFit) -> tuple[ChainedFit, Prob
     nfev = rel.nfev
     s.nfev += rel.nfev
     rel_model = solution_model(released, rel.poses, s.focal_views, s.plan.chains, s.contact, options,
-                               guided_loading=DECISIONS_GUIDED_LOADING)
+                               **DECISIONS_MODEL)
     rel_sol = replace(rel, poses=rel.poses.copy())
 
     def shift(p: Poses) -> dict[int, float]:

@@ -26,7 +26,7 @@ from .problem import (Chains, Poses, Problem, carriage_weights, focal_groups, he
 from .camera_term import inverse_psd, set_camera_response, set_pose_covariance
 from .alignment_covariance import alignment_term, guided_loadings, views_per_face
 from .loss import chi2_quantile
-from .pose_covariance import pose_rows
+from .pose_covariance import carried_rows, merged_rows, pose_rows
 from .camera_residual import ViewCameraErrors, camera_directions, camera_shift_rows
 from .variance_components import (FALLBACK_FACE_SIGMA_PX, VarianceComponents, estimate_variance_components,
                                   face_modes)
@@ -187,7 +187,8 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
                      loss: str = "linear", loss_scale: float = 1.0, prior_dof: float = 5.0,
                      sigma_fixed: float | None = None, face_sigma: float | None = 0.0,
                      use_alignments: bool = True, views_shared: bool = True, count_pose: bool = True,
-                     camera_errors: ViewCameraErrors | None = None, guided_loading: bool = True) -> CovarianceModel:
+                     camera_errors: ViewCameraErrors | None = None, guided_loading: bool = True,
+                     count_carried: bool = True) -> CovarianceModel:
     """Covariance in free-pose parameters at ``R, t, f`` (see the module doc). ``sigma_fixed``: use that pixel
     sigma (CRB); ``face_sigma``: pixels of the misfit shared by each group of points; ``use_alignments``: the
     points with a face alignment's loading (``Problem.loading``) take their error from it (:func:`alignment_term`)
@@ -197,9 +198,9 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     ``camera_errors``: the multi-view photos' stated errors; the residual directions they fill are set aside when
     the pixel sigma is pooled (:mod:`.camera_residual`; not in the variance-component split of automatic points'
     noise and faces' misfit, ``face_sigma`` None). ``guided_loading``: a guided face's misfit is its alignment's
-    loading, which its pose predictions share (:func:`.alignment_covariance.guided_loadings`; with ``count_pose``
-    and ``use_alignments``); False: the six modes in the photo's axes on its own points alone (before session 31,
-    and what step 4's decisions still judge by: ``steps``)."""
+    loading, shared by its pose predictions (:func:`.alignment_covariance.guided_loadings`); ``count_carried``: the
+    points carried from another photo count with their source's error (:func:`.pose_covariance.carried_rows`); both
+    with ``count_pose`` (False: as before session 31, what step 4's decisions judge by: ``steps.DECISIONS_MODEL``)."""
     J, r, col, P = pixel_rows(prob, R, t, f, focal_views)
     D = camera_shift_rows(prob, R, t, J, col, camera_errors) if camera_errors is not None else None
     groups, block, loading, ecc = _row_arrays(prob)
@@ -215,8 +216,8 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
     if count_pose and use_alignments and guided_loading and guided_pt.any():  # its misfit: its alignment's loading
         block, loading, guided_blk = guided_loadings(block, loading, guided_pt & (groups >= 0), groups, prob.view,
                                                      prob.uv, face_misfit_px(ecc, face_sigma))
-    pose = pose_rows(prob, J, np.repeat(_robust_weights((r.reshape(-1, 2) ** 2).sum(1), loss, loss_scale), 2), col,
-                     views_shared, block, loading) if count_pose and (block >= 0).any() else None
+    pose = _prediction_rows(prob, J, r, col, block, loading, loss, loss_scale, views_shared, count_carried) \
+        if count_pose and (block >= 0).any() else None
     uv_obs, w_row, views = prob.uv, prob.w, prob.view
     # predictions (points projected from a face's pose, points carried from another photo) guide the fit but
     # are functions of the measured points: counting them would claim information twice
@@ -301,6 +302,14 @@ def covariance_model(prob, R, t, f, focal_views, chains, slacks, contact, sigma_
         math.sqrt(float(np.sum((cam_dirs.T @ r) ** 2)) / (float(np.sum(w2)) * cam_dirs.shape[1] / (2.0 * M)))
     return CovarianceModel(cov, col, sigma, sigma_hat, dof, q, P, Hi, undetermined_parameters(H), face_sigma,
                            face_max, vc, camera_px, aligned_max)
+
+
+def _prediction_rows(prob, J, r, col, block, loading, loss, loss_scale, views_shared, count_carried):
+    """The predictions the covariance counts (:func:`.pose_covariance.pose_rows`, and with ``count_carried`` the
+    carried points, :func:`.pose_covariance.carried_rows`), at the robust loss's weights of the residuals ``r``."""
+    rho = np.repeat(_robust_weights((r.reshape(-1, 2) ** 2).sum(1), loss, loss_scale), 2)
+    return merged_rows(pose_rows(prob, J, rho, col, views_shared, block, loading),
+                       carried_rows(prob, J, r, rho, col, block, loading, views_shared) if count_carried else None)
 
 
 def _row_arrays(prob) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, np.ndarray]:
@@ -424,13 +433,14 @@ def body_centre_cov(model: CovarianceModel, cars, R, k: int) -> np.ndarray:
 
 
 def solution_model(prob: Problem, poses: Poses, focal_views, chains: Chains, contact,
-                   options: SolveOptions, guided_loading: bool = True) -> CovarianceModel:
-    """:func:`covariance_model` at a solution with the solve's options (``guided_loading`` as there)."""
+                   options: SolveOptions, guided_loading: bool = True, count_carried: bool = True) -> CovarianceModel:
+    """:func:`covariance_model` at a solution with the solve's options (``guided_loading``, ``count_carried`` as
+    there)."""
     return covariance_model(prob, poses.R, poses.t, poses.f, focal_views, chains.members, chains.slacks, contact,
                             options.pixel_sigma_px,
                             options.robust_loss, options.loss_scale_px, options.prior_dof,
                             face_sigma=options.face_sigma_px, camera_errors=options.camera_errors,
-                            guided_loading=guided_loading)
+                            guided_loading=guided_loading, count_carried=count_carried)
 
 
 def _carriage_chi2(prob: Problem, poses: Poses, sigma: float) -> dict[int, tuple[float, int, float]]:
