@@ -47,6 +47,20 @@ def views_per_face(block: np.ndarray, groups: np.ndarray, views: np.ndarray) -> 
     return n
 
 
+def photo_affine_modes(d: np.ndarray) -> np.ndarray:
+    """(n, 2, 6) the six affine modes of a face's points in the photo's axes, each of unit RMS size: a shift in u
+    and in v, and ``d_u / s_u``, ``d_v / s_v`` in u and in v, with ``d`` (n, 2) px the points less their centroid
+    and ``s`` their RMS spreads (only the shifts for fewer than 3 points, or along an axis they do not spread)."""
+    n = len(d)
+    B = np.zeros((n, 2, 6))
+    B[:, 0, 0] = B[:, 1, 1] = 1.0
+    s = np.sqrt(np.mean(d**2, axis=0))
+    for j in range(2 if n >= 3 else 0):
+        if s[j] > 1e-6:
+            B[:, 0, 2 + j] = B[:, 1, 4 + j] = d[:, j] / s[j]
+    return B
+
+
 # The misfit of a face aligned by ECC without matches of its own (a guided face), per affine mode along the face,
 # as a share of its ECC misfit (uncertainty.face_misfit_px). Measured against the truth on the guided sides of
 # seeds 240000-, 241000-, 242000- (189 alignments; docs/calibration.md, "Session 31"): the shift along the face
@@ -93,11 +107,7 @@ def guided_loadings(block: np.ndarray, loading: np.ndarray, guided: np.ndarray, 
                 L[:, :, 2], L[:, :, 3] = k_a * r_a * a, k_a * r_c * a
                 L[:, :, 4], L[:, :, 5] = k_c * r_a * c, k_c * r_c * c
             else:  # no axes to take: the six modes in the photo's axes at the whole misfit, as uncertainty's
-                L[:, 0, 0] = L[:, 1, 1] = 1.0
-                sd = np.sqrt(np.mean(d**2, axis=0))
-                for j in range(2 if len(idx) >= 3 else 0):
-                    if sd[j] > 1e-6:
-                        L[:, 0, 2 + j] = L[:, 1, 4 + j] = d[:, j] / sd[j]
+                L[:, :, :6] = photo_affine_modes(d)
             loading[idx] = t * L
             block[idx] = nxt
             out[idx] = True

@@ -52,6 +52,14 @@ class PoseRows:
     n: int
 
 
+def _loading_scale(prob, meas: np.ndarray, block: np.ndarray, views_shared: bool) -> np.ndarray:
+    """(M,) the factor on each point's alignment loading: the square root of the photos its face is aligned in
+    (:func:`.alignment_covariance.views_per_face`, as the measured points' in the covariance), or 1."""
+    nface = views_per_face(np.where(meas, block, -1), prob.group, prob.view) if views_shared else \
+        np.where(block >= 0, 1.0, 0.0)
+    return np.sqrt(np.maximum(nface, 0.0))
+
+
 def pose_rows(prob, J: np.ndarray, rho: np.ndarray, col: dict[int, int], views_shared: bool = True,
               block: np.ndarray | None = None, loading: np.ndarray | None = None) -> PoseRows | None:
     """The predictions of ``prob`` (:class:`.problem.Problem`; rows ``~measured``) counted as the module doc says.
@@ -67,9 +75,7 @@ def pose_rows(prob, J: np.ndarray, rho: np.ndarray, col: dict[int, int], views_s
     if meas is None or block is None or loading is None or len(meas) != M or len(block) != M or meas.all() \
             or not (block >= 0).any():
         return None
-    nface = views_per_face(np.where(meas, block, -1), prob.group, prob.view) if views_shared else \
-        np.where(block >= 0, 1.0, 0.0)
-    scale = np.sqrt(np.maximum(nface, 0.0))
+    scale = _loading_scale(prob, meas, block, views_shared)
     w = prob.w
     P = J.shape[1]
     Jr = J.reshape(M, 2, P)
@@ -131,9 +137,7 @@ def carried_rows(prob, J: np.ndarray, r: np.ndarray, rho: np.ndarray, col: dict[
     M = len(prob.P)
     if carried is None or meas is None or len(carried) != M or not carried.any():
         return None
-    nface = views_per_face(np.where(meas, block, -1), prob.group, prob.view) if views_shared else \
-        np.where(block >= 0, 1.0, 0.0)
-    scale = np.sqrt(np.maximum(nface, 0.0))
+    scale = _loading_scale(prob, meas, block, views_shared)
     w, P = prob.w, J.shape[1]
     Jr, rr = J.reshape(M, 2, P), rho.reshape(M, 2)
     res = r.reshape(M, 2) / np.where(w > 0, w, 1.0)[:, None]  # the residuals in pixels

@@ -24,7 +24,7 @@ from .model import SolveOptions
 from .problem import (Chains, Poses, Problem, carriage_weights, focal_groups, held_chains, prepare_cars,
                       record_warning)
 from .camera_term import inverse_psd, set_camera_response, set_pose_covariance
-from .alignment_covariance import alignment_term, guided_loadings, views_per_face
+from .alignment_covariance import alignment_term, guided_loadings, photo_affine_modes, views_per_face
 from .loss import chi2_quantile
 from .pose_covariance import carried_rows, merged_rows, pose_rows
 from .camera_residual import ViewCameraErrors, camera_directions, camera_shift_rows
@@ -407,17 +407,7 @@ def _shared_misfit(J: np.ndarray, groups: np.ndarray, views: np.ndarray, uv: np.
         A = np.zeros((P, 6))
         for v in np.unique(views[groups == g]):
             idx = np.nonzero((groups == g) & (views == v))[0]
-            n = len(idx)
-            d = uv[idx] - uv[idx].mean(0)
-            s = np.sqrt(np.mean(d**2, axis=0))
-            B = np.zeros((2 * n, 6))
-            B[0::2, 0] = 1.0
-            B[1::2, 1] = 1.0
-            if n >= 3:
-                for j in range(2):
-                    if s[j] > 1e-6:
-                        B[0::2, 2 + j] = d[:, j] / s[j]
-                        B[1::2, 4 + j] = d[:, j] / s[j]
+            B = photo_affine_modes(uv[idx] - uv[idx].mean(0)).reshape(-1, 6)
             rows = np.stack([2 * idx, 2 * idx + 1], axis=1).reshape(-1)
             A += J[rows].T @ (B * np.repeat(w[idx], 2)[:, None])
         out += (1.0 if scale is None else float(scale[i])) * (A @ A.T)

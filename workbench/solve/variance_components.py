@@ -20,6 +20,8 @@ from typing import Callable
 
 import numpy as np
 
+from .alignment_covariance import photo_affine_modes
+
 __all__ = ["FALLBACK_FACE_SIGMA_PX", "VarianceComponents", "face_modes", "estimate_variance_components"]
 
 # the face misfit used where the residuals cannot tell it from the points' noise (the faces' modes take all
@@ -52,15 +54,8 @@ def face_modes(groups: np.ndarray, views: np.ndarray, uv: np.ndarray, w: np.ndar
         A = np.zeros((2 * M, 6))
         for v in np.unique(views[groups == g]):
             idx = np.nonzero((groups == g) & (views == v))[0]
-            d = uv[idx] - uv[idx].mean(0)
-            s = np.sqrt(np.mean(d**2, axis=0))
-            A[2 * idx, 0] = w[idx]
-            A[2 * idx + 1, 1] = w[idx]
-            if len(idx) >= 3:
-                for j in range(2):
-                    if s[j] > 1e-6:
-                        A[2 * idx, 2 + j] = w[idx] * d[:, j] / s[j]
-                        A[2 * idx + 1, 4 + j] = w[idx] * d[:, j] / s[j]
+            B = photo_affine_modes(uv[idx] - uv[idx].mean(0)) * w[idx, None, None]
+            A[2 * idx], A[2 * idx + 1] = B[:, 0], B[:, 1]
         out.append(A)
     return out
 
