@@ -935,7 +935,7 @@ def test_pose_of_an_aligned_face_rests_on_its_homography():
     truth = K.project((M[:3, :3] @ X + M[:3, 3])[None])[0]
 
     def err(det):
-        P = _pose(det, K)
+        P = _pose(det, K).cam_from_carriage
         return float(np.hypot(*(K.project((P[:3, :3] @ X + P[:3, 3])[None])[0] - truth)))
 
     aligned = FaceDetection(ref, "p.png", H, 300, 1.0, 0.99, P_px, R_px)

@@ -14,13 +14,13 @@ import itertools
 import logging
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from ..rolling_stock import CarriageType
 from .alignment import alignment_covariance
 from .complete import guided_face, joint_pose
+from .ground import FIT_DOF, FacePose, Ground, planar_pose
 from .match import FaceDetection, MatchOptions, PhotoFeatures, quad_overlap, detect_faces, refine_detection, support
 from .references import FACES, FaceReference, face_reference
 from .threads import ordered_map
@@ -34,12 +34,15 @@ CHAIN_CAP_M = 10.0
 
 @dataclass
 class CarInPhoto:
-    """A car's face found in a photo: the refined detection and its pose (cam_from_carriage, 4 x 4) or None."""
+    """A car's face found in a photo: the refined detection and its pose (cam_from_carriage, 4 x 4) or None, and,
+    for a face posed on its own, what chose its pose's branch (``"fit"``: the face's residuals; ``"ground"``: the
+    terrain overruled them, :mod:`.ground`; None: a face aligned from a pose, guided or searched)."""
 
     number: str
     detection: FaceDetection
     support: int
     cam_from_carriage: np.ndarray | None
+    branch: str | None = None
 
 
 @dataclass
@@ -78,34 +81,38 @@ def pose_correspondences(det: FaceDetection) -> tuple[np.ndarray, np.ndarray]:
     return g, det.transfer(g)
 
 
-def _pose(det: FaceDetection, K) -> np.ndarray | None:
-    """cam_from_carriage (4, 4) from a face (planar PnP in undistorted pixels, :func:`pose_correspondences`),
-    or None."""
+def _pose(det: FaceDetection, K, ct: CarriageType | None = None, ground: Ground | None = None) -> FacePose | None:
+    """A face's pose (planar PnP in undistorted pixels, :func:`pose_correspondences`; of its two branches the one
+    its fit and, given ``ground`` and the car's type ``ct``, the terrain prefer: :mod:`.ground`), or None."""
     if det.inlier_ref_px is None or len(det.inlier_ref_px) < 6:
         return None
     R_px, P_px = pose_correspondences(det)
-    X = det.ref.carriage_from_ref(R_px)
-    ok, rvec, tvec = cv2.solvePnP(X.astype(np.float64), P_px.astype(np.float64), K.K, None,
-                                  flags=cv2.SOLVEPNP_IPPE)
-    if not ok:
-        return None
-    rvec, tvec = cv2.solvePnPRefineLM(X, P_px.astype(np.float64), K.K, None, rvec, tvec)
-    M = np.eye(4)
-    M[:3, :3] = cv2.Rodrigues(rvec)[0]
-    M[:3, 3] = tvec.ravel()
-    if M[2, 3] <= 0:
-        return None
-    return M
+    dof = FIT_DOF if R_px is not det.inlier_ref_px else 2.0 * len(R_px) - 6.0  # an ECC lattice, or raw matches
+    return planar_pose(det.ref.carriage_from_ref(R_px), P_px, K.K, dof=dof, ct=ct, ground=ground)
+
+
+def _posed(c: CarInPhoto, photo: PhotoFeatures, types: dict[str, CarriageType], ground: Ground | None
+           ) -> CarInPhoto:
+    """``c`` with the pose of its face (:func:`_pose`) and what chose its branch."""
+    fp = _pose(c.detection, photo.intrinsics, types.get(c.number), ground)
+    c.cam_from_carriage, c.branch = (None, None) if fp is None else (fp.cam_from_carriage, fp.chosen_by)
+    if c.branch == "ground":
+        log.info("%s: car %s: its %s face's other branch, which the terrain prefers (clearance %s m, face "
+                 "residual %s px)", photo.name, c.number, c.detection.ref.face,
+                 " / ".join(f"{x:.2f}" for x in fp.clearance_m), " / ".join(f"{x:.3f}" for x in fp.rms_px))
+    return c
 
 
 def find_cars(photo: PhotoFeatures, refs: dict[str, list[FaceReference]], consist: list[tuple[str, str, str | None]],
               types: dict[str, CarriageType], opts: MatchOptions,
-              ref_cache: dict[tuple[str, str], FaceReference] | None = None) -> list[CarInPhoto]:
+              ref_cache: dict[tuple[str, str], FaceReference] | None = None,
+              ground: Ground | None = None) -> list[CarInPhoto]:
     """The cars' faces in one photo, assigned jointly, completed by their pose-guided faces.
 
     ``refs``: car number -> its face references; ``consist``: (number, type id, coupling_to_next) front to
     rear; ``types``: car number -> CarriageType; ``ref_cache``: references of the faces not matched by SIFT
-    (the roof), kept between the photos of a set.
+    (the roof), kept between the photos of a set; ``ground``: the photo's camera in the scene and the terrain,
+    which judge a one-face pose's two branches with the face's fit (:mod:`.ground`; None: the fit alone).
     """
     by_number = {n: {r.face: r for r in rs} for n, rs in refs.items()}
     usable = [r for rs in refs.values() for r in rs
@@ -187,13 +194,14 @@ def find_cars(photo: PhotoFeatures, refs: dict[str, list[FaceReference]], consis
                     continue
                 chosen.append((det, cars[b], int(Sg[a, b])))
     # 4. poses, and pairwise swaps of same-type assignments that shorten the held couplings
-    found = [CarInPhoto(n, det, s, _pose(det, photo.intrinsics)) for det, n, s in chosen]
+    found = [_posed(CarInPhoto(n, det, s, None), photo, types, ground) for det, n, s in chosen]
     found = _improve_by_chain(found, consist, types, photo, by_number, opts)
     # 5. refine the accepted faces
     if opts.refine:
         for c in found:
             c.detection = refine_detection(photo, c.detection, opts)
-            c.cam_from_carriage = _pose(c.detection, photo.intrinsics) if c.cam_from_carriage is not None else None
+            if c.cam_from_carriage is not None:
+                _posed(c, photo, types, ground)
     # a face found only by Hough clustering (few distinctive matches) must be confirmed by the dense
     # alignment of the whole face (without refinement there is none: the face is not kept)
     found = [c for c in found if not c.detection.hough or (c.detection.ecc or 0.0) >= opts.hough_min_ecc]
@@ -298,7 +306,7 @@ def _improve_by_chain(found: list[CarInPhoto], consist, types, photo, by_number,
                 det = FaceDetection(ref, photo.name, c.detection.photo_from_ref, c.detection.n_inliers,
                                     c.detection.rms_px, None, c.detection.inlier_photo_px, c.detection.inlier_ref_px,
                                     hough=c.detection.hough)
-                new.append(CarInPhoto(other, det, s, c.cam_from_carriage))
+                new.append(CarInPhoto(other, det, s, c.cam_from_carriage, c.branch))
             trial[i], trial[j] = new
             sc = score(trial)
             if sc > best + 1e-9 and min(x.support for x in new) >= opts.min_support:

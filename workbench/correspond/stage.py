@@ -38,6 +38,7 @@ from ..project import Project
 from . import cache, prefetch
 from ..files import correspondences as mf
 from .assign import find_cars, observations_of
+from .ground import Ground
 from .match import MatchOptions, PhotoFeatures, photo_features
 from .undistort import undistortion_maps
 from .parallel import STEPS, PhotoResult, default_workers, map_photos
@@ -298,7 +299,10 @@ class _PhotoMatcher:
             self._references()
         # (an entry that cannot be read, or could not be written, is computed here)
         pf = _cached_photo_features(self.project, p, self.intrinsics[p.name], opts, self.photo_file[p.name])
-        found = find_cars(pf, self.refs, consist, types, opts, self.ref_cache)
+        ground = None
+        if self.terrain is not None and p.name in self.poses:  # a one-face pose's branch judged on the terrain too
+            ground = Ground(self.poses[p.name], self.terrain, self.project.settings.terrain.dem_vertical_accuracy_m)
+        found = find_cars(pf, self.refs, consist, types, opts, self.ref_cache, ground)
         note("cars", f"faces of {len({c.number for c in found})} cars found")
         searched = None
         if opts.search and p.name in self.poses:
@@ -312,6 +316,7 @@ class _PhotoMatcher:
                  "faces": [{"carriage": c.number, "face": c.detection.ref.face,
                             "inliers": c.detection.n_inliers, "support": c.support,
                             "rms_px": round(c.detection.rms_px, 2), "guided": c.detection.guided,
+                            "branch": c.branch,
                             "ecc": None if c.detection.ecc is None else round(c.detection.ecc, 3)}
                            for c in found],
                  "points": len(points),
