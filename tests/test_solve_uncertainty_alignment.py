@@ -314,3 +314,48 @@ def test_a_carried_point_counts_as_its_source_seen_again():
     np.testing.assert_allclose(at_carried, at_half, atol=1e-4)
     np.testing.assert_allclose(counted, half, rtol=1e-6)
     assert np.abs(left_out / half - 1).max() > 0.1
+
+
+def test_a_point_carried_from_a_prediction_counts_as_that_prediction_seen_again():
+    """A prediction (a point projected from the car's pose fitted to its aligned face) carried into another photo
+    of the panorama is that prediction seen again: the covariance counts it with the prediction's loading on the
+    face alignment (``pose_covariance.carried_rows(..., predicted=...)``). Car 0's face aligned in photo a, two of
+    its points predicted there and carried into photo b from the same place: the fit and the intervals are those of
+    the predictions at half their variance without the copies, to 1e-6. Left out, they differ."""
+    sim = simulate_consist(2, seed=5, pixel_sigma_px=0.0)
+    rng = np.random.default_rng(4)
+    a, b = sim.views[0], replace(sim.views[0], name="photo_b")
+    opts = SolveOptions(pixel_sigma_px=1.0, face_sigma_px=0.15, prediction_release=1.0)
+    drawn = {}
+    for k, c in enumerate(sim.carriages):
+        names = list(dict(c.observations[a.name]))
+        L = rng.normal(0.0, 0.5 / np.sqrt(8.0), (len(names), 2, 8))
+        uv = np.array([sim.clean_pixels[k][n] for n in names]) + np.einsum("nij,j->ni", L, rng.normal(size=8))
+        uv[-2:] += rng.normal(0.0, 1.0, (2, 2))  # the predictions: off by their pose's error
+        drawn[k] = (names, uv, L)
+
+    def solve(carry: bool, half: bool) -> tuple[np.ndarray, np.ndarray, int]:
+        for k, c in enumerate(sim.carriages):
+            names, uv, L = drawn[k]
+            s_pred = 2.0 / np.sqrt(2.0) if half and k == 0 else 2.0
+            obs = {a.name: [AlignedObservation(n, *p, True, None, False, "side", loading=tuple(map(tuple, Li)))
+                            for n, p, Li in zip(names[:-2], uv[:-2], L[:-2])]
+                   + [Observation(n, *p, True, s_pred, True) for n, p in zip(names[-2:], uv[-2:])]}
+            if carry and k == 0:
+                obs[b.name] = [Observation(n, *p, True, 2.0, True, carried=True) for n, p in zip(names[-2:], uv[-2:])]
+            c.observations = obs
+        res = solve_consist(sim.carriages, sim.links, [a, b] if carry else [a], opts, terrain=None)
+        return (np.array([c.sigma_body_centre_m for c in res.carriages]),
+                np.array([c.body_centre_m for c in res.carriages]))
+
+    counted, at_carried = solve(True, False)
+    half, at_half = solve(False, True)
+    np.testing.assert_allclose(at_carried, at_half, atol=1e-4)
+    np.testing.assert_allclose(counted, half, rtol=1e-6)
+    saved = uncertainty.carried_rows
+    uncertainty.carried_rows = lambda *x, predicted=None, **k: saved(*x, **k)  # the copies left out
+    try:
+        left_out, _ = solve(True, False)
+    finally:
+        uncertainty.carried_rows = saved
+    assert np.abs(left_out / half - 1).max() > 0.02, left_out / half

@@ -20,7 +20,8 @@ and a prediction ``x_p`` of the same car in that photo moves by ``J_p T d y``: i
 rows in the sandwich ``H^-1 G H^-1`` (their weights in ``H`` as the fit has them, their correlated error in ``G``) the
 covariance is that of the estimator the solve runs. Predictions of a car with fewer than 4 aligned points in that
 photo stay out (as before). A point carried from another photo of the panorama is its source seen again: it counts
-with its source's alignment error (:func:`carried_rows`, since session 31).
+with its source's alignment error (:func:`carried_rows`, since session 31; one carried from a prediction, with
+the prediction's, since session 32).
 
 A face aligned by ECC from a predicted pose, without matches of its own (a guided face: the pose search's and the
 completion's), is the same: the correspond stage fits the car's pose to its aligned faces' points
@@ -31,7 +32,7 @@ its misfit was counted on its own points alone (docs/calibration.md, "Session 31
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -45,11 +46,13 @@ class PoseRows:
     """The counted predictions: ``info`` (P, P) their information ``sum J_p^T rho_p J_p`` (weighted rows, per
     pixel^2 of the solve's sigma, as ``Hp_unit``), ``contrib`` block -> (P, 8) their share of that face alignment's
     gradient ``sum_p J_p^T rho_p w_p L_p`` (to add to the block's in :func:`.alignment_covariance.alignment_term`),
-    and ``n`` how many predictions were counted."""
+    ``n`` how many predictions were counted, and ``loadings`` each counted prediction's row -> block -> its loading
+    ``L_p`` (2, 8) on that alignment (what a point carried from it inherits, :func:`carried_rows`)."""
 
     info: np.ndarray
     contrib: dict[int, np.ndarray]
     n: int
+    loadings: dict[int, dict[int, np.ndarray]] = field(default_factory=dict)
 
 
 def _loading_scale(prob, meas: np.ndarray, block: np.ndarray, views_shared: bool) -> np.ndarray:
@@ -82,6 +85,7 @@ def pose_rows(prob, J: np.ndarray, rho: np.ndarray, col: dict[int, int], views_s
     rr = rho.reshape(M, 2)
     info = np.zeros((P, P))
     contrib: dict[int, np.ndarray] = {}
+    loadings: dict[int, dict[int, np.ndarray]] = {}
     n = 0
     for k in prob.active:
         c = col[k]
@@ -111,33 +115,40 @@ def pose_rows(prob, J: np.ndarray, rho: np.ndarray, col: dict[int, int], views_s
                 Jw = Jr[p] * rr[p][:, None]  # weighted row, as in the sandwich
                 Ju = Jr[p, :, c:c + 6] / w[p]  # d x_p / d pose, unweighted
                 info += Jw.T @ Jr[p]
+                loadings[int(p)] = {}
                 for b in np.unique(bl):
                     i2 = np.repeat(bl == b, 2)
                     Lp = Ju @ T[:, i2] @ Lf[i2]  # (2, 8) on block b's xi
                     contrib[int(b)] = contrib.get(int(b), np.zeros((P, 8))) + Jw.T @ (w[p] * Lp)
+                    loadings[int(p)][int(b)] = Lp
                 n += 1
-    return PoseRows(info, contrib, n) if n else None
+    return PoseRows(info, contrib, n, loadings) if n else None
 
 
 def carried_rows(prob, J: np.ndarray, r: np.ndarray, rho: np.ndarray, col: dict[int, int], block: np.ndarray,
-                 loading: np.ndarray, views_shared: bool = True, max_px: float = 1.5) -> PoseRows | None:
+                 loading: np.ndarray, views_shared: bool = True, max_px: float = 1.5,
+                 predicted: dict[int, dict[int, np.ndarray]] | None = None) -> PoseRows | None:
     """The points carried from another photo of a panorama (``prob.carried``; correspond's ``method = "carried"``)
     counted as what they are: a point found in photo a placed in photo b by the photos' homography, the same ray,
     so its error is its source's mapped by that homography's derivative ``D = d x_b / d x_a`` (2, 2). The fit
     weighs it as a point of its own; here it enters ``H`` with that weight and ``G`` with its source's face
-    alignment error: its loading ``D L_a`` on the source's alignment. The source is the carriage's measured,
-    aligned point of the same name in another photo whose residual, mapped by ``D``, comes within ``max_px`` of
-    the carried point's (the correspond stage keeps the most confident of several); ``D`` is taken from the two
-    rows' derivatives with respect to the point (photos from one place see a point's direction alone). A carried
-    point without such a source (carried from a prediction) stays out. ``J``, ``rho``, ``col`` as
-    :func:`pose_rows`, ``r`` (2M,) the weighted residuals; ``block``, ``loading`` the alignments (M,), (M, 2, 8).
-    None when none qualifies."""
+    alignment error: its loading ``D L_a`` on the source's alignment. The source is the carriage's point of the
+    same name in another photo whose residual, mapped by ``D``, comes within ``max_px`` of the carried point's
+    (the correspond stage keeps the most confident of several): a measured, aligned point (its loading), or else a
+    counted prediction (``predicted``: :attr:`PoseRows.loadings` of :func:`pose_rows`, its loading on each of the
+    alignments its car's pose rests on). ``D`` is taken from the two rows' derivatives with respect to the point
+    (photos from one place see a point's direction alone). A carried point without such a source stays out.
+    ``J``, ``rho``, ``col`` as :func:`pose_rows`, ``r`` (2M,) the weighted residuals; ``block``, ``loading`` the
+    alignments (M,), (M, 2, 8). None when none qualifies."""
     carried = getattr(prob, "carried", None)
     meas = getattr(prob, "measured", None)
     M = len(prob.P)
     if carried is None or meas is None or len(carried) != M or not carried.any():
         return None
     scale = _loading_scale(prob, meas, block, views_shared)
+    predicted = predicted or {}
+    is_pred = np.zeros(M, bool)
+    is_pred[list(predicted)] = True
     w, P = prob.w, J.shape[1]
     Jr, rr = J.reshape(M, 2, P), rho.reshape(M, 2)
     res = r.reshape(M, 2) / np.where(w > 0, w, 1.0)[:, None]  # the residuals in pixels
@@ -148,23 +159,26 @@ def carried_rows(prob, J: np.ndarray, r: np.ndarray, rho: np.ndarray, col: dict[
         k, c = int(prob.car[i]), col.get(int(prob.car[i]))
         if c is None:
             continue
-        same = np.nonzero((prob.car == k) & meas & (block >= 0) & (prob.view != prob.view[i])
-                          & np.all(np.isclose(prob.P, prob.P[i]), axis=1))[0]
+        here = (prob.car == k) & (prob.view != prob.view[i]) & np.all(np.isclose(prob.P, prob.P[i]), axis=1)
         Jb = Jr[i, :, c + 3:c + 6] / w[i]  # d x_b / d X (the point's derivative: the pose's translation columns)
         best, best_d = None, max_px
-        for s in same:
-            Ja = Jr[s, :, c + 3:c + 6] / w[s]
-            D = Jb @ np.linalg.pinv(Ja, rcond=1e-8)
-            d = float(np.linalg.norm(res[i] - D @ res[s]))
-            if d < best_d:
-                best, best_d = (s, D), d
+        for sources in (np.nonzero(here & meas & (block >= 0))[0], np.nonzero(here & is_pred)[0]):
+            for s in sources:
+                Ja = Jr[s, :, c + 3:c + 6] / w[s]
+                D = Jb @ np.linalg.pinv(Ja, rcond=1e-8)
+                d = float(np.linalg.norm(res[i] - D @ res[s]))
+                if d < best_d:
+                    best, best_d = (s, D), d
+            if best is not None:
+                break  # a measured source first: a prediction only where none is
         if best is None:
             continue
         s, D = best
         Jw = Jr[i] * rr[i][:, None]
         info += Jw.T @ Jr[i]
-        Lc = D @ (loading[s] * scale[s])  # (2, 8) on the source's alignment
-        contrib[int(block[s])] = contrib.get(int(block[s]), np.zeros((P, 8))) + Jw.T @ (w[i] * Lc)
+        source = {int(block[s]): loading[s] * scale[s]} if meas[s] else predicted[int(s)]
+        for b, Ls in source.items():  # (2, 8) on each alignment the source's error comes from
+            contrib[b] = contrib.get(b, np.zeros((P, 8))) + Jw.T @ (w[i] * (D @ Ls))
         n += 1
     return PoseRows(info, contrib, n) if n else None
 
@@ -176,4 +190,4 @@ def merged_rows(a: PoseRows | None, b: PoseRows | None) -> PoseRows | None:
     contrib = dict(a.contrib)
     for k, v in b.contrib.items():
         contrib[k] = contrib[k] + v if k in contrib else v
-    return PoseRows(a.info + b.info, contrib, a.n + b.n)
+    return PoseRows(a.info + b.info, contrib, a.n + b.n, {**a.loadings, **b.loadings})

@@ -308,8 +308,9 @@ def _prediction_rows(prob, J, r, col, block, loading, loss, loss_scale, views_sh
     """The predictions the covariance counts (:func:`.pose_covariance.pose_rows`, and with ``count_carried`` the
     carried points, :func:`.pose_covariance.carried_rows`), at the robust loss's weights of the residuals ``r``."""
     rho = np.repeat(_robust_weights((r.reshape(-1, 2) ** 2).sum(1), loss, loss_scale), 2)
-    return merged_rows(pose_rows(prob, J, rho, col, views_shared, block, loading),
-                       carried_rows(prob, J, r, rho, col, block, loading, views_shared) if count_carried else None)
+    pose = pose_rows(prob, J, rho, col, views_shared, block, loading)
+    return merged_rows(pose, carried_rows(prob, J, r, rho, col, block, loading, views_shared,
+                                          predicted=pose and pose.loadings) if count_carried else None)
 
 
 def _row_arrays(prob) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None, np.ndarray]:
