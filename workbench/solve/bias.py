@@ -18,7 +18,7 @@ import numpy as np
 from ..core.geometry import exp_so3, rotation_angle_deg
 from .problem import Chains, Poses
 from ..core.camera import distort_with_derivs
-from .camera_term import inverse_psd
+from .camera_term import inverse_psd, pose_determined
 from .uncertainty import CovarianceModel, contact_rows, pixel_rows, prior_rows
 
 log = logging.getLogger(__name__)
@@ -182,11 +182,12 @@ def _cross_term(units: list[_Units], r0s: list[np.ndarray], Jw: np.ndarray, Hi: 
 
 
 def estimate_bias(prob, cars, R, t, f, focal_views, chains, slacks, contact, model: CovarianceModel,
-                  sigma_cfg: float) -> tuple[np.ndarray, dict]:
+                  sigma_cfg: float, hold: np.ndarray | None = None) -> tuple[np.ndarray, dict]:
     """Second-order bias (see the module doc) of the free-pose parameters at the solution ``R, t, f``: a vector in
     the order of ``model`` (per active carriage ``omega (3), origin (3)``, then each focal group's focal in px).
-    ``model``: :func:`.uncertainty.covariance_model` at this solution (its ``cov`` and pixel ``sigma``). Also
-    returns diagnostics (the two terms' sizes)."""
+    ``model``: :func:`.uncertainty.covariance_model` at this solution (its ``cov`` and pixel ``sigma``); ``hold``
+    (P,) bool: parameters held where they are (their bias 0, the others' as if they were known). Also returns
+    diagnostics (the two terms' sizes)."""
     col, P = model.col, model.P
     C = model.cov
     units = [u for u in (_pixel_units(prob, R, t, f, focal_views, col, float(model.sigma)),
@@ -197,6 +198,9 @@ def estimate_bias(prob, cars, R, t, f, focal_views, chains, slacks, contact, mod
         u.rows = row0 + np.arange(u.q * len(u.S)).reshape(-1, u.q)
         row0 += u.q * len(u.S)
     Jw = np.vstack([u.J for u in units])
+    if hold is not None and hold.any():
+        Jw = Jw * ~hold  # held parameters: no column (the pseudo-inverse gives them none)
+        C = C * np.outer(~hold, ~hold)
     Sdiag = np.concatenate([u.noise for u in units])
     Hi = inverse_psd(Jw.T @ Jw)
 
@@ -225,22 +229,38 @@ def correct(prob, cars, poses: Poses, focal_views, chains: Chains, contact, mode
     The safeguard: a second-order expansion is valid only where the bias is small against the estimate's spread.
     A carriage whose predicted bias exceeds ``max_over_sd`` standard deviations in any of its six pose components
     (rotation vector, origin) is left uncorrected (its bias set to zero; ``skipped`` names it); a focal whose
-    bias exceeds it leaves the focal uncorrected. When every carriage is skipped nothing is applied."""
+    bias exceeds it leaves the focal uncorrected. When every carriage is skipped nothing is applied.
+    A carriage whose measured points leave its pose undetermined (``model.undetermined``, or a covariance block that
+    is not one, :func:`.camera_term.pose_determined`: predictions or its chain placed it, and its covariance is that
+    of a numerically singular information; the solution gives it no interval) has no bias to correct: it is skipped, and
+    held where it is in the estimate (its columns and covariance out), so that its numbers (of any size, as a
+    singular matrix's inverse gives them) reach neither its chain neighbours' terms nor, through the chain, their
+    poses (seed 241027's 6223 once moved its neighbours 645 m that way)."""
     R, t, f = poses.R, poses.t, poses.f
+    und = model.undetermined
+    loose = [k for k in prob.active if (und is not None and und[model.col[k]:model.col[k] + 6].any())
+             or not pose_determined(model.cov[model.col[k]:model.col[k] + 6, model.col[k]:model.col[k] + 6])]
+    hold = np.zeros(model.P, bool)
+    for k in loose:
+        hold[model.col[k]:model.col[k] + 6] = True
+    if loose and und is not None:
+        hold[6 * len(prob.active):] |= und[6 * len(prob.active):]
     bias, diag = estimate_bias(prob, cars, R, t, f, focal_views, chains.members, chains.slacks, contact, model,
-                               sigma_cfg)
+                               sigma_cfg, hold)
     if not np.all(np.isfinite(bias)):
         log.warning("bias correction: the estimated bias is not finite; not applied")
         return BiasCorrection(False, note="not applied: the estimated bias is not finite")
     col = model.col
     sd = np.sqrt(np.maximum(np.diag(model.cov), 1e-300))
-    ratio = float(np.max(np.abs(bias) / sd)) if len(bias) else 0.0
     bias = bias.copy()
     skipped = []
+    for k in loose:
+        bias[col[k]:col[k] + 6] = 0.0
+    ratio = float(np.max(np.abs(bias) / sd)) if len(bias) else 0.0
     for k in prob.active:
         c = col[k]
         r_k = float(np.max(np.abs(bias[c:c + 6]) / sd[c:c + 6]))
-        if not r_k < max_over_sd:
+        if k not in loose and not r_k < max_over_sd:
             skipped.append({"number": cars[k].number, "bias_over_sd": r_k})
             bias[c:c + 6] = 0.0
     nA_ = len(prob.active)
@@ -252,6 +272,10 @@ def correct(prob, cars, poses: Poses, focal_views, chains: Chains, contact, mode
         names = ", ".join(f"{e['number']} ({e['bias_over_sd']:.2f} sd)" for e in skipped)
         why = (f"not applied to car(s) {names}: the second-order expansion does not hold where the bias is not "
                f"small against the spread (limit {max_over_sd:g} sd)")
+    if loose:
+        why = "; ".join(x for x in (why, f"not applied to car(s) {', '.join(cars[k].number for k in loose)}: its "
+                                         "measured points do not determine its pose") if x)
+        skipped += [{"number": cars[k].number, "bias_over_sd": None, "undetermined": True} for k in loose]
     if prob.active and len(skipped) == len(prob.active):
         return BiasCorrection(False, note=why, max_bias_over_sd=ratio, skipped=skipped)
     Rn, tn, fn = R.copy(), t.copy(), f.copy()
