@@ -271,6 +271,24 @@ def test_an_aligned_face_that_matched_less_closely_adds_its_misfit():
     assert rms[False] > 1.3 * rms[True], rms
 
 
+def _two_photos_from_one_place(seed: int, predicted: int = 0):
+    """Two carriages on a chain seen in two photos from one place (the second a copy of the first's view): per
+    carriage its points' names, pixels (each moved by its alignment loading, ``L`` (n, 2, 8), on one draw of the
+    face's ``xi``; the last ``predicted`` also 1 px off at random, as a pose's predictions are) and loadings."""
+    sim = simulate_consist(2, seed=5, pixel_sigma_px=0.0)
+    rng = np.random.default_rng(seed)
+    a, b = sim.views[0], replace(sim.views[0], name="photo_b")
+    drawn = {}
+    for k, c in enumerate(sim.carriages):
+        names = list(dict(c.observations[a.name]))
+        L = rng.normal(0.0, 0.5 / np.sqrt(8.0), (len(names), 2, 8))
+        uv = np.array([sim.clean_pixels[k][n] for n in names]) + np.einsum("nij,j->ni", L, rng.normal(size=8))
+        if predicted:
+            uv[-predicted:] += rng.normal(0.0, 1.0, (predicted, 2))
+        drawn[k] = (names, uv, L)
+    return sim, a, b, SolveOptions(pixel_sigma_px=1.0, face_sigma_px=0.15, prediction_release=1.0), drawn
+
+
 def test_a_carried_point_counts_as_its_source_seen_again():
     """A point carried from another photo of the panorama (``Observation.carried``) is its source seen again: the
     fit weighs it as a point of its own, so the covariance counts it with its source's alignment error
@@ -278,16 +296,7 @@ def test_a_carried_point_counts_as_its_source_seen_again():
     photo from the same place: the fit is the one of car 0's points at half their variance, and so are its
     intervals, to 1e-6 (the same error counted twice: ``H`` and ``G`` as that problem's). Left out, the intervals
     are those of the first photo alone, 24 % off."""
-    sim = simulate_consist(2, seed=5, pixel_sigma_px=0.0)
-    rng = np.random.default_rng(3)
-    a, b = sim.views[0], replace(sim.views[0], name="photo_b")
-    opts = SolveOptions(pixel_sigma_px=1.0, face_sigma_px=0.15, prediction_release=1.0)
-    drawn = {}
-    for k, c in enumerate(sim.carriages):
-        names = list(dict(c.observations[a.name]))
-        L = rng.normal(0.0, 0.5 / np.sqrt(8.0), (len(names), 2, 8))
-        uv = np.array([sim.clean_pixels[k][n] for n in names]) + np.einsum("nij,j->ni", L, rng.normal(size=8))
-        drawn[k] = (names, uv, L)
+    sim, a, b, opts, drawn = _two_photos_from_one_place(3)
 
     def solve(carry: bool, half: bool, model=None) -> tuple[np.ndarray, np.ndarray]:
         for k, c in enumerate(sim.carriages):
@@ -322,17 +331,7 @@ def test_a_point_carried_from_a_prediction_counts_as_that_prediction_seen_again(
     face alignment (``pose_covariance.carried_rows(..., predicted=...)``). Car 0's face aligned in photo a, two of
     its points predicted there and carried into photo b from the same place: the fit and the intervals are those of
     the predictions at half their variance without the copies, to 1e-6. Left out, they differ."""
-    sim = simulate_consist(2, seed=5, pixel_sigma_px=0.0)
-    rng = np.random.default_rng(4)
-    a, b = sim.views[0], replace(sim.views[0], name="photo_b")
-    opts = SolveOptions(pixel_sigma_px=1.0, face_sigma_px=0.15, prediction_release=1.0)
-    drawn = {}
-    for k, c in enumerate(sim.carriages):
-        names = list(dict(c.observations[a.name]))
-        L = rng.normal(0.0, 0.5 / np.sqrt(8.0), (len(names), 2, 8))
-        uv = np.array([sim.clean_pixels[k][n] for n in names]) + np.einsum("nij,j->ni", L, rng.normal(size=8))
-        uv[-2:] += rng.normal(0.0, 1.0, (2, 2))  # the predictions: off by their pose's error
-        drawn[k] = (names, uv, L)
+    sim, a, b, opts, drawn = _two_photos_from_one_place(4, predicted=2)
 
     def solve(carry: bool, half: bool) -> tuple[np.ndarray, np.ndarray, int]:
         for k, c in enumerate(sim.carriages):
