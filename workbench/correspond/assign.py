@@ -64,13 +64,18 @@ class PointObservation:
 POSE_LATTICE = (13, 5)  # a face aligned by ECC gives its pose through this lattice (along, across) of its matched part
 
 
+def _on_lattice(det: FaceDetection) -> bool:
+    """Whether the face's pose rests on a lattice mapped by its ECC-aligned homography (else on its matches)."""
+    return det.ecc is not None and det.inlier_ref_px is not None and len(det.inlier_ref_px) >= 6
+
+
 def pose_correspondences(det: FaceDetection) -> tuple[np.ndarray, np.ndarray]:
     """(reference px, undistorted photo px) that a face's pose rests on: for a face aligned by ECC (dense,
     sub-pixel over the whole face), a lattice over the part of the face its matches span, mapped by the
     aligned homography; else its matches themselves (SIFT keypoints, a pixel or so of noise each, which
     tilts a one-face pose about the face's long axis: points off the plane move by pixels)."""
     Ri, Pi = det.inlier_ref_px, det.inlier_photo_px
-    if det.ecc is None or Ri is None or len(Ri) < 6:
+    if not _on_lattice(det):
         return Ri, Pi
     h, w = det.ref.image.shape[:2]
     lo, hi = Ri.min(0), Ri.max(0)
@@ -87,7 +92,7 @@ def _pose(det: FaceDetection, K, ct: CarriageType | None = None, ground: Ground 
     if det.inlier_ref_px is None or len(det.inlier_ref_px) < 6:
         return None
     R_px, P_px = pose_correspondences(det)
-    dof = FIT_DOF if R_px is not det.inlier_ref_px else 2.0 * len(R_px) - 6.0  # an ECC lattice, or raw matches
+    dof = FIT_DOF if _on_lattice(det) else 2.0 * len(R_px) - 6.0  # a homography's lattice, or raw matches
     return planar_pose(det.ref.carriage_from_ref(R_px), P_px, K.K, dof=dof, ct=ct, ground=ground)
 
 
